@@ -1,0 +1,7 @@
+"""``python -m hairwarp``: the command-line interface."""
+
+import sys
+
+from hairwarp.cli import main
+
+sys.exit(main())

@@ -1,0 +1,61 @@
+"""Enums and constants shared by kernels and host code.
+
+Kernels compare against these values directly (``IntEnum`` and ``IntFlag`` members are
+compile-time constants inside ``@wp.kernel``); ``hairwarp`` re-exports them.
+"""
+
+import enum
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+class Integrator(enum.IntEnum):
+    """Time integrators of the articulated strands.
+
+    Attributes:
+        SEMI_IMPLICIT: symplectic Euler, ``w += h qdd`` then ``q <- q exp(h w)``; joint springs explicit.
+        IMPLICIT_JOINTS: the same with joint springs and damping taken at the end of the step
+            (``D + hC + h^2 K`` inside ABA); stable for stiff hair at frame-rate steps.
+        RK4: classical fourth-order Runge-Kutta on the Lie group; for accuracy studies.
+    """
+
+    SEMI_IMPLICIT = 0
+    IMPLICIT_JOINTS = 1
+    RK4 = 2
+
+
+class Fault(enum.IntFlag):
+    """Bits of ``State.fault``, set on the device by the stage that found the problem.
+
+    Attributes:
+        NONFINITE_DYNAMICS: a joint acceleration, velocity or rotation became NaN or infinite in ABA.
+        JOINT_SPEED: a joint turned more than ``max_rotation_per_step`` radians in one step.
+        NONFINITE_COLLISION: the collision projection produced a non-finite vertex.
+        STRETCH: a segment's length left its rest length by more than the stretch tolerance.
+        CONTACT_OVERFLOW: more contacts than the buffers hold; some were dropped.
+    """
+
+    NONE = 0
+    NONFINITE_DYNAMICS = 1
+    JOINT_SPEED = 2
+    NONFINITE_COLLISION = 4
+    STRETCH = 8
+    CONTACT_OVERFLOW = 16
+
+
+class ColliderKind(enum.IntEnum):
+    """Shapes of strand colliders.
+
+    Attributes:
+        SPHERE: centre at the collider origin, ``radius``.
+        CAPSULE: segment from ``-half_height`` to ``+half_height`` along local z, ``radius``.
+        PLANE: local z = 0, normal +z; the half-space z < 0 is inside.
+        MESH: a closed triangle mesh in a ``wp.Mesh``.
+    """
+
+    SPHERE = 0
+    CAPSULE = 1
+    PLANE = 2
+    MESH = 3
