@@ -1,0 +1,280 @@
+"""The static description of a set of guide strands: ``StrandParams`` and ``Model``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+import warp as wp
+
+from hairwarp.state import Control, State
+
+
+class ModelError(ValueError):
+    """Invalid strand parameters or groom geometry; the message names the parameter or strand."""
+
+
+@dataclass(frozen=True)
+class StrandParams:
+    """Physical parameters of the guide strands (each guide stands for a wisp of hair).
+
+    Stiffness and damping are those of a continuous rod, so the look of a strand does not
+    change with the number of segments it is cut into: joint k gets ``K = EI / l_k`` and
+    ``C = damping / l_k``, with ``l_k`` the mean length of the two segments it joins (the first
+    segment's length at the root).
+
+    Attributes:
+        density: mass density of the segments [kg/m^3]; each segment is a thin solid cylinder.
+        radius: cylinder radius [m].
+        bend_stiffness: bending rigidity EI [N m^2].
+        twist_stiffness: torsional rigidity GJ [N m^2]; ``None`` takes ``bend_stiffness / 1.3``
+            (an isotropic rod with Poisson ratio 0.3).
+        damping: internal (bending and twisting) damping of the rod [N m^2 s].
+        root_stiffness_scale: factor on the root joint's stiffness and damping; a stiffer root
+            holds the hairstyle's parting and volume.
+        drag: linear air drag per unit length [N s/m^2]; 0 switches the drag and wind stage off.
+    """
+
+    density: float = 1300.0
+    radius: float = 2.0e-3
+    bend_stiffness: float = 2.0e-4
+    twist_stiffness: float | None = None
+    damping: float = 2.0e-7
+    root_stiffness_scale: float = 1.0
+    drag: float = 0.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None:
+                continue
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise ModelError(f"StrandParams.{f.name} must be a finite number, got {value!r}")
+            if value < 0.0:
+                raise ModelError(f"StrandParams.{f.name} must be >= 0, got {value!r}")
+        if self.density <= 0.0 or self.radius <= 0.0:
+            raise ModelError("StrandParams.density and StrandParams.radius must be > 0")
+
+    @property
+    def twist(self) -> float:
+        return self.bend_stiffness / 1.3 if self.twist_stiffness is None else self.twist_stiffness
+
+
+class Model:
+    """Guide strands as articulated chains: geometry, mass, stiffness and rest shape.
+
+    Built once with :meth:`build`, then read-only during a step. Per-segment arrays have
+    ``seg_count = strand_count * seg_per_strand`` entries, index ``g * S + k`` (k = 0 at the root).
+
+    Attributes:
+        device: the Warp device every array lives on.
+        strand_count: number of guide strands G.
+        seg_per_strand: segments per strand S.
+        seg_count, vert_count: G*S and G*(S+1).
+        seg_length: segment length [m], float32 (G*S,).
+        seg_mass: segment mass [kg], float32 (G*S,).
+        seg_inertia: principal moments about the centre of mass [kg m^2], vec3 (G*S,), body axes.
+        strand_root_pos: root point in the head frame [m], vec3 (G,).
+        joint_rest_q: rest rotation of each joint (parent from child), quat (G*S,).
+        joint_stiffness: (bend, bend, twist) [N m/rad], vec3 (G*S,), child frame.
+        joint_damping: (bend, bend, twist) [N m s/rad], vec3 (G*S,), child frame.
+        joint_q0: initial joint rotations, quat (G*S,) (the groom's own shape).
+        gravity: [m/s^2], world.
+        drag: air drag per unit length [N s/m^2] (0: off).
+        rest_vertex_positions: numpy (G, S+1, 3) float64, world pose at build time (head at identity).
+        root_uv: numpy (G, 2) scalp coordinates of the roots, or None.
+        root_normal: numpy (G, 3) scalp normals at the roots, or None.
+        grid_shape: (rows, cols) of a generator's root grid, or None.
+        params: the :class:`StrandParams` it was built with.
+    """
+
+    def __init__(self):
+        raise TypeError("use Model.build(groom, params, segments=...)")
+
+    @classmethod
+    def build(
+        cls,
+        groom,
+        params: StrandParams | None = None,
+        *,
+        segments: int = 20,
+        device=None,
+        gravity=(0.0, 0.0, -9.81),
+        rest_vertices=None,
+    ) -> Model:
+        """Build a model from a groom, resampled to ``segments`` equal segments per strand.
+
+        Args:
+            groom: a :class:`hairwarp.Groom`, or an array (G, segments+1, 3) of vertices already
+                resampled (root first, metres, Z up).
+            params: strand parameters; defaults to ``StrandParams()``.
+            segments: simulation segments per strand S.
+            device: Warp device ("cpu", "cuda:0"); the default device when None.
+            gravity: gravitational acceleration [m/s^2], world.
+            rest_vertices: optional (G, segments+1, 3) rest shape when it differs from the
+                initial shape given by ``groom``.
+        """
+        params = params or StrandParams()
+        if int(segments) < 1:
+            raise ModelError(f"segments must be >= 1, got {segments}")
+        S = int(segments)
+        verts = _vertices_of(groom, S)
+        rest = verts if rest_vertices is None else _vertices_of(rest_vertices, S)
+        if rest.shape != verts.shape:
+            raise ModelError(f"rest_vertices has shape {rest.shape}, the groom {verts.shape}")
+
+        self = object.__new__(cls)
+        self.device = wp.get_device(device)
+        G = verts.shape[0]
+        self.strand_count = G
+        self.seg_per_strand = S
+        self.seg_count = G * S
+        self.vert_count = G * (S + 1)
+        self.params = params
+        self.gravity = wp.vec3(*[float(g) for g in gravity])
+        self.drag = float(params.drag)
+        self.rest_vertex_positions = rest
+        self.root_uv = getattr(groom, "root_uv", None)
+        self.root_normal = getattr(groom, "root_normal", None)
+        self.grid_shape = getattr(groom, "grid_shape", None)
+
+        lengths = np.linalg.norm(np.diff(verts, axis=1), axis=2)  # (G, S)
+        short = np.flatnonzero(lengths.min(axis=1) <= 0.0)
+        if short.size:
+            raise ModelError(f"strand {short[0]} has a zero-length segment after resampling to {S} segments")
+        rest_q = rest_joint_rotations(rest)
+        q0 = rest_q if rest_vertices is None else rest_joint_rotations(verts)
+
+        r = params.radius
+        mass = params.density * math.pi * r * r * lengths
+        i_perp = mass * (3.0 * r * r + lengths**2) / 12.0
+        i_axial = 0.5 * mass * r * r
+        inertia = np.stack([i_perp, i_perp, i_axial], axis=-1)
+
+        # joint k joins segments k-1 and k: discrete rod stiffness EI / (mean length)
+        l_joint = lengths.copy()
+        l_joint[:, 1:] = 0.5 * (lengths[:, 1:] + lengths[:, :-1])
+        scale = np.ones((G, S))
+        scale[:, 0] = params.root_stiffness_scale
+        bend = params.bend_stiffness / l_joint * scale
+        twist = params.twist / l_joint * scale
+        stiffness = np.stack([bend, bend, twist], axis=-1)
+        damp = params.damping / l_joint * scale
+        damping = np.stack([damp, damp, damp], axis=-1)
+
+        def arr(a, dtype):
+            return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=self.device)
+
+        self.seg_length = arr(lengths.reshape(-1), float)
+        self.seg_mass = arr(mass.reshape(-1), float)
+        self.seg_inertia = arr(inertia.reshape(-1, 3), wp.vec3)
+        self.strand_root_pos = arr(verts[:, 0], wp.vec3)
+        self.joint_rest_q = arr(rest_q.reshape(-1, 4), wp.quat)
+        self.joint_q0 = arr(q0.reshape(-1, 4), wp.quat)
+        self.joint_stiffness = arr(stiffness.reshape(-1, 3), wp.vec3)
+        self.joint_damping = arr(damping.reshape(-1, 3), wp.vec3)
+        return self
+
+    def state(self) -> State:
+        """A new state in the initial configuration (the groom's shape), at rest, with its world quantities."""
+        state = State(self)
+        state.joint_q.assign(self.joint_q0)
+        from hairwarp.solver import forward_kinematics
+
+        forward_kinematics(self, state, self.control())
+        return state
+
+    def control(self) -> Control:
+        """New animated inputs: head at its build pose, at rest, no wind."""
+        return Control(self)
+
+
+def _vertices_of(groom, segments: int) -> np.ndarray:
+    if isinstance(groom, np.ndarray) or isinstance(groom, (list, tuple)):
+        verts = np.asarray(groom, dtype=np.float64)
+        if verts.ndim != 3 or verts.shape[1] != segments + 1 or verts.shape[2] != 3:
+            raise ModelError(
+                f"vertex array must have shape (G, {segments + 1}, 3) for {segments} segments, got {verts.shape}"
+            )
+    else:
+        verts = np.asarray(groom.resample(segments), dtype=np.float64)
+    if verts.shape[0] == 0:
+        raise ModelError("the groom has no strands")
+    bad = np.flatnonzero(~np.isfinite(verts).all(axis=(1, 2)))
+    if bad.size:
+        raise ModelError(f"strand {bad[0]} has non-finite vertices")
+    return verts
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Minimal rotation matrices taking unit vectors a to b, (N, 3) -> (N, 3, 3) (Rodrigues)."""
+    c = np.cross(a, b)
+    d = np.einsum("ni,ni->n", a, b)
+    s = np.linalg.norm(c, axis=1)
+    axis = np.zeros_like(a)
+    ok = s > 1e-12
+    axis[ok] = c[ok] / s[ok, None]
+    flip = (~ok) & (d < 0.0)
+    if flip.any():  # opposite vectors: turn by pi about any perpendicular axis
+        p = np.cross(a[flip], [1.0, 0.0, 0.0])
+        weak = np.linalg.norm(p, axis=1) < 1e-6
+        p[weak] = np.cross(a[flip][weak], [0.0, 1.0, 0.0])
+        axis[flip] = p / np.linalg.norm(p, axis=1, keepdims=True)
+    angle = np.arctan2(s, d)
+    K = np.zeros((len(a), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    sa, ca = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return eye + sa * K + (1.0 - ca) * (K @ K)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) to unit quaternions (..., 4) in (x, y, z, w), w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    q = np.empty((len(flat), 4))
+    tr = np.trace(flat, axis1=1, axis2=2)
+    for n, (m, t) in enumerate(zip(flat, tr)):
+        if t > 0.0:
+            s = 2.0 * math.sqrt(t + 1.0)
+            q[n] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+        else:
+            j = int(np.argmax(np.diag(m)))
+            a, b = (j + 1) % 3, (j + 2) % 3
+            s = 2.0 * math.sqrt(max(1.0 + m[j, j] - m[a, a] - m[b, b], 1e-300))
+            v = np.empty(4)
+            v[j] = 0.25 * s
+            v[a] = (m[a, j] + m[j, a]) / s
+            v[b] = (m[b, j] + m[j, b]) / s
+            v[3] = (m[b, a] - m[a, b]) / s
+            q[n] = v
+    q *= np.where(q[:, 3:4] < 0.0, -1.0, 1.0)
+    return (q / np.linalg.norm(q, axis=1, keepdims=True)).reshape(R.shape[:-2] + (4,))
+
+
+def segment_rotations(vertices: np.ndarray) -> np.ndarray:
+    """World rotations (G, S, 3, 3) of the segments of a polyline set, with no twist.
+
+    Segment k's body -z points along its direction; the first segment takes the minimal
+    rotation from world -z, each next one the minimal rotation from its parent (parallel
+    transport), so the frames carry no twist.
+    """
+    d = np.diff(vertices, axis=1)
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    G, S, _ = d.shape
+    R = np.empty((G, S, 3, 3))
+    R[:, 0] = _rotation_between(np.broadcast_to([0.0, 0.0, -1.0], (G, 3)).copy(), d[:, 0])
+    for k in range(1, S):
+        R[:, k] = _rotation_between(d[:, k - 1], d[:, k]) @ R[:, k - 1]
+    return R
+
+
+def rest_joint_rotations(vertices: np.ndarray) -> np.ndarray:
+    """Joint rotations (G, S, 4) (x, y, z, w) that reproduce the vertices with the head at identity."""
+    R = segment_rotations(vertices)
+    parent = np.empty_like(R)
+    parent[:, 0] = np.eye(3)
+    parent[:, 1:] = R[:, :-1]
+    return matrix_to_quat(np.swapaxes(parent, -1, -2) @ R)

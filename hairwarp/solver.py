@@ -1,0 +1,244 @@
+"""``Solver.step``: the order of the stages of one time step, nothing else."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from hairwarp.kernels import articulated
+from hairwarp.kernels.types import Fault, Integrator
+
+
+class SimulationFault(RuntimeError):
+    """A simulation left its bounds; the message names the frame, the stage and what to change."""
+
+    def __init__(self, message: str, *, frame: int | None = None, stage: str = "", bits: int = 0):
+        super().__init__(message)
+        self.frame = frame
+        self.stage = stage
+        self.bits = bits
+
+
+def forward_kinematics(model, state, control):
+    """World segment frames, vertex positions and velocities of ``state`` from its joints."""
+    wp.launch(
+        articulated.forward_kinematics,
+        dim=model.strand_count,
+        inputs=[model.seg_per_strand, model.seg_length, model.strand_root_pos,
+                control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
+        outputs=[state.seg_xform, state.vertex_positions, state.vertex_velocities],
+        device=model.device,
+    )
+
+
+def _integrator(value) -> Integrator:
+    if isinstance(value, Integrator):
+        return value
+    try:
+        return Integrator[str(value).upper()]
+    except KeyError:
+        names = ", ".join(i.name.lower() for i in Integrator)
+        raise ValueError(f"unknown integrator {value!r}; choose one of {names}") from None
+
+
+class Solver:
+    """Advances guide strands by one time step.
+
+    Args:
+        model: the :class:`hairwarp.Model`.
+        integrator: "implicit_joints" (default; joint springs implicit, stable for stiff hair at
+            frame-rate steps), "semi_implicit" (symplectic Euler) or "rk4" (fourth order, for
+            accuracy studies).
+        colliders: a :class:`hairwarp.colliders.ColliderSet`, or None.
+        links: a :class:`hairwarp.interactions.StaticLinks`, or None.
+        contacts: a :class:`hairwarp.interactions.HairContacts`, or None.
+        max_rotation_per_step: fault bound [rad]: a joint turning further than this in one step
+            means the step no longer resolves the motion.
+
+    Everything a step needs is allocated here. ``step`` only launches kernels on
+    ``model.device`` and never copies to the host, so it can be captured in a graph; the step
+    size lives in a one-element device array, so a captured graph follows a new ``dt``.
+    """
+
+    def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
+                 max_rotation_per_step: float = 0.5):
+        self.model = model
+        self.integrator = _integrator(integrator)
+        self.colliders = colliders
+        self.links = links
+        self.contacts = contacts
+        self.max_rotation_per_step = float(max_rotation_per_step)
+        device = model.device
+        n = model.seg_count
+
+        self.dt = wp.zeros(1, dtype=float, device=device)
+        self._dt_host = None
+        self.aba_p = wp.zeros(n, dtype=wp.spatial_vector, device=device)
+        self.aba_c = wp.zeros(n, dtype=wp.spatial_vector, device=device)
+        self.aba_DA = wp.zeros(n, dtype=wp.mat33, device=device)
+        self.aba_DB = wp.zeros(n, dtype=wp.mat33, device=device)
+        self.aba_Du = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.joint_qdd = wp.zeros(n, dtype=wp.vec3, device=device)
+        if self.integrator == Integrator.RK4:
+            self.rk_q = wp.zeros(n, dtype=wp.quat, device=device)
+            self.rk_w = wp.zeros(n, dtype=wp.vec3, device=device)
+            self.rk_dq = wp.zeros(n, dtype=wp.vec3, device=device)
+            self.rk_dw = wp.zeros(n, dtype=wp.vec3, device=device)
+
+        self.has_drag = model.drag > 0.0
+        self.has_forces = self.has_drag or links is not None or contacts is not None
+        self.has_implicit_mass = links is not None or contacts is not None
+        m = n if self.has_forces else 1
+        self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
+        self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
+        self.seg_implicit_mass = wp.zeros(n if self.has_implicit_mass else 1, dtype=float, device=device)
+
+    # -- the step -------------------------------------------------------------------------
+
+    def step(self, state_in, state_out, control, dt: float):
+        """Advance ``state_in`` by ``dt`` seconds into ``state_out``.
+
+        ``state_in`` must hold its world quantities (a state from ``model.state()`` or from a
+        previous step does; after editing its joints call :meth:`forward_kinematics`).
+        """
+        self.set_dt(dt)
+        wp.copy(state_out.fault, state_in.fault)
+        if self.has_forces:
+            self._accumulate_forces(state_in, control)
+        self._integrate(state_in, state_out, control)
+        forward_kinematics(self.model, state_out, control)
+        if self.colliders is not None:
+            self.colliders.project(self.model, state_out, control, self.dt)
+        if self.links is not None:
+            self.links.break_links(self.model, state_out)
+
+    def set_dt(self, dt: float):
+        """Store the step size in the device array the kernels read (outside a capture)."""
+        if dt != self._dt_host:
+            if not dt > 0.0:
+                raise ValueError(f"dt must be > 0, got {dt}")
+            self.dt.fill_(float(dt))
+            self._dt_host = dt
+
+    def forward_kinematics(self, state, control):
+        """Recompute the world quantities of ``state`` from its joints."""
+        forward_kinematics(self.model, state, control)
+
+    def _accumulate_forces(self, state, control):
+        model = self.model
+        self.seg_force.zero_()
+        self.seg_torque.zero_()
+        if self.has_implicit_mass:
+            self.seg_implicit_mass.zero_()
+        if self.has_drag:
+            wp.launch(
+                articulated.air_drag,
+                dim=model.seg_count,
+                inputs=[model.seg_per_strand, model.seg_length, model.drag, control.wind,
+                        state.vertex_positions, state.vertex_velocities],
+                outputs=[self.seg_force, self.seg_torque],
+                device=model.device,
+            )
+        if self.links is not None:
+            self.links.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+        if self.contacts is not None:
+            self.contacts.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+
+    def _integrate(self, state_in, state_out, control):
+        model = self.model
+        common = [
+            model.seg_per_strand, model.seg_length, model.seg_mass, model.seg_inertia, model.strand_root_pos,
+            model.joint_rest_q, model.joint_stiffness, model.joint_damping, model.gravity, self.max_rotation_per_step,
+            control.head_xform, control.head_velocity, control.head_acceleration, self.dt,
+        ]
+        forces = [self.seg_force, self.seg_torque, int(self.has_forces), self.seg_implicit_mass,
+                  int(self.has_implicit_mass), state_in.joint_q, state_in.joint_qd,
+                  self.aba_p, self.aba_c, self.aba_DA, self.aba_DB, self.aba_Du, self.joint_qdd]
+        outputs = [state_out.joint_q, state_out.joint_qd, state_out.fault]
+        if self.integrator == Integrator.RK4:
+            wp.launch(articulated.integrate_rk4, dim=model.strand_count,
+                      inputs=common + forces + [self.rk_q, self.rk_w, self.rk_dq, self.rk_dw],
+                      outputs=outputs, device=model.device)
+        else:
+            implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
+            wp.launch(articulated.integrate_euler, dim=model.strand_count,
+                      inputs=common + [implicit] + forces, outputs=outputs, device=model.device)
+
+    # -- tools ----------------------------------------------------------------------------
+
+    def joint_accelerations(self, state, control, *, dt: float = 0.0, implicit: bool = False,
+                            seg_force=None, seg_torque=None) -> wp.array:
+        """Joint accelerations of ``state`` [rad/s^2] by ABA alone.
+
+        The external forces are those the solver's stages accumulate now, or ``seg_force`` and
+        ``seg_torque`` (world, torque about each segment's origin) when given. With ``implicit``
+        it solves ``(M + hC + h^2 K) qdd = -K theta - (C + hK) w - bias`` as the ``implicit_joints``
+        integrator does with step ``dt``.
+        """
+        model = self.model
+        self.dt.fill_(float(dt))
+        self._dt_host = None
+        has_ext = self.has_forces
+        if seg_force is not None:
+            has_ext = True
+        elif self.has_forces:
+            self._accumulate_forces(state, control)
+            seg_force, seg_torque = self.seg_force, self.seg_torque
+        else:
+            seg_force, seg_torque = self.seg_force, self.seg_torque
+        wp.launch(
+            articulated.aba_accelerations,
+            dim=model.strand_count,
+            inputs=[model.seg_per_strand, model.seg_length, model.seg_mass, model.seg_inertia, model.strand_root_pos,
+                    model.joint_rest_q, model.joint_stiffness, model.joint_damping, model.gravity,
+                    control.head_xform, control.head_velocity, control.head_acceleration, self.dt, int(implicit),
+                    seg_force, seg_torque, int(has_ext), self.seg_implicit_mass,
+                    int(self.has_implicit_mass), state.joint_q, state.joint_qd,
+                    self.aba_p, self.aba_c, self.aba_DA, self.aba_DB, self.aba_Du],
+            outputs=[self.joint_qdd],
+            device=model.device,
+        )
+        return self.joint_qdd
+
+    def check(self, state, frame: int, *, substeps: int | None = None):
+        """Raise :class:`SimulationFault` if a stage flagged a fault; call once per output frame.
+
+        Reads one integer from the device. Contact overflow is not fatal and is returned as the
+        bit so the caller can report it.
+        """
+        bits = int(state.fault.numpy()[0])
+        fatal = bits & ~int(Fault.CONTACT_OVERFLOW)
+        if fatal:
+            raise self._fault(Fault(bits), frame, substeps)
+        return Fault(bits)
+
+    def _fault(self, bits: Fault, frame: int, substeps: int | None) -> SimulationFault:
+        dt = self._dt_host
+        step = f"dt = {dt:.3g} s" + (f" ({substeps} substeps per frame)" if substeps else "")
+        more = "raise sim.substeps" if substeps else "use a smaller dt"
+        if bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
+            stage = "dynamics (aba + integrate)"
+            what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
+                    else f"a joint turned more than {self.max_rotation_per_step} rad in one step")
+            if self.integrator == Integrator.SEMI_IMPLICIT:
+                advice = (f"the explicit joint springs are unstable at {step}: use integrator = \"implicit_joints\", "
+                          f"{more}, or lower strands.bend_stiffness / strands.twist_stiffness")
+            else:
+                advice = (f"{more} (now {step}), lower the stiffness or the interaction stiffness, "
+                          "or slow the head motion")
+        elif bits & (Fault.NONFINITE_COLLISION | Fault.STRETCH):
+            stage = "collision (push-out)"
+            what = "the collision projection produced an invalid strand"
+            advice = f"{more} (now {step}) so colliders move less per step, or raise the collider thickness"
+        else:
+            stage = "unknown"
+            what = f"fault bits {int(bits)}"
+            advice = more
+        message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
+        return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
+
+
+def state_arrays(state) -> dict[str, np.ndarray]:
+    """Host copies of a state's arrays (for tests and tools; not for the step loop)."""
+    return {name: getattr(state, name).numpy() for name in
+            ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities")}

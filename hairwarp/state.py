@@ -1,0 +1,74 @@
+"""Per-step arrays (``State``) and animated inputs (``Control``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+class State:
+    """What a step reads and writes. Create with ``model.state()``.
+
+    Attributes:
+        joint_q: joint rotations, parent from child, quat (x, y, z, w), (G*S,).
+        joint_qd: joint angular velocities relative to the parent [rad/s], child frame, vec3 (G*S,).
+        seg_xform: world frame of each segment (origin at its top vertex, segment along body -z),
+            transform (G*S,).
+        vertex_positions: world vertex positions [m], vec3 (G*(S+1),), root first.
+        vertex_velocities: world vertex velocities [m/s], vec3 (G*(S+1),).
+        fault: bits of :class:`hairwarp.Fault` set on the device by the stage that found a
+            problem, int32 (1,); sticky across steps.
+    """
+
+    def __init__(self, model):
+        device = model.device
+        self.joint_q = wp.zeros(model.seg_count, dtype=wp.quat, device=device)
+        self.joint_qd = wp.zeros(model.seg_count, dtype=wp.vec3, device=device)
+        self.seg_xform = wp.zeros(model.seg_count, dtype=wp.transform, device=device)
+        self.vertex_positions = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
+        self.vertex_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
+        self.fault = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def assign(self, other: State):
+        """Copy every array of ``other`` into this state, in place."""
+        for name in ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault"):
+            wp.copy(getattr(self, name), getattr(other, name))
+
+
+class Control:
+    """Animated inputs of a step; device arrays updated in place so captured graphs see new values.
+
+    Attributes:
+        head_xform: world transform of the head, transform (1,); the groom's roots ride on it.
+        head_velocity: (world angular velocity [rad/s], world velocity of the head origin [m/s]),
+            spatial_vector (1,).
+        head_acceleration: (world angular acceleration [rad/s^2], classical acceleration of the
+            head origin [m/s^2]), spatial_vector (1,).
+        wind: wind velocity [m/s], world, vec3 (1,); acts through the air drag.
+    """
+
+    def __init__(self, model):
+        device = model.device
+        self.head_xform = wp.array([wp.transform_identity()], dtype=wp.transform, device=device)
+        self.head_velocity = wp.zeros(1, dtype=wp.spatial_vector, device=device)
+        self.head_acceleration = wp.zeros(1, dtype=wp.spatial_vector, device=device)
+        self.wind = wp.zeros(1, dtype=wp.vec3, device=device)
+
+    def set_head(self, position=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0), linear_velocity=(0.0, 0.0, 0.0),
+                 angular_velocity=(0.0, 0.0, 0.0), linear_acceleration=(0.0, 0.0, 0.0),
+                 angular_acceleration=(0.0, 0.0, 0.0)):
+        """Set the head pose (rotation as quaternion x, y, z, w) and its world velocities and accelerations."""
+        xform = np.concatenate([np.asarray(position, float), np.asarray(rotation, float)])
+        self.head_xform.assign(np.asarray([xform], dtype=np.float32))
+        self.head_velocity.assign(np.asarray([np.concatenate([angular_velocity, linear_velocity])], dtype=np.float32))
+        self.head_acceleration.assign(
+            np.asarray([np.concatenate([angular_acceleration, linear_acceleration])], dtype=np.float32)
+        )
+
+    def set_motion(self, sample):
+        """Set the head from a motion sample (``hairwarp.motion.MotionSample``)."""
+        self.set_head(sample.position, sample.rotation, sample.linear_velocity, sample.angular_velocity,
+                      sample.linear_acceleration, sample.angular_acceleration)
+
+    def set_wind(self, velocity):
+        self.wind.assign(np.asarray([velocity], dtype=np.float32))

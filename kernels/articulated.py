@@ -1,0 +1,544 @@
+"""Articulated strands: forward kinematics, Featherstone's ABA, time integration.
+
+One thread per strand. A strand is a serial chain of S rigid segments; joint k is a 3-DOF
+spherical joint between segment k and its parent (segment k-1, or the head for k = 0).
+Segment k's frame has its origin at vertex k and the segment along body -z; the child joint
+sits at the parent's (0, 0, -L). All dynamics quantities are in body frames (Featherstone's
+local convention, RBDA ch. 7); see ``spatial.py`` for the vector and quaternion conventions.
+
+Because a spherical joint's motion subspace is ``S = [I3; 0]``, the joint-space inertia of
+joint k is the rotational block ``A`` of the articulated inertia, ``U = I^A S = [A; B^T]``, and
+with no armature the inertia passed to the parent has only a translational block. Armature
+``hC + h^2 K`` (the implicit joint springs) makes the general blocks necessary, so the code keeps
+them; the three passes are ``aba_forward_pass1``, ``aba_backward_pass`` and ``aba_forward_pass2``.
+"""
+
+import warp as wp
+from hairwarp.kernels.spatial import (
+    inertia_shift,
+    quat_exp,
+    quat_log,
+    rotate_blocks,
+    segment_inertia_blocks,
+)
+from hairwarp.kernels.types import Fault
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def head_body_motion(head_xform: wp.transform, head_velocity: wp.spatial_vector, head_acceleration: wp.spatial_vector,
+                     gravity: wp.vec3):
+    """Head spatial velocity and acceleration in the head frame, gravity folded in.
+
+    Control gives world angular/linear velocity of the head origin and classical accelerations.
+    The body-frame spatial acceleration is d/dt of the body-frame velocity,
+    ``(R^T alpha, R^T a - omega_b x v_b)``; gravity enters as a base acceleration of -g (RBDA 5.3).
+    """
+    R = wp.transform_get_rotation(head_xform)
+    w_b = wp.quat_rotate_inv(R, wp.spatial_top(head_velocity))
+    v_b = wp.quat_rotate_inv(R, wp.spatial_bottom(head_velocity))
+    a_ang = wp.quat_rotate_inv(R, wp.spatial_top(head_acceleration))
+    a_lin = wp.quat_rotate_inv(R, wp.spatial_bottom(head_acceleration) - gravity) - wp.cross(w_b, v_b)
+    return wp.spatial_vector(w_b, v_b), wp.spatial_vector(a_ang, a_lin)
+
+
+@wp.func
+def joint_offset(
+    strand: int, k: int, i: int, seg_length: wp.array(dtype=float), strand_root_pos: wp.array(dtype=wp.vec3)
+):
+    """Position of joint k in its parent's frame: the root in the head frame, else the parent's tip."""
+    if k == 0:
+        return strand_root_pos[strand]
+    return wp.vec3(0.0, 0.0, -seg_length[i - 1])
+
+
+@wp.func
+def aba_forward_pass1(
+    strand: int,
+    S: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    head_rot: wp.quat,
+    v_head: wp.spatial_vector,
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    has_ext: int,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+):
+    """Outward pass: body velocities, velocity-product accelerations c and bias forces p."""
+    w_p = wp.spatial_top(v_head)
+    v_p = wp.spatial_bottom(v_head)
+    R_world = head_rot
+    for k in range(S):
+        i = strand * S + k
+        q = joint_q[i]
+        w = joint_qd[i]
+        r = joint_offset(strand, k, i, seg_length, strand_root_pos)
+        om = wp.quat_rotate_inv(q, w_p) + w
+        vl = wp.quat_rotate_inv(q, v_p + wp.cross(w_p, r))
+        aba_c[i] = wp.spatial_vector(wp.cross(om, w), wp.cross(vl, w))
+
+        m = seg_mass[i]
+        com = wp.vec3(0.0, 0.0, -0.5 * seg_length[i])
+        A, B = segment_inertia_blocks(m, seg_length[i], seg_inertia[i], 0.0)
+        n_I = A * om + B * vl
+        f_I = m * (vl + wp.cross(om, com))
+        p_ang = wp.cross(om, n_I) + wp.cross(vl, f_I)
+        p_lin = wp.cross(om, f_I)
+        R_world = R_world * q
+        if has_ext != 0:
+            p_ang = p_ang - wp.quat_rotate_inv(R_world, seg_torque[i])
+            p_lin = p_lin - wp.quat_rotate_inv(R_world, seg_force[i])
+        aba_p[i] = wp.spatial_vector(p_ang, p_lin)
+        w_p = om
+        v_p = vl
+
+
+@wp.func
+def aba_backward_pass(
+    strand: int,
+    S: int,
+    dt: float,
+    implicit: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    joint_rest_q: wp.array(dtype=wp.quat),
+    joint_stiffness: wp.array(dtype=wp.vec3),
+    joint_damping: wp.array(dtype=wp.vec3),
+    seg_implicit_mass: wp.array(dtype=float),
+    has_implicit_mass: int,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+):
+    """Inward pass: articulated inertias and bias forces, tip to root.
+
+    The chain has one child per body, so the child's contribution is carried in registers.
+    Stores ``D^-1 A``, ``D^-1 B`` and ``D^-1 u`` for the second outward pass.
+    """
+    cA = wp.mat33()
+    cB = wp.mat33()
+    cC = wp.mat33()
+    cn = wp.vec3()
+    cf = wp.vec3()
+    eye = wp.identity(n=3, dtype=float)
+    for kk in range(S):
+        k = S - 1 - kk
+        i = strand * S + k
+        extra = float(0.0)
+        if has_implicit_mass != 0:
+            extra = seg_implicit_mass[i]
+        A0, B0 = segment_inertia_blocks(seg_mass[i], seg_length[i], seg_inertia[i], extra)
+        A = A0 + cA
+        B = B0 + cB
+        C = (seg_mass[i] + extra) * eye + cC
+        p = aba_p[i]
+        n = wp.spatial_top(p) + cn
+        f = wp.spatial_bottom(p) + cf
+
+        q = joint_q[i]
+        w = joint_qd[i]
+        K = joint_stiffness[i]
+        Cd = joint_damping[i]
+        theta = quat_log(wp.quat_inverse(joint_rest_q[i]) * q)
+        tau = -wp.cw_mul(K, theta) - wp.cw_mul(Cd, w)
+        D = A
+        if implicit != 0:
+            # springs and dampers at the end of the step: (M + hC + h^2 K) qdd = -K theta - (C + hK) w - bias
+            tau = tau - dt * wp.cw_mul(K, w)
+            arm = dt * Cd + dt * dt * K
+            D = A + wp.diag(arm)
+        Dinv = wp.inverse(D)
+        u = tau - n
+        DA = Dinv * A
+        DB = Dinv * B
+        Du = Dinv * u
+        aba_DA[i] = DA
+        aba_DB[i] = DB
+        aba_Du[i] = Du
+
+        if k > 0:
+            c = aba_c[i]
+            c_ang = wp.spatial_top(c)
+            c_lin = wp.spatial_bottom(c)
+            Aa = A - A * DA
+            Ba = B - A * DB
+            Ca = C - wp.transpose(B) * DB
+            na = n + Aa * c_ang + Ba * c_lin + A * Du
+            fa = f + wp.transpose(Ba) * c_ang + Ca * c_lin + wp.transpose(B) * Du
+            R = wp.quat_to_matrix(q)
+            Aa, Ba, Ca = rotate_blocks(R, Aa, Ba, Ca)
+            na = R * na
+            fa = R * fa
+            r = wp.vec3(0.0, 0.0, -seg_length[i - 1])
+            cA, cB = inertia_shift(Aa, Ba, Ca, r)
+            cC = Ca
+            cn = na + wp.cross(r, fa)
+            cf = fa
+
+
+@wp.func
+def aba_forward_pass2(
+    strand: int,
+    S: int,
+    seg_length: wp.array(dtype=float),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    a_head: wp.spatial_vector,
+    joint_q: wp.array(dtype=wp.quat),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+    joint_qdd: wp.array(dtype=wp.vec3),
+):
+    """Second outward pass: body accelerations and joint accelerations ``qdd = D^-1 (u - U^T a')``."""
+    a_ang_p = wp.spatial_top(a_head)
+    a_lin_p = wp.spatial_bottom(a_head)
+    for k in range(S):
+        i = strand * S + k
+        q = joint_q[i]
+        r = joint_offset(strand, k, i, seg_length, strand_root_pos)
+        c = aba_c[i]
+        a_ang = wp.quat_rotate_inv(q, a_ang_p) + wp.spatial_top(c)
+        a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r)) + wp.spatial_bottom(c)
+        qdd = aba_Du[i] - aba_DA[i] * a_ang - aba_DB[i] * a_lin
+        joint_qdd[i] = qdd
+        a_ang_p = a_ang + qdd
+        a_lin_p = a_lin
+
+
+@wp.func
+def aba_strand(
+    strand: int,
+    S: int,
+    dt: float,
+    implicit: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    joint_rest_q: wp.array(dtype=wp.quat),
+    joint_stiffness: wp.array(dtype=wp.vec3),
+    joint_damping: wp.array(dtype=wp.vec3),
+    head_rot: wp.quat,
+    v_head: wp.spatial_vector,
+    a_head: wp.spatial_vector,
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    has_ext: int,
+    seg_implicit_mass: wp.array(dtype=float),
+    has_implicit_mass: int,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+    joint_qdd: wp.array(dtype=wp.vec3),
+):
+    """Joint accelerations of one strand [rad/s^2, child frame] by the three ABA passes."""
+    aba_forward_pass1(strand, S, seg_length, seg_mass, seg_inertia, strand_root_pos, head_rot, v_head,
+                      seg_force, seg_torque, has_ext, joint_q, joint_qd, aba_p, aba_c)
+    aba_backward_pass(strand, S, dt, implicit, seg_length, seg_mass, seg_inertia, joint_rest_q, joint_stiffness,
+                      joint_damping, seg_implicit_mass, has_implicit_mass, joint_q, joint_qd, aba_p, aba_c,
+                      aba_DA, aba_DB, aba_Du)
+    aba_forward_pass2(strand, S, seg_length, strand_root_pos, a_head, joint_q, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+
+
+@wp.func
+def flag_joint(w: wp.vec3, q: wp.quat, dt: float, max_rotation: float, fault: wp.array(dtype=wp.int32)):
+    """Set fault bits for a non-finite joint state or a joint turning too far in one step."""
+    if not (wp.isfinite(w) and wp.isfinite(q)):
+        wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
+    elif wp.length(w) * dt > max_rotation:
+        wp.atomic_or(fault, 0, int(Fault.JOINT_SPEED))
+
+
+@wp.kernel
+def aba_accelerations(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    joint_rest_q: wp.array(dtype=wp.quat),
+    joint_stiffness: wp.array(dtype=wp.vec3),
+    joint_damping: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    # Control:
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    # In:
+    dt: wp.array(dtype=float),
+    implicit: int,
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    has_ext: int,
+    seg_implicit_mass: wp.array(dtype=float),
+    has_implicit_mass: int,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    # Scratch:
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+    # Out:
+    joint_qdd: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: joint accelerations only, no integration (tests and tools).
+
+    Writes ``joint_qdd`` [rad/s^2, child frame]; with ``implicit`` != 0 it solves
+    ``(M + hC + h^2 K) qdd = tau - bias`` as ``implicit_joints`` does.
+    """
+    strand = wp.tid()
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
+    aba_strand(strand, seg_per_strand, dt[0], implicit, seg_length, seg_mass, seg_inertia, strand_root_pos,
+               joint_rest_q, joint_stiffness, joint_damping, wp.transform_get_rotation(head_xform[0]), v_head, a_head,
+               seg_force, seg_torque, has_ext, seg_implicit_mass, has_implicit_mass, joint_q, joint_qd,
+               aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+
+
+@wp.kernel
+def integrate_euler(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    joint_rest_q: wp.array(dtype=wp.quat),
+    joint_stiffness: wp.array(dtype=wp.vec3),
+    joint_damping: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    max_rotation: float,
+    # Control:
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    # In:
+    dt: wp.array(dtype=float),
+    implicit: int,
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    has_ext: int,
+    seg_implicit_mass: wp.array(dtype=float),
+    has_implicit_mass: int,
+    joint_q_in: wp.array(dtype=wp.quat),
+    joint_qd_in: wp.array(dtype=wp.vec3),
+    # Scratch:
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+    joint_qdd: wp.array(dtype=wp.vec3),
+    # Out:
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: ABA, then symplectic Euler ``w += h qdd; q <- q exp(h w)``.
+
+    ``implicit`` != 0 is the ``implicit_joints`` integrator (joint springs and damping at the end
+    of the step). Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame] and fault bits.
+    """
+    strand = wp.tid()
+    S = seg_per_strand
+    h = dt[0]
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
+    aba_strand(strand, S, h, implicit, seg_length, seg_mass, seg_inertia, strand_root_pos, joint_rest_q,
+               joint_stiffness, joint_damping, wp.transform_get_rotation(head_xform[0]), v_head, a_head,
+               seg_force, seg_torque, has_ext, seg_implicit_mass, has_implicit_mass, joint_q_in, joint_qd_in,
+               aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+    for k in range(S):
+        i = strand * S + k
+        w = joint_qd_in[i] + h * joint_qdd[i]
+        q = wp.normalize(joint_q_in[i] * quat_exp(h * w))
+        flag_joint(w, q, h, max_rotation, fault)
+        joint_qd_out[i] = w
+        joint_q_out[i] = q
+
+
+@wp.kernel
+def integrate_rk4(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    seg_mass: wp.array(dtype=float),
+    seg_inertia: wp.array(dtype=wp.vec3),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    joint_rest_q: wp.array(dtype=wp.quat),
+    joint_stiffness: wp.array(dtype=wp.vec3),
+    joint_damping: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    max_rotation: float,
+    # Control:
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    # In:
+    dt: wp.array(dtype=float),
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    has_ext: int,
+    seg_implicit_mass: wp.array(dtype=float),
+    has_implicit_mass: int,
+    joint_q_in: wp.array(dtype=wp.quat),
+    joint_qd_in: wp.array(dtype=wp.vec3),
+    # Scratch:
+    aba_p: wp.array(dtype=wp.spatial_vector),
+    aba_c: wp.array(dtype=wp.spatial_vector),
+    aba_DA: wp.array(dtype=wp.mat33),
+    aba_DB: wp.array(dtype=wp.mat33),
+    aba_Du: wp.array(dtype=wp.vec3),
+    joint_qdd: wp.array(dtype=wp.vec3),
+    rk_q: wp.array(dtype=wp.quat),
+    rk_w: wp.array(dtype=wp.vec3),
+    rk_dq: wp.array(dtype=wp.vec3),
+    rk_dw: wp.array(dtype=wp.vec3),
+    # Out:
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: classical RK4 on the Lie group, as MuJoCo's ``RK4`` does.
+
+    Stage configurations are ``q0 exp(c h w)``; the update is ``q0 exp(h/6 (w1 + 2w2 + 2w3 + w4))``.
+    External forces, held by the accumulators, stay fixed over the step. Writes ``joint_q_out``,
+    ``joint_qd_out`` and fault bits.
+    """
+    strand = wp.tid()
+    S = seg_per_strand
+    h = dt[0]
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
+    head_rot = wp.transform_get_rotation(head_xform[0])
+    for k in range(S):
+        i = strand * S + k
+        rk_q[i] = joint_q_in[i]
+        rk_w[i] = joint_qd_in[i]
+        rk_dq[i] = wp.vec3()
+        rk_dw[i] = wp.vec3()
+    for stage in range(4):
+        aba_strand(strand, S, h, 0, seg_length, seg_mass, seg_inertia, strand_root_pos, joint_rest_q,
+                   joint_stiffness, joint_damping, head_rot, v_head, a_head, seg_force, seg_torque, has_ext,
+                   seg_implicit_mass, has_implicit_mass, rk_q, rk_w, aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+        weight = 2.0
+        step = 0.5 * h
+        if stage == 0 or stage == 3:
+            weight = 1.0
+        if stage == 2:
+            step = h
+        for k in range(S):
+            i = strand * S + k
+            w = rk_w[i]
+            qdd = joint_qdd[i]
+            rk_dq[i] = rk_dq[i] + weight * w
+            rk_dw[i] = rk_dw[i] + weight * qdd
+            if stage < 3:
+                rk_q[i] = wp.normalize(joint_q_in[i] * quat_exp(step * w))
+                rk_w[i] = joint_qd_in[i] + step * qdd
+    for k in range(S):
+        i = strand * S + k
+        w = joint_qd_in[i] + (h / 6.0) * rk_dw[i]
+        q = wp.normalize(joint_q_in[i] * quat_exp((h / 6.0) * rk_dq[i]))
+        flag_joint(w, q, h, max_rotation, fault)
+        joint_qd_out[i] = w
+        joint_q_out[i] = q
+
+
+@wp.kernel
+def forward_kinematics(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    # Control:
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    # State in:
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    # Out:
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: world segment frames, vertex positions [m] and velocities [m/s]."""
+    strand = wp.tid()
+    S = seg_per_strand
+    X_h = head_xform[0]
+    R = wp.transform_get_rotation(X_h)
+    p_h = wp.transform_get_translation(X_h)
+    omega = wp.spatial_top(head_velocity[0])
+    x = wp.transform_point(X_h, strand_root_pos[strand])
+    v = wp.spatial_bottom(head_velocity[0]) + wp.cross(omega, x - p_h)
+    vbase = strand * (S + 1)
+    for k in range(S):
+        i = strand * S + k
+        R = R * joint_q[i]
+        omega = omega + wp.quat_rotate(R, joint_qd[i])
+        seg_xform[i] = wp.transform(x, R)
+        vertex_positions[vbase + k] = x
+        vertex_velocities[vbase + k] = v
+        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -seg_length[i]))
+        x = x + d
+        v = v + wp.cross(omega, d)
+    vertex_positions[vbase + S] = x
+    vertex_velocities[vbase + S] = v
+
+
+@wp.kernel
+def air_drag(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    drag: float,
+    # Control:
+    wind: wp.array(dtype=wp.vec3),
+    # State in:
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+):
+    """One thread per segment: linear air drag toward the wind, ``F = -drag L (v_mid - wind)``.
+
+    Adds the force [N, world] at the segment's midpoint to ``seg_force`` and its moment about
+    the segment origin [N m] to ``seg_torque``.
+    """
+    i = wp.tid()
+    strand = i // seg_per_strand
+    k = i - strand * seg_per_strand
+    a = strand * (seg_per_strand + 1) + k
+    x0 = vertex_positions[a]
+    x1 = vertex_positions[a + 1]
+    v_mid = 0.5 * (vertex_velocities[a] + vertex_velocities[a + 1])
+    F = -drag * seg_length[i] * (v_mid - wind[0])
+    seg_force[i] = seg_force[i] + F
+    seg_torque[i] = seg_torque[i] + wp.cross(0.5 * (x1 - x0), F)
+
+
+__all__ = [
+    "aba_accelerations",
+    "air_drag",
+    "forward_kinematics",
+    "integrate_euler",
+    "integrate_rk4",
+]
