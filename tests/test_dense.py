@@ -1,0 +1,363 @@
+"""Dense hair: root sampling and weights, interpolation, Hermite densification, velocities.
+
+References: SciPy (Delaunay barycentric transforms, CubicHermiteSpline, Rotation), a float64 NumPy
+implementation of the documented interpolation operator, closed forms (straight strands, a sphere).
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+from hairwarp.kernels import interpolate as kernels
+from scipy.interpolate import CubicHermiteSpline
+from scipy.spatial import Delaunay
+from scipy.spatial.transform import Rotation
+
+from hairwarp.dense import DenseHair, DenseHairError, bench_dense, scalp_uv
+
+DEVICE = "cpu"
+RADIUS = 0.1  # scalp sphere [m]
+LENGTH = 0.25  # guide length [m]
+# float32 kernels against float64 references: ~20 multiply-adds of coordinates of size ~LENGTH.
+POS_TOL = 2e-6 * LENGTH
+# Hermite samples vs SciPy: float32 evaluation of a cubic with O(1) coefficients, relative to the curve size.
+HERMITE_REL_TOL = 1e-5
+# Central differences of float32 positions with step H: round-off ~1e-7 * LENGTH / H dominates.
+FD_STEP = 1e-3
+FD_TOL = 1e-4
+# Weights are computed in float64.
+WEIGHT_TOL = 1e-12
+
+
+def cap_guides(G, S, seed=0, cap_deg=70.0):
+    """Wavy guides on a spherical scalp cap: (G, S+1, 3) vertices, (G, 3) unit normals."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(G) + 0.5
+    cos_t = 1.0 - (1.0 - np.cos(np.radians(cap_deg))) * i / G
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    normal = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+    steps = rng.normal(size=(G, S, 3)) * 0.3 + normal[:, None, :]
+    steps *= LENGTH / S / np.linalg.norm(steps, axis=2, keepdims=True)
+    verts = np.concatenate([RADIUS * normal[:, None, :], RADIUS * normal[:, None, :] + np.cumsum(steps, axis=1)], 1)
+    return verts, normal
+
+
+def grid_guides(rows, cols, S, seed=0):
+    """Guides on an uneven planar grid (z = 0), growing up with random bends; strand r*cols + c."""
+    rng = np.random.default_rng(seed)
+    xs = np.cumsum(rng.uniform(0.01, 0.03, cols))
+    ys = np.cumsum(rng.uniform(0.01, 0.03, rows))
+    roots = np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)[:, ::-1]
+    roots = np.column_stack([roots, np.zeros(len(roots))])
+    steps = rng.normal(size=(rows * cols, S, 3)) * 0.3 + [0.0, 0.0, 1.0]
+    steps *= LENGTH / S / np.linalg.norm(steps, axis=2, keepdims=True)
+    return np.concatenate([roots[:, None], roots[:, None] + np.cumsum(steps, axis=1)], 1)
+
+
+def to_wp(a):
+    return wp.array(np.asarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=DEVICE)
+
+
+def strands(hair, arr):
+    return arr.numpy().reshape(hair.dense_count, -1, 3).astype(np.float64)
+
+
+def reference_interpolation(hair, gx, rot=None):
+    """float64 NumPy version of the operator documented in DenseHair."""
+    S = hair.seg_per_strand
+    k = np.arange(S + 1)
+    u = hair.length_scale[:, None] * k
+    j = np.minimum(np.floor(u).astype(int), S - 1)
+    t = (u - j)[..., None]
+
+    def guide_at(g):
+        return (1 - t) * gx[g[:, None], j] + t * gx[g[:, None], j + 1]
+
+    x = sum(hair.guide_weight[:, i, None, None] * guide_at(hair.guide_index[:, i]) for i in range(4))
+    f = (k / S)[None, :, None]
+    x = x + hair.clumping * f * (guide_at(hair.clump_guide) - x)
+    offset = hair.dense_root_offset.numpy()[:, None, :] + f * hair.dense_tip_offset.numpy()[:, None, :]
+    return x + offset @ (np.eye(3) if rot is None else rot).T
+
+
+def head_arrays(rot, trans, omega=(0, 0, 0), vel=(0, 0, 0)):
+    q = Rotation.from_matrix(rot).as_quat()  # (x, y, z, w), as wp.quat
+    xf = wp.array([wp.transform(wp.vec3(*trans), wp.quat(*q))], dtype=wp.transform, device=DEVICE)
+    sv = wp.array([wp.spatial_vector(*omega, *vel)], dtype=wp.spatial_vector, device=DEVICE)
+    return xf, sv
+
+
+# ---------------------------------------------------------------- weights and sampling
+
+
+def test_dense_root_on_guide_root_reproduces_guide_barycentric():
+    guides, normal = cap_guides(20, 8)
+    uv = scalp_uv(guides[:, 0])
+    hair = DenseHair.build(guides, uv, root_samples=uv, root_normal=normal, samples_per_segment=3, device=DEVICE)
+    dense = strands(hair, hair.interpolate(to_wp(guides)))
+    assert np.array_equal(dense, guides.astype(np.float32))
+    curves = strands(hair, hair.densify())
+    assert np.array_equal(curves[:, ::3], guides.astype(np.float32))
+
+
+def test_dense_root_on_guide_root_reproduces_guide_grid():
+    rows, cols = 4, 5
+    guides = grid_guides(rows, cols, 8)
+    rc = np.stack(np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij"), -1).reshape(-1, 2)
+    hair = DenseHair.build(guides, grid_shape=(rows, cols), root_samples=rc, device=DEVICE)
+    dense = strands(hair, hair.interpolate(to_wp(guides)))
+    assert np.array_equal(dense, guides.astype(np.float32))
+
+
+@pytest.mark.parametrize("grid", [False, True])
+def test_weights_partition_of_unity_and_area_uniform(grid):
+    if grid:
+        guides = grid_guides(4, 6, 4)
+        hair = DenseHair.build(guides, grid_shape=(4, 6), count=3000, seed=3, device=DEVICE)
+        assert hair.guide_weight.shape == (3000, 4)
+    else:
+        guides, _ = cap_guides(30, 4)
+        hair = DenseHair.build(guides, count=3000, seed=3, device=DEVICE)
+        assert np.all(hair.guide_weight[:, 3] == 0.0) and np.all(hair.guide_index[:, 3] == 0)
+    w = hair.guide_weight
+    assert np.all(w >= 0.0)
+    np.testing.assert_allclose(w.sum(1), 1.0, atol=WEIGHT_TOL)
+    assert np.all(hair.guide_index[w == 0.0] == 0)
+    # The dense root is the weighted guide roots (no root_normal: no lift).
+    roots = guides[:, 0]
+    np.testing.assert_allclose(
+        hair.dense_root_position, np.einsum("dj,djc->dc", w, roots[hair.guide_index]), atol=1e-15
+    )
+    if grid:
+        # Each cell holds floor or ceil of its area share (uneven grid; planar cells are rectangles here).
+        cell = np.floor(hair.dense_root_uv).astype(int)
+        counts = np.bincount(cell[:, 0] * 5 + cell[:, 1], minlength=15)
+        g = roots.reshape(4, 6, 3)
+        area = (np.diff(g[:, 0, 1])[:, None] * np.diff(g[0, :, 0])[None, :]).ravel()
+        assert np.all(np.abs(counts - 3000 * area / area.sum()) <= 1.0)
+
+
+def test_dense_roots_inside_triangulation_with_scipy_barycentrics():
+    guides, _ = cap_guides(30, 4, seed=1)
+    hair = DenseHair.build(guides, count=2000, seed=5, device=DEVICE)
+    dela = Delaunay(hair.root_uv)
+    simplex = dela.find_simplex(hair.dense_root_uv)
+    assert np.all(simplex >= 0)
+    # Every triangle used is a Delaunay triangle, and SciPy's barycentrics in it are the weights.
+    delaunay_sets = {frozenset(s) for s in dela.simplices.tolist()}
+    assert all(frozenset(t) in delaunay_sets for t in hair.triangles.tolist())
+    tri = hair.guide_index[:, :3]
+    for d in range(hair.dense_count):
+        s = dela.simplices[simplex[d]]
+        if set(s) != set(tri[d]):
+            continue  # on an edge shared with a neighbour: found in the other triangle
+        b = dela.transform[simplex[d], :2] @ (hair.dense_root_uv[d] - dela.transform[simplex[d], 2])
+        bary = dict(zip(s.tolist(), [*b, 1.0 - b.sum()], strict=True))
+        np.testing.assert_allclose([bary[i] for i in tri[d]], hair.guide_weight[d, :3], atol=1e-9)
+
+
+def test_gap_between_scalp_patches_is_not_bridged():
+    rng = np.random.default_rng(0)
+    uv = np.vstack([rng.random((25, 2)) * 0.05, rng.random((25, 2)) * 0.05 + [0.12, 0.0]])
+    guides = np.repeat(np.column_stack([uv, np.zeros(50)])[:, None], 3, axis=1) + [[0, 0, 0], [0, 0, 0.1], [0, 0, 0.2]]
+    hair = DenseHair.build(guides, uv, count=1000, device=DEVICE)
+    tri = hair.triangles
+    assert np.all((tri < 25).all(1) | (tri >= 25).all(1))
+    assert not np.any((hair.dense_root_uv[:, 0] > 0.05 + 1e-12) & (hair.dense_root_uv[:, 0] < 0.12 - 1e-12))
+
+
+def test_density_and_default_scalp_uv_cover_the_cap():
+    guides, _ = cap_guides(60, 2, cap_deg=80.0)
+    hair = DenseHair.build(guides, density=1e5, device=DEVICE)
+    a, b, c = (guides[hair.triangles[:, i], 0] for i in range(3))
+    tri_normal = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(tri_normal, axis=1).sum()
+    cap_area = 2 * np.pi * RADIUS**2 * (1 - np.cos(np.radians(80.0)))
+    # Inscribed triangles of 60 roots: a few percent short of the cap.
+    assert 0.85 * cap_area < area < cap_area
+    assert hair.dense_count == round(1e5 * area)
+    # Not folded: every triangle faces the same way (outward or inward) about the sphere's centre.
+    outward = np.einsum("ij,ij->i", tri_normal, a + b + c)
+    assert np.all(outward > 0) or np.all(outward < 0)
+
+
+def test_root_lift_puts_dense_roots_on_sphere():
+    guides, normal = cap_guides(30, 2)
+    flat = DenseHair.build(guides, count=2000, device=DEVICE)
+    lifted = DenseHair.build(guides, count=2000, root_normal=normal, device=DEVICE)
+    err_flat = np.abs(np.linalg.norm(flat.dense_root_position, axis=1) - RADIUS).max()
+    err_lift = np.abs(np.linalg.norm(lifted.dense_root_position, axis=1) - RADIUS).max()
+    assert err_lift < 0.15 * err_flat
+    n = lifted.dense_root_normal
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    # The rest strand's root sits at the lifted root.
+    dense = strands(lifted, lifted.interpolate(to_wp(guides)))
+    np.testing.assert_allclose(dense[:, 0], lifted.dense_root_position, atol=POS_TOL)
+
+
+# ---------------------------------------------------------------- per-frame operator
+
+
+def test_interpolation_matches_float64_reference_with_variation_and_head_rotation():
+    guides, normal = cap_guides(25, 8, seed=2)
+    hair = DenseHair.build(
+        guides,
+        count=400,
+        root_normal=normal,
+        seed=7,
+        length_variation=0.3,
+        tip_spread=0.01,
+        clumping=0.6,
+        device=DEVICE,
+    )
+    rot = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    trans = np.array([0.1, -0.2, 0.3])
+    posed = guides @ rot.T + trans
+    xf, _ = head_arrays(rot, trans)
+    dense = strands(hair, hair.interpolate(to_wp(posed), xf))
+    np.testing.assert_allclose(dense, reference_interpolation(hair, posed, rot), atol=POS_TOL)
+    # Tip spread: at most tip_spread, normal to the rest strand's root-to-tip direction.
+    rest = reference_interpolation(hair, guides)
+    tip = hair.dense_tip_offset.numpy().astype(np.float64)
+    assert np.all(np.linalg.norm(tip, axis=1) <= 0.01 * (1 + 1e-6))
+    axis = rest[:, -1] - rest[:, 0] - tip
+    cos = (
+        np.einsum("ij,ij->i", axis, tip) / np.linalg.norm(axis, axis=1) / np.maximum(np.linalg.norm(tip, axis=1), 1e-30)
+    )
+    assert np.abs(cos).max() < 1e-5
+
+
+def test_length_scale_shortens_along_the_guide_shape():
+    # Straight parallel guides: a dense strand of scale s is straight with length s * LENGTH.
+    g = np.column_stack([np.random.default_rng(0).random((12, 2)) * 0.1, np.zeros(12)])
+    S = 8
+    guides = g[:, None] + np.linspace(0, LENGTH, S + 1)[None, :, None] * [0.0, 0.6, 0.8]
+    hair = DenseHair.build(guides, count=300, length_variation=0.4, device=DEVICE)
+    assert hair.length_scale.min() >= 0.6 and hair.length_scale.max() <= 1.0
+    dense = strands(hair, hair.interpolate(to_wp(guides)))
+    spacing = np.linalg.norm(np.diff(dense, axis=1), axis=2)
+    np.testing.assert_allclose(spacing, (hair.length_scale * LENGTH / S)[:, None] * np.ones(S), atol=POS_TOL)
+    assert spacing.max() <= LENGTH / S + POS_TOL
+
+
+def test_clumping_one_brings_tips_to_the_clump_guide():
+    guides, _ = cap_guides(20, 6)
+    hair = DenseHair.build(guides, count=200, clumping=1.0, device=DEVICE)
+    dense = strands(hair, hair.interpolate(to_wp(guides)))
+    np.testing.assert_allclose(dense[:, -1], guides[hair.clump_guide, -1], atol=POS_TOL)
+    dist = np.linalg.norm(guides[None, :, 0] - hair.dense_root_position[:, None], axis=2)
+    assert np.all(hair.clump_guide == dist.argmin(1))
+
+
+def test_rigid_translation_translates_dense_hair():
+    guides, normal = cap_guides(20, 8, seed=4)
+    hair = DenseHair.build(
+        guides, count=300, root_normal=normal, length_variation=0.3, tip_spread=0.01, clumping=0.5, device=DEVICE
+    )
+    shift = np.array([0.05, -0.03, 0.02])
+    a = strands(hair, hair.evaluate(to_wp(guides))[0])
+    b = strands(hair, hair.evaluate(to_wp(guides + shift))[0])
+    np.testing.assert_allclose(b - a, np.broadcast_to(shift, a.shape), atol=POS_TOL)
+
+
+def test_velocities_are_the_derivative_of_positions():
+    guides, normal = cap_guides(16, 8, seed=5)
+    hair = DenseHair.build(
+        guides, count=200, root_normal=normal, length_variation=0.2, tip_spread=0.01, clumping=0.4, device=DEVICE
+    )
+    rng = np.random.default_rng(1)
+    omega, lin = np.array([1.0, -2.0, 0.5]), np.array([0.3, 0.1, -0.2])
+    drift = rng.normal(size=guides.shape) * 0.5  # non-rigid guide motion in the head frame [m/s]
+
+    def pose(t):
+        rot = Rotation.from_rotvec(omega * t).as_matrix()
+        return (guides + t * drift) @ rot.T + t * lin, rot
+
+    def positions(t):
+        x, rot = pose(t)
+        xf, _ = head_arrays(rot, t * lin)
+        return strands(hair, hair.evaluate(to_wp(x), None, xf)[0])
+
+    fd = (positions(FD_STEP) - positions(-FD_STEP)) / (2 * FD_STEP)
+    x0, rot0 = pose(0.0)
+    v0 = np.cross(omega, x0) + drift + lin
+    xf, sv = head_arrays(rot0, (0, 0, 0), omega, lin)
+    p, v = hair.evaluate(to_wp(x0), to_wp(v0), xf, sv)
+    assert v is hair.curve_velocities and p is hair.curve_points
+    np.testing.assert_allclose(strands(hair, v), fd, atol=FD_TOL)
+    assert np.abs(fd).max() > 0.1
+
+
+def test_same_seed_reproduces_and_other_seed_differs():
+    guides, normal = cap_guides(20, 6)
+    kw = dict(count=300, root_normal=normal, length_variation=0.3, tip_spread=0.01, clumping=0.3, device=DEVICE)
+    a, b, c = (DenseHair.build(guides, seed=s, **kw) for s in (11, 11, 12))
+    x = to_wp(guides)
+    pa, pb, pc = (h.evaluate(x)[0].numpy() for h in (a, b, c))
+    assert np.array_equal(pa, pb) and np.array_equal(a.guide_weight, b.guide_weight)
+    assert np.array_equal(a.length_scale, b.length_scale)
+    assert not np.array_equal(a.guide_weight, c.guide_weight) and not np.allclose(pa, pc)
+
+
+# ---------------------------------------------------------------- Hermite densification
+
+
+def test_hermite_samples_match_scipy_cubic_hermite_spline():
+    rng = np.random.default_rng(0)
+    D, S, M = 7, 8, 5
+    curves = np.cumsum(rng.normal(size=(D, S + 1, 3)), axis=1)
+    curves32 = curves.astype(np.float32)
+    out = wp.zeros(D * (M * S + 1), dtype=wp.vec3, device=DEVICE)
+    wp.launch(kernels.hermite_samples, dim=out.shape[0], inputs=[S, M, to_wp(curves32)], outputs=[out], device=DEVICE)
+    got = out.numpy().reshape(D, M * S + 1, 3)
+    param = np.arange(M * S + 1) / M
+    for d in range(D):
+        y = curves32[d].astype(np.float64)
+        tangent = np.empty_like(y)
+        tangent[1:-1] = 0.5 * (y[2:] - y[:-2])
+        tangent[0], tangent[-1] = y[1] - y[0], y[-1] - y[-2]
+        expected = CubicHermiteSpline(np.arange(S + 1), y, tangent, axis=0)(param)
+        size = np.abs(y).max()
+        np.testing.assert_allclose(got[d], expected, atol=HERMITE_REL_TOL * size)
+    # The curve passes through every vertex exactly (t = 0 samples and the tip).
+    assert np.array_equal(got[:, ::M], curves32)
+
+
+def test_widths_and_counts():
+    guides, _ = cap_guides(10, 6)
+    hair = DenseHair.build(guides, count=5, samples_per_segment=2, device=DEVICE)
+    assert hair.points_per_curve == 13
+    assert np.array_equal(hair.curve_vertex_counts(), np.full(5, 13))
+    assert np.array_equal(hair.curve_vertex_counts(hermite=False), np.full(5, 7))
+    w = hair.widths(1e-4, 2e-5).reshape(5, 13)
+    np.testing.assert_allclose(w[:, 0], 1e-4)
+    np.testing.assert_allclose(w[:, -1], 2e-5)
+    assert np.all(np.diff(w, axis=1) < 0)
+
+
+def test_bad_input_raises_naming_the_argument():
+    guides, _ = cap_guides(10, 4)
+    with pytest.raises(DenseHairError, match="count"):
+        DenseHair.build(guides, device=DEVICE)
+    with pytest.raises(DenseHairError, match="grid_shape"):
+        DenseHair.build(guides, grid_shape=(3, 4), count=10, device=DEVICE)
+    with pytest.raises(DenseHairError, match="root_samples"):
+        DenseHair.build(guides, scalp_uv(guides[:, 0]), root_samples=[[50.0, 50.0]], device=DEVICE)
+    with pytest.raises(DenseHairError, match="clumping"):
+        DenseHair.build(guides, count=10, clumping=2.0, device=DEVICE)
+    bad = guides.copy()
+    bad[3, 2, 0] = np.nan
+    with pytest.raises(DenseHairError, match="guide strand 3"):
+        DenseHair.build(bad, count=10, device=DEVICE)
+    hair = DenseHair.build(guides, count=10, with_velocities=False, device=DEVICE)
+    with pytest.raises(DenseHairError, match="guide_vertices"):
+        hair.interpolate(to_wp(guides[:5]))
+    with pytest.raises(DenseHairError, match="with_velocities"):
+        hair.evaluate(to_wp(guides), to_wp(guides))
+
+
+def test_bench_dense_reports_times():
+    result = bench_dense(counts=(200,), guides=30, segments=6, repeats=1, device=DEVICE)
+    (row,) = result["results"]
+    assert row["count"] == 200 and row["points"] == 200 * (4 * 6 + 1)
+    assert row["interpolate_s"] > 0 and row["hermite_s"] > 0
