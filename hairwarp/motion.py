@@ -1,0 +1,707 @@
+"""Head motion: rigid motions of the head frame with exact velocities and accelerations.
+
+A motion maps a time ``t`` [s] to a :class:`MotionSample`: the world pose of the head frame and
+its world angular and linear velocities and (classical) accelerations, which the articulated
+strands take as the prescribed motion of their base. All values are float64 numpy arrays.
+
+Kinds (``HeadMotion.from_config`` builds them from a scene's ``[head.motion]`` table):
+
+* :class:`Still` - the head stays at its rest pose.
+* :class:`Turn` - the head turns to one side about world z and back, once per ``period``:
+  ``angle = A * ramp(t) * (1 - cos(2 pi tau / period)) / 2``.
+* :class:`Nod` - pitch oscillation about the head's left-right axis (world x at rest):
+  ``angle = A * ramp(t) * sin(2 pi tau / period)``.
+* :class:`Shake` - yaw oscillation about world z, ``angle = A * ramp(t) * sin(2 pi tau / period)``.
+* :class:`Translate` - the head slides along ``axis``: ``d = distance * ramp(t) * sin(2 pi tau / period)``.
+* :class:`Keyframes` - keys of (time, translation, rotation), C1-smooth: Catmull-Rom cubic Hermite on
+  the translation, a cubic Hermite in the rotation's tangent space on the rotation (world angular
+  velocity continuous at every key), zero velocity at the first and last key.
+* :class:`Compose` - one motion carried by another.
+
+Here ``tau = t - start`` and ``ramp(t)`` is the quintic smoothstep ``6x^5 - 15x^4 + 10x^3`` of
+``x = tau / ramp``: the amplitude fades in over ``ramp`` seconds, so position, velocity and
+acceleration are all continuous at ``start`` (zero before it) and the hair is not whipped on the
+first frame. Rotations turn about ``pivot``, a world point (the neck), so a nodding head swings.
+
+The head frame at rest is ``T(rest_position)``: with the default ``rest_position = 0`` the head
+frame coincides with the world frame in which the groom was built. For a rotation ``R(t)`` about
+the pivot ``p`` and a translation ``d(t)``, the head frame is ``M(t) = T(p + d) R T(-p) T(rest)``.
+
+Quaternions are ``(x, y, z, w)``, world from local, as ``wp.quat``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "MOTION_KINDS",
+    "Compose",
+    "HeadMotion",
+    "Keyframes",
+    "MotionSample",
+    "Nod",
+    "Shake",
+    "Still",
+    "Translate",
+    "Turn",
+    "euler_xyz_deg_to_quat",
+    "quat_multiply",
+    "quat_rotate",
+    "quat_to_matrix",
+]
+
+#: ``kind`` values understood by :meth:`HeadMotion.from_config`.
+MOTION_KINDS = ("still", "turn", "nod", "shake", "translate", "keyframes")
+
+#: Defaults of the procedural motions' parameters (also the scene file's defaults).
+DEFAULT_AMPLITUDE_DEG = 30.0
+DEFAULT_PERIOD = 2.0
+DEFAULT_START = 0.0
+DEFAULT_RAMP = 0.5
+DEFAULT_DISTANCE = 0.05
+#: Default axis per kind: yaw about world z, pitch about the head's left-right axis (x).
+DEFAULT_AXIS = {"turn": (0.0, 0.0, 1.0), "shake": (0.0, 0.0, 1.0), "nod": (1.0, 0.0, 0.0), "translate": (1.0, 0.0, 0.0)}
+
+# Below this squared half-angle the exp-map functions use their Taylor series (the closed forms
+# lose digits to cancellation); the series are truncated well past double precision there.
+_SERIES_X = 1.0e-2
+
+_ZERO3 = np.zeros(3)
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+# ----------------------------------------------------------------------------------------------
+# quaternion helpers (x, y, z, w), float64
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` of quaternions (x, y, z, w)."""
+    av, aw = a[:3], a[3]
+    bv, bw = b[:3], b[3]
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
+
+
+def _conj(q: np.ndarray) -> np.ndarray:
+    return np.array([-q[0], -q[1], -q[2], q[3]])
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate the 3-vector ``v`` by the unit quaternion ``q``."""
+    qv, w = q[:3], q[3]
+    t = 2.0 * np.cross(qv, v)
+    return v + w * t + np.cross(qv, t)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of the unit quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _quat_axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    return np.concatenate([axis * math.sin(0.5 * angle), [math.cos(0.5 * angle)]])
+
+
+def euler_xyz_deg_to_quat(angles_deg: Sequence[float]) -> np.ndarray:
+    """Quaternion of extrinsic x-y-z Euler angles in degrees: ``R = Rz(c) Ry(b) Rx(a)``.
+
+    This is SciPy's ``Rotation.from_euler("xyz", angles, degrees=True)``: turn about world x by
+    ``a``, then about world y by ``b``, then about world z by ``c``.
+    """
+    a, b, c = (math.radians(float(v)) for v in angles_deg)
+    qx = _quat_axis_angle(np.array([1.0, 0.0, 0.0]), a)
+    qy = _quat_axis_angle(np.array([0.0, 1.0, 0.0]), b)
+    qz = _quat_axis_angle(np.array([0.0, 0.0, 1.0]), c)
+    return quat_multiply(qz, quat_multiply(qy, qx))
+
+
+def _quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, angle in [0, pi]) of a unit quaternion."""
+    if q[3] < 0.0:
+        q = -q
+    s = float(np.linalg.norm(q[:3]))
+    if s < 1.0e-12:
+        return 2.0 * q[:3]
+    return q[:3] * (2.0 * math.atan2(s, q[3]) / s)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SO(3): body angular velocity of ``R0 exp(phi)`` is ``J_r(phi) dphi/dt``."""
+    th = float(np.linalg.norm(phi))
+    K = _skew(phi)
+    if th < 1.0e-4:
+        c = 1.0 / 12.0 + th * th / 720.0
+    else:
+        c = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
+
+
+def _exp_functions(x: float) -> tuple[float, float, float, float]:
+    """``f(x) = sin(sqrt x)/sqrt x``, ``f'``, ``f''`` and ``c(x) = cos(sqrt x)``, smooth at x = 0."""
+    if x < _SERIES_X:
+        f = 1.0 - x / 6.0 + x * x / 120.0 - x**3 / 5040.0 + x**4 / 362880.0
+        f1 = -1.0 / 6.0 + x / 60.0 - x * x / 1680.0 + x**3 / 90720.0 - x**4 / 7983360.0
+        f2 = 1.0 / 60.0 - x / 840.0 + x * x / 30240.0 - x**3 / 1995840.0
+        c = 1.0 - x / 2.0 + x * x / 24.0 - x**3 / 720.0 + x**4 / 40320.0 - x**5 / 3628800.0
+        return f, f1, f2, c
+    r = math.sqrt(x)
+    f = math.sin(r) / r
+    c = math.cos(r)
+    f1 = (c - f) / (2.0 * x)
+    f2 = (-0.5 * f - 3.0 * f1) / (2.0 * x)
+    return f, f1, f2, c
+
+
+def _exp_derivatives(v, vd, vdd) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit quaternion ``E = exp(v) = (sin|v| v/|v|, cos|v|)`` of a curve ``v(t)`` and its first two time derivatives.
+
+    ``v`` is half the rotation vector. With ``x = v.v``: ``E = (f(x) v, c(x))``, ``c' = -f/2``.
+    """
+    x = float(v @ v)
+    xd = 2.0 * float(v @ vd)
+    xdd = 2.0 * float(vd @ vd + v @ vdd)
+    f, f1, f2, c = _exp_functions(x)
+    c1, c2 = -0.5 * f, -0.5 * f1
+    q = np.concatenate([f * v, [c]])
+    qd = np.concatenate([f1 * xd * v + f * vd, [c1 * xd]])
+    qdd = np.concatenate(
+        [f2 * xd * xd * v + f1 * xdd * v + 2.0 * f1 * xd * vd + f * vdd, [c2 * xd * xd + c1 * xdd]]
+    )
+    return q, qd, qdd
+
+
+def _smoothstep(x: float) -> tuple[float, float, float]:
+    """Quintic smoothstep ``6x^5 - 15x^4 + 10x^3`` clamped to [0, 1], with its first two derivatives."""
+    if x <= 0.0:
+        return 0.0, 0.0, 0.0
+    if x >= 1.0:
+        return 1.0, 0.0, 0.0
+    return x**3 * (x * (6.0 * x - 15.0) + 10.0), 30.0 * x * x * (x - 1.0) ** 2, 60.0 * x * (2.0 * x * x - 3.0 * x + 1.0)
+
+
+def _unit(axis, what: str) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64).reshape(3)
+    n = float(np.linalg.norm(a))
+    if not math.isfinite(n) or n == 0.0:
+        raise ValueError(f"{what} must be a non-zero finite 3-vector, got {list(a)}")
+    return a / n
+
+
+def _vec3(value, what: str) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be a finite 3-vector, got {value!r}")
+    return a
+
+
+# ----------------------------------------------------------------------------------------------
+# samples
+
+
+@dataclass(frozen=True)
+class MotionSample:
+    """The head frame at one instant, everything in world coordinates.
+
+    Attributes:
+        position: world position of the frame origin [m], (3,).
+        rotation: unit quaternion (x, y, z, w), world from local, (4,).
+        linear_velocity: velocity of the frame origin [m/s], (3,).
+        angular_velocity: [rad/s], (3,).
+        linear_acceleration: classical acceleration of the frame origin [m/s^2], (3,).
+        angular_acceleration: [rad/s^2], (3,).
+    """
+
+    position: np.ndarray
+    rotation: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
+    angular_acceleration: np.ndarray
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous transform, ``p_world = M @ [p_local, 1]``."""
+        M = np.eye(4)
+        M[:3, :3] = quat_to_matrix(self.rotation)
+        M[:3, 3] = self.position
+        return M
+
+    def spatial_velocity(self) -> np.ndarray:
+        """(angular, linear) velocity as a 6-vector, Warp's ``spatial_vector`` order."""
+        return np.concatenate([self.angular_velocity, self.linear_velocity])
+
+    def spatial_acceleration(self) -> np.ndarray:
+        """(angular, linear) classical acceleration as a 6-vector, Warp's ``spatial_vector`` order."""
+        return np.concatenate([self.angular_acceleration, self.linear_acceleration])
+
+
+def _static_sample(position, rotation=_IDENTITY_Q) -> MotionSample:
+    return MotionSample(np.array(position, dtype=np.float64), np.array(rotation, dtype=np.float64),
+                        _ZERO3.copy(), _ZERO3.copy(), _ZERO3.copy(), _ZERO3.copy())
+
+
+def _product(a: MotionSample, b: MotionSample) -> MotionSample:
+    """Frame ``A(t) B(t)``: ``b`` moves in ``a``'s local frame (rigid-body velocity and acceleration composition)."""
+    Ra = quat_to_matrix(a.rotation)
+    r = Ra @ b.position
+    wb = Ra @ b.angular_velocity
+    vb = Ra @ b.linear_velocity
+    w, al = a.angular_velocity, a.angular_acceleration
+    q = quat_multiply(a.rotation, b.rotation)
+    return MotionSample(
+        position=a.position + r,
+        rotation=q / np.linalg.norm(q),
+        linear_velocity=a.linear_velocity + np.cross(w, r) + vb,
+        angular_velocity=w + wb,
+        linear_acceleration=(a.linear_acceleration + np.cross(al, r) + np.cross(w, np.cross(w, r))
+                             + 2.0 * np.cross(w, vb) + Ra @ b.linear_acceleration),
+        angular_acceleration=al + Ra @ b.angular_acceleration + np.cross(w, wb),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# motions
+
+
+class HeadMotion:
+    """A rigid motion of the head frame; call :meth:`evaluate` (or the motion itself) with a time.
+
+    Attributes:
+        rest_position: world position of the head frame origin at rest [m], (3,).
+    """
+
+    rest_position: np.ndarray = _ZERO3
+
+    def evaluate(self, t: float) -> MotionSample:
+        """The head frame at time ``t`` [s]."""
+        raise NotImplementedError
+
+    def __call__(self, t: float) -> MotionSample:
+        return self.evaluate(t)
+
+    @staticmethod
+    def from_config(cfg: Mapping, *, rest_position=(0.0, 0.0, 0.0), pivot=None) -> HeadMotion:
+        """Build a motion from a ``[head.motion]`` table.
+
+        Keys (all optional except as noted; a value of ``None`` means the default):
+
+        * ``kind``: one of :data:`MOTION_KINDS` ["still"].
+        * ``amplitude_deg``: turn, nod and shake angle [deg] [30].
+        * ``period``: time of one full cycle [s] [2].
+        * ``start``: time the motion begins [s] [0].
+        * ``ramp``: fade-in time of the amplitude [s] [0.5]; 0 starts abruptly.
+        * ``axis``: rotation axis (turn, shake: (0, 0, 1); nod: (1, 0, 0)) or the translation direction
+          (translate: (1, 0, 0)); normalised.
+        * ``distance``: translate amplitude [m] [0.05].
+        * ``pivot``: world point the head turns about [m]; overrides the ``pivot`` argument.
+        * ``keys``: keyframes only, a list of tables with ``time`` [s] (required), ``translate`` [m]
+          [(0, 0, 0)], and the rotation as ``rotate_deg`` (extrinsic xyz Euler angles, degrees) or as
+          ``axis`` and ``angle_deg``; no rotation keeps the rest orientation.
+
+        Args:
+            cfg: the table.
+            rest_position: world position of the head frame at rest [m].
+            pivot: default pivot [m], world; None takes ``rest_position``.
+
+        Raises:
+            ValueError: unknown kind or key, or a bad value; the message names the key.
+        """
+        cfg = {k: v for k, v in dict(cfg).items() if v is not None}
+        kind = cfg.pop("kind", "still")
+        if kind not in MOTION_KINDS:
+            raise ValueError(f"head.motion.kind: unknown kind {kind!r}; choose one of {', '.join(MOTION_KINDS)}")
+        allowed = {
+            "still": set(),
+            "turn": {"amplitude_deg", "period", "start", "ramp", "axis"},
+            "nod": {"amplitude_deg", "period", "start", "ramp", "axis"},
+            "shake": {"amplitude_deg", "period", "start", "ramp", "axis"},
+            "translate": {"distance", "period", "start", "ramp", "axis"},
+            "keyframes": {"keys"},
+        }[kind]
+        pivot = cfg.pop("pivot", pivot)
+        extra = sorted(set(cfg) - allowed)
+        common = {"amplitude_deg", "period", "start", "ramp", "axis", "distance"}
+        unknown = [k for k in extra if k not in common and k != "keys"]
+        if unknown:
+            raise ValueError(f"head.motion.{unknown[0]}: unknown key for a head motion")
+        kw = {k: cfg[k] for k in allowed if k in cfg}
+        if kind == "still":
+            return Still(rest_position=rest_position)
+        if kind == "keyframes":
+            if "keys" not in kw:
+                raise ValueError("head.motion.keys: kind = 'keyframes' needs at least one [[head.motion.keys]] entry")
+            return Keyframes.from_keys(kw["keys"], pivot=pivot, rest_position=rest_position)
+        cls = {"turn": Turn, "nod": Nod, "shake": Shake, "translate": Translate}[kind]
+        return cls(**kw, pivot=pivot, rest_position=rest_position)
+
+
+class Still(HeadMotion):
+    """The head at rest, ``T(rest_position)``, for all times."""
+
+    def __init__(self, *, rest_position=(0.0, 0.0, 0.0)):
+        self.rest_position = _vec3(rest_position, "rest_position")
+
+    def evaluate(self, t: float) -> MotionSample:
+        return _static_sample(self.rest_position)
+
+    def __repr__(self) -> str:
+        return "Still()"
+
+
+class _PivotMotion(HeadMotion):
+    """``M(t) = T(p + d(t)) R(t) T(-p) T(rest)``: a rotation about the pivot ``p``, then a translation."""
+
+    def __init__(self, pivot, rest_position):
+        self.rest_position = _vec3(rest_position, "rest_position")
+        self.pivot = self.rest_position.copy() if pivot is None else _vec3(pivot, "pivot")
+
+    def _rotation(self, t: float):
+        """(q, dq/dt, d2q/dt2), world from rest."""
+        return _IDENTITY_Q, np.zeros(4), np.zeros(4)
+
+    def _translation(self, t: float):
+        """(d, dd/dt, d2d/dt2) [m], world."""
+        return _ZERO3, _ZERO3, _ZERO3
+
+    def evaluate(self, t: float) -> MotionSample:
+        t = float(t)
+        q, qd, qdd = self._rotation(t)
+        d, dd, ddd = self._translation(t)
+        qc = _conj(q)
+        # omega = 2 vec(dq q*); its derivative drops the scalar |dq|^2 term: alpha = 2 vec(ddq q*).
+        w = 2.0 * quat_multiply(qd, qc)[:3]
+        al = 2.0 * quat_multiply(qdd, qc)[:3]
+        r = quat_rotate(q, self.rest_position - self.pivot)
+        return MotionSample(
+            position=self.pivot + d + r,
+            rotation=q / np.linalg.norm(q),
+            linear_velocity=dd + np.cross(w, r),
+            angular_velocity=w,
+            linear_acceleration=ddd + np.cross(al, r) + np.cross(w, np.cross(w, r)),
+            angular_acceleration=al,
+        )
+
+
+class _Oscillation(_PivotMotion):
+    """Shared timing of the procedural motions: ``value(t) = amplitude * ramp(t) * wave(tau)``."""
+
+    def __init__(self, *, period, start, ramp, axis, pivot, rest_position):
+        super().__init__(pivot, rest_position)
+        self.period = float(period)
+        self.start = float(start)
+        self.ramp = float(ramp)
+        if not (math.isfinite(self.period) and self.period > 0.0):
+            raise ValueError(f"head.motion.period must be > 0 s, got {period!r}")
+        if not math.isfinite(self.start):
+            raise ValueError(f"head.motion.start must be finite, got {start!r}")
+        if not (math.isfinite(self.ramp) and self.ramp >= 0.0):
+            raise ValueError(f"head.motion.ramp must be >= 0 s, got {ramp!r}")
+        self.axis = _unit(axis, "head.motion.axis")
+
+    def _wave(self, tau: float) -> tuple[float, float, float]:
+        raise NotImplementedError
+
+    def _envelope(self, t: float) -> tuple[float, float, float]:
+        """``ramp(t) * wave(tau)`` and its first two time derivatives (zero before ``start``)."""
+        tau = t - self.start
+        if tau <= 0.0:
+            return 0.0, 0.0, 0.0
+        if self.ramp > 0.0:
+            s, s1, s2 = _smoothstep(tau / self.ramp)
+            s1, s2 = s1 / self.ramp, s2 / self.ramp**2
+        else:
+            s, s1, s2 = 1.0, 0.0, 0.0
+        f, f1, f2 = self._wave(tau)
+        return s * f, s1 * f + s * f1, s2 * f + 2.0 * s1 * f1 + s * f2
+
+    def _sine(self, tau: float) -> tuple[float, float, float]:
+        k = 2.0 * math.pi / self.period
+        sn, cs = math.sin(k * tau), math.cos(k * tau)
+        return sn, k * cs, -k * k * sn
+
+
+class _AxisRotation(_Oscillation):
+    def __init__(self, *, amplitude_deg, **kw):
+        super().__init__(**kw)
+        self.amplitude = math.radians(float(amplitude_deg))
+        if not math.isfinite(self.amplitude):
+            raise ValueError(f"head.motion.amplitude_deg must be finite, got {amplitude_deg!r}")
+
+    def _rotation(self, t: float):
+        a, ad, add = (self.amplitude * e for e in self._envelope(t))
+        return _exp_derivatives(0.5 * a * self.axis, 0.5 * ad * self.axis, 0.5 * add * self.axis)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(amplitude_deg={math.degrees(self.amplitude):g}, period={self.period:g}, "
+                f"start={self.start:g}, ramp={self.ramp:g}, axis={self.axis.tolist()}, pivot={self.pivot.tolist()})")
+
+
+class Turn(_AxisRotation):
+    """The head turns to one side and back once per period: ``angle = A ramp(t) (1 - cos(2 pi tau / period)) / 2``.
+
+    Args:
+        amplitude_deg: largest turn angle [deg]; negative turns the other way.
+        period: duration of one turn and return [s].
+        start: time the motion begins [s].
+        ramp: fade-in time of the amplitude [s] (quintic smoothstep); 0 starts abruptly.
+        axis: rotation axis, world (default z: a yaw).
+        pivot: world point the rotation is about [m]; None takes ``rest_position``.
+        rest_position: head frame origin at rest [m].
+    """
+
+    def __init__(self, amplitude_deg=DEFAULT_AMPLITUDE_DEG, period=DEFAULT_PERIOD, start=DEFAULT_START,
+                 ramp=DEFAULT_RAMP, axis=DEFAULT_AXIS["turn"], *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+        super().__init__(amplitude_deg=amplitude_deg, period=period, start=start, ramp=ramp, axis=axis,
+                         pivot=pivot, rest_position=rest_position)
+
+    def _wave(self, tau):
+        k = 2.0 * math.pi / self.period
+        return 0.5 * (1.0 - math.cos(k * tau)), 0.5 * k * math.sin(k * tau), 0.5 * k * k * math.cos(k * tau)
+
+
+class Nod(_AxisRotation):
+    """Pitch oscillation, ``angle = A ramp(t) sin(2 pi tau / period)`` about the head's left-right axis.
+
+    Args:
+        amplitude_deg: largest pitch angle [deg].
+        period: duration of one full nod (down, up, back) [s].
+        start, ramp, pivot, rest_position: as for :class:`Turn`.
+        axis: pitch axis, world (default x, the left-right axis of the generated head).
+    """
+
+    def __init__(self, amplitude_deg=DEFAULT_AMPLITUDE_DEG, period=DEFAULT_PERIOD, start=DEFAULT_START,
+                 ramp=DEFAULT_RAMP, axis=DEFAULT_AXIS["nod"], *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+        super().__init__(amplitude_deg=amplitude_deg, period=period, start=start, ramp=ramp, axis=axis,
+                         pivot=pivot, rest_position=rest_position)
+
+    _wave = _Oscillation._sine
+
+
+class Shake(_AxisRotation):
+    """Yaw oscillation (a head shake), ``angle = A ramp(t) sin(2 pi tau / period)`` about world z.
+
+    Args:
+        amplitude_deg: largest yaw angle to either side [deg].
+        period: duration of one full left-right cycle [s].
+        start, ramp, pivot, rest_position: as for :class:`Turn`.
+        axis: yaw axis, world (default z).
+    """
+
+    def __init__(self, amplitude_deg=DEFAULT_AMPLITUDE_DEG, period=DEFAULT_PERIOD, start=DEFAULT_START,
+                 ramp=DEFAULT_RAMP, axis=DEFAULT_AXIS["shake"], *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+        super().__init__(amplitude_deg=amplitude_deg, period=period, start=start, ramp=ramp, axis=axis,
+                         pivot=pivot, rest_position=rest_position)
+
+    _wave = _Oscillation._sine
+
+
+class Translate(_Oscillation):
+    """Sinusoidal slide, ``d = distance ramp(t) sin(2 pi tau / period) axis``.
+
+    Args:
+        distance: amplitude of the slide [m].
+        period: duration of one back-and-forth cycle [s].
+        start, ramp, rest_position: as for :class:`Turn`.
+        axis: direction of the slide, world (default x).
+        pivot: unused (no rotation); accepted for a uniform signature.
+    """
+
+    def __init__(self, distance=DEFAULT_DISTANCE, period=DEFAULT_PERIOD, start=DEFAULT_START, ramp=DEFAULT_RAMP,
+                 axis=DEFAULT_AXIS["translate"], *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+        super().__init__(period=period, start=start, ramp=ramp, axis=axis, pivot=pivot, rest_position=rest_position)
+        self.distance = float(distance)
+        if not math.isfinite(self.distance):
+            raise ValueError(f"head.motion.distance must be finite, got {distance!r}")
+
+    _wave = _Oscillation._sine
+
+    def _translation(self, t: float):
+        e, ed, edd = self._envelope(t)
+        return self.distance * e * self.axis, self.distance * ed * self.axis, self.distance * edd * self.axis
+
+    def __repr__(self) -> str:
+        return (f"Translate(distance={self.distance:g}, period={self.period:g}, start={self.start:g}, "
+                f"ramp={self.ramp:g}, axis={self.axis.tolist()})")
+
+
+def _hermite(u: float):
+    """Cubic Hermite basis (h00, h10, h01, h11) at ``u`` and its first two derivatives in ``u``."""
+    u2, u3 = u * u, u * u * u
+    h = (2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2)
+    dh = (6 * u2 - 6 * u, 3 * u2 - 4 * u + 1, -6 * u2 + 6 * u, 3 * u2 - 2 * u)
+    ddh = (12 * u - 6, 6 * u - 4, -12 * u + 6, 6 * u - 2)
+    return h, dh, ddh
+
+
+class Keyframes(_PivotMotion):
+    """Keyed head poses, interpolated C1-smoothly; the pose holds before the first and after the last key.
+
+    Translation: cubic Hermite with Catmull-Rom tangents ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``.
+    Rotation: on each interval ``R(t) = R_i exp(phi(u))`` with ``phi`` a cubic Hermite curve in the
+    tangent space from 0 to ``log(R_i^T R_{i+1})`` whose end slopes give the key's world angular
+    velocity ``w_i`` (the time-weighted mean of the two neighbouring intervals' constant rates; at the
+    end slope the inverse right Jacobian of SO(3) maps it). Velocities are continuous at every key and
+    zero at the first and last key; accelerations jump at keys. Derivatives are analytic.
+
+    Args:
+        times: strictly increasing key times [s], (N,).
+        translations: head translations at the keys [m], world, (N, 3).
+        rotations: head rotations at the keys, quaternions (x, y, z, w), (N, 4); consecutive keys
+            must differ by less than 180 degrees.
+        pivot: world point the rotation is about [m]; None takes ``rest_position``.
+        rest_position: head frame origin at rest [m].
+    """
+
+    def __init__(self, times, translations, rotations, *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+        super().__init__(pivot, rest_position)
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        d = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+        q = np.asarray(rotations, dtype=np.float64).reshape(-1, 4)
+        n = t.size
+        if n == 0:
+            raise ValueError("head.motion.keys: at least one key is needed")
+        if d.shape[0] != n or q.shape[0] != n:
+            raise ValueError(f"head.motion.keys: {n} times, {d.shape[0]} translations, {q.shape[0]} rotations")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(d)) and np.all(np.isfinite(q))):
+            raise ValueError("head.motion.keys: times, translations and rotations must be finite")
+        bad = np.flatnonzero(np.diff(t) <= 0.0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise ValueError(f"head.motion.keys[{i}].time: key times must increase strictly, "
+                             f"got {t[i - 1]:g} then {t[i]:g}")
+        norms = np.linalg.norm(q, axis=1)
+        if np.any(norms < 1.0e-9):
+            raise ValueError("head.motion.keys: a rotation quaternion is zero")
+        q = q / norms[:, None]
+        self.times, self.translations, self.rotations = t, d, q
+
+        # Translation tangents (Catmull-Rom), zero at the ends so the head starts and stops at rest.
+        self._dtan = np.zeros_like(d)
+        for i in range(1, n - 1):
+            self._dtan[i] = (d[i + 1] - d[i - 1]) / (t[i + 1] - t[i - 1])
+
+        # Rotation: interval steps log(R_i^T R_{i+1}) and world angular velocities at the keys.
+        self._delta = np.zeros((max(n - 1, 0), 3))
+        for i in range(n - 1):
+            self._delta[i] = _quat_log(quat_multiply(_conj(q[i]), q[i + 1]))
+            angle = float(np.linalg.norm(self._delta[i]))
+            if angle > math.pi - 1.0e-6:
+                raise ValueError(f"head.motion.keys[{i + 1}]: the rotation differs from key {i} by "
+                                 f"{math.degrees(angle):.1f} deg; keep consecutive keys under 180 deg apart")
+        rates = [quat_rotate(q[i], self._delta[i]) / (t[i + 1] - t[i]) for i in range(n - 1)]
+        self._omega = np.zeros((n, 3))
+        for i in range(1, n - 1):
+            h0, h1 = t[i] - t[i - 1], t[i + 1] - t[i]
+            self._omega[i] = (h0 * rates[i - 1] + h1 * rates[i]) / (h0 + h1)
+        # Tangent-space end slopes per interval, d(phi)/du at u = 0 and u = 1.
+        self._slope0 = np.zeros((max(n - 1, 0), 3))
+        self._slope1 = np.zeros((max(n - 1, 0), 3))
+        for i in range(n - 1):
+            h = t[i + 1] - t[i]
+            self._slope0[i] = h * quat_rotate(_conj(q[i]), self._omega[i])
+            self._slope1[i] = h * (_right_jacobian_inv(self._delta[i]) @ quat_rotate(_conj(q[i + 1]),
+                                                                                     self._omega[i + 1]))
+
+    @classmethod
+    def from_keys(cls, keys: Sequence[Mapping], *, pivot=None, rest_position=(0.0, 0.0, 0.0)) -> Keyframes:
+        """Keyframes from tables with ``time``, ``translate`` and ``rotate_deg`` or ``axis`` + ``angle_deg``."""
+        times, trans, rots = [], [], []
+        for i, key in enumerate(keys):
+            key = {k: v for k, v in dict(key).items() if v is not None}
+            where = f"head.motion.keys[{i}]"
+            unknown = sorted(set(key) - {"time", "translate", "rotate_deg", "axis", "angle_deg"})
+            if unknown:
+                raise ValueError(f"{where}.{unknown[0]}: unknown key")
+            if "time" not in key:
+                raise ValueError(f"{where}.time: missing")
+            times.append(float(key["time"]))
+            trans.append(_vec3(key.get("translate", (0.0, 0.0, 0.0)), f"{where}.translate"))
+            if "rotate_deg" in key and ("axis" in key or "angle_deg" in key):
+                raise ValueError(f"{where}: give the rotation as rotate_deg or as axis and angle_deg, not both")
+            if "rotate_deg" in key:
+                rots.append(euler_xyz_deg_to_quat(_vec3(key["rotate_deg"], f"{where}.rotate_deg")))
+            elif "axis" in key or "angle_deg" in key:
+                if "axis" not in key or "angle_deg" not in key:
+                    raise ValueError(f"{where}: axis and angle_deg go together")
+                rots.append(_quat_axis_angle(_unit(key["axis"], f"{where}.axis"),
+                                             math.radians(float(key["angle_deg"]))))
+            else:
+                rots.append(_IDENTITY_Q.copy())
+        return cls(times, trans, rots, pivot=pivot, rest_position=rest_position)
+
+    def _locate(self, t: float):
+        """(interval i, u in [0, 1], interval length) or (key index, None, None) outside the keys."""
+        tk = self.times
+        if t <= tk[0]:
+            return 0, None, None
+        if t >= tk[-1]:
+            return tk.size - 1, None, None
+        i = int(np.searchsorted(tk, t, side="right")) - 1
+        h = tk[i + 1] - tk[i]
+        return i, (t - tk[i]) / h, h
+
+    def _translation(self, t: float):
+        i, u, h = self._locate(t)
+        if u is None:
+            return self.translations[i], _ZERO3, _ZERO3
+        d, m = self.translations, self._dtan
+        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
+        p = h00 * d[i] + h10 * h * m[i] + h01 * d[i + 1] + h11 * h * m[i + 1]
+        v = (d00 * d[i] + d10 * h * m[i] + d01 * d[i + 1] + d11 * h * m[i + 1]) / h
+        a = (e00 * d[i] + e10 * h * m[i] + e01 * d[i + 1] + e11 * h * m[i + 1]) / (h * h)
+        return p, v, a
+
+    def _rotation(self, t: float):
+        i, u, h = self._locate(t)
+        if u is None:
+            return self.rotations[i], np.zeros(4), np.zeros(4)
+        (_, h10, h01, h11), (_, d10, d01, d11), (_, e10, e01, e11) = _hermite(u)
+        s0, s1, dl = self._slope0[i], self._slope1[i], self._delta[i]
+        phi = h10 * s0 + h01 * dl + h11 * s1
+        phid = (d10 * s0 + d01 * dl + d11 * s1) / h
+        phidd = (e10 * s0 + e01 * dl + e11 * s1) / (h * h)
+        e, ed, edd = _exp_derivatives(0.5 * phi, 0.5 * phid, 0.5 * phidd)
+        qi = self.rotations[i]
+        return quat_multiply(qi, e), quat_multiply(qi, ed), quat_multiply(qi, edd)
+
+    def __repr__(self) -> str:
+        t = self.times
+        return f"Keyframes({t.size} keys, {t[0]:g}..{t[-1]:g} s, pivot={self.pivot.tolist()})"
+
+
+class Compose(HeadMotion):
+    """``outer`` carried on top of ``inner``: ``M(t) = M_outer(t) T(-rest_outer) M_inner(t)``.
+
+    The outer motion's displacement from its own rest pose is applied, in the world, to the head
+    that the inner motion moves; e.g. ``Compose(Translate(...), Nod(...))`` is a nodding head that
+    also slides, and ``Compose(Turn(...), Nod(...))`` nods about the turned head's left-right axis.
+
+    Args:
+        outer: the carrying motion.
+        inner: the carried motion; its ``rest_position`` is the composition's.
+    """
+
+    def __init__(self, outer: HeadMotion, inner: HeadMotion):
+        self.outer, self.inner = outer, inner
+        self.rest_position = np.asarray(inner.rest_position, dtype=np.float64)
+        self._unrest = _static_sample(-np.asarray(outer.rest_position, dtype=np.float64))
+
+    def evaluate(self, t: float) -> MotionSample:
+        return _product(_product(self.outer.evaluate(t), self._unrest), self.inner.evaluate(t))
+
+    def __repr__(self) -> str:
+        return f"Compose({self.outer!r}, {self.inner!r})"
