@@ -1,0 +1,566 @@
+"""Hair-hair interaction: static links (DESIGN §4.3) and dynamic contacts on triangle strips (§4.4).
+
+Everything is built once, on the host, from the rest pose; the per-step methods only launch kernels, so a solver
+step that calls them can be captured in a graph. The solver calls, each step, after forward kinematics of
+``state_in`` and after zeroing its accumulators::
+
+    links.apply(model, state_in, dt, seg_force, seg_torque, seg_implicit_mass)
+    contacts.apply(model, state_in, dt, seg_force, seg_torque, seg_implicit_mass)
+
+and, after integration and forward kinematics of ``state_out``::
+
+    links.break_links(model, state_out)
+
+``dt`` is the solver's one-element float32 device array. ``model`` needs ``seg_per_strand``, ``seg_length`` and
+``seg_mass``; a state needs ``seg_xform``, ``vertex_positions``, ``vertex_velocities`` and ``fault``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from hairwarp.kernels import contacts as contact_kernels
+from hairwarp.kernels import links as link_kernels
+
+# Strip triangles narrower than this fraction of the median width would make the density-scaled
+# vertex-face stiffness k0 s0 / s unbounded; wider than its inverse they would make it vanish.
+_MAX_DENSITY_SCALE = 4.0
+
+
+class InteractionError(ValueError):
+    """Bad input to a hair-hair interaction builder; the message names the argument or the strand."""
+
+
+def _check_vertices(rest_vertices) -> np.ndarray:
+    verts = np.asarray(rest_vertices, dtype=np.float64)
+    if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[1] < 2 or verts.shape[0] < 1:
+        raise InteractionError(f"rest_vertices: expected shape (G, S+1, 3) with S >= 1, got {verts.shape}")
+    if not np.all(np.isfinite(verts)):
+        strand = int(np.nonzero(~np.isfinite(verts).all(axis=(1, 2)))[0][0])
+        raise InteractionError(f"rest_vertices: strand {strand} has a non-finite vertex")
+    lengths = np.linalg.norm(np.diff(verts, axis=1), axis=2)
+    if np.any(lengths <= 0.0):
+        strand = int(np.nonzero(np.any(lengths <= 0.0, axis=1))[0][0])
+        raise InteractionError(f"rest_vertices: strand {strand} has a zero-length segment")
+    return verts
+
+
+def closest_points_segments(p0, p1, q0, q1):
+    """Closest points of segment pairs ``[p0, p1]`` and ``[q0, q1]`` (float64, arrays of shape (N, 3)).
+
+    Returns ``(s, t, dist)``: the parameters of the closest points along each segment (0 at p0 / q0,
+    1 at p1 / q1) and their distance. Ericson, *Real-Time Collision Detection*, 5.1.9.
+    """
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = np.einsum("ij,ij->i", d1, d1)
+    e = np.einsum("ij,ij->i", d2, d2)
+    f = np.einsum("ij,ij->i", d2, r)
+    c = np.einsum("ij,ij->i", d1, r)
+    b = np.einsum("ij,ij->i", d1, d2)
+    denom = a * e - b * b
+    parallel = denom <= 1e-12 * a * e
+    s = np.where(parallel, 0.0, np.clip((b * f - c * e) / np.where(parallel, 1.0, denom), 0.0, 1.0))
+    t = (b * s + f) / e
+    low = t < 0.0
+    high = t > 1.0
+    s = np.where(low, np.clip(-c / a, 0.0, 1.0), s)
+    s = np.where(high, np.clip((b - c) / a, 0.0, 1.0), s)
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.linalg.norm((p0 + s[:, None] * d1) - (q0 + t[:, None] * d2), axis=1)
+    return s, t, dist
+
+
+def _quat_rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v by the inverse of unit quaternions q (x, y, z, w), row by row."""
+    u = -q[:, :3]
+    w = q[:, 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def shortest_arc_rotations(rest_vertices) -> np.ndarray:
+    """Per-segment world rotations (x, y, z, w), shape (G*S, 4), turning body -z onto each segment's direction.
+
+    The frames of a chain whose rest joint rotations carry no twist about the segments; a model whose frames
+    do carry twist must pass its own rotations to :meth:`StaticLinks.build`.
+    """
+    verts = _check_vertices(rest_vertices)
+    d = np.diff(verts, axis=1).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(down, d)
+    cos = d @ down
+    q = np.concatenate([axis, (1.0 + cos)[:, None]], axis=1)
+    opposite = 1.0 + cos < 1e-12
+    q[opposite] = [1.0, 0.0, 0.0, 0.0]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+class StaticLinks:
+    """Breakable zero-rest-length springs between each segment and its nearest segments on other strands.
+
+    Attributes:
+        device: Warp device of the arrays.
+        link_count: number of links L.
+        seg_a, seg_b: numpy int32 (L,), the two segments of each link (flat ``g*S + k``), ``seg_a < seg_b``.
+        frac_a, frac_b: numpy float64 (L,), attachment parameters along each segment (0 = vertex k, 1 = vertex k+1).
+        rest_offset: numpy float64 (L, 3), r0 [m] in segment a's frame.
+        stiffness: k_s [N/m]. damping: k_d [N s/m]. break_length: |l| [m] beyond which a link breaks for good.
+        link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
+        link_broken: int32 (L,) on the device, 1 once a link broke.
+        link_broken_total: int32 (1,) on the device, the number of broken links.
+    """
+
+    @classmethod
+    def build(
+        cls,
+        rest_vertices,
+        *,
+        rest_rotations=None,
+        neighbours: int = 3,
+        radius: float,
+        stiffness: float,
+        damping: float,
+        break_length: float,
+        device=None,
+    ) -> StaticLinks:
+        """Link every segment to its ``neighbours`` nearest segments of other strands within ``radius``.
+
+        Candidates come from a k-d tree of segment midpoints (searched to ``radius`` plus the longest segment),
+        then exact segment-segment distances pick the nearest; a pair chosen from both sides is one link. The
+        link attaches at the two closest points, with the rest offset that makes it exactly slack at rest.
+
+        Args:
+            rest_vertices: (G, S+1, 3) world vertex positions of the pose the links hold [m].
+            rest_rotations: world rotations (x, y, z, w) of the segments in that pose, shape (G*S, 4) (or
+                (G*S, 7) transforms, as ``state.seg_xform.numpy()``); default :func:`shortest_arc_rotations`.
+            neighbours: links made per segment (n of the seed).
+            radius: largest segment-segment distance that gets a link [m].
+            stiffness: spring stiffness k_s [N/m].
+            damping: damping k_d [N s/m].
+            break_length: a link breaks for good when |l| exceeds this [m].
+            device: Warp device.
+        """
+        from scipy.spatial import cKDTree
+
+        verts = _check_vertices(rest_vertices)
+        G, S = verts.shape[0], verts.shape[1] - 1
+        for name, value in (("radius", radius), ("break_length", break_length)):
+            if not value > 0.0:
+                raise InteractionError(f"{name} must be > 0, got {value}")
+        for name, value in (("stiffness", stiffness), ("damping", damping)):
+            if not value >= 0.0:
+                raise InteractionError(f"{name} must be >= 0, got {value}")
+        if int(neighbours) < 1:
+            raise InteractionError(f"neighbours must be >= 1, got {neighbours}")
+        rot = shortest_arc_rotations(verts) if rest_rotations is None else np.asarray(rest_rotations, np.float64)
+        if rot.ndim == 2 and rot.shape == (G * S, 7):
+            rot = rot[:, 3:7]
+        if rot.shape != (G * S, 4):
+            raise InteractionError(f"rest_rotations: expected shape ({G * S}, 4) or ({G * S}, 7), got {rot.shape}")
+        rot = rot / np.linalg.norm(rot, axis=1, keepdims=True)
+
+        p0 = verts[:, :-1].reshape(-1, 3)
+        p1 = verts[:, 1:].reshape(-1, 3)
+        strand = np.repeat(np.arange(G), S)
+        reach = radius + float(np.linalg.norm(p1 - p0, axis=1).max())
+        pairs = cKDTree(0.5 * (p0 + p1)).query_pairs(reach, output_type="ndarray")
+        pairs = pairs[strand[pairs[:, 0]] != strand[pairs[:, 1]]] if len(pairs) else np.zeros((0, 2), np.int64)
+        i, j = pairs[:, 0], pairs[:, 1]
+        s, t, dist = closest_points_segments(p0[i], p1[i], p0[j], p1[j])
+        near = dist <= radius
+        i, j, s, t, dist = i[near], j[near], s[near], t[near], dist[near]
+
+        # Each segment keeps its n nearest partners; a pair kept from either side becomes one link.
+        seg = np.concatenate([i, j])
+        order = np.lexsort((np.concatenate([dist, dist]), seg))
+        seg_sorted = seg[order]
+        first = np.searchsorted(seg_sorted, seg_sorted, side="left")
+        rank = np.arange(len(order)) - first
+        keep = np.zeros(len(i), dtype=bool)
+        keep[order[rank < neighbours] % max(len(i), 1)] = True
+        a, b, fa, fb = i[keep], j[keep], s[keep], t[keep]
+
+        xa = p0[a] + fa[:, None] * (p1[a] - p0[a])
+        xb = p0[b] + fb[:, None] * (p1[b] - p0[b])
+        r0 = _quat_rotate_inverse(rot[a], xb - xa)
+
+        links = cls()
+        links.device = wp.get_device(device)
+        links.stiffness = float(stiffness)
+        links.damping = float(damping)
+        links.break_length = float(break_length)
+        links.seg_a = a.astype(np.int32)
+        links.seg_b = b.astype(np.int32)
+        links.frac_a = fa
+        links.frac_b = fb
+        links.rest_offset = r0
+        links.link_count = len(a)
+        n = max(links.link_count, 1)
+        dev = links.device
+        links.link_seg_a = wp.array(links.seg_a if len(a) else np.zeros(n, np.int32), dtype=wp.int32, device=dev)
+        links.link_seg_b = wp.array(links.seg_b if len(a) else np.zeros(n, np.int32), dtype=wp.int32, device=dev)
+        links.link_frac_a = wp.array(fa if len(a) else np.zeros(n), dtype=float, device=dev)
+        links.link_frac_b = wp.array(fb if len(a) else np.zeros(n), dtype=float, device=dev)
+        links.link_rest_offset = wp.array(r0 if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
+        links.link_broken = wp.zeros(n, dtype=wp.int32, device=dev)
+        links.link_broken_total = wp.zeros(1, dtype=wp.int32, device=dev)
+        return links
+
+    def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
+        """Accumulate the link forces of ``state`` into the solver's per-segment arrays (launch only)."""
+        if self.link_count == 0:
+            return
+        wp.launch(
+            link_kernels.link_forces,
+            dim=self.link_count,
+            inputs=[
+                model.seg_per_strand, model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a,
+                self.link_frac_b, self.link_rest_offset, self.stiffness, self.damping,
+                state.seg_xform, state.vertex_positions, state.vertex_velocities, self.link_broken, dt,
+            ],
+            outputs=[seg_force, seg_torque, seg_implicit_mass],
+            device=self.device,
+        )
+
+    def break_links(self, model, state):
+        """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only)."""
+        if self.link_count == 0:
+            return
+        wp.launch(
+            link_kernels.link_break,
+            dim=self.link_count,
+            inputs=[
+                model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a, self.link_frac_b,
+                self.link_rest_offset, self.break_length, state.seg_xform,
+            ],
+            outputs=[self.link_broken, self.link_broken_total],
+            device=self.device,
+        )
+
+    def broken_count(self) -> int:
+        """Number of broken links (host read; call once per output frame, outside a captured step)."""
+        return int(self.link_broken_total.numpy()[0])
+
+    def reset(self):
+        """Mend every link (for a new run from the rest pose)."""
+        self.link_broken.zero_()
+        self.link_broken_total.zero_()
+
+
+class TriangleStrips:
+    """Triangle strips between guide strands with adjacent roots, in a ``wp.Mesh`` refit every step.
+
+    Pair ``p = (a, b)`` and segment ``k`` give triangles ``2 S p + 2 k + 0 = (a_k, b_k, a_{k+1})`` and
+    ``2 S p + 2 k + 1 = (b_k, b_{k+1}, a_{k+1})``, as indices ``g*(S+1) + k`` into the guide vertex array.
+
+    Attributes:
+        device: Warp device.
+        strand_count: G. seg_per_strand: S. pair_count: number of strand pairs P. tri_count: 2 S P.
+        pairs: numpy int32 (P, 2), the strand pairs (a < b).
+        tri_width: numpy float64 (2SP,), rest length of each triangle's "horizontal" edge (a_k b_k or
+            a_{k+1} b_{k+1}) [m]; width_ref: its median s0.
+        points: vec3 (G*(S+1),) on the device, owned by the mesh; :meth:`update` copies the vertices in.
+        indices: int32 (3 * 2SP,) on the device, the triangles.
+        tri_strands: vec2i (2SP,) on the device, the strands (a, b) of each triangle.
+        tri_stiffness_scale: float32 (2SP,) on the device, s0 / s clamped to [1/4, 4], the density factor of the
+            vertex-face stiffness.
+        mesh: the ``wp.Mesh`` (None when there are no pairs).
+    """
+
+    @classmethod
+    def build(
+        cls, rest_vertices, root_uv=None, grid_shape=None, *, max_edge_ratio: float = 2.0, device=None
+    ) -> TriangleStrips:
+        """Pair strands with adjacent roots and build their strips.
+
+        Adjacency comes from ``grid_shape = (rows, cols)`` (strand ``r*cols + c``, pairs along rows and
+        columns), else from the Delaunay triangulation of ``root_uv`` (G, 2), else from the convex hull of the
+        3-D root positions (or, for roots in a plane, a Delaunay triangulation in that plane). Triangulation edges
+        longer than ``max_edge_ratio`` times the median edge are dropped (they bridge gaps, not neighbours).
+        """
+        verts = _check_vertices(rest_vertices)
+        G, S = verts.shape[0], verts.shape[1] - 1
+        if grid_shape is not None:
+            rows, cols = (int(x) for x in grid_shape)
+            if rows * cols != G:
+                raise InteractionError(f"grid_shape {grid_shape} holds {rows * cols} strands, the groom has {G}")
+            idx = np.arange(G).reshape(rows, cols)
+            pairs = np.concatenate([
+                np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], axis=1),
+                np.stack([idx[:-1, :].ravel(), idx[1:, :].ravel()], axis=1),
+            ])
+        else:
+            if not max_edge_ratio > 1.0:
+                raise InteractionError(f"max_edge_ratio must be > 1, got {max_edge_ratio}")
+            pairs = _root_adjacency(verts[:, 0], root_uv, max_edge_ratio)
+        pairs = np.sort(pairs.reshape(-1, 2), axis=1).astype(np.int32)
+        pairs = np.unique(pairs, axis=0) if len(pairs) else pairs
+
+        strips = cls()
+        strips.device = wp.get_device(device)
+        strips.strand_count, strips.seg_per_strand = G, S
+        strips.pairs = pairs
+        strips.pair_count = len(pairs)
+        strips.tri_count = 2 * S * len(pairs)
+        strips.points = wp.array(verts.reshape(-1, 3), dtype=wp.vec3, device=strips.device)
+        strips.mesh = None
+        if strips.pair_count == 0:
+            strips.tri_width = np.zeros(0)
+            strips.width_ref = 0.0
+            strips.indices = wp.zeros(3, dtype=wp.int32, device=strips.device)
+            strips.tri_strands = wp.zeros(1, dtype=wp.vec2i, device=strips.device)
+            strips.tri_stiffness_scale = wp.zeros(1, dtype=float, device=strips.device)
+            return strips
+
+        k = np.arange(S)
+        va = pairs[:, 0:1] * (S + 1) + k  # (P, S): vertex a_k
+        vb = pairs[:, 1:2] * (S + 1) + k
+        tri = np.stack([
+            np.stack([va, vb, va + 1], axis=-1),
+            np.stack([vb, vb + 1, va + 1], axis=-1),
+        ], axis=2).reshape(-1, 3)  # (P, S, 2, 3) -> (2SP, 3)
+        flat = verts.reshape(-1, 3)
+        # Horizontal edge: a_k b_k for the first triangle of a segment pair, a_{k+1} b_{k+1} for the second.
+        width = np.stack([
+            np.linalg.norm(flat[va] - flat[vb], axis=-1),
+            np.linalg.norm(flat[va + 1] - flat[vb + 1], axis=-1),
+        ], axis=2).reshape(-1)
+        strips.tri_width = width
+        strips.width_ref = float(np.median(width))
+        scale = strips.width_ref / np.maximum(width, strips.width_ref / _MAX_DENSITY_SCALE)
+        scale = np.maximum(scale, 1.0 / _MAX_DENSITY_SCALE)
+        tri_strands = np.repeat(pairs, 2 * S, axis=0)
+        strips.indices = wp.array(tri.reshape(-1).astype(np.int32), dtype=wp.int32, device=strips.device)
+        strips.tri_strands = wp.array(tri_strands, dtype=wp.vec2i, device=strips.device)
+        strips.tri_stiffness_scale = wp.array(scale, dtype=float, device=strips.device)
+        strips.mesh = wp.Mesh(points=strips.points, indices=strips.indices)
+        return strips
+
+    def update(self, state):
+        """Copy the state's vertex positions into the mesh points and refit the mesh BVH (launch only)."""
+        if self.mesh is None:
+            return
+        wp.copy(self.points, state.vertex_positions)
+        self.mesh.refit()
+
+
+def _root_adjacency(roots: np.ndarray, root_uv, max_edge_ratio: float) -> np.ndarray:
+    """Edges (E, 2) between strands whose roots are neighbours, without the long edges of the triangulation."""
+    from scipy.spatial import ConvexHull, Delaunay, QhullError
+
+    G = len(roots)
+    if G < 2:
+        return np.zeros((0, 2), np.int32)
+    if G == 2:
+        return np.array([[0, 1]], np.int32)
+    if root_uv is not None:
+        pts = np.asarray(root_uv, dtype=np.float64)
+        if pts.shape != (G, 2):
+            raise InteractionError(f"root_uv: expected shape ({G}, 2), got {pts.shape}")
+        simplices = Delaunay(pts).simplices
+    else:
+        pts = roots
+        try:
+            simplices = ConvexHull(roots).simplices
+        except QhullError:
+            # Roots in a plane (or a line): triangulate in their principal plane.
+            centred = roots - roots.mean(axis=0)
+            basis = np.linalg.svd(centred, full_matrices=False)[2][:2]
+            pts = centred @ basis.T
+            try:
+                simplices = Delaunay(pts).simplices
+            except QhullError:
+                order = np.argsort(pts[:, 0])
+                return np.stack([order[:-1], order[1:]], axis=1).astype(np.int32)
+    edges = np.concatenate([simplices[:, [0, 1]], simplices[:, [1, 2]], simplices[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    length = np.linalg.norm(pts[edges[:, 0]] - pts[edges[:, 1]], axis=1)
+    return edges[length <= max_edge_ratio * np.median(length)].astype(np.int32)
+
+
+class HairContacts:
+    """Vertex-face (guide vertices against strips) and segment-segment contacts, with fixed-capacity buffers.
+
+    Attributes:
+        device: Warp device. strand_count: G. seg_per_strand: S.
+        strips: the :class:`TriangleStrips`, or None (no vertex-face contacts).
+        segment_segment: whether segment-segment contacts are detected.
+        threshold: contact distance [m]; stiffness: k0 [N/m]; damping: normal damping [N s/m]; friction: mu;
+            slip_velocity: regularisation speed of the Coulomb law [m/s]; capacity: contact slots.
+        seg_lowers, seg_uppers: vec3 (G*S,), threshold-grown segment boxes of the ``seg_bvh``.
+        contact_kind: int32 (capacity,): ``CONTACT_VERTEX_FACE`` (a = vertex, b = triangle, w = barycentric
+            weights) or ``CONTACT_SEGMENT_SEGMENT`` (a, b = segments, w = (s, t, 0) along each).
+        contact_a, contact_b: int32 (capacity,). contact_w: vec3 (capacity,).
+        contact_counter: int32 (1,), contacts found in the last step (may exceed the capacity).
+        contact_overflow: int32 (1,), 1 once a step found more contacts than the capacity (sticky).
+    """
+
+    @classmethod
+    def build(
+        cls,
+        rest_vertices,
+        strips: TriangleStrips | None = None,
+        *,
+        threshold: float,
+        stiffness: float,
+        damping: float = 0.0,
+        friction: float = 0.0,
+        slip_velocity: float = 1.0e-3,
+        capacity: int,
+        segment_segment: bool = True,
+        device=None,
+    ) -> HairContacts:
+        """Allocate the segment BVH and the contact buffers.
+
+        Args:
+            rest_vertices: (G, S+1, 3) vertex positions for the initial BVH [m].
+            strips: strips for vertex-face contacts, or None.
+            threshold: pairs closer than this interact [m].
+            stiffness: repulsion stiffness k0 [N/m] (vertex-face: scaled by the strip's density factor).
+            damping: normal damping [N s/m].
+            friction: Coulomb coefficient mu.
+            slip_velocity: tangential speed below which friction fades linearly to zero [m/s].
+            capacity: contact slots per step (both kinds together).
+            segment_segment: detect segment-segment contacts.
+            device: Warp device.
+        """
+        verts = _check_vertices(rest_vertices)
+        G, S = verts.shape[0], verts.shape[1] - 1
+        if not threshold > 0.0:
+            raise InteractionError(f"threshold must be > 0, got {threshold}")
+        for name, value in (("stiffness", stiffness), ("damping", damping), ("friction", friction)):
+            if not value >= 0.0:
+                raise InteractionError(f"{name} must be >= 0, got {value}")
+        if not slip_velocity > 0.0:
+            raise InteractionError(f"slip_velocity must be > 0, got {slip_velocity}")
+        if int(capacity) < 1:
+            raise InteractionError(f"capacity must be >= 1, got {capacity}")
+        if strips is not None and (strips.strand_count, strips.seg_per_strand) != (G, S):
+            raise InteractionError(
+                f"strips were built for {strips.strand_count} strands of {strips.seg_per_strand} segments, "
+                f"rest_vertices has {G} of {S}"
+            )
+
+        contacts = cls()
+        dev = contacts.device = wp.get_device(device)
+        contacts.strand_count, contacts.seg_per_strand = G, S
+        contacts.strips = strips if strips is not None and strips.mesh is not None else None
+        contacts.segment_segment = bool(segment_segment) and G > 1
+        contacts.threshold = float(threshold)
+        contacts.stiffness = float(stiffness)
+        contacts.damping = float(damping)
+        contacts.friction = float(friction)
+        contacts.slip_velocity = float(slip_velocity)
+        contacts.capacity = int(capacity)
+
+        p0 = verts[:, :-1].reshape(-1, 3)
+        p1 = verts[:, 1:].reshape(-1, 3)
+        contacts.seg_lowers = wp.array(np.minimum(p0, p1) - threshold, dtype=wp.vec3, device=dev)
+        contacts.seg_uppers = wp.array(np.maximum(p0, p1) + threshold, dtype=wp.vec3, device=dev)
+        contacts.seg_bvh = wp.Bvh(contacts.seg_lowers, contacts.seg_uppers) if contacts.segment_segment else None
+
+        contacts.contact_kind = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
+        contacts.contact_a = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
+        contacts.contact_b = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
+        contacts.contact_w = wp.zeros(contacts.capacity, dtype=wp.vec3, device=dev)
+        contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
+        if contacts.strips is None:
+            # The force kernel takes strip arrays even when only segments collide.
+            contacts._indices = wp.zeros(3, dtype=wp.int32, device=dev)
+            contacts._tri_strands = wp.zeros(1, dtype=wp.vec2i, device=dev)
+            contacts._tri_scale = wp.zeros(1, dtype=float, device=dev)
+        else:
+            contacts._indices = contacts.strips.indices
+            contacts._tri_strands = contacts.strips.tri_strands
+            contacts._tri_scale = contacts.strips.tri_stiffness_scale
+        return contacts
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any contact kind is detected."""
+        return self.strips is not None or self.segment_segment
+
+    def detect(self, model, state):
+        """Refit the strip mesh and the segment BVH to ``state`` and fill the contact buffers (launch only)."""
+        S = model.seg_per_strand
+        self.contact_counter.zero_()
+        buffers = [
+            self.contact_kind, self.contact_a, self.contact_b, self.contact_w,
+            self.contact_counter, self.contact_overflow, state.fault,
+        ]
+        if self.strips is not None:
+            self.strips.update(state)
+            wp.launch(
+                contact_kernels.vertex_face_contacts,
+                dim=len(state.vertex_positions),
+                inputs=[S, self.threshold, self.capacity, self.strips.mesh.id, self.strips.indices,
+                        self.strips.tri_strands, state.vertex_positions],
+                outputs=buffers,
+                device=self.device,
+            )
+        if self.segment_segment:
+            wp.launch(
+                contact_kernels.segment_bounds,
+                dim=len(self.seg_lowers),
+                inputs=[S, self.threshold, state.vertex_positions],
+                outputs=[self.seg_lowers, self.seg_uppers],
+                device=self.device,
+            )
+            self.seg_bvh.refit()
+            wp.launch(
+                contact_kernels.segment_segment_contacts,
+                dim=len(self.seg_lowers),
+                inputs=[S, self.threshold, self.capacity, self.seg_bvh.id, state.vertex_positions],
+                outputs=buffers,
+                device=self.device,
+            )
+
+    def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
+        """Detect the contacts of ``state`` and accumulate their forces into the solver's arrays (launch only)."""
+        if not self.enabled:
+            return
+        self.detect(model, state)
+        wp.launch(
+            contact_kernels.contact_forces,
+            dim=self.capacity,
+            inputs=[
+                model.seg_per_strand, model.seg_mass, self._indices, self._tri_strands, self._tri_scale,
+                self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.capacity,
+                state.vertex_positions, state.vertex_velocities, dt,
+                self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_counter,
+            ],
+            outputs=[seg_force, seg_torque, seg_implicit_mass],
+            device=self.device,
+        )
+
+    def rebuild(self):
+        """Rebuild the segment BVH from its current boxes (host; optional, e.g. once per frame after large motion)."""
+        if self.seg_bvh is not None:
+            self.seg_bvh.rebuild()
+
+    def contact_count(self) -> int:
+        """Contacts found in the last step, including any dropped for want of capacity (host read)."""
+        return int(self.contact_counter.numpy()[0])
+
+    def overflowed(self) -> bool:
+        """Whether any step since the build (or :meth:`reset_overflow`) found more contacts than the capacity."""
+        return bool(self.contact_overflow.numpy()[0])
+
+    def reset_overflow(self):
+        """Clear the sticky overflow flag."""
+        self.contact_overflow.zero_()
+
+    def contact_list(self) -> dict:
+        """The last step's stored contacts as numpy arrays ``kind, a, b, w`` (host read, for reports and tests)."""
+        n = min(self.contact_count(), self.capacity)
+        return {
+            "kind": self.contact_kind.numpy()[:n].copy(),
+            "a": self.contact_a.numpy()[:n].copy(),
+            "b": self.contact_b.numpy()[:n].copy(),
+            "w": self.contact_w.numpy()[:n].copy(),
+        }

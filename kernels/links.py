@@ -1,0 +1,148 @@
+"""Static links: breakable zero-rest-length spring-dampers between segments of different strands.
+
+Seed slides, "Static Links": ``f = sum_i [k_s |l_i| - k_d (v_i . l_i) / |l_i|] l_i / |l_i|``. A link joins a
+point fixed in segment ``a`` (its closest point to ``b`` at rest plus the rest offset ``r0``, both in ``a``'s
+frame) to the closest point on segment ``b``; at rest the two coincide, so ``l = x_b - x_a'`` is zero there
+(DESIGN §4.3). The force acts along ``l`` at both ends, so a link carries no net torque.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+# Below this length [m] (well under float32 resolution of hair coordinates) the direction of l is
+# round-off, so the damping term, which acts along that direction, is left out.
+LINK_MIN_LENGTH = wp.constant(1.0e-7)
+
+
+@wp.func
+def seg_first_vertex(seg: int, seg_per_strand: int) -> int:
+    """Index of vertex k (the segment origin) of segment ``seg = g*S + k`` in the ``G*(S+1)`` arrays."""
+    return seg + seg // seg_per_strand
+
+
+@wp.func
+def seg_point_velocity(
+    seg: int,
+    seg_per_strand: int,
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    p: wp.vec3,
+) -> wp.vec3:
+    """Velocity [m/s] of the world point ``p`` moving rigidly with segment ``seg``.
+
+    The angular velocity is the part perpendicular to the segment, ``w = d x (v1 - v0) / |d|^2``, the part
+    that the two vertex velocities determine; spin about the segment's own axis is not seen.
+    """
+    v = seg_first_vertex(seg, seg_per_strand)
+    x0 = vertex_positions[v]
+    d = vertex_positions[v + 1] - x0
+    v0 = vertex_velocities[v]
+    w = wp.cross(d, vertex_velocities[v + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
+    return v0 + wp.cross(w, p - x0)
+
+
+@wp.func
+def link_ends(
+    a: int,
+    b: int,
+    frac_a: float,
+    frac_b: float,
+    rest_offset: wp.vec3,
+    seg_length: wp.array(dtype=float),
+    seg_xform: wp.array(dtype=wp.transform),
+):
+    """World attachment points ``(x_a', x_b)`` of a link: ``x_a' = X_a (0, 0, -f_a L_a) + R_a r0``."""
+    xa = wp.transform_point(seg_xform[a], wp.vec3(0.0, 0.0, -frac_a * seg_length[a]) + rest_offset)
+    xb = wp.transform_point(seg_xform[b], wp.vec3(0.0, 0.0, -frac_b * seg_length[b]))
+    return xa, xb
+
+
+@wp.kernel
+def link_forces(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    link_frac_a: wp.array(dtype=float),
+    link_frac_b: wp.array(dtype=float),
+    link_rest_offset: wp.array(dtype=wp.vec3),
+    link_stiffness: float,
+    link_damping: float,
+    # State in:
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    link_broken: wp.array(dtype=wp.int32),
+    dt: wp.array(dtype=float),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_implicit_mass: wp.array(dtype=float),
+):
+    """One thread per link: the seed's spring-damper between the link's two attachment points.
+
+    Adds +f at x_a' to segment a and -f at x_b to segment b (``seg_force`` [N], ``seg_torque`` [N m] about each
+    segment origin, world frame) and ``h^2 k_s + h k_d`` [kg] to both ``seg_implicit_mass``; broken links add nothing.
+    """
+    link = wp.tid()
+    if link_broken[link] != 0:
+        return
+    a = link_seg_a[link]
+    b = link_seg_b[link]
+    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform)
+    l = xb - xa
+    length = wp.length(l)
+
+    # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
+    f = link_stiffness * l
+    if length > LINK_MIN_LENGTH:
+        n = l / length
+        va = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa)
+        vb = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+        # v = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
+        f = f - link_damping * wp.dot(va - vb, n) * n
+
+    oa = wp.transform_get_translation(seg_xform[a])
+    ob = wp.transform_get_translation(seg_xform[b])
+    wp.atomic_add(seg_force, a, f)
+    wp.atomic_add(seg_torque, a, wp.cross(xa - oa, f))
+    wp.atomic_add(seg_force, b, -f)
+    wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
+
+    h = dt[0]
+    extra = h * h * link_stiffness + h * link_damping
+    wp.atomic_add(seg_implicit_mass, a, extra)
+    wp.atomic_add(seg_implicit_mass, b, extra)
+
+
+@wp.kernel
+def link_break(
+    # Model:
+    seg_length: wp.array(dtype=float),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    link_frac_a: wp.array(dtype=float),
+    link_frac_b: wp.array(dtype=float),
+    link_rest_offset: wp.array(dtype=wp.vec3),
+    link_break_length: float,
+    # State in:
+    seg_xform: wp.array(dtype=wp.transform),
+    # Out:
+    link_broken: wp.array(dtype=wp.int32),
+    link_broken_total: wp.array(dtype=wp.int32),
+):
+    """One thread per link: mark the link broken for good once ``|l|`` [m] exceeds the break length.
+
+    Writes ``link_broken[link] = 1`` and counts each newly broken link once in ``link_broken_total[0]``.
+    """
+    link = wp.tid()
+    if link_broken[link] != 0:
+        return
+    a = link_seg_a[link]
+    b = link_seg_b[link]
+    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform)
+    if wp.length(xb - xa) > link_break_length:
+        link_broken[link] = 1
+        wp.atomic_add(link_broken_total, 0, 1)
