@@ -36,15 +36,15 @@ def dense_interpolate(
     seg_per_strand: int,
     dense_guide_index: wp.array(dtype=wp.vec4i),
     dense_guide_weight: wp.array(dtype=wp.vec4),
-    dense_length_scale: wp.array(dtype=float),
+    dense_length_scale: wp.array(dtype=wp.float32),
     dense_clump_guide: wp.array(dtype=wp.int32),
     dense_root_offset: wp.array(dtype=wp.vec3),
     dense_tip_offset: wp.array(dtype=wp.vec3),
     clumping: float,
     apply_offsets: int,
-    velocity: int,
     # State in:
     guide_x: wp.array(dtype=wp.vec3),
+    velocity: int,
     # Control:
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),

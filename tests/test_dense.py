@@ -238,6 +238,15 @@ def test_length_scale_shortens_along_the_guide_shape():
     spacing = np.linalg.norm(np.diff(dense, axis=1), axis=2)
     np.testing.assert_allclose(spacing, (hair.length_scale * LENGTH / S)[:, None] * np.ones(S), atol=POS_TOL)
     assert spacing.max() <= LENGTH / S + POS_TOL
+    # Bent guides: vertex spacing stays within the longest segment of the strand's guides.
+    guides, _ = cap_guides(20, S, seed=3)
+    guides[:, :, 2] *= np.linspace(1.0, 1.5, 20)[:, None]  # uneven segment lengths between guides
+    hair = DenseHair.build(guides, count=300, length_variation=0.4, clumping=0.5, device=DEVICE)
+    dense = strands(hair, hair.interpolate(to_wp(guides)))
+    seg = np.linalg.norm(np.diff(guides, axis=1), axis=2).max(1)
+    allowed = seg[np.where(hair.guide_weight > 0, hair.guide_index, hair.clump_guide[:, None])].max(1)
+    allowed = np.maximum(allowed, seg[hair.clump_guide])
+    assert np.all(np.linalg.norm(np.diff(dense, axis=1), axis=2).max(1) <= allowed + POS_TOL)
 
 
 def test_clumping_one_brings_tips_to_the_clump_guide():
