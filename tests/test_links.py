@@ -1,0 +1,267 @@
+"""Static links (DESIGN §4.3) against float64 numpy evaluations of the seed's spring formula.
+
+The arrays a solver step passes are built here directly (chains of rigid segments from random rotations, with
+rigid-body vertex velocities), independent of the Model and State classes.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.spatial.transform import Rotation
+
+from hairwarp.interactions import InteractionError, StaticLinks
+
+# Coordinates are below 0.1 m, where float32 spacing is 7.5e-9 m; the two ends of a link are about ten
+# rounded operations from the stored vertices, so a link at rest measures well under 1e-7 m.
+REST_LENGTH_TOL = 1.0e-7
+# Per-segment sums of a few float32 products: relative error of a few 1e-7 of the largest term.
+FORCE_RTOL = 1.0e-5
+# Momentum sums cancel many float32 terms: allowed residual as a fraction of the sum of magnitudes.
+MOMENTUM_RTOL = 1.0e-5
+# |l| of a link closer than this to break_length may round to either side in float32 [m].
+BREAK_BAND = 1.0e-6
+
+ROWS, COLS, S = 4, 5, 8
+G = ROWS * COLS
+SEG_LEN = 0.01
+SPACING = 0.004
+K_S, K_D, DT = 20.0, 0.05, 1.0e-3
+
+
+def _chain(roots, rot):
+    """Vertices (G, S+1, 3) of chains whose segment k has world rotation rot[g*S + k] and lies along its -z."""
+    axis = rot.apply(np.tile([0.0, 0.0, -SEG_LEN], (len(rot), 1))).reshape(G, S, 3)
+    verts = np.zeros((G, S + 1, 3))
+    verts[:, 0] = roots
+    verts[:, 1:] = roots[:, None] + np.cumsum(axis, axis=1)
+    return verts
+
+
+def _groom(rng, bend=0.15):
+    c, r = np.meshgrid(np.arange(COLS), np.arange(ROWS))
+    roots = np.stack([c.ravel() * SPACING, r.ravel() * SPACING, np.zeros(G)], axis=1)
+    rot = Rotation.from_rotvec(rng.normal(0.0, bend, (G * S, 3)))
+    return roots, rot
+
+
+def _perpendicular_omega(rng, verts, scale):
+    """Random world angular velocities (G*S, 3), perpendicular to each segment (what vertex velocities carry)."""
+    d = np.diff(verts, axis=1).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = rng.normal(0.0, scale, d.shape)
+    return w - np.sum(w * d, axis=1, keepdims=True) * d
+
+
+def _velocities(rng, verts, omega, scale):
+    """Rigid-body vertex velocities: a random root velocity, then v_{k+1} = v_k + w_k x (x_{k+1} - x_k)."""
+    d = np.diff(verts, axis=1)
+    dv = np.cross(omega.reshape(G, S, 3), d)
+    v = np.zeros_like(verts)
+    v[:, 0] = rng.normal(0.0, scale, (G, 3))
+    v[:, 1:] = v[:, :1] + np.cumsum(dv, axis=1)
+    return v
+
+
+def _arrays(verts, rot, vel):
+    xform = np.concatenate([verts[:, :-1].reshape(-1, 3), rot.as_quat()], axis=1)
+    state = SimpleNamespace(
+        seg_xform=wp.array(xform, dtype=wp.transform),
+        vertex_positions=wp.array(verts.reshape(-1, 3), dtype=wp.vec3),
+        vertex_velocities=wp.array(vel.reshape(-1, 3), dtype=wp.vec3),
+        fault=wp.zeros(1, dtype=wp.int32),
+    )
+    return state
+
+
+def _model():
+    return SimpleNamespace(
+        seg_per_strand=S,
+        seg_count=G * S,
+        seg_length=wp.array(np.full(G * S, SEG_LEN), dtype=float),
+        seg_mass=wp.array(np.full(G * S, 1.0e-6), dtype=float),
+    )
+
+
+def _apply(links, model, state):
+    force = wp.zeros(G * S, dtype=wp.vec3)
+    torque = wp.zeros(G * S, dtype=wp.vec3)
+    mass = wp.zeros(G * S, dtype=float)
+    links.apply(model, state, wp.array([DT], dtype=float), force, torque, mass)
+    return force.numpy().astype(np.float64), torque.numpy().astype(np.float64), mass.numpy().astype(np.float64)
+
+
+def _reference(links, verts, rot, vel, omega, skip=None):
+    """Float64 seed formula f = [k_s |l| - k_d (v . l)/|l|] l/|l| on a at x_a' and -f on b at x_b, per segment."""
+    a, b = links.seg_a, links.seg_b
+    origin = verts[:, :-1].reshape(-1, 3)
+    v_origin = vel[:, :-1].reshape(-1, 3)
+    xa = origin[a] + rot[a].apply(np.stack([0 * links.frac_a, 0 * links.frac_a, -links.frac_a * SEG_LEN], 1)
+                                  + links.rest_offset)
+    xb = origin[b] + rot[b].apply(np.stack([0 * links.frac_b, 0 * links.frac_b, -links.frac_b * SEG_LEN], 1))
+    l_vec = xb - xa
+    length = np.linalg.norm(l_vec, axis=1)
+    va = v_origin[a] + np.cross(omega[a], xa - origin[a])
+    vb = v_origin[b] + np.cross(omega[b], xb - origin[b])
+    n = l_vec / length[:, None]
+    f = (K_S * length - K_D * np.sum((va - vb) * n, axis=1))[:, None] * n
+    if skip is not None:
+        f[skip] = 0.0
+    force = np.zeros((G * S, 3))
+    torque = np.zeros((G * S, 3))
+    np.add.at(force, a, f)
+    np.add.at(force, b, -f)
+    np.add.at(torque, a, np.cross(xa - origin[a], f))
+    np.add.at(torque, b, np.cross(xb - origin[b], -f))
+    return force, torque, length
+
+
+def _segment_distance(p0, p1, q0, q1):
+    """Brute-force distance of two segments: the smallest of the four endpoint-to-segment distances and, if it
+    lies inside both, the distance of the two lines' common perpendicular."""
+
+    def point_segment(x, s0, s1):
+        d = s1 - s0
+        t = np.clip(np.dot(x - s0, d) / np.dot(d, d), 0.0, 1.0)
+        return np.linalg.norm(x - (s0 + t * d))
+
+    best = min(point_segment(p0, q0, q1), point_segment(p1, q0, q1), point_segment(q0, p0, p1),
+               point_segment(q1, p0, p1))
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    m = np.array([[d1 @ d1, -(d1 @ d2)], [d1 @ d2, -(d2 @ d2)]])
+    if abs(np.linalg.det(m)) > 1e-18:
+        s, t = np.linalg.solve(m, [-(d1 @ r), -(d2 @ r)])
+        if 0.0 <= s <= 1.0 and 0.0 <= t <= 1.0:
+            best = min(best, np.linalg.norm((p0 + s * d1) - (q0 + t * d2)))
+    return best
+
+
+@pytest.fixture(scope="module")
+def setup():
+    rng = np.random.default_rng(7)
+    roots, rot = _groom(rng)
+    verts = _chain(roots, rot)
+    links = StaticLinks.build(verts, rest_rotations=rot.as_quat(), neighbours=3, radius=0.006,
+                              stiffness=K_S, damping=K_D, break_length=0.004)
+    return SimpleNamespace(rng=rng, roots=roots, rot=rot, verts=verts, links=links, model=_model())
+
+
+def test_builder_links_nearest_segments(setup):
+    """Each segment is linked to (at least) its n nearest segments of other strands within the radius."""
+    links, verts = setup.links, setup.verts
+    assert links.link_count > G * S  # a dense patch: more links than segments
+    p0 = verts[:, :-1].reshape(-1, 3)
+    p1 = verts[:, 1:].reshape(-1, 3)
+    linked = set(zip(links.seg_a.tolist(), links.seg_b.tolist(), strict=True))
+    assert len(linked) == links.link_count  # each unordered pair once
+    assert np.all(links.seg_a < links.seg_b)
+    assert np.all(links.seg_a // S != links.seg_b // S)
+    for i in range(0, G * S, 7):
+        others = [j for j in range(G * S) if j // S != i // S]
+        dist = np.array([_segment_distance(p0[i], p1[i], p0[j], p1[j]) for j in others])
+        order = np.argsort(dist)[:3]
+        for o in order:
+            if dist[o] <= 0.006:
+                assert (min(i, others[o]), max(i, others[o])) in linked
+
+
+def test_rest_pose_is_slack(setup):
+    """At rest every link has zero length, so no force, to float32 round-off."""
+    state = _arrays(setup.verts, setup.rot, np.zeros_like(setup.verts))
+    force, torque, mass = _apply(setup.links, setup.model, state)
+    counts = np.bincount(np.concatenate([setup.links.seg_a, setup.links.seg_b]), minlength=G * S)
+    assert np.linalg.norm(force, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max()
+    assert np.linalg.norm(torque, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max() * 2 * SEG_LEN
+    np.testing.assert_allclose(mass, counts * (DT * DT * K_S + DT * K_D), rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_forces_match_seed_formula_and_conserve_momentum(setup, seed):
+    """After a rigid motion and a bend of every joint, forces match float64 numpy and sum to a zero wrench."""
+    rng = np.random.default_rng(seed)
+    bend = Rotation.from_rotvec(rng.normal(0.0, 0.05, (G * S, 3)))
+    rigid = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3))
+    shift = rng.normal(0.0, 0.02, 3)
+    rot = rigid * setup.rot * bend
+    verts = _chain(rigid.apply(setup.roots) + shift, rot)
+    omega = _perpendicular_omega(rng, verts, 5.0)
+    vel = _velocities(rng, verts, omega, 0.2)
+    state = _arrays(verts, rot, vel)
+    force, torque, _ = _apply(setup.links, setup.model, state)
+
+    ref_force, ref_torque, length = _reference(setup.links, verts, rot, vel, omega)
+    assert length.max() > 1e-4  # the perturbation stretched the links
+    scale = np.abs(ref_force).max()
+    np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * scale)
+    np.testing.assert_allclose(torque, ref_torque, atol=FORCE_RTOL * scale * SEG_LEN)
+
+    origin = verts[:, :-1].reshape(-1, 3)
+    total_force = force.sum(axis=0)
+    total_torque = (torque + np.cross(origin, force)).sum(axis=0)
+    magnitude = np.linalg.norm(force, axis=1).sum()
+    assert np.linalg.norm(total_force) <= MOMENTUM_RTOL * magnitude
+    moment_scale = (np.linalg.norm(force, axis=1) * np.linalg.norm(origin, axis=1)).sum()
+    assert np.linalg.norm(total_torque) <= MOMENTUM_RTOL * moment_scale
+
+
+def test_damping_dissipates(setup):
+    """With no stretch rate opposing it, a pure damping link removes energy: sum F . v <= 0 at the attachment points."""
+    rng = np.random.default_rng(3)
+    bend = Rotation.from_rotvec(rng.normal(0.0, 0.05, (G * S, 3)))
+    rot = setup.rot * bend
+    verts = _chain(setup.roots, rot)
+    omega = _perpendicular_omega(rng, verts, 5.0)
+    vel = _velocities(rng, verts, omega, 0.2)
+    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=0.006, stiffness=0.0,
+                              damping=K_D, break_length=1.0)
+    force, torque, _ = _apply(links, setup.model, _arrays(verts, rot, vel))
+    # Power of the wrenches on rigid segments: F . v_origin + tau . w.
+    power = np.sum(force * vel[:, :-1].reshape(-1, 3)) + np.sum(torque * omega)
+    assert power < 0.0
+
+
+def test_breaking_follows_numpy_and_is_permanent(setup):
+    rng = np.random.default_rng(11)
+    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=0.006, stiffness=K_S,
+                              damping=K_D, break_length=0.004)
+    bend = Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
+    rot = setup.rot * bend
+    verts = _chain(setup.roots, rot)
+    zero = np.zeros_like(verts)
+    _, _, length = _reference(links, verts, rot, zero, np.zeros((G * S, 3)))
+    expected = length > links.break_length
+    clear = np.abs(length - links.break_length) > BREAK_BAND
+    assert 0 < expected.sum() < links.link_count
+
+    state = _arrays(verts, rot, zero)
+    links.break_links(setup.model, state)
+    broken = links.link_broken.numpy()[: links.link_count].astype(bool)
+    np.testing.assert_array_equal(broken[clear], expected[clear])
+    assert links.broken_count() == broken.sum()
+
+    # Broken links exert nothing, the others still match the seed formula.
+    force, _, mass = _apply(links, setup.model, state)
+    ref_force, _, _ = _reference(links, verts, rot, zero, np.zeros((G * S, 3)), skip=broken)
+    np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * np.abs(ref_force).max())
+    intact = np.concatenate([links.seg_a[~broken], links.seg_b[~broken]])
+    np.testing.assert_allclose(mass, np.bincount(intact, minlength=G * S) * (DT * DT * K_S + DT * K_D), rtol=1e-6)
+
+    # Back at rest nothing mends.
+    links.break_links(setup.model, _arrays(setup.verts, setup.rot, zero))
+    np.testing.assert_array_equal(links.link_broken.numpy()[: links.link_count].astype(bool), broken)
+    assert links.broken_count() == broken.sum()
+    links.reset()
+    assert links.broken_count() == 0
+
+
+def test_bad_input_is_named():
+    with pytest.raises(InteractionError, match="rest_vertices"):
+        StaticLinks.build(np.zeros((3, 4)), radius=1.0, stiffness=1.0, damping=0.0, break_length=1.0)
+    verts = np.zeros((2, 3, 3))
+    verts[:, :, 2] = -np.arange(3)[None]
+    with pytest.raises(InteractionError, match="rest_rotations"):
+        StaticLinks.build(verts, rest_rotations=np.zeros((3, 4)), radius=1.0, stiffness=1.0, damping=0.0,
+                          break_length=1.0)
+    with pytest.raises(InteractionError, match="radius"):
+        StaticLinks.build(verts, radius=0.0, stiffness=1.0, damping=0.0, break_length=1.0)
