@@ -61,7 +61,7 @@ class Solver:
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
-                 max_rotation_per_step: float = 0.5):
+                 max_rotation_per_step: float = 1.0):
         self.model = model
         self.integrator = _integrator(integrator)
         self.colliders = colliders
