@@ -1,0 +1,252 @@
+"""Headless runs: a scene advanced frame by frame into a USD cache and a preview picture.
+
+:class:`Stepper` owns what every embedding of ``Solver.step`` needs: substeps per frame, the
+swap parity of the two states, optional graph capture, and the fault check once per frame.
+:class:`Simulation` builds everything a scene asks for; :func:`simulate` is ``hairwarp run``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from hairwarp.kernels.types import Fault
+from hairwarp.model import Model
+from hairwarp.solver import SimulationFault, Solver
+
+
+class Stepper:
+    """Advances a solver by whole frames of ``substeps`` steps, swapping two states.
+
+    Args:
+        solver: the :class:`hairwarp.Solver`.
+        dt: step size [s].
+        substeps: steps per frame.
+        control: the :class:`hairwarp.Control` the steps read; ``before_step(t, control)`` may
+            update it from the host before each step.
+        use_graph: capture one step per parity in a Warp graph and replay it; default on CUDA.
+    """
+
+    def __init__(self, solver: Solver, *, dt: float, substeps: int = 1, control=None, state=None, use_graph=None):
+        model = solver.model
+        self.solver = solver
+        self.dt = float(dt)
+        self.substeps = int(substeps)
+        self.control = control if control is not None else model.control()
+        self.states = [state if state is not None else model.state(), model.state()]
+        if state is not None:
+            self.states[1].assign(state)
+        self.parity = 0
+        self.time = 0.0
+        self.frame = 0
+        self.use_graph = model.device.is_cuda if use_graph is None else bool(use_graph)
+        self._graphs = [None, None]
+        solver.set_dt(self.dt)
+
+    @property
+    def state(self):
+        """The current state (the one the last step wrote)."""
+        return self.states[self.parity]
+
+    def step(self):
+        s_in, s_out = self.states[self.parity], self.states[1 - self.parity]
+        if self.use_graph:
+            graph = self._graphs[self.parity]
+            if graph is None:
+                # the first step of each parity runs eagerly (loading the modules), the graph is captured after
+                self.solver.step(s_in, s_out, self.control, self.dt)
+                with wp.ScopedCapture(device=self.solver.model.device) as capture:
+                    self.solver.step(s_in, s_out, self.control, self.dt)
+                self._graphs[self.parity] = capture.graph
+            else:
+                wp.capture_launch(graph)
+        else:
+            self.solver.step(s_in, s_out, self.control, self.dt)
+        self.parity = 1 - self.parity
+        self.time += self.dt
+
+    def advance_frame(self, before_step=None):
+        """Run one frame of substeps, then check for faults (one integer read from the device)."""
+        for _ in range(self.substeps):
+            if before_step is not None:
+                before_step(self.time, self.control)
+            self.step()
+        self.frame += 1
+        return self.solver.check(self.state, self.frame, substeps=self.substeps)
+
+
+class Simulation:
+    """Everything a scene asks for, built on one device, advanced frame by frame.
+
+    Attributes:
+        scene, model, solver, stepper, motion, groom.
+        frame_dt: time between output frames [s].
+    """
+
+    def __init__(self, scene, *, device=None):
+        sim = scene.sim
+        self.scene = scene
+        self.groom = scene.build_groom()
+        self.model = Model.build(self.groom, scene.strand_params(), segments=int(sim.segments),
+                                 device=device or sim.device, gravity=tuple(sim.gravity))
+        self.motion = scene.head_motion()
+        self.frame_dt = scene.frame_dt
+        self.solver = Solver(self.model, sim.integrator, max_rotation_per_step=float(sim.max_rotation_per_step))
+        control = self.model.control()
+        control.set_motion(self.motion.evaluate(0.0))
+        state = self.model.state()
+        self.solver.forward_kinematics(state, control)
+        self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
+                               state=state)
+
+    def _before_step(self, t, control):
+        control.set_motion(self.motion.evaluate(t))
+        control.set_wind(self.scene.wind_at(t))
+
+    def advance_frame(self) -> Fault:
+        return self.stepper.advance_frame(self._before_step)
+
+    @property
+    def state(self):
+        return self.stepper.state
+
+    def guide_curves(self) -> tuple[np.ndarray, np.ndarray]:
+        """Host copies of the guide vertex positions and velocities, (G*(S+1), 3) each."""
+        s = self.stepper.state
+        return s.vertex_positions.numpy().copy(), s.vertex_velocities.numpy().copy()
+
+    def head_matrix(self, t: float) -> np.ndarray:
+        return self.motion.evaluate(t).matrix()
+
+    def head_mesh(self):
+        """(vertices, faces) of the head shape in the head frame at rest, or None."""
+        head = self.scene.head
+        if head.shape == "none" or head.center is None:
+            return None
+        import trimesh
+
+        mesh = trimesh.creation.icosphere(subdivisions=3)
+        radii = np.asarray(head.radii, float)
+        return mesh.vertices * radii + np.asarray(head.center, float), np.asarray(mesh.faces)
+
+
+@dataclass
+class RunResult:
+    """What :func:`simulate` produced."""
+
+    cache_path: Path
+    preview_path: Path | None
+    frames: int
+    seconds: float
+    seconds_per_frame: float
+    notes: list[str] = field(default_factory=list)
+
+
+class _Progress:
+    """One line on the terminal: frame, speed, time left; a line per 10 % when not a terminal."""
+
+    def __init__(self, total: int, enabled: bool, stream=None):
+        self.total = total
+        self.enabled = enabled
+        self.stream = stream or sys.stderr
+        self.start = time.perf_counter()
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._last_decile = -1
+
+    def update(self, done: int):
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.start
+        rate = done / elapsed if elapsed > 0 else 0.0
+        left = (self.total - done) / rate if rate > 0 else float("inf")
+        line = f"frame {done}/{self.total}  {rate:.2f} frames/s  {left:.0f} s left"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(60))
+            if done == self.total:
+                self.stream.write("\n")
+        else:
+            decile = (10 * done) // self.total
+            if decile != self._last_decile:
+                self._last_decile = decile
+                self.stream.write(line + "\n")
+        self.stream.flush()
+
+
+def simulate(scene, out_path, *, frames: int | None = None, device=None, progress: bool = True,
+             preview: bool | None = None) -> RunResult:
+    """Run ``scene`` headless and write its USD cache to ``out_path`` and a preview PNG beside it.
+
+    Args:
+        scene: a :class:`hairwarp.Scene`.
+        out_path: the cache (.usdc, .usd or .usda).
+        frames: output frames after the first; default ``sim.frames``.
+        device: Warp device; default ``sim.device``.
+        progress: report progress on stderr.
+        preview: render the preview picture; default ``output.preview``.
+
+    Raises:
+        SimulationFault: the run left its bounds; the message names the frame, the stage and the
+            parameter to change, and the cache keeps every frame written before it.
+    """
+    from hairwarp.usd import CacheWriter
+
+    t_start = time.perf_counter()
+    out_path = Path(out_path)
+    frames = int(scene.sim.frames if frames is None else frames)
+    preview = bool(scene.output.preview if preview is None else preview)
+    sim = Simulation(scene, device=device)
+    model = sim.model
+    G, S = model.strand_count, model.seg_per_strand
+    counts = np.full(G, S + 1, dtype=np.int32)
+    head = sim.head_mesh()
+    shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
+    kept, notes = [], []
+    report = _Progress(frames, progress)
+    overflow_noted = False
+
+    with CacheWriter(out_path, fps=float(scene.sim.fps), comment=f"scene: {scene.name}") as cache:
+        if scene.output.guides:
+            cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides")
+        if head is not None:
+            cache.add_mesh("head", head[0], head[1])
+        for frame in range(frames + 1):
+            if frame > 0:
+                try:
+                    bits = sim.advance_frame()
+                except SimulationFault as fault:
+                    raise SimulationFault(
+                        f"{fault} The cache {out_path} keeps frames 0-{frame - 1}.",
+                        frame=fault.frame, stage=fault.stage, bits=fault.bits,
+                    ) from None
+                if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
+                    overflow_noted = True
+                    notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
+            points, velocities = sim.guide_curves()
+            head_m = sim.head_matrix(frame * sim.frame_dt)
+            curves = {"guides": (points, velocities)} if scene.output.guides else {}
+            cache.write_frame(frame, curves, xforms={"head": head_m} if head is not None else None)
+            if frame in shown:
+                mesh = None
+                if head is not None:
+                    mesh = (head[0] @ head_m[:3, :3].T + head_m[:3, 3], head[1])
+                kept.append((frame, points, mesh))
+            report.update(frame)
+
+    preview_path = None
+    if preview and kept:
+        from hairwarp.preview import render_frames
+
+        preview_path = out_path.with_suffix(".png")
+        render_frames(
+            [{"guides": (p, counts)} for _, p, _ in kept],
+            preview_path,
+            titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
+            meshes=[m for _, _, m in kept] if head is not None else None,
+        )
+    seconds = time.perf_counter() - t_start
+    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames, 1), notes)
