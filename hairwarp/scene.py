@@ -1,0 +1,931 @@
+"""Scene files: a declarative schema, validation with complete error reports, typed access.
+
+A scene is a TOML file of sections (``[sim]``, ``[groom]``, ``[head.motion]``, ...). The schema
+below, :data:`SCHEMA`, lists every section and field with its type, default, allowed range or
+choices, unit and meaning; a new section is one more entry there. Loading fills in the defaults,
+resolves file paths against the scene file's folder, checks every value, and reports *all* the
+problems of a file together in one :class:`SceneError`::
+
+    scene = Scene.load("scenes/long_hair.toml")
+    scene.sim.fps, scene.groom.count, scene.head.motion.kind   # typed, read-only attribute access
+    scene["head.motion.period"]                               # the same by key path
+    fast = scene.with_overrides(["sim.frames=10", "head.motion.kind='nod'"])
+    scene.to_dict()                                           # plain dict of the validated values
+
+Typed access: a scene's sections are read-only :class:`Node` views; fields come back as Python
+``float``, ``int``, ``bool``, ``str``, or tuples of floats for vectors; file fields as absolute
+path strings; arrays of tables (``[[head.motion.keys]]``) as tuples of nodes; an unset optional field
+is ``None`` and is left out of :meth:`Scene.to_dict`.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import importlib.resources
+import math
+import re
+import sys
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+from hairwarp import motion as _motion
+
+__all__ = ["REQUIRED", "SCHEMA", "ArrayOf", "Field", "Node", "Scene", "SceneError", "Section", "schema_doc"]
+
+
+class SceneError(ValueError):
+    """A scene file with problems; lists every problem found, each with its key path.
+
+    Attributes:
+        source: the scene file (resolved path) or a label such as ``"<dict>"``.
+        errors: list of ``(key_path, message)``; key path ``""`` for the file as a whole.
+    """
+
+    def __init__(self, source: str, errors: list[tuple[str, str]]):
+        self.source = str(source)
+        self.errors = list(errors)
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        lines = [f"{path}: {msg}" if path else msg for path, msg in self.errors]
+        if len(lines) == 1:
+            return f"{self.source}: {lines[0]}"
+        return f"{self.source}: {len(lines)} errors\n" + "\n".join("  " + line for line in lines)
+
+    def __reduce__(self):
+        return type(self), (self.source, self.errors)
+
+
+# ----------------------------------------------------------------------------------------------
+# schema
+
+_REQUIRED = object()
+_TYPES = ("float", "int", "bool", "str", "path", "vec2", "vec3")
+_VEC_LEN = {"vec2": 2, "vec3": 3}
+_RANGE_RE = re.compile(r"^\s*([\[(])\s*(-?inf|[-+0-9.eE]+)\s*,\s*(-?inf|[-+0-9.eE]+)\s*([\])])\s*$")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One scene key.
+
+    Attributes:
+        type: ``"float"`` (an integer is accepted), ``"int"``, ``"bool"``, ``"str"``, ``"path"`` (a file
+            relative to the scene file; must exist), ``"vec2"`` or ``"vec3"`` (arrays of numbers).
+        default: value when the key is absent; ``None`` = unset (optional, or derived by the section's
+            check); :data:`REQUIRED` = must be given.
+        doc: one line saying what it does.
+        unit: SI unit, ``""`` for none.
+        range: interval such as ``"(0, inf)"`` or ``"[0, 1]"``, applied to every component of a vector.
+        choices: allowed values of a ``"str"`` field.
+        suffixes: allowed file suffixes of a ``"path"`` field (lower case, with the dot).
+    """
+
+    type: str
+    default: Any = None
+    doc: str = ""
+    unit: str = ""
+    range: str | None = None
+    choices: tuple[str, ...] | None = None
+    suffixes: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        if self.type not in _TYPES:
+            raise TypeError(f"Field type must be one of {_TYPES}, got {self.type!r}")
+        if self.range is not None and not _RANGE_RE.match(self.range):
+            raise TypeError(f"Field range must look like '(0, inf)' or '[0, 1]', got {self.range!r}")
+
+    @property
+    def required(self) -> bool:
+        return self.default is _REQUIRED
+
+    def describe(self) -> str:
+        """Type, default, range and unit, for documentation and ``hairwarp info``."""
+        parts = [self.type]
+        if self.required:
+            parts.append("required")
+        elif self.default is not None:
+            parts.append(f"default {_fmt(self.default)}")
+        if self.choices:
+            parts.append("one of " + " | ".join(self.choices))
+        if self.range:
+            parts.append(f"in {self.range}")
+        if self.unit:
+            parts.append(f"[{self.unit}]")
+        return ", ".join(parts)
+
+
+#: Marks a :class:`Field` that must be given.
+REQUIRED = _REQUIRED
+
+#: Signature of a section check: ``check(values, given, error)``. ``values`` is the section's
+#: validated dict (mutable: a check may fill derived defaults), ``given`` the keys the file set,
+#: ``error(key, message)`` records a problem under the section's path (``key`` may be ``""``).
+Check = Callable[[dict, set, Callable[[str, str], None]], None]
+
+
+@dataclass(frozen=True)
+class Section:
+    """A table of fields and nested sections.
+
+    Attributes:
+        fields: name -> :class:`Field`, :class:`Section` or :class:`ArrayOf`, in documentation order.
+        doc: what the section is for.
+        check: optional cross-field rule, see :data:`Check`.
+    """
+
+    fields: Mapping[str, Field | Section | ArrayOf]
+    doc: str = ""
+    check: Check | None = None
+
+
+@dataclass(frozen=True)
+class ArrayOf:
+    """An array of tables (``[[name]]`` in TOML), each validated by ``section``."""
+
+    section: Section
+    doc: str = ""
+
+
+def _fmt(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, float) and math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return repr(value)
+
+
+def _in_range(x: float, spec: str) -> bool:
+    lo_b, lo, hi, hi_b = _RANGE_RE.match(spec).groups()
+    lo, hi = float(lo), float(hi)
+    ok_lo = x >= lo if lo_b == "[" else x > lo
+    ok_hi = x <= hi if hi_b == "]" else x < hi
+    return ok_lo and ok_hi
+
+
+# ----------------------------------------------------------------------------------------------
+# sections
+
+_GROOM_SUFFIXES = (".tfx", ".hair", ".usd", ".usda", ".usdc", ".usdz")
+_SCALP_KEYS = ("count", "length", "points", "curl", "curl_period", "scalp_center", "scalp_radii", "cap_angle_deg",
+               "front_cutoff_deg", "margin", "seed")
+_FILE_KEYS = ("up_axis", "scale", "translate")
+_DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
+
+
+def _check_sim(values, given, error):
+    if not _DEVICE_RE.match(values["device"]):
+        error("device", f"expected 'cpu', 'cuda' or 'cuda:N', got {values['device']!r}")
+
+
+def _changed(values, given, section: str, key: str) -> bool:
+    """A key the file sets to something other than its default (so ``to_dict`` output reloads cleanly)."""
+    return key in given and values[key] != SCHEMA[section].fields[key].default
+
+
+def _check_groom(values, given, error):
+    has_gen, has_file = values["generator"] is not None, "file" in given
+    if has_gen and has_file:
+        error("", "give either generator or file, not both")
+    elif not has_gen and not has_file:
+        error("", "give either generator = \"scalp\" or file = \"path\"")
+    elif has_gen:
+        for key in _FILE_KEYS:
+            if _changed(values, given, "groom", key):
+                error(key, "applies to groom.file only, not to a generator")
+    else:
+        for key in _SCALP_KEYS:
+            if _changed(values, given, "groom", key):
+                error(key, "applies to generator = \"scalp\" only, not to groom.file")
+        if values["up_axis"] is not None and Path(values["file"] or "").suffix.lower() not in (".tfx", ".hair"):
+            error("up_axis", "applies to .tfx and .hair files; USD stages record their own up axis")
+    if has_gen and values["front_cutoff_deg"] > values["cap_angle_deg"]:
+        error("front_cutoff_deg", f"must be at most cap_angle_deg ({values['cap_angle_deg']:g}), "
+                                  f"got {values['front_cutoff_deg']:g}")
+    if has_gen and 2.0 * math.pi * values["curl"] >= values["curl_period"]:
+        error("curl", f"a helix needs 2 pi curl < curl_period ({values['curl_period']:g} m), got {values['curl']:g}")
+
+
+def _check_keys(values, given, error):
+    if "rotate_deg" in given and ("axis" in given or "angle_deg" in given):
+        error("", "give the rotation as rotate_deg or as axis and angle_deg, not both")
+    elif ("axis" in given) != ("angle_deg" in given):
+        error("axis" if "angle_deg" in given else "angle_deg", "axis and angle_deg go together")
+    if values["axis"] is not None and all(v == 0.0 for v in values["axis"]):
+        error("axis", "must not be zero")
+
+
+def _check_motion(values, given, error):
+    kind, keys = values["kind"], values["keys"]
+    if kind == "keyframes" and not keys:
+        error("keys", "kind = \"keyframes\" needs at least one [[head.motion.keys]] table")
+    if kind != "keyframes" and keys:
+        error("keys", f"keys apply to kind = \"keyframes\" only (kind is \"{kind}\")")
+    if values["axis"] is not None and all(v == 0.0 for v in values["axis"]):
+        error("axis", "must not be zero")
+    for i in range(1, len(keys)):
+        if None not in (keys[i]["time"], keys[i - 1]["time"]) and keys[i]["time"] <= keys[i - 1]["time"]:
+            error(f"keys[{i}].time", f"key times must increase strictly, got {keys[i - 1]['time']:g} "
+                                     f"then {keys[i]['time']:g}")
+
+
+def _check_wind(values, given, error):
+    if values["end"] <= values["start"]:
+        error("end", f"must be after start ({values['start']:g} s), got {values['end']:g}")
+
+
+def _check_head(values, given, error):
+    if values["shape"] == "sphere" and values["radii"] is not None and "radii" in given:
+        if len(set(values["radii"])) != 1:
+            error("radii", f"a sphere needs three equal radii, got {_fmt(values['radii'])}")
+
+
+def _check_scene(values, given, error):
+    """Cross-section defaults: the head follows the generated scalp; the pivot is the neck."""
+    groom, head = values["groom"], values["head"]
+    scalp = groom["generator"] == "scalp"
+    if head["center"] is None and scalp:
+        head["center"] = tuple(groom["scalp_center"])
+    if head["radii"] is None and scalp:
+        radii = tuple(groom["scalp_radii"])
+        head["radii"] = (max(radii),) * 3 if head["shape"] == "sphere" else radii
+    mot = head["motion"]
+    if mot["pivot"] is None and head["center"] is not None and head["radii"] is not None:
+        c, r = head["center"], head["radii"]
+        mot["pivot"] = (c[0], c[1], c[2] - r[2])
+    if head["shape"] != "none" and (head["center"] is None or head["radii"] is None):
+        error("head", f"shape = \"{head['shape']}\" needs center and radii when the groom comes from a file")
+    times = [k["time"] for k in mot["keys"]]
+    if mot["kind"] == "keyframes" and times and None not in times and all(a < b for a, b in zip(times, times[1:])):
+        # What only the motion can tell, e.g. consecutive keys 180 degrees apart.
+        try:
+            _motion.HeadMotion.from_config(mot)
+        except ValueError as exc:
+            where, _, msg = str(exc).partition(": ")
+            error(where if msg else "head.motion.keys", msg or where)
+
+
+_MOTION_KEY = Section(
+    {
+        "time": Field("float", REQUIRED, "time of the key", "s", range="[0, inf)"),
+        "translate": Field("vec3", (0.0, 0.0, 0.0), "head translation from its rest pose, world", "m"),
+        "rotate_deg": Field("vec3", None, "head rotation as extrinsic x-y-z Euler angles (Rz Ry Rx) about the pivot",
+                            "deg"),
+        "axis": Field("vec3", None, "rotation axis (with angle_deg), world"),
+        "angle_deg": Field("float", None, "rotation angle about axis", "deg"),
+    },
+    doc="one key of a keyframed head motion; no rotation keeps the rest orientation",
+    check=_check_keys,
+)
+
+#: The scene schema: section name -> :class:`Section` (or :class:`ArrayOf` for ``[[name]]``).
+SCHEMA: dict[str, Section | ArrayOf] = {
+    "scene": Section(
+        {
+            "name": Field("str", None, "name of the scene; default: the file name without .toml"),
+            "description": Field("str", "", "free text"),
+        },
+        doc="what the scene is",
+    ),
+    "sim": Section(
+        {
+            "fps": Field("float", 30.0, "output frames per second", "1/s", range="(0, inf)"),
+            "frames": Field("int", 90, "number of output frames", range="[1, inf)"),
+            "substeps": Field("int", 8, "dynamics steps per output frame", range="[1, inf)"),
+            "integrator": Field("str", "implicit_joints", "time integrator of the strands",
+                                choices=("semi_implicit", "implicit_joints", "rk4")),
+            "segments": Field("int", 20, "simulation segments per guide strand", range="[1, 1024]"),
+            "device": Field("str", "cpu", "Warp device: cpu, cuda or cuda:N"),
+            "gravity": Field("vec3", (0.0, 0.0, -9.81), "gravitational acceleration, world", "m/s^2"),
+            "max_rotation_per_step": Field("float", 0.5, "fault bound on a joint's rotation in one step", "rad",
+                                           range="(0, inf)"),
+            "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),
+        },
+        doc="time stepping and the device",
+        check=_check_sim,
+    ),
+    "groom": Section(
+        {
+            "generator": Field("str", None, "generate the guides on an ellipsoidal scalp (exclusive with file)",
+                               choices=("scalp",)),
+            "file": Field("path", None, "groom file, relative to the scene file (exclusive with generator)",
+                          suffixes=_GROOM_SUFFIXES),
+            "count": Field("int", 200, "scalp: number of guide strands", range="[1, inf)"),
+            "length": Field("float", 0.3, "scalp: strand length", "m", range="(0, inf)"),
+            "points": Field("int", 32, "scalp: vertices per generated strand", range="[2, inf)"),
+            "curl": Field("float", 0.0, "scalp: helix radius of a curl (0 = straight)", "m", range="[0, inf)"),
+            "curl_period": Field("float", 0.05, "scalp: arc length of one helix turn", "m", range="(0, inf)"),
+            "scalp_center": Field("vec3", (0.0, 0.0, 1.6), "scalp: centre of the scalp ellipsoid, world", "m"),
+            "scalp_radii": Field("vec3", (0.085, 0.1, 0.11), "scalp: semi-axes of the scalp ellipsoid (x, y, z)", "m",
+                                 range="(0, inf)"),
+            "cap_angle_deg": Field("float", 110.0, "scalp: largest polar angle of a root, at the back of the head",
+                                   "deg", range="(0, 180)"),
+            "front_cutoff_deg": Field("float", 55.0, "scalp: largest polar angle at the forehead hairline", "deg",
+                                      range="(0, 180)"),
+            "margin": Field("float", 0.004, "scalp: clearance of every non-root vertex from the scalp", "m",
+                            range="[0, inf)"),
+            "seed": Field("int", 0, "scalp: random seed of the root jitter and lengths", range="[0, inf)"),
+            "up_axis": Field("str", None, "file: up axis of a .tfx or .hair file (converted to Z up); default Y "
+                                          "for .tfx, Z for .hair; USD stages record their own", choices=("Z", "Y")),
+            "scale": Field("float", 1.0, "file: factor to metres", range="(0, inf)"),
+            "translate": Field("vec3", (0.0, 0.0, 0.0), "file: offset after scaling and the up-axis turn", "m"),
+            "min_length": Field("float", 0.001, "drop strands shorter than this", "m", range="[0, inf)"),
+            "max_strands": Field("int", 0, "keep every n-th strand so at most this many remain (0 = all)",
+                                 range="[0, inf)"),
+        },
+        doc="the guide strands: generated on a scalp, or read from a file",
+        check=_check_groom,
+    ),
+    "strands": Section(
+        {
+            "density": Field("float", 1300.0, "mass density of a guide (a wisp of hair)", "kg/m^3", range="(0, inf)"),
+            "radius": Field("float", 0.002, "radius of the cylinder a guide stands for", "m", range="(0, inf)"),
+            "bend_stiffness": Field("float", 2.0e-4, "bending rigidity EI of a guide", "N m^2", range="[0, inf)"),
+            "twist_stiffness": Field("float", None, "torsional rigidity GJ; default bend_stiffness / 1.3", "N m^2",
+                                     range="[0, inf)"),
+            "damping": Field("float", 2.0e-7, "internal bending and twisting damping", "N m^2 s", range="[0, inf)"),
+            "root_stiffness_scale": Field("float", 1.0, "factor on the root joint's stiffness and damping",
+                                          range="[0, inf)"),
+            "drag": Field("float", 0.01, "linear air drag per unit length (0 = off; wind acts through it)",
+                          "N s/m^2", range="[0, inf)"),
+        },
+        doc="physical parameters of the guide strands (hairwarp.StrandParams)",
+    ),
+    "head": Section(
+        {
+            "shape": Field("str", "ellipsoid", "collision shape of the head", choices=("ellipsoid", "sphere", "none")),
+            "center": Field("vec3", None, "centre of the head shape, world; default: the scalp centre", "m"),
+            "radii": Field("vec3", None, "semi-axes of the head shape; default: the scalp radii", "m",
+                           range="(0, inf)"),
+            "motion": Section(
+                {
+                    "kind": Field("str", "still", "how the head moves", choices=_motion.MOTION_KINDS),
+                    "amplitude_deg": Field("float", _motion.DEFAULT_AMPLITUDE_DEG,
+                                           "turn, nod, shake: largest angle", "deg", range="[-180, 180]"),
+                    "period": Field("float", _motion.DEFAULT_PERIOD, "duration of one cycle", "s", range="(0, inf)"),
+                    "start": Field("float", _motion.DEFAULT_START, "time the motion begins", "s", range="[0, inf)"),
+                    "ramp": Field("float", _motion.DEFAULT_RAMP, "fade-in time of the amplitude (0 = abrupt)", "s",
+                                  range="[0, inf)"),
+                    "axis": Field("vec3", None, "rotation axis or, for translate, direction; default: z for turn "
+                                                "and shake, x for nod and translate"),
+                    "distance": Field("float", _motion.DEFAULT_DISTANCE, "translate: amplitude", "m"),
+                    "pivot": Field("vec3", None, "world point the head turns about; default: the neck, "
+                                                 "center - (0, 0, radii.z)", "m"),
+                    "keys": ArrayOf(_MOTION_KEY, doc="keyframes: the keys, in time order"),
+                },
+                doc="rigid motion of the head (hairwarp.motion)",
+                check=_check_motion,
+            ),
+        },
+        doc="the head: the strands' base and a collider",
+        check=_check_head,
+    ),
+    "wind": Section(
+        {
+            "velocity": Field("vec3", (0.0, 0.0, 0.0), "wind velocity, world", "m/s"),
+            "start": Field("float", 0.0, "time the wind starts", "s", range="[0, inf)"),
+            "end": Field("float", math.inf, "time the wind stops", "s"),
+        },
+        doc="uniform wind, on between start and end (a gust); acts through strands.drag",
+        check=_check_wind,
+    ),
+    "output": Section(
+        {
+            "guides": Field("bool", True, "write the guide strands to the cache"),
+            "guide_width": Field("vec2", (0.002, 0.0005), "guide curve width at the root and at the tip", "m",
+                                 range="[0, inf)"),
+            "preview": Field("bool", True, "render a preview image next to the cache"),
+            "preview_frames": Field("int", 4, "frames shown in the preview (at most sim.frames are)", range="[1, inf)"),
+        },
+        doc="what a run writes",
+    ),
+}
+
+_ROOT = Section(SCHEMA, doc="a hairwarp scene", check=_check_scene)
+
+
+# ----------------------------------------------------------------------------------------------
+# validation
+
+
+class _Validator:
+    def __init__(self, base_dir: Path):
+        self.base_dir = base_dir
+        self.errors: list[tuple[str, str]] = []
+
+    def error(self, path: str, msg: str):
+        self.errors.append((path, msg))
+
+    def section(self, sec: Section, raw, path: str) -> dict:
+        if not isinstance(raw, Mapping):
+            self.error(path, f"expected a table, got {_type_name(raw)}")
+            raw = {}
+        known = list(sec.fields)
+        for key in raw:
+            if key not in sec.fields:
+                self.error(_join(path, key), _unknown_key_msg(key, known))
+        out = {}
+        for name, spec in sec.fields.items():
+            sub = _join(path, name)
+            if isinstance(spec, Section):
+                out[name] = self.section(spec, raw.get(name, {}), sub)
+            elif isinstance(spec, ArrayOf):
+                items = raw.get(name, [])
+                if not isinstance(items, list):
+                    self.error(sub, f"expected an array of tables ([[{sub}]]), got {_type_name(items)}")
+                    items = []
+                out[name] = [self.section(spec.section, item, f"{sub}[{i}]") for i, item in enumerate(items)]
+            elif name in raw:
+                out[name] = self.field(spec, raw[name], sub)
+            else:
+                if spec.required:
+                    self.error(sub, f"missing required key ({spec.doc})")
+                out[name] = None if spec.required else copy.deepcopy(spec.default)
+        if sec.check is not None:
+            given = {k for k in raw if k in sec.fields}
+            try:
+                sec.check(out, given, lambda key, msg: self.error(_join(path, key), msg))
+            except (TypeError, KeyError):
+                # A check tripping over a value already reported as invalid adds nothing new.
+                if not self.errors:
+                    raise
+        return out
+
+    def field(self, f: Field, value, path: str):
+        if f.type in ("float", "int"):
+            ok = _is_number(value) if f.type == "float" else isinstance(value, int) and not isinstance(value, bool)
+            if not ok:
+                want = "a number" if f.type == "float" else "an integer"
+                self.error(path, f"expected {want}, got {_type_name(value)} {_show(value)}")
+                return f.default if f.default is not REQUIRED else None
+            value = float(value) if f.type == "float" else int(value)
+            if f.type == "float" and math.isnan(value):
+                self.error(path, "must not be nan")
+            elif f.range and not _in_range(value, f.range):
+                self.error(path, f"must be in {f.range}, got {_show(value)}")
+            return value
+        if f.type in _VEC_LEN:
+            n = _VEC_LEN[f.type]
+            if not (isinstance(value, list) and len(value) == n and all(_is_number(v) for v in value)):
+                self.error(path, f"expected an array of {n} numbers, got {_type_name(value)} {_show(value)}")
+                return f.default
+            value = tuple(float(v) for v in value)
+            if any(math.isnan(v) for v in value):
+                self.error(path, "must not contain nan")
+            elif f.range and not all(_in_range(v, f.range) for v in value):
+                self.error(path, f"every component must be in {f.range}, got {_show(list(value))}")
+            return value
+        if f.type == "bool":
+            if not isinstance(value, bool):
+                self.error(path, f"expected true or false, got {_type_name(value)} {_show(value)}")
+                return f.default
+            return value
+        if not isinstance(value, str):
+            self.error(path, f"expected a string, got {_type_name(value)} {_show(value)}")
+            return f.default
+        if f.choices is not None and value not in f.choices:
+            low = value.lower()
+            close = [c for c in f.choices if c.lower().startswith(low)] if low else []
+            close = close if len(close) == 1 else difflib.get_close_matches(value, f.choices, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            self.error(path, f"unknown choice {value!r}; choose one of {', '.join(f.choices)}{hint}")
+        if f.type == "path":
+            p = Path(value).expanduser()
+            resolved = (p if p.is_absolute() else self.base_dir / p).resolve()
+            if f.suffixes and resolved.suffix.lower() not in f.suffixes:
+                self.error(path, f"unsupported file type {resolved.suffix or '(none)'!r} of {resolved}; "
+                                 f"expected one of {', '.join(f.suffixes)}")
+            elif not resolved.is_file():
+                self.error(path, f"file not found: {resolved} (relative paths start at {self.base_dir})")
+            return str(resolved)
+        return value
+
+
+def _join(path: str, key: str) -> str:
+    if not key:
+        return path
+    return f"{path}.{key}" if path else key
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _type_name(v) -> str:
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, int):
+        return "an integer"
+    if isinstance(v, float):
+        return "a number"
+    if isinstance(v, str):
+        return "a string"
+    if isinstance(v, list):
+        return "an array"
+    if isinstance(v, Mapping):
+        return "a table"
+    return type(v).__name__
+
+
+def _show(v) -> str:
+    text = _fmt(v) if isinstance(v, (bool, str, int, float, list, tuple)) else repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _unknown_key_msg(key: str, known: list[str]) -> str:
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    if close:
+        return f"unknown key; did you mean {close[0]!r}?"
+    return "unknown key; known keys: " + ", ".join(known)
+
+
+def _strip_none(value):
+    if isinstance(value, dict):
+        return {k: _strip_none(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple)):
+        return [_strip_none(v) for v in value]
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# typed access
+
+
+class Node:
+    """A read-only view of a validated table: ``node.key`` or ``node["key"]``; nested tables are nodes.
+
+    Field names take precedence over the methods (``motion.keys`` is the array of key tables).
+    Iterating a node gives its key names; ``key in node`` tests one; :meth:`to_dict` copies it.
+    """
+
+    __slots__ = ("_data", "_path")
+
+    def __init__(self, data: dict, path: str = ""):
+        object.__setattr__(self, "_data", data)
+        object.__setattr__(self, "_path", path)
+
+    def __getattribute__(self, name: str):
+        if not name.startswith("_"):
+            data = object.__getattribute__(self, "_data")
+            if name in data:
+                return _wrap(data[name], _join(object.__getattribute__(self, "_path"), name))
+        return object.__getattribute__(self, name)
+
+    def __getattr__(self, name: str):
+        data = object.__getattribute__(self, "_data")
+        close = difflib.get_close_matches(name, list(data), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise AttributeError(f"scene has no key {_join(self._path, name)!r}{hint}")
+
+    def __getitem__(self, key: str):
+        if key not in self._data:
+            raise KeyError(key)
+        return _wrap(self._data[key], _join(self._path, key))
+
+    def __contains__(self, key) -> bool:
+        return key in self._data
+
+    def __iter__(self):
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("scene values are read-only; use Scene.with_overrides")
+
+    def to_dict(self) -> dict:
+        """A deep copy as plain dicts and lists, unset values left out."""
+        return _strip_none(copy.deepcopy(self._data))
+
+    def __repr__(self) -> str:
+        return f"Node({self._path or '<root>'}: {', '.join(self._data)})"
+
+
+def _wrap(value, path: str):
+    if isinstance(value, dict):
+        return Node(value, path)
+    if isinstance(value, list):
+        return tuple(_wrap(v, f"{path}[{i}]") for i, v in enumerate(value))
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# the scene
+
+
+class Scene:
+    """A validated scene. Sections are attributes (:class:`Node`), e.g. ``scene.sim.fps``.
+
+    Attributes:
+        source: the scene file (absolute path) or None for a scene built from a dict.
+        base_dir: folder that relative file paths were resolved against.
+        raw: the table as given (before defaults), used to re-validate with overrides.
+        name: ``scene.name``, or the file's stem, or ``"scene"``.
+    """
+
+    def __init__(self, data: dict, raw: dict, source: Path | None, base_dir: Path, label: str):
+        self._data = data
+        self.raw = raw
+        self.source = source
+        self.base_dir = base_dir
+        self._label = label
+
+    # construction ---------------------------------------------------------------------------
+
+    @classmethod
+    def load(cls, path: str | Path, overrides: Iterable[str] = ()) -> Scene:
+        """Read and validate a TOML scene file.
+
+        Args:
+            path: the scene file.
+            overrides: ``"key.path=value"`` strings applied before validation (see :meth:`with_overrides`).
+
+        Raises:
+            SceneError: the file is missing, is not valid TOML, or has invalid values (all listed).
+        """
+        resolved = Path(path).expanduser().resolve()
+        try:
+            text = resolved.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise SceneError(str(resolved), [("", "scene file not found")]) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise SceneError(str(resolved), [("", f"cannot read the scene file: {exc}")]) from None
+        try:
+            raw = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(str(resolved), [("", f"not valid TOML: {exc}")]) from None
+        return cls._build(raw, resolved, resolved.parent, str(resolved), overrides)
+
+    @classmethod
+    def from_dict(cls, d: Mapping, source: str | Path | None = None, *, base_dir: str | Path | None = None,
+                  overrides: Iterable[str] = ()) -> Scene:
+        """Validate a scene given as a dict (the parsed TOML).
+
+        Args:
+            d: the tables.
+            source: the file the dict came from, for messages and relative paths; None for none.
+            base_dir: folder for relative file paths; default the source's folder, else the current one.
+            overrides: ``"key.path=value"`` strings applied before validation.
+        """
+        src = Path(source).expanduser().resolve() if source is not None else None
+        if base_dir is None:
+            base_dir = src.parent if src is not None else Path.cwd()
+        label = str(src) if src is not None else "<dict>"
+        return cls._build(copy.deepcopy(dict(d)), src, Path(base_dir).resolve(), label, overrides)
+
+    @classmethod
+    def default_path(cls) -> Path:
+        """The bundled default scene, ``long_hair.toml``."""
+        return Path(str(importlib.resources.files("hairwarp.scenes") / "long_hair.toml"))
+
+    @classmethod
+    def default(cls) -> Scene:
+        """Load the bundled default scene."""
+        return cls.load(cls.default_path())
+
+    @classmethod
+    def _build(cls, raw: dict, source: Path | None, base_dir: Path, label: str, overrides: Iterable[str]) -> Scene:
+        overrides = list(overrides)
+        if overrides:
+            raw = copy.deepcopy(raw)
+            problems = []
+            for text in overrides:
+                try:
+                    _apply_override(raw, text)
+                except ValueError as exc:
+                    problems.append(exc.args[0])
+            if problems:
+                raise SceneError(label, problems)
+            label = f"{label} (with overrides)"
+        v = _Validator(base_dir)
+        data = v.section(_ROOT, raw, "")
+        if v.errors:
+            raise SceneError(label, v.errors)
+        if data["scene"]["name"] is None:
+            data["scene"]["name"] = source.stem if source is not None else "scene"
+        return cls(data, raw, source, base_dir, label)
+
+    def with_overrides(self, overrides: Iterable[str]) -> Scene:
+        """A new scene with ``"key.path=value"`` changes, re-validated.
+
+        The value is read as a TOML value (``sim.frames=10``, ``sim.gravity=[0, 0, -1]``,
+        ``head.motion.kind="nod"``); a value that is not valid TOML is taken as a string
+        (``sim.device=cuda``). ``head.motion.keys[1].time=0.5`` indexes an array of tables
+        (the index may be one past the end to add a table).
+
+        Raises:
+            SceneError: a malformed override or an invalid result; the messages name the keys.
+        """
+        return self._build(self.raw, self.source, self.base_dir, str(self.source or "<dict>"), overrides)
+
+    # access -----------------------------------------------------------------------------------
+
+    def __getattr__(self, name: str):
+        if name.startswith("_") or name not in self._data:
+            if name.startswith("_"):
+                raise AttributeError(name)
+            close = difflib.get_close_matches(name, list(self._data), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise AttributeError(f"scene has no section {name!r}{hint}")
+        return _wrap(self._data[name], name)
+
+    def __getitem__(self, path: str):
+        """Value at a dotted key path, e.g. ``scene["head.motion.period"]`` or ``"head.motion.keys[0].time"``."""
+        value: Any = self._data
+        for part, index in _split_path(path):
+            if not isinstance(value, dict) or part not in value:
+                raise KeyError(path)
+            value = value[part]
+            if index is not None:
+                if not isinstance(value, list) or index >= len(value):
+                    raise KeyError(path)
+                value = value[index]
+        return _wrap(value, path)
+
+    @property
+    def name(self) -> str:
+        return self._data["scene"]["name"]
+
+    @property
+    def frame_dt(self) -> float:
+        """Time between output frames [s]."""
+        return 1.0 / self._data["sim"]["fps"]
+
+    @property
+    def step_dt(self) -> float:
+        """Dynamics step [s]: ``1 / (fps * substeps)``."""
+        return 1.0 / (self._data["sim"]["fps"] * self._data["sim"]["substeps"])
+
+    def to_dict(self) -> dict:
+        """Every validated value (defaults filled, paths absolute) as plain dicts; unset values left out.
+
+        ``Scene.from_dict(scene.to_dict())`` gives the same scene.
+        """
+        return _strip_none(copy.deepcopy(self._data))
+
+    def head_motion(self) -> _motion.HeadMotion:
+        """The head motion of ``[head.motion]``; the head frame is the world frame at rest."""
+        return _motion.HeadMotion.from_config(self._data["head"]["motion"])
+
+    def wind_at(self, t: float) -> tuple[float, float, float]:
+        """Wind velocity at time ``t`` [m/s]: ``wind.velocity`` for ``start <= t < end``, else zero."""
+        w = self._data["wind"]
+        return tuple(w["velocity"]) if w["start"] <= t < w["end"] else (0.0, 0.0, 0.0)
+
+    def strand_params(self):
+        """``hairwarp.StrandParams`` of the ``[strands]`` section."""
+        from hairwarp.model import StrandParams
+
+        return StrandParams(**self._data["strands"])
+
+    def scalp_groom_kwargs(self) -> dict:
+        """Keyword arguments of ``hairwarp.groom.scalp_groom`` for ``generator = "scalp"``."""
+        g = self._data["groom"]
+        if g["generator"] != "scalp":
+            raise ValueError(f"{self._label}: groom.generator is not \"scalp\"")
+        return {k: g[k] for k in _SCALP_KEYS}
+
+    def build_groom(self):
+        """The guide strands of ``[groom]`` as a ``hairwarp.Groom`` (metres, Z up).
+
+        A generator is called with the scalp keys; a file is read with ``min_length`` and ``up_axis``,
+        scaled by ``scale``, then moved by ``translate``. Last, ``max_strands > 0`` keeps every n-th
+        strand, ``n = ceil(G / max_strands)``.
+
+        Raises:
+            GroomError: the generator or the reader rejects its input (the message names the file).
+        """
+        from hairwarp import groom as _groom
+
+        g = self._data["groom"]
+        if g["generator"] == "scalp":
+            groom = _groom.scalp_groom(**self.scalp_groom_kwargs())
+        else:
+            up = g["up_axis"].lower() if g["up_axis"] else None
+            groom = _groom.Groom.load(g["file"], min_length=g["min_length"], up_axis=up)
+            if g["scale"] != 1.0 or any(g["translate"]):
+                m = np.eye(4)
+                m[:3, :3] *= g["scale"]
+                m[:3, 3] = g["translate"]
+                groom = groom.transformed(m)
+        count = groom.strand_count
+        if g["max_strands"] and count > g["max_strands"]:
+            groom = groom.subset(np.arange(0, count, math.ceil(count / g["max_strands"])))
+        return groom
+
+    def summary(self) -> str:
+        """A few lines describing the scene (``hairwarp info scene.toml``)."""
+        d = self._data
+        sim, g, s, h, w = d["sim"], d["groom"], d["strands"], d["head"], d["wind"]
+        lines = [f"scene      {self.name}" + (f" - {d['scene']['description']}" if d["scene"]["description"] else "")]
+        if self.source is not None:
+            lines.append(f"file       {self.source}")
+        lines.append(f"time       {sim['frames']} frames at {sim['fps']:g} fps = {sim['frames'] / sim['fps']:.3g} s, "
+                     f"{sim['substeps']} substeps (dt = {self.step_dt * 1e3:.3g} ms), {sim['integrator']}, "
+                     f"device {sim['device']}")
+        if g["generator"] == "scalp":
+            lines.append(f"groom      scalp generator: {g['count']} guides x {g['length']:g} m, "
+                         f"{sim['segments']} segments each")
+        else:
+            cut = f", at most {g['max_strands']} strands" if g["max_strands"] else ""
+            lines.append(f"groom      file {g['file']} (up {g['up_axis']}, scale {g['scale']:g}{cut}), "
+                         f"{sim['segments']} segments per guide")
+        lines.append(f"strands    radius {s['radius']:g} m, density {s['density']:g} kg/m^3, "
+                     f"bend {s['bend_stiffness']:g} N m^2, damping {s['damping']:g} N m^2 s, drag {s['drag']:g}")
+        lines.append(f"head       {h['shape']}" + (f" at {_fmt(h['center'])} radii {_fmt(h['radii'])}"
+                                                  if h["center"] is not None and h["shape"] != "none" else "")
+                     + f", motion {self.head_motion()!r}")
+        if any(w["velocity"]):
+            lines.append(f"wind       {_fmt(w['velocity'])} m/s from {w['start']:g} s to {_fmt(w['end'])} s")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return f"Scene({self.name!r}, source={str(self.source) if self.source else None!r})"
+
+
+# ----------------------------------------------------------------------------------------------
+# overrides
+
+_PART_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)(?:\[(\d+)\])?$")
+
+
+def _split_path(path: str) -> list[tuple[str, int | None]]:
+    parts = []
+    for piece in path.split("."):
+        m = _PART_RE.match(piece.strip())
+        if not m:
+            raise KeyError(path)
+        parts.append((m.group(1), int(m.group(2)) if m.group(2) is not None else None))
+    return parts
+
+
+def _parse_value(text: str):
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text.strip()
+
+
+def _apply_override(raw: dict, text: str):
+    """Set ``key.path=value`` in ``raw``; raises ValueError((path, message)) when malformed."""
+    if "=" not in text:
+        raise ValueError((text, "override must look like key.path=value"))
+    key, value = (s.strip() for s in text.split("=", 1))
+    try:
+        parts = _split_path(key)
+    except KeyError:
+        raise ValueError((key, "override key must be a dotted path such as sim.frames or head.motion.keys[0].time")) \
+            from None
+    node = raw
+    for depth, (name, index) in enumerate(parts):
+        last = depth == len(parts) - 1
+        where = ".".join(f"{n}[{i}]" if i is not None else n for n, i in parts[: depth + 1])
+        if index is None:
+            if last:
+                node[name] = _parse_value(value)
+                return
+            node = node.setdefault(name, {})
+        else:
+            items = node.setdefault(name, [])
+            if not isinstance(items, list) or index > len(items):
+                raise ValueError((where, f"index {index} is past the end of the array ({len(items)} tables)"))
+            if index == len(items):
+                items.append({})
+            node = items[index]
+        if not isinstance(node, dict):
+            raise ValueError((where, f"is not a table, cannot set {key}"))
+
+
+def schema_doc() -> str:
+    """The schema as text: one line per key with type, default, range, unit and meaning."""
+    out = []
+
+    def walk(sec: Section, path: str):
+        for name, spec in sec.fields.items():
+            sub = _join(path, name)
+            if isinstance(spec, Section):
+                out.append(f"[{sub}]  {spec.doc}")
+                walk(spec, sub)
+            elif isinstance(spec, ArrayOf):
+                out.append(f"[[{sub}]]  {spec.doc}")
+                walk(spec.section, sub)
+            else:
+                out.append(f"  {sub} = {spec.describe()}  -- {spec.doc}")
+
+    walk(_ROOT, "")
+    return "\n".join(out)
