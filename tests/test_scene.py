@@ -1,0 +1,428 @@
+"""Scene files: the shipped scenes load; every kind of error names the file and the key path; overrides."""
+
+import math
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hairwarp.motion import Keyframes, Nod, Turn
+from hairwarp.scene import SCHEMA, ArrayOf, Field, Scene, SceneError, Section, schema_doc
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def _write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def _errors(path_or_dict, **kw):
+    with pytest.raises(SceneError) as info:
+        if isinstance(path_or_dict, dict):
+            Scene.from_dict(path_or_dict, **kw)
+        else:
+            Scene.load(path_or_dict, **kw)
+    return info.value
+
+
+MINIMAL = """
+[groom]
+generator = "scalp"
+"""
+
+
+# ----------------------------------------------------------------------------------------------
+# shipped scenes
+
+
+@pytest.mark.parametrize("name", ["long_hair.toml", "tiny.toml"])
+def test_shipped_scenes_load(name):
+    scene = Scene.load(SCENES / name)
+    assert scene.name == name.removesuffix(".toml")
+    assert scene.sim.frames >= 1 and scene.sim.fps > 0
+    assert scene.head.center is not None and scene.head.radii is not None
+    scene.head_motion().evaluate(0.5)
+
+
+def test_default_scene_is_the_bundled_long_hair():
+    path = Scene.default_path()
+    assert path.name == "long_hair.toml" and path.is_file()
+    scene = Scene.default()
+    assert scene.name == "long_hair"
+    assert 250 <= scene.groom.count <= 350 and math.isclose(scene.groom.length, 0.35)
+    assert scene.sim.frames / scene.sim.fps == pytest.approx(3.0)
+    assert scene.head.motion.kind == "turn"
+    assert isinstance(scene.head_motion(), Turn)
+
+
+def test_tiny_scene_size():
+    scene = Scene.load(SCENES / "tiny.toml")
+    assert scene.groom.count == 8 and scene.sim.segments == 8 and scene.sim.frames == 10
+
+
+def test_long_hair_documents_every_key_it_sets():
+    """Each key line of the default scene carries a comment (the file is the user's manual)."""
+    text = (SCENES / "long_hair.toml").read_text()
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped and not stripped.startswith(("#", "[")) and "=" in stripped:
+            key = stripped.split("=", 1)[0].strip()
+            if key not in ("name", "description", "generator"):
+                assert "#" in stripped, f"long_hair.toml: key {key!r} has no comment"
+
+
+# ----------------------------------------------------------------------------------------------
+# defaults and typed access
+
+
+def test_defaults_and_typed_access(tmp_path):
+    scene = Scene.load(_write(tmp_path, MINIMAL, "my_scene.toml"))
+    assert scene.name == "my_scene"
+    assert scene.sim.fps == 30.0 and isinstance(scene.sim.fps, float)
+    assert scene.sim.frames == 90 and isinstance(scene.sim.frames, int)
+    assert scene.sim.substeps == 8 and scene.sim.integrator == "implicit_joints" and scene.sim.segments == 20
+    assert scene.sim.gravity == (0.0, 0.0, -9.81)
+    assert scene.groom.count == 200 and scene.groom.length == 0.3
+    assert scene.strands.twist_stiffness is None
+    assert scene.head.center == scene.groom.scalp_center
+    assert scene.head.radii == scene.groom.scalp_radii
+    # the neck: bottom of the head ellipsoid
+    assert scene.head.motion.pivot == pytest.approx((0.0, 0.0, 1.6 - 0.11))
+    assert scene.head.motion.keys == ()
+    assert math.isinf(scene.wind.end)
+    assert scene.output.guide_width == (0.002, 0.0005)
+    assert scene["head.motion.kind"] == "still"
+    assert scene.step_dt == pytest.approx(1.0 / 240.0)
+    assert scene.wind_at(1.0) == (0.0, 0.0, 0.0)
+    with pytest.raises(AttributeError, match="did you mean 'frames'"):
+        _ = scene.sim.frame
+    with pytest.raises(AttributeError, match="read-only"):
+        scene.sim.frames = 3
+
+
+def test_strand_params_match_the_model():
+    from hairwarp.model import StrandParams
+
+    scene = Scene.load(SCENES / "tiny.toml")
+    p = scene.strand_params()
+    assert isinstance(p, StrandParams)
+    assert p.bend_stiffness == scene.strands.bend_stiffness and p.drag == scene.strands.drag
+    assert set(SCHEMA["strands"].fields) == {f for f in StrandParams.__dataclass_fields__}
+
+
+def test_scalp_groom_kwargs_match_the_generator_signature():
+    import inspect
+
+    from hairwarp.groom import scalp_groom
+
+    kwargs = Scene.load(SCENES / "tiny.toml").scalp_groom_kwargs()
+    assert set(kwargs) <= set(inspect.signature(scalp_groom).parameters)
+    for name, param in inspect.signature(scalp_groom).parameters.items():
+        field = SCHEMA["groom"].fields[name]
+        assert field.default == pytest.approx(param.default), name
+
+
+def test_keyframes_scene(tmp_path):
+    path = _write(tmp_path, MINIMAL + """
+        [head.motion]
+        kind = "keyframes"
+        [[head.motion.keys]]
+        time = 0.0
+        [[head.motion.keys]]
+        time = 0.5
+        rotate_deg = [0.0, 0.0, 30.0]
+        [[head.motion.keys]]
+        time = 1.0
+        axis = [1.0, 0.0, 0.0]
+        angle_deg = 10.0
+        translate = [0.0, 0.01, 0.0]
+    """)
+    scene = Scene.load(path)
+    keys = scene.head.motion.keys
+    assert len(keys) == 3 and keys[1].rotate_deg == (0.0, 0.0, 30.0) and keys[2].angle_deg == 10.0
+    motion = scene.head_motion()
+    assert isinstance(motion, Keyframes)
+    np.testing.assert_allclose(motion.evaluate(1.0).position,
+                               np.asarray(scene.head.motion.pivot) + [0.0, 0.01, 0.0]
+                               + _rotx(10.0) @ (-np.asarray(scene.head.motion.pivot)), atol=1e-12)
+
+
+def _rotx(deg):
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def test_to_dict_round_trip(tmp_path):
+    scene = Scene.load(SCENES / "long_hair.toml")
+    d = scene.to_dict()
+    assert d["sim"]["gravity"] == [0.0, 0.0, -9.81]
+    again = Scene.from_dict(d)
+    assert again.to_dict() == d
+
+
+def test_groom_file_paths_are_relative_to_the_scene(tmp_path):
+    (tmp_path / "grooms").mkdir()
+    groom = tmp_path / "grooms" / "g.hair"
+    groom.write_bytes(b"")
+    sub = tmp_path / "scenes"
+    sub.mkdir()
+    path = _write(sub, """
+        [groom]
+        file = "../grooms/g.hair"
+        up_axis = "Y"
+        scale = 0.01
+        [head]
+        shape = "none"
+    """)
+    scene = Scene.load(path)
+    assert Path(scene.groom.file) == groom.resolve()
+    assert scene.groom.up_axis == "Y" and scene.groom.scale == 0.01
+    assert scene.head.motion.pivot is None  # no head to put a neck under: the motion turns about the origin
+
+
+# ----------------------------------------------------------------------------------------------
+# errors
+
+
+def test_unknown_key_suggests_the_closest(tmp_path):
+    path = _write(tmp_path, MINIMAL + """
+        [head.motion]
+        kind = "turn"
+        perod = 2.0
+    """)
+    err = _errors(path)
+    assert str(path.resolve()) in str(err)
+    assert err.errors == [("head.motion.perod", "unknown key; did you mean 'period'?")]
+
+
+def test_unknown_section_suggests_the_closest(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "[strand]\nradius = 0.001\n"))
+    assert "strand: unknown key; did you mean 'strands'?" in str(err)
+
+
+def test_wrong_type(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + '[sim]\nframes = "ten"\ngravity = [0, 0]\nfps = true\n'))
+    text = str(err)
+    assert "sim.frames: expected an integer, got a string" in text
+    assert "sim.gravity: expected an array of 3 numbers" in text
+    assert "sim.fps: expected a number, got a boolean" in text
+
+
+def test_out_of_range(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "[head.motion]\nkind = 'nod'\nperiod = -1.0\n"))
+    assert err.errors == [("head.motion.period", "must be in (0, inf), got -1.0")]
+    assert str(tmp_path) in str(err)
+
+
+def test_bad_choice_lists_the_choices(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "[sim]\nintegrator = 'implicit'\n"))
+    (path, msg), = err.errors
+    assert path == "sim.integrator"
+    for choice in ("semi_implicit", "implicit_joints", "rk4"):
+        assert choice in msg
+    assert "did you mean 'implicit_joints'" in msg
+
+
+def test_missing_groom_file_reports_the_resolved_path(tmp_path):
+    path = _write(tmp_path, "[groom]\nfile = 'data/missing.tfx'\n[head]\nshape = 'none'\n")
+    err = _errors(path)
+    (key, msg), = err.errors
+    assert key == "groom.file"
+    assert str((tmp_path / "data" / "missing.tfx").resolve()) in msg
+    assert str(path.resolve()) in str(err)
+
+
+def test_missing_scene_file(tmp_path):
+    err = _errors(tmp_path / "nope.toml")
+    assert str((tmp_path / "nope.toml").resolve()) in str(err) and "not found" in str(err)
+
+
+def test_toml_syntax_error(tmp_path):
+    err = _errors(_write(tmp_path, "[sim\nfps = 1\n"))
+    assert "not valid TOML" in str(err) and "line 1" in str(err)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("[groom]\ncount = 10\n", "give either generator"),
+        ("[groom]\ngenerator = 'scalp'\nfile = 'x.hair'\n", "not both"),
+    ],
+)
+def test_generator_and_file_are_exclusive(tmp_path, text, match):
+    (tmp_path / "x.hair").write_bytes(b"")
+    err = _errors(_write(tmp_path, text))
+    assert any(path == "groom" and match in msg for path, msg in err.errors), err.errors
+
+
+def test_keys_of_the_other_groom_source_are_rejected(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "scale = 0.01\n"))
+    assert err.errors == [("groom.scale", "applies to groom.file only, not to a generator")]
+
+
+def test_all_errors_of_a_file_come_together(tmp_path):
+    path = _write(tmp_path, """
+        [sim]
+        fram = 10
+        substeps = 0
+        integrator = "euler"
+        [groom]
+        generator = "scalp"
+        length = -0.3
+        [head.motion]
+        kind = "keyframes"
+        [[head.motion.keys]]
+        time = 1.0
+        [[head.motion.keys]]
+        time = 0.5
+        rotate_deg = [0, 0]
+        [wind]
+        start = 2.0
+        end = 1.0
+    """)
+    err = _errors(path)
+    paths = [p for p, _ in err.errors]
+    assert paths == ["sim.fram", "sim.substeps", "sim.integrator", "groom.length", "head.motion.keys[1].rotate_deg",
+                     "head.motion.keys[1].time", "wind.end"]
+    assert str(err).startswith(f"{path.resolve()}: 7 errors\n")
+
+
+def test_keyframes_need_keys_and_increasing_times(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "[head.motion]\nkind = 'keyframes'\n"))
+    assert err.errors[0][0] == "head.motion.keys"
+    err = _errors(_write(tmp_path, MINIMAL + """
+        [head.motion]
+        kind = "keyframes"
+        [[head.motion.keys]]
+        time = 0.0
+        [[head.motion.keys]]
+        time = 1.0
+        rotate_deg = [0.0, 0.0, 180.0]
+    """))
+    assert err.errors[0][0] == "head.motion.keys[1]" and "180" in err.errors[0][1]
+
+
+def test_missing_required_key(tmp_path):
+    err = _errors(_write(tmp_path, MINIMAL + "[head.motion]\nkind = 'keyframes'\n[[head.motion.keys]]\n"
+                                             "translate = [0, 0, 0]\n"))
+    assert err.errors[0][0] == "head.motion.keys[0].time" and "missing" in err.errors[0][1]
+
+
+def test_from_dict_errors_name_the_source():
+    err = _errors({"groom": {"generator": "scalp"}, "sim": {"fps": 0}}, source="somewhere/s.toml")
+    assert "s.toml" in str(err) and err.errors == [("sim.fps", "must be in (0, inf), got 0.0")]
+
+
+# ----------------------------------------------------------------------------------------------
+# overrides
+
+
+def test_overrides():
+    scene = Scene.load(SCENES / "tiny.toml")
+    fast = scene.with_overrides(["sim.frames=3", "sim.device=cuda:0", "head.motion.kind='shake'",
+                                 "sim.gravity=[0, 0, -1.62]", "wind.velocity = [1.0, 0, 0]"])
+    assert fast.sim.frames == 3 and fast.sim.device == "cuda:0" and fast.sim.gravity == (0.0, 0.0, -1.62)
+    assert fast.head.motion.kind == "shake" and fast.wind_at(0.0) == (1.0, 0.0, 0.0)
+    assert scene.sim.frames == 10  # the original is unchanged
+    keyed = scene.with_overrides(["head.motion.kind='keyframes'", "head.motion.keys[0].time=0",
+                                  "head.motion.keys[1].time=0.2", "head.motion.keys[1].rotate_deg=[0, 0, 20]"])
+    assert len(keyed.head.motion.keys) == 2
+    assert isinstance(scene.head_motion(), Nod)
+
+
+def test_derived_defaults_follow_overrides():
+    scene = Scene.load(SCENES / "tiny.toml").with_overrides(["groom.scalp_center=[1.0, 2.0, 1.7]"])
+    assert scene.head.center == (1.0, 2.0, 1.7)
+    assert scene.head.motion.pivot == pytest.approx((1.0, 2.0, 1.7 - 0.11))
+
+
+def test_bad_overrides_name_the_key():
+    scene = Scene.load(SCENES / "tiny.toml")
+    err = _errors_of(lambda: scene.with_overrides(["sim.frames=abc", "sim.fsp=3"]))
+    assert sorted(p for p, _ in err.errors) == ["sim.frames", "sim.fsp"] and "with overrides" in str(err)
+    err = _errors_of(lambda: scene.with_overrides(["sim.frames"]))
+    assert "key.path=value" in str(err)
+    err = _errors_of(lambda: scene.with_overrides(["sim.fps.x=1"]))
+    assert err.errors[0][0] == "sim.fps"
+    err = _errors_of(lambda: scene.with_overrides(["head.motion.keys[5].time=1"]))
+    assert "past the end" in str(err)
+
+
+def _errors_of(fn):
+    with pytest.raises(SceneError) as info:
+        fn()
+    return info.value
+
+
+# ----------------------------------------------------------------------------------------------
+# the schema
+
+
+def test_schema_documents_every_field():
+    def walk(sec):
+        for name, spec in sec.fields.items():
+            if isinstance(spec, Section):
+                yield from walk(spec)
+            elif isinstance(spec, ArrayOf):
+                yield from walk(spec.section)
+            else:
+                yield name, spec
+
+    for name, f in (item for sec in SCHEMA.values() for item in walk(sec)):
+        assert f.doc, f"field {name} has no doc"
+    doc = schema_doc()
+    assert "[head.motion]" in doc and "[[head.motion.keys]]" in doc and "sim.fps = float, default 30.0" in doc
+
+
+def test_schema_defaults_are_valid_toml_values():
+    """Every default can be written back as TOML and read again (to_dict output is a scene file)."""
+    scene = Scene.load(SCENES / "tiny.toml")
+    text = _to_toml(scene.to_dict())
+    assert Scene.from_dict(tomllib.loads(text)).to_dict() == scene.to_dict()
+
+
+def _to_toml(d, prefix=""):
+    lines, tables = [], []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            tables.append((k, v))
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            continue
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines) + "\n"
+    for k, v in tables:
+        name = f"{prefix}{k}"
+        out += f"[{name}]\n" + _to_toml(v, name + ".")
+    return out
+
+
+def _toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\") + '"'
+    if isinstance(v, float) and math.isinf(v):
+        return "inf"
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def test_a_new_section_is_one_entry(monkeypatch, tmp_path):
+    """Adding ``[[colliders]]`` takes one schema entry; arrays of tables validate with indexed key paths."""
+    collider = Section({"kind": Field("str", "sphere", "shape", choices=("sphere", "capsule")),
+                        "radius": Field("float", 0.1, "radius", "m", range="(0, inf)")})
+    monkeypatch.setitem(SCHEMA, "colliders", ArrayOf(collider, doc="collision shapes"))
+    scene = Scene.load(_write(tmp_path, MINIMAL + "[[colliders]]\nradius = 0.2\n[[colliders]]\nkind = 'capsule'\n"))
+    assert [c.radius for c in scene.colliders] == [0.2, 0.1]
+    err = _errors(_write(tmp_path, MINIMAL + "[[colliders]]\nradius = 0.2\n[[colliders]]\nkind = 'box'\nradus = 1\n"))
+    assert [p for p, _ in err.errors] == ["colliders[1].radus", "colliders[1].kind"]
