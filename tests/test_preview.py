@@ -1,0 +1,113 @@
+"""Previews: pictures read back with Pillow, checked against where the orthographic camera must put things."""
+
+import numpy as np
+from PIL import Image
+
+from hairwarp.preview import BACKGROUND, preview_cache, render_frames
+from hairwarp.usd import CacheWriter
+
+BG_TOLERANCE = 12
+"""Max per-channel difference [0-255] still counted as background (anti-aliased edges, PNG is lossless)."""
+CENTRE_PX = 3
+"""Allowed asymmetry of mirrored strands about the panel centre [px] (anti-aliasing and pixel snapping)."""
+
+GIF_TICK_MS = 10
+"""GIF frame delays are stored in hundredths of a second."""
+
+BG = np.array([int(BACKGROUND[i : i + 2], 16) for i in (1, 3, 5)])
+
+
+def _vertical_strands(xs, n_pts=12, top=0.0, length=0.3):
+    """Straight strands hanging from z = top at the given x (y = 0): (points, curve_vertex_counts)."""
+    z = np.linspace(top, top - length, n_pts)
+    pts = np.concatenate([np.stack([np.full(n_pts, x), np.zeros(n_pts), z], axis=1) for x in xs])
+    return pts, np.full(len(xs), n_pts)
+
+
+def _octahedron(centre, r):
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float) * r + centre
+    f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    return v, f
+
+
+def _foreground(path):
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    return img, np.abs(img - BG).max(axis=2) > BG_TOLERANCE
+
+
+def _hair_mask(img):
+    """Hair is brown: clearly more red than blue; the grey mesh and the background are not."""
+    return (img[..., 0] - img[..., 2]) > 25
+
+
+def test_render_frames_size_and_hair_pixels(tmp_path):
+    out = render_frames([{"hair": _vertical_strands([-0.1, 0.1])}], tmp_path / "sheet.png", view="front",
+                        size_px=(400, 300))
+    img, fg = _foreground(out)
+    assert Image.open(out).size == (400, 300)
+    hair = _hair_mask(img) & fg
+    assert hair.sum() > 200, "too few hair pixels"
+    # Front view, orthographic, limits centred on the data: the two strands sit symmetrically about the centre.
+    cols = np.flatnonzero(hair.any(axis=0))
+    left, right = cols[cols < 200], cols[cols >= 200]
+    assert len(left) and len(right)
+    assert abs((200 - left.mean()) - (right.mean() - 200)) < CENTRE_PX
+    # The strands are vertical: hair pixels in a column span most of the panel height.
+    assert hair[:, int(round(left.mean()))].sum() > 150
+
+
+def test_same_camera_in_every_panel_and_meshes(tmp_path):
+    a = _vertical_strands([0.0])
+    b = (a[0] + [0.2, 0.0, 0.0], a[1])  # the second frame moved 0.2 m along +x
+    mesh = _octahedron(np.array([0.0, 0.0, 0.05]), 0.05)
+    out = render_frames([{"hair": a}, {"hair": b}], tmp_path / "two.png", meshes=[mesh, mesh], view="front",
+                        size_px=(800, 400), titles=["first", "second"])
+    img, fg = _foreground(out)
+    hair = _hair_mask(img) & fg
+    half = img.shape[1] // 2
+    x1 = np.flatnonzero(hair[:, :half].any(axis=0)).mean()
+    x2 = np.flatnonzero(hair[:, half:].any(axis=0)).mean()
+    # Same limits in both panels: the strand is to the right in the second panel, the mesh is not.
+    assert x2 - x1 > 40
+    grey = fg & ~_hair_mask(img) & (np.ptp(img, axis=2) < 12) & (img.mean(axis=2) < 225)
+    g1 = np.flatnonzero(grey[:300, :half].any(axis=0)).mean()
+    g2 = np.flatnonzero(grey[:300, half:].any(axis=0)).mean()
+    assert grey[:300].sum() > 500, "mesh not drawn"
+    assert abs(g2 - g1) < CENTRE_PX
+
+
+def _tiny_cache(path, frames=3):
+    v, f = _octahedron(np.zeros(3), 0.05)
+    with CacheWriter(path, fps=12) as cache:
+        cache.add_curves("dense", np.full(6, 10), basis="catmullRom")
+        cache.add_curves("guides", np.full(2, 10), kind="guides")
+        cache.add_mesh("head", v, f)
+        for i in range(frames):
+            pts, _ = _vertical_strands(np.linspace(-0.04, 0.04, 6), n_pts=10, top=0.05)
+            pts[:, 1] += 0.02 * i * np.linspace(0, 1, 10)[np.arange(len(pts)) % 10]
+            g, _ = _vertical_strands([-0.05, 0.05], n_pts=10, top=0.05)
+            m = np.eye(4)
+            m[0, 3] = 0.01 * i
+            cache.write_frame(i, {"dense": (pts, None), "guides": (g, None)}, xforms={"head": m})
+    return path
+
+
+def test_preview_cache_png(tmp_path):
+    cache = _tiny_cache(tmp_path / "tiny.usdc")
+    out = preview_cache(cache, frames=2)
+    assert out == tmp_path / "tiny.png"
+    img, fg = _foreground(out)
+    assert fg.sum() > 500
+    assert (_hair_mask(img) & fg).sum() > 100
+    out2 = preview_cache(cache, tmp_path / "pics" / "one.png", frames=[1], view=(30.0, 20.0))
+    assert Image.open(out2).format == "PNG"
+
+
+def test_preview_cache_gif(tmp_path):
+    cache = _tiny_cache(tmp_path / "tiny.usda", frames=4)
+    out = preview_cache(cache, gif=True)
+    assert out == tmp_path / "tiny.gif"
+    gif = Image.open(out)
+    assert gif.format == "GIF"
+    assert gif.n_frames == 4
+    assert abs(gif.info["duration"] - 1000 / 12) <= GIF_TICK_MS
