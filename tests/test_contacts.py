@@ -1,0 +1,385 @@
+"""Dynamic hair-hair contacts (DESIGN §4.4): detection against brute force, forces against closed forms.
+
+Segment pairs are checked against an all-pairs float64 search, vertex-face pairs against trimesh's closest
+points on every triangle; the force law against hand-computed two-body cases; friction by integrating a tiny
+system in numpy. Arrays are built here directly, independent of the Model and State classes.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE
+from hairwarp.kernels.types import Fault
+from scipy.spatial.transform import Rotation
+
+from hairwarp.interactions import HairContacts, InteractionError, TriangleStrips
+
+# Distances within this of the threshold [m] may fall on either side in float32 (coordinates < 0.1 m).
+BOUNDARY_BAND = 1.0e-6
+# Float32 closest points agree with float64 ones to a few ulp of the coordinates [m].
+POINT_TOL = 1.0e-6
+# Closed-form force checks: float32 relative error of a few products.
+FORCE_RTOL = 1.0e-4
+# Momentum sums cancel many float32 terms: residual as a fraction of the sum of magnitudes.
+MOMENTUM_RTOL = 1.0e-5
+
+ROWS, COLS, S = 4, 5, 8
+G = ROWS * COLS
+SEG_LEN = 0.006
+SPACING = 0.004
+THRESHOLD = 0.002
+MASS = 2.0e-6
+
+
+def _model(G_, S_, mass=MASS):
+    return SimpleNamespace(
+        seg_per_strand=S_,
+        seg_count=G_ * S_,
+        seg_length=wp.array(np.full(G_ * S_, SEG_LEN), dtype=float),
+        seg_mass=wp.array(np.full(G_ * S_, mass), dtype=float),
+    )
+
+
+def _state(verts, vel=None):
+    vel = np.zeros_like(verts) if vel is None else vel
+    return SimpleNamespace(
+        vertex_positions=wp.array(verts.reshape(-1, 3), dtype=wp.vec3),
+        vertex_velocities=wp.array(vel.reshape(-1, 3), dtype=wp.vec3),
+        fault=wp.zeros(1, dtype=wp.int32),
+    )
+
+
+def _tangled(seed, bend=0.6):
+    """Random-walk strands from a grid of roots: they cross each other and the strips between their neighbours."""
+    rng = np.random.default_rng(seed)
+    c, r = np.meshgrid(np.arange(COLS), np.arange(ROWS))
+    roots = np.stack([c.ravel() * SPACING, r.ravel() * SPACING, np.zeros(G)], axis=1)
+    rot = Rotation.from_rotvec(rng.normal(0.0, bend, (G * S, 3))).as_matrix().reshape(G, S, 3, 3)
+    verts = np.zeros((G, S + 1, 3))
+    verts[:, 0] = roots
+    d = np.array([0.0, 0.0, -SEG_LEN])
+    frame = np.broadcast_to(np.eye(3), (G, 3, 3))
+    for k in range(S):
+        frame = frame @ rot[:, k]
+        verts[:, k + 1] = verts[:, k] + frame @ d
+    return verts, rng
+
+
+def _apply(contacts, model, state, dt=1.0e-3):
+    n = model.seg_count
+    force = wp.zeros(n, dtype=wp.vec3)
+    torque = wp.zeros(n, dtype=wp.vec3)
+    mass = wp.zeros(n, dtype=float)
+    contacts.apply(model, state, wp.array([dt], dtype=float), force, torque, mass)
+    return force.numpy().astype(np.float64), torque.numpy().astype(np.float64), mass.numpy().astype(np.float64)
+
+
+def _segment_distances(p0, p1, q0, q1):
+    """Brute-force distance of segment pairs (N, 3): the least of the four endpoint-to-segment distances and, where
+    it falls inside both segments, the length of the two lines' common perpendicular."""
+
+    def point_segment(x, s0, s1):
+        d = s1 - s0
+        t = np.clip(np.sum((x - s0) * d, axis=1) / np.sum(d * d, axis=1), 0.0, 1.0)
+        return np.linalg.norm(x - (s0 + t[:, None] * d), axis=1)
+
+    best = np.minimum.reduce([point_segment(p0, q0, q1), point_segment(p1, q0, q1), point_segment(q0, p0, p1),
+                              point_segment(q1, p0, p1)])
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, b, e = np.sum(d1 * d1, 1), np.sum(d1 * d2, 1), np.sum(d2 * d2, 1)
+    c, f = np.sum(d1 * r, 1), np.sum(d2 * r, 1)
+    det = b * b - a * e
+    ok = np.abs(det) > 1e-12 * a * e
+    det = np.where(ok, det, 1.0)
+    s = (c * e - b * f) / det
+    t = (b * c - a * f) / det
+    inside = ok & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+    perp = np.linalg.norm((p0 + s[:, None] * d1) - (q0 + t[:, None] * d2), axis=1)
+    return np.where(inside, np.minimum(best, perp), best)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_detection_matches_brute_force(seed):
+    verts, _ = _tangled(seed)
+    strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000)
+    # Detect on a moved configuration: the BVH and the mesh are refit, not rebuilt.
+    moved, _ = _tangled(seed + 100)
+    model = _model(G, S)
+    _apply(contacts, model, _state(moved))
+    found = contacts.contact_list()
+    assert not contacts.overflowed()
+
+    p0 = moved[:, :-1].reshape(-1, 3)
+    p1 = moved[:, 1:].reshape(-1, 3)
+    i, j = np.triu_indices(G * S, k=1)
+    other = i // S != j // S
+    i, j = i[other], j[other]
+    dist = _segment_distances(p0[i], p1[i], p0[j], p1[j])
+    clear = np.abs(dist - THRESHOLD) > BOUNDARY_BAND
+    expected = set(zip(i[(dist < THRESHOLD) & clear].tolist(), j[(dist < THRESHOLD) & clear].tolist(), strict=True))
+    ambiguous = set(zip(i[~clear].tolist(), j[~clear].tolist(), strict=True))
+    ee = found["kind"] == CONTACT_SEGMENT_SEGMENT
+    got = list(zip(found["a"][ee].tolist(), found["b"][ee].tolist(), strict=True))
+    assert len(got) == len(set(got))  # each pair once
+    assert len(expected) > 10
+    assert set(got) - ambiguous == expected
+
+    flat = moved.reshape(-1, 3)
+    tris = contacts.strips.indices.numpy().reshape(-1, 3)
+    tri_strands = contacts.strips.tri_strands.numpy()
+    vertices = np.array([v for v in range(G * (S + 1)) if v % (S + 1) != 0])
+    vv, tt = np.meshgrid(vertices, np.arange(len(tris)), indexing="ij")
+    vv, tt = vv.ravel(), tt.ravel()
+    own = (tri_strands[tt, 0] == vv // (S + 1)) | (tri_strands[tt, 1] == vv // (S + 1))
+    vv, tt = vv[~own], tt[~own]
+    closest = trimesh.triangles.closest_point(flat[tris[tt]], flat[vv])
+    dist = np.linalg.norm(closest - flat[vv], axis=1)
+    clear = np.abs(dist - THRESHOLD) > BOUNDARY_BAND
+    expected = set(zip(vv[(dist < THRESHOLD) & clear].tolist(), tt[(dist < THRESHOLD) & clear].tolist(), strict=True))
+    ambiguous = set(zip(vv[~clear].tolist(), tt[~clear].tolist(), strict=True))
+    vf = found["kind"] == CONTACT_VERTEX_FACE
+    got = list(zip(found["a"][vf].tolist(), found["b"][vf].tolist(), strict=True))
+    assert len(got) == len(set(got))
+    assert len(expected) > 10
+    assert set(got) - ambiguous == expected
+
+    # The stored barycentric weights give trimesh's closest point.
+    w = found["w"][vf].astype(np.float64)
+    t_found = found["b"][vf]
+    point = np.einsum("ni,nij->nj", w, flat[tris[t_found]])
+    ref = trimesh.triangles.closest_point(flat[tris[t_found]], flat[found["a"][vf]])
+    np.testing.assert_allclose(point, ref, atol=POINT_TOL)
+
+
+def _pair(a0, a1, b0, b1):
+    """Two single-segment strands."""
+    return np.array([[a0, a1], [b0, b1]], dtype=np.float64)
+
+
+@pytest.mark.parametrize("angle", [0.0, np.pi, 1.0e-8])
+def test_repulsion_vanishes_for_parallel_segments(angle):
+    """Aligned (or anti-aligned) hairs overlapping and approaching each other exchange no force."""
+    gap = 0.5 * THRESHOLD
+    direction = np.array([np.sin(angle), 0.0, -np.cos(angle)])
+    verts = _pair([0, 0, 0], [0, 0, -SEG_LEN], [gap, 0, 0], np.array([gap, 0, 0]) + SEG_LEN * direction)
+    vel = np.zeros_like(verts)
+    vel[0] = [0.1, 0.05, 0.0]
+    vel[1] = [-0.1, 0.0, 0.02]
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.1, friction=0.5,
+                                  capacity=8)
+    force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel))
+    assert contacts.contact_count() == 1
+    assert np.abs(force).max() < 1e-6 * 10.0 * THRESHOLD
+    assert np.abs(torque).max() < 1e-6 * 10.0 * THRESHOLD * SEG_LEN
+    np.testing.assert_allclose(mass, 0.0, atol=1e-12)
+
+
+def test_crossing_segments_closed_form():
+    """Perpendicular crossing segments at distance delta: F = k (thr - delta) - c v_n along the separation."""
+    k, c, h, delta = 10.0, 0.01, 1.0e-3, 0.0008
+    a0, a1 = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, -SEG_LEN])
+    b0, b1 = np.array([-0.003, delta, -0.002]), np.array([0.003, delta, -0.002])
+    verts = _pair(a0, a1, b0, b1)
+    vel = np.zeros_like(verts)
+    vel[1] = [0.0, -0.05, 0.0]  # b approaches a
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4)
+    force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel), dt=h)
+    fn = k * (THRESHOLD - delta) + c * 0.05  # n = -y (from b to a); approaching adds damping
+    np.testing.assert_allclose(force[0], [0.0, -fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
+    np.testing.assert_allclose(force[1], [0.0, fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
+    # Both act at the midpoint (0, delta/2, -0.002); torques about each segment's origin.
+    point = np.array([0.0, 0.5 * delta, -0.002])
+    tol = FORCE_RTOL * fn * SEG_LEN
+    np.testing.assert_allclose(torque[0], np.cross(point - a0, force[0]), rtol=FORCE_RTOL, atol=tol)
+    np.testing.assert_allclose(torque[1], np.cross(point - b0, force[1]), rtol=FORCE_RTOL, atol=tol)
+    np.testing.assert_allclose(mass, h * h * k + h * c, rtol=1e-5)
+
+
+def _strip_scene():
+    """Strands 0 and 1 span a strip in the plane y = 0 (12 mm apart at the roots, 8 mm at the tips, segments
+    12 mm long); strand 2 runs along -y and ends 0.8 mm in front of the face (a_1, b_1, a_2), at its incentre,
+    so no other triangle comes within the threshold."""
+    z = np.array([0.0, -0.012, -0.024])
+    s0 = np.stack([np.zeros(3), np.zeros(3), z], axis=1)
+    s1 = np.stack([[0.012, 0.010, 0.008], np.zeros(3), z], axis=1)
+    tip = np.array([0.0032, 0.0008, -0.0152])
+    s2 = np.stack([tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip], axis=0)
+    return np.stack([s0, s1, s2])
+
+
+def test_vertex_face_closed_form_with_density_scale():
+    """A strand tip 0.8 mm in front of a strip face, crossing it at right angles: F = k0 (s0 / s) (thr - 0.8 mm)."""
+    k, S2 = 10.0, 2
+    verts = _strip_scene()
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+                                  segment_segment=False)
+    force, torque, _ = _apply(contacts, _model(3, S2), _state(verts))
+    found = contacts.contact_list()
+    assert list(found["kind"]) == [CONTACT_VERTEX_FACE]
+    assert found["a"][0] == 2 * (S2 + 1) + 2  # the tip of strand 2
+    tri = found["b"][0]
+    assert tri == 2  # pair (0, 1), segment 1, first triangle: its horizontal edge a_1 b_1 is 10 mm
+    assert contacts.strips.tri_width[tri] == pytest.approx(0.010)
+    scale = contacts.strips.width_ref / 0.010
+    assert scale != pytest.approx(1.0)
+    expected = k * scale * (THRESHOLD - 0.0008)
+    np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
+                               atol=FORCE_RTOL * expected)
+    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_net_force_and_torque_vanish(seed):
+    verts, rng = _tangled(seed)
+    vel = rng.normal(0.0, 0.3, verts.shape)
+    strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
+                                  capacity=20000)
+    force, torque, _ = _apply(contacts, _model(G, S), _state(verts, vel))
+    assert contacts.contact_count() > 20
+    origin = verts[:, :-1].reshape(-1, 3)
+    magnitude = np.linalg.norm(force, axis=1).sum()
+    assert magnitude > 0.0
+    assert np.linalg.norm(force.sum(axis=0)) <= MOMENTUM_RTOL * magnitude
+    total_torque = (torque + np.cross(origin, force)).sum(axis=0)
+    moment_scale = (np.linalg.norm(force, axis=1) * np.linalg.norm(origin, axis=1)).sum()
+    assert np.linalg.norm(total_torque) <= MOMENTUM_RTOL * moment_scale
+
+
+def _explicit_step(contacts, verts, vel, model, mass, h, owner):
+    """One explicit step of the system seen as translating point masses, one per segment.
+
+    ``owner`` maps each vertex to its segment; every vertex of a segment moves with it. Returns the forces and
+    the vertex velocities after the step.
+    """
+    force, _, _ = _apply(contacts, model, _state(verts, vel), dt=h)
+    seg_v = np.zeros((model.seg_count, 3))
+    seg_v[owner] = vel.reshape(-1, 3)
+    vel_new = (seg_v + h * force / mass)[owner].reshape(vel.shape)
+    return force, vel_new
+
+
+def _tangential(v_rel, n):
+    return v_rel - np.dot(v_rel, n) * n
+
+
+@pytest.mark.parametrize("speed", [1.0e-5, 1.0e-3, 0.05, 0.5, 5.0])
+@pytest.mark.parametrize("mu", [0.3, 50.0])
+def test_friction_never_reverses_segment_pair(speed, mu):
+    """Two crossing segments sliding past each other: one explicit step never increases |v_t| of the pair.
+
+    The geometry is dyadic (exact in float32), so the normal force has no tangential round-off and the tangential
+    velocity change is friction alone: the regularised Coulomb force, or, where that would reverse the slip in
+    one step, the cap that brings it exactly to rest.
+    """
+    h, mass, k, c, slip = 2.0e-3, 1.0e-4, 10.0, 0.01, 1.0e-3
+    delta, zb, half = 2.0**-11, -(2.0**-9), 2.0**-8
+    verts = _pair([0, 0, 0], [0, 0, -(2.0**-7)], [-half, delta, zb], [half, delta, zb])
+    rng = np.random.default_rng(int(speed * 1e6) + int(mu))
+    slide = rng.normal(size=3)
+    slide[1] = 0.0
+    vel = np.zeros_like(verts)
+    vel[0] = speed * slide / np.linalg.norm(slide)
+    vel[1] = [0.0, -0.01, 0.0]
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, friction=mu,
+                                  slip_velocity=slip, capacity=4)
+    force, vel_new = _explicit_step(contacts, verts, vel, _model(2, 1, mass), mass, h, [0, 0, 1, 1])
+    n = np.array([0.0, -1.0, 0.0])
+    vt = _tangential(vel[0, 0] - vel[1, 0], n)
+    before = np.linalg.norm(vt)
+    after = np.linalg.norm(_tangential(vel_new[0, 0] - vel_new[1, 0], n))
+    assert after <= before * (1.0 + 1e-6)
+
+    fn = k * (THRESHOLD - delta) + c * 0.01
+    m_eff = 0.5 * mass
+    coulomb = mu * fn * before / np.hypot(before, slip)
+    cap = m_eff * before / h
+    np.testing.assert_allclose(force[0], fn * n - min(coulomb, cap) * vt / before, rtol=1e-4, atol=1e-4 * fn)
+    if coulomb >= cap:
+        assert after <= 1e-4 * before  # the cap stops the slip, without reversing it
+    else:
+        np.testing.assert_allclose(after, before - h * coulomb / m_eff, rtol=1e-4)
+
+
+@pytest.mark.parametrize("speed", [1.0e-4, 0.05, 5.0])
+def test_friction_never_reverses_vertex_face(speed):
+    """A strand tip sliding on a strip face: one explicit step never increases |v_t| of vertex against face."""
+    h, mu, mass, S2 = 2.0e-3, 50.0, 1.0e-4, 2
+    verts = _strip_scene()
+    vel = np.zeros_like(verts)
+    vel[2] = [speed, 0.0, 0.3 * speed]  # strand 2 slides in the face's plane
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, friction=mu,
+                                  capacity=16, segment_segment=False)
+    owner = [g * S2 + max(k - 1, 0) for g in range(3) for k in range(S2 + 1)]
+    _, vel_new = _explicit_step(contacts, verts, vel, _model(3, S2, mass), mass, h, owner)
+    found = contacts.contact_list()
+    assert list(found["kind"]) == [CONTACT_VERTEX_FACE]
+    tri, w = found["b"][0], found["w"][0].astype(np.float64)
+    corners = contacts.strips.indices.numpy().reshape(-1, 3)[tri]
+    n = np.array([0.0, 1.0, 0.0])
+
+    def rel(v):
+        flat = v.reshape(-1, 3)
+        return flat[found["a"][0]] - w @ flat[corners]
+
+    before = np.linalg.norm(_tangential(rel(vel), n))
+    after = np.linalg.norm(_tangential(rel(vel_new), n))
+    assert after <= before * (1.0 + 1e-5)
+    assert after < 0.5 * before
+
+
+def test_overflow_sets_flags():
+    verts, _ = _tangled(5)
+    strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
+    model = _model(G, S)
+    roomy = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000)
+    state = _state(verts)
+    _apply(roomy, model, state)
+    total = roomy.contact_count()
+    assert total > 8 and not roomy.overflowed() and state.fault.numpy()[0] == 0
+
+    tight = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=8)
+    _apply(tight, model, state)
+    assert tight.contact_count() == total  # still counted, only the first 8 stored
+    assert len(tight.contact_list()["kind"]) == 8
+    assert tight.overflowed()
+    assert state.fault.numpy()[0] & int(Fault.CONTACT_OVERFLOW)
+    tight.reset_overflow()
+    assert not tight.overflowed()
+
+
+def test_strip_adjacency():
+    """Grid pairs are the rows and columns; a Delaunay of jittered grid coordinates keeps those and drops the
+    long hull edges; the convex-hull fallback on a spherical cap gives every root neighbours."""
+    verts, rng = _tangled(6)
+    grid = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
+    assert grid.pair_count == ROWS * (COLS - 1) + (ROWS - 1) * COLS
+    assert grid.tri_count == 2 * S * grid.pair_count
+    tri = grid.indices.numpy().reshape(-1, 3)
+    a, b = grid.pairs[0]
+    np.testing.assert_array_equal(tri[0], [a * (S + 1), b * (S + 1), a * (S + 1) + 1])
+    np.testing.assert_array_equal(tri[1], [b * (S + 1), b * (S + 1) + 1, a * (S + 1) + 1])
+
+    c, r = np.meshgrid(np.arange(COLS), np.arange(ROWS))
+    uv = np.stack([c.ravel(), r.ravel()], axis=1) + rng.uniform(-0.05, 0.05, (G, 2))
+    uv[:, 0] *= 1.0 + 0.001 * uv[:, 1] ** 2  # no exact co-circularity
+    delaunay = TriangleStrips.build(verts, root_uv=uv, max_edge_ratio=1.3)
+    pairs = {tuple(p) for p in delaunay.pairs.tolist()}
+    assert {tuple(p) for p in grid.pairs.tolist()} <= pairs
+    length = np.linalg.norm(uv[delaunay.pairs[:, 0]] - uv[delaunay.pairs[:, 1]], axis=1)
+    assert length.max() < 1.3 * 1.5
+
+    theta, phi = np.meshgrid(np.linspace(0.2, 1.2, 6), np.linspace(0.0, 2 * np.pi, 12, endpoint=False))
+    cap = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    cap_verts = np.stack([cap, 1.1 * cap], axis=1)
+    hull = TriangleStrips.build(cap_verts)
+    degree = np.bincount(hull.pairs.ravel(), minlength=len(cap))
+    assert degree.min() >= 2
+    with pytest.raises(InteractionError, match="grid_shape"):
+        TriangleStrips.build(verts, grid_shape=(3, 3))
