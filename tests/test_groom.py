@@ -514,3 +514,26 @@ def test_load_tfx():
     _ratboy_bytes()
     groom, caught = _record_warnings(Groom.load, RATBOY)
     assert groom.strand_count == 2219 and len(caught) == 1
+
+
+def test_load_usd_curves_through_hairwarp_usd(tmp_path):
+    """A Y-up centimetre stage written with pxr directly comes back in metres, Z up."""
+    pytest.importorskip("pxr")
+    from pxr import Gf, Usd, UsdGeom, Vt
+    lines = [
+        np.array([[0.0, 170.0, 0.0], [0.0, 160.0, 5.0], [1.0, 150.0, 8.0]]),
+        np.array([[3.0, 168.0, 1.0], [3, 140, 2]]),
+    ]
+    path = tmp_path / "groom.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    curves = UsdGeom.BasisCurves.Define(stage, "/hair")
+    curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+    curves.CreateCurveVertexCountsAttr(Vt.IntArray([len(a) for a in lines]))
+    curves.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*p) for a in lines for p in a]))
+    stage.GetRootLayer().Save()
+    groom = Groom.load(path)
+    assert groom.strand_count == 2 and groom.source == str(path)
+    for a, b in zip(lines, groom.strands, strict=True):
+        np.testing.assert_allclose(b, 0.01 * a @ _Y_TO_Z.T, rtol=RTOL_F32, atol=1e-9)
