@@ -1,0 +1,242 @@
+"""The ``hairwarp`` command: run scenes, inspect files, benchmark, preview caches.
+
+::
+
+    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [-s KEY=VALUE ...]
+    hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
+    hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
+    hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
+
+Exit codes: 0 success; 1 a part of hairwarp this installation lacks; 2 bad input (usage, scene,
+groom or cache errors, a missing file), with one message on stderr and no traceback; 3 the
+simulation stopped on a fault (the message names the frame, the stage and the parameter).
+Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one-line message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["build_parser", "main"]
+
+EXIT_OK = 0
+EXIT_MISSING_PART = 1
+EXIT_BAD_INPUT = 2
+EXIT_FAULT = 3
+
+_USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+_GROOM_SUFFIXES = (".tfx", ".hair")
+
+
+# ----------------------------------------------------------------------------------------------
+# commands
+
+
+def _cmd_run(args) -> int:
+    from hairwarp.scene import Scene
+
+    path = Path(args.scene) if args.scene else Scene.default_path()
+    overrides = list(args.set or [])
+    if args.frames is not None:
+        overrides.append(f"sim.frames={args.frames}")
+    if args.device is not None:
+        overrides.append(f"sim.device={args.device!r}")
+    scene = Scene.load(path, overrides=overrides)
+    out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
+
+    from hairwarp.runner import simulate
+
+    result = simulate(scene, out, frames=args.frames, device=args.device, progress=True)
+    print(f"cache    {result.cache_path}")
+    if getattr(result, "preview_path", None):
+        print(f"preview  {result.preview_path}")
+    print(f"{result.frames} frames in {result.seconds:.2f} s")
+    return EXIT_OK
+
+
+def _cmd_info(args) -> int:
+    path = Path(args.file)
+    if not path.exists():
+        raise FileNotFoundError(f"{path.resolve()}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".toml":
+        from hairwarp.scene import Scene
+
+        print(Scene.load(path).summary())
+    elif suffix in _GROOM_SUFFIXES:
+        print(_groom_summary(path))
+    elif suffix in _USD_SUFFIXES:
+        from hairwarp import usd
+
+        text = usd.describe(path)
+        print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))
+        if not _usd_is_animated(path):
+            print(_groom_summary(path))
+    else:
+        raise ValueError(f"{path}: cannot tell what {suffix or 'a file without suffix'} is; "
+                         f"expected .toml, {', '.join(_GROOM_SUFFIXES + _USD_SUFFIXES)}")
+    return EXIT_OK
+
+
+def _groom_summary(path: Path) -> str:
+    import numpy as np
+
+    from hairwarp.groom import Groom
+
+    groom = Groom.load(path)
+    counts = np.array([len(s) for s in groom.strands])
+    lengths = groom.lengths()
+    lo, hi = groom.bounds()
+    fmt = "[{:.4g}, {:.4g}, {:.4g}]".format
+    lines = [
+        f"groom    {path}",
+        f"strands  {groom.strand_count}",
+        f"vertices {int(counts.sum())} (per strand {counts.min()} .. {counts.max()}, mean {counts.mean():.1f})",
+        f"length   {lengths.min():.4g} .. {lengths.max():.4g} m, mean {lengths.mean():.4g} m, "
+        f"total {lengths.sum():.4g} m",
+        f"bounds   {fmt(*lo)} .. {fmt(*hi)} m (Z up), size {fmt(*(hi - lo))} m",
+    ]
+    if groom.grid_shape is not None:
+        lines.append(f"grid     {groom.grid_shape[0]} x {groom.grid_shape[1]} roots")
+    return "\n".join(lines)
+
+
+def _usd_is_animated(path: Path) -> bool:
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise ValueError(f"{path}: USD cannot open this file")
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.PointBased) and UsdGeom.PointBased(prim).GetPointsAttr().GetNumTimeSamples() > 1:
+            return True
+    return False
+
+
+def _cmd_bench(args) -> int:
+    from hairwarp import bench
+
+    return int(bench.main(args) or 0)
+
+
+def _cmd_preview(args) -> int:
+    path = Path(args.cache)
+    if not path.exists():
+        raise FileNotFoundError(f"{path.resolve()}: no such file")
+    from hairwarp.preview import preview_cache
+
+    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif)
+    print(f"preview  {out}")
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------------------------
+# parser
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _override(text: str) -> str:
+    if "=" not in text or not text.split("=", 1)[0].strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE such as sim.frames=10, got {text!r}")
+    return text
+
+
+def _version() -> str:
+    from hairwarp import __version__
+
+    return f"hairwarp {__version__}"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``hairwarp`` command."""
+    parser = argparse.ArgumentParser(
+        prog="hairwarp",
+        description="Hair simulation on NVIDIA Warp: articulated guide strands written to USD caches.",
+        epilog="Run 'hairwarp COMMAND --help' for the options of a command.",
+    )
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("run", help="simulate a scene and write a USD cache (and a preview)",
+                       description="Simulate a scene and write a USD cache and a preview picture.")
+    p.add_argument("scene", nargs="?", metavar="SCENE",
+                   help="scene file (.toml); default: the bundled long_hair scene")
+    p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
+    p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
+    p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
+    p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
+                   help="override a scene key, value in TOML syntax, e.g. -s sim.substeps=4 "
+                        "-s 'head.motion.kind=\"nod\"' (repeatable)")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("info", help="describe a scene, a groom or a cache",
+                       description="Describe a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*).")
+    p.add_argument("file", metavar="FILE")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("bench", help="time and measure the accuracy of the solver",
+                       description="Benchmarks: speed and accuracy of the solver.")
+    p.add_argument("suite", nargs="?", metavar="SUITE", help="benchmark suite; default: all")
+    p.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
+    p.add_argument("--device", metavar="D", help="Warp device")
+    p.add_argument("--out", metavar="DIR", help="folder for results and charts")
+    p.add_argument("--format", choices=("human", "json"), default="human", help="output format")
+    p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("preview", help="render frames of a cache to a PNG (or a GIF)",
+                       description="Render frames of a USD cache as a contact sheet PNG or an animated GIF.")
+    p.add_argument("cache", metavar="CACHE")
+    p.add_argument("-o", "--output", metavar="PNG", help="picture to write; default: beside the cache")
+    p.add_argument("--frames", type=_positive_int, default=4, metavar="N", help="frames on the sheet (default 4)")
+    p.add_argument("--gif", action="store_true", help="write an animated GIF of every frame instead")
+    p.set_defaults(func=_cmd_preview)
+    return parser
+
+
+# ----------------------------------------------------------------------------------------------
+# entry point
+
+
+def _error(message: str) -> None:
+    print(f"hairwarp: {message}", file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    """Run the ``hairwarp`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
+
+    Usage errors exit through argparse (``SystemExit(2)``); ``--help`` and ``--version`` exit 0.
+    """
+    args = build_parser().parse_args(argv)
+    if os.environ.get("HAIRWARP_TRACEBACK"):
+        return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError) as exc:
+        _error(str(exc))
+        return EXIT_BAD_INPUT
+    except ModuleNotFoundError as exc:
+        if not (exc.name or "").startswith("hairwarp"):
+            raise
+        _error(f"'{args.command}' needs {exc.name}, which this installation does not have")
+        return EXIT_MISSING_PART
+    except RuntimeError as exc:
+        solver = sys.modules.get("hairwarp.solver")
+        if solver is None or not isinstance(exc, getattr(solver, "SimulationFault", ())):
+            raise
+        _error(f"simulation stopped: {exc}")
+        return EXIT_FAULT
+    except KeyboardInterrupt:
+        _error("interrupted")
+        return 130
