@@ -1,0 +1,189 @@
+"""The ``hairwarp`` command, run as ``python -m hairwarp`` in a subprocess (what a user types)."""
+
+import importlib.util
+import struct
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCENES = REPO / "scenes"
+# Generous wall-clock bound on one CLI call that does not simulate (start-up, parse, describe).
+CLI_TIMEOUT_S = 120
+
+
+def _hairwarp(*args, cwd=None, env=None):
+    return subprocess.run([sys.executable, "-m", "hairwarp", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=CLI_TIMEOUT_S)
+
+
+def _has(module):
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def test_help_lists_the_subcommands():
+    r = _hairwarp("--help")
+    assert r.returncode == 0
+    for cmd in ("run", "info", "bench", "preview"):
+        assert cmd in r.stdout
+    r = _hairwarp("run", "--help")
+    assert r.returncode == 0 and "--frames" in r.stdout and "KEY=VALUE" in r.stdout
+
+
+def test_version():
+    import hairwarp
+
+    r = _hairwarp("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"hairwarp {hairwarp.__version__}"
+
+
+def test_usage_errors_exit_2():
+    assert _hairwarp().returncode == 2
+    assert _hairwarp("fly").returncode == 2
+    r = _hairwarp("run", "--frames", "0")
+    assert r.returncode == 2 and "positive integer" in r.stderr
+
+
+def test_broken_scene_exits_2_and_names_the_key(tmp_path):
+    scene = tmp_path / "broken.toml"
+    scene.write_text(textwrap.dedent("""
+        [groom]
+        generator = "scalp"
+        [head.motion]
+        kind = "nod"
+        perod = 1.0
+        [sim]
+        frames = -3
+    """))
+    for cmd in (("run", scene), ("info", scene)):
+        r = _hairwarp(*cmd, cwd=tmp_path)
+        assert r.returncode == 2, r.stderr
+        assert "Traceback" not in r.stderr
+        assert str(scene.resolve()) in r.stderr
+        assert "head.motion.perod" in r.stderr and "did you mean 'period'" in r.stderr
+        assert "sim.frames" in r.stderr
+        assert not (tmp_path / "out").exists()
+
+
+def test_bad_override_exits_2(tmp_path):
+    r = _hairwarp("run", SCENES / "tiny.toml", "-s", "sim.integrator=verlet", cwd=tmp_path)
+    assert r.returncode == 2 and "sim.integrator" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_missing_files_exit_2(tmp_path):
+    for cmd in (("run", tmp_path / "nope.toml"), ("info", tmp_path / "nope.hair"), ("preview", tmp_path / "x.usdc")):
+        r = _hairwarp(*cmd, cwd=tmp_path)
+        assert r.returncode == 2, (cmd, r.stderr)
+        assert "nope" in r.stderr or "x.usdc" in r.stderr
+        assert "Traceback" not in r.stderr
+
+
+def test_info_scene():
+    r = _hairwarp("info", SCENES / "long_hair.toml")
+    assert r.returncode == 0, r.stderr
+    assert "long_hair" in r.stdout and "300 guides" in r.stdout and "90 frames" in r.stdout and "Turn(" in r.stdout
+
+
+def _write_hair(path, strands):
+    """Cem Yuksel's .hair file, written here with numpy: header, uint16 segments, float32 points."""
+    counts = np.array([len(s) for s in strands])
+    header = struct.pack("<4sIIIIff3f88s", b"HAIR", len(strands), int(counts.sum()), 1 | 2, 0, 0.0, 0.0,
+                         0.0, 0.0, 0.0, b"test groom")
+    with open(path, "wb") as f:
+        f.write(header)
+        f.write((counts - 1).astype("<u2").tobytes())
+        f.write(np.concatenate(strands).astype("<f4").tobytes())
+
+
+@pytest.mark.skipif(not _has("hairwarp.groom"), reason="needs hairwarp.groom (Groom.load), not in this installation")
+def test_info_groom(tmp_path):
+    rng = np.random.default_rng(0)
+    strands = []
+    for n in (5, 9, 12):
+        root = rng.uniform(-0.1, 0.1, 3) + [0.0, 0.0, 1.6]
+        steps = np.tile([0.0, 0.0, -0.02], (n - 1, 1))
+        strands.append(np.vstack([root, root + np.cumsum(steps, axis=0)]))
+    path = tmp_path / "g.hair"
+    _write_hair(path, strands)
+    r = _hairwarp("info", path)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "strands  3" in out
+    assert "vertices 26" in out
+    lengths = [0.02 * (n - 1) for n in (5, 9, 12)]
+    assert f"{min(lengths):.4g} .. {max(lengths):.4g} m" in out
+    lo = np.concatenate(strands).min(axis=0)
+    assert f"{lo[0]:.4g}" in out
+
+
+@pytest.mark.skipif(not _has("hairwarp.groom"), reason="needs hairwarp.groom (Groom.load), not in this installation")
+def test_info_bad_groom_exits_2(tmp_path):
+    path = tmp_path / "g.hair"
+    path.write_bytes(b"NOPE" + bytes(124))
+    r = _hairwarp("info", path)
+    assert r.returncode == 2 and "g.hair" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_unknown_file_type_exits_2(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("hello")
+    r = _hairwarp("info", path)
+    assert r.returncode == 2 and "notes.txt" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_main_in_process_returns_codes(tmp_path, capsys):
+    """``main(argv)`` returns the exit code instead of exiting (for embedding and tests)."""
+    from hairwarp.cli import main
+
+    assert main(["info", str(SCENES / "tiny.toml")]) == 0
+    assert "tiny" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "missing.toml")]) == 2
+    assert "missing.toml" in capsys.readouterr().err
+
+
+def test_simulation_fault_exits_3(monkeypatch, tmp_path, capsys):
+    """A SimulationFault from the runner becomes its message on stderr and exit code 3."""
+    solver = pytest.importorskip("hairwarp.solver", reason="needs hairwarp.solver (SimulationFault)")
+    runner = pytest.importorskip("hairwarp.runner", reason="needs hairwarp.runner (simulate)")
+    from hairwarp.cli import main
+
+    def fault(scene, out, **kw):
+        raise solver.SimulationFault("frame 3, stage aba: joint turned 0.9 rad in one step; raise sim.substeps")
+
+    monkeypatch.setattr(runner, "simulate", fault)
+    assert main(["run", str(SCENES / "tiny.toml"), "-o", str(tmp_path / "x.usdc")]) == 3
+    err = capsys.readouterr().err
+    assert "frame 3, stage aba" in err and "Traceback" not in err
+
+
+def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
+    runner = pytest.importorskip("hairwarp.runner", reason="needs hairwarp.runner (simulate)")
+    from hairwarp.cli import main
+
+    seen = {}
+
+    class Result:
+        cache_path = tmp_path / "out" / "tiny.usdc"
+        preview_path = tmp_path / "out" / "tiny.png"
+        frames = 2
+        seconds = 0.5
+
+    def fake(scene, out, **kw):
+        seen.update(scene=scene, out=out, **kw)
+        return Result()
+
+    monkeypatch.setattr(runner, "simulate", fake)
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(SCENES / "tiny.toml"), "--frames", "2", "--device", "cpu", "-s", "sim.substeps=3"]) == 0
+    assert seen["out"] == Path("out") / "tiny.usdc"
+    assert seen["frames"] == 2 and seen["device"] == "cpu" and seen["progress"] is True
+    assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2
+    out = capsys.readouterr().out
+    assert "tiny.usdc" in out and "tiny.png" in out
