@@ -69,12 +69,17 @@ def _cmd_info(args) -> int:
     elif suffix in _GROOM_SUFFIXES:
         print(_groom_summary(path))
     elif suffix in _USD_SUFFIXES:
-        from hairwarp import usd
+        from hairwarp.usd import describe
 
-        text = usd.describe(path)
+        text = describe(path)
         print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))
         if not _usd_is_animated(path):
-            print(_groom_summary(path))
+            try:
+                summary = _groom_summary(path)
+            except ValueError:
+                summary = None  # a static stage without curves is not a groom; describe said what it holds
+            if summary:
+                print(summary)
     else:
         raise ValueError(f"{path}: cannot tell what {suffix or 'a file without suffix'} is; "
                          f"expected .toml, {', '.join(_GROOM_SUFFIXES + _USD_SUFFIXES)}")
@@ -117,9 +122,9 @@ def _usd_is_animated(path: Path) -> bool:
 
 
 def _cmd_bench(args) -> int:
-    from hairwarp import bench
+    from hairwarp.bench import main as bench_main
 
-    return int(bench.main(args) or 0)
+    return int(bench_main(args) or 0)
 
 
 def _cmd_preview(args) -> int:

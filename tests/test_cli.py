@@ -187,3 +187,35 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2
     out = capsys.readouterr().out
     assert "tiny.usdc" in out and "tiny.png" in out
+
+
+@pytest.mark.skipif(not (_has("hairwarp.groom") and _has("hairwarp.usd")),
+                    reason="needs hairwarp.groom and hairwarp.usd, not in this installation")
+def test_info_usd_groom_and_cache(tmp_path):
+    """A static stage with curves is described as a groom too; an animated one (a cache) is not."""
+    from pxr import Usd, UsdGeom, Vt
+
+    def stage(path, animated):
+        st = Usd.Stage.CreateNew(str(path))
+        UsdGeom.SetStageUpAxis(st, UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(st, 1.0)
+        curves = UsdGeom.BasisCurves.Define(st, "/Hair")
+        curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+        curves.CreateCurveVertexCountsAttr(Vt.IntArray([3, 2]))
+        pts = [(0, 0, 1.6), (0, 0, 1.5), (0, 0, 1.4), (0.05, 0, 1.6), (0.05, 0, 1.3)]
+        attr = curves.CreatePointsAttr()
+        if animated:
+            for frame in range(3):
+                attr.Set([(x + 0.01 * frame, y, z) for x, y, z in pts], frame)
+        else:
+            attr.Set(pts)
+        st.GetRootLayer().Save()
+
+    stage(tmp_path / "groom.usda", animated=False)
+    stage(tmp_path / "cache.usda", animated=True)
+    r = _hairwarp("info", tmp_path / "groom.usda")
+    assert r.returncode == 0, r.stderr
+    assert "2 curves" in r.stdout and "strands  2" in r.stdout and "0.2 .. 0.3 m" in r.stdout
+    r = _hairwarp("info", tmp_path / "cache.usda")
+    assert r.returncode == 0, r.stderr
+    assert "2 curves" in r.stdout and "strands" not in r.stdout
