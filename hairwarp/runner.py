@@ -28,7 +28,8 @@ class Stepper:
         dt: step size [s].
         substeps: steps per frame.
         control: the :class:`hairwarp.Control` the steps read; ``before_step(t, control)`` may
-            update it from the host before each step.
+            update it from the host before each step, with ``t`` the time at the step's end: the
+            step puts the new state's roots on the head pose the control holds.
         use_graph: capture one step per parity in a Warp graph and replay it; default on CUDA.
     """
 
@@ -74,7 +75,7 @@ class Stepper:
         """Run one frame of substeps, then check for faults (one integer read from the device)."""
         for _ in range(self.substeps):
             if before_step is not None:
-                before_step(self.time, self.control)
+                before_step(self.time + self.dt, self.control)
             self.step()
         self.frame += 1
         return self.solver.check(self.state, self.frame, substeps=self.substeps)

@@ -105,8 +105,7 @@ class Solver:
         wp.copy(state_out.fault, state_in.fault)
         if self.has_forces:
             self._accumulate_forces(state_in, control)
-        self._integrate(state_in, state_out, control)
-        forward_kinematics(self.model, state_out, control)
+        self._integrate(state_in, state_out, control)  # forward kinematics of state_out fused in
         if self.colliders is not None:
             self.colliders.project(self.model, state_out, control, self.dt)
         if self.links is not None:
@@ -154,7 +153,8 @@ class Solver:
         forces = [self.seg_force, self.seg_torque, int(self.has_forces), self.seg_implicit_mass,
                   int(self.has_implicit_mass), state_in.joint_q, state_in.joint_qd,
                   self.aba_p, self.aba_c, self.aba_DA, self.aba_DB, self.aba_Du, self.joint_qdd]
-        outputs = [state_out.joint_q, state_out.joint_qd, state_out.fault]
+        outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
+                   state_out.vertex_velocities, state_out.fault]
         if self.integrator == Integrator.RK4:
             wp.launch(articulated.integrate_rk4, dim=model.strand_count,
                       inputs=common + forces + [self.rk_q, self.rk_w, self.rk_dq, self.rk_dw],

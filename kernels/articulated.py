@@ -20,6 +20,7 @@ from hairwarp.kernels.spatial import (
     quat_log,
     rotate_blocks,
     segment_inertia_blocks,
+    skew,
 )
 from hairwarp.kernels.types import Fault
 
@@ -172,17 +173,28 @@ def aba_backward_pass(
             c = aba_c[i]
             c_ang = wp.spatial_top(c)
             c_lin = wp.spatial_bottom(c)
-            Aa = A - A * DA
-            Ba = B - A * DB
-            Ca = C - wp.transpose(B) * DB
-            na = n + Aa * c_ang + Ba * c_lin + A * Du
-            fa = f + wp.transpose(Ba) * c_ang + Ca * c_lin + wp.transpose(B) * Du
             R = wp.quat_to_matrix(q)
-            Aa, Ba, Ca = rotate_blocks(R, Aa, Ba, Ca)
+            r = wp.vec3(0.0, 0.0, -seg_length[i - 1])
+            Ca = C - wp.transpose(B) * DB
+            if implicit != 0:
+                # I^a = I^A - U D^-1 U^T keeps all three blocks when D carries armature
+                Aa = A - A * DA
+                Ba = B - A * DB
+                na = n + Aa * c_ang + Ba * c_lin + A * Du
+                fa = f + wp.transpose(Ba) * c_ang + Ca * c_lin + wp.transpose(B) * Du
+                Aa, Ba, Ca = rotate_blocks(R, Aa, Ba, Ca)
+                cA, cB = inertia_shift(Aa, Ba, Ca, r)
+            else:
+                # D = A: the rotational and coupling blocks vanish and the joint passes its torque,
+                # so only the translational block travels to the parent
+                na = tau
+                fa = f + Ca * c_lin + wp.transpose(B) * Du
+                Ca = R * Ca * wp.transpose(R)
+                rx = skew(r)
+                cB = rx * Ca
+                cA = -(cB * rx)
             na = R * na
             fa = R * fa
-            r = wp.vec3(0.0, 0.0, -seg_length[i - 1])
-            cA, cB = inertia_shift(Aa, Ba, Ca, r)
             cC = Ca
             cn = na + wp.cross(r, fa)
             cf = fa
@@ -351,12 +363,16 @@ def integrate_euler(
     # Out:
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
     fault: wp.array(dtype=wp.int32),
 ):
     """One thread per strand: ABA, then symplectic Euler ``w += h qdd; q <- q exp(h w)``.
 
     ``implicit`` != 0 is the ``implicit_joints`` integrator (joint springs and damping at the end
-    of the step). Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame] and fault bits.
+    of the step). Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame], the new state's
+    world frames and vertices (forward kinematics, fused), and fault bits.
     """
     strand = wp.tid()
     S = seg_per_strand
@@ -373,6 +389,8 @@ def integrate_euler(
         flag_joint(w, q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
+    fk_strand(strand, S, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
+              seg_xform_out, vertex_positions_out, vertex_velocities_out)
 
 
 @wp.kernel
@@ -415,13 +433,16 @@ def integrate_rk4(
     # Out:
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
     fault: wp.array(dtype=wp.int32),
 ):
     """One thread per strand: classical RK4 on the Lie group, as MuJoCo's ``RK4`` does.
 
     Stage configurations are ``q0 exp(c h w)``; the update is ``q0 exp(h/6 (w1 + 2w2 + 2w3 + w4))``.
     External forces, held by the accumulators, stay fixed over the step. Writes ``joint_q_out``,
-    ``joint_qd_out`` and fault bits.
+    ``joint_qd_out``, the new state's world frames and vertices, and fault bits.
     """
     strand = wp.tid()
     S = seg_per_strand
@@ -460,6 +481,43 @@ def integrate_rk4(
         flag_joint(w, q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
+    fk_strand(strand, S, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
+              seg_xform_out, vertex_positions_out, vertex_velocities_out)
+
+
+@wp.func
+def fk_strand(
+    strand: int,
+    S: int,
+    seg_length: wp.array(dtype=float),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    X_h: wp.transform,
+    v_head: wp.spatial_vector,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+):
+    """World segment frames, vertex positions [m] and velocities [m/s] of one strand, root to tip."""
+    R = wp.transform_get_rotation(X_h)
+    p_h = wp.transform_get_translation(X_h)
+    omega = wp.spatial_top(v_head)
+    x = wp.transform_point(X_h, strand_root_pos[strand])
+    v = wp.spatial_bottom(v_head) + wp.cross(omega, x - p_h)
+    vbase = strand * (S + 1)
+    for k in range(S):
+        i = strand * S + k
+        R = R * joint_q[i]
+        omega = omega + wp.quat_rotate(R, joint_qd[i])
+        seg_xform[i] = wp.transform(x, R)
+        vertex_positions[vbase + k] = x
+        vertex_velocities[vbase + k] = v
+        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -seg_length[i]))
+        x = x + d
+        v = v + wp.cross(omega, d)
+    vertex_positions[vbase + S] = x
+    vertex_velocities[vbase + S] = v
 
 
 @wp.kernel
@@ -481,26 +539,8 @@ def forward_kinematics(
 ):
     """One thread per strand: world segment frames, vertex positions [m] and velocities [m/s]."""
     strand = wp.tid()
-    S = seg_per_strand
-    X_h = head_xform[0]
-    R = wp.transform_get_rotation(X_h)
-    p_h = wp.transform_get_translation(X_h)
-    omega = wp.spatial_top(head_velocity[0])
-    x = wp.transform_point(X_h, strand_root_pos[strand])
-    v = wp.spatial_bottom(head_velocity[0]) + wp.cross(omega, x - p_h)
-    vbase = strand * (S + 1)
-    for k in range(S):
-        i = strand * S + k
-        R = R * joint_q[i]
-        omega = omega + wp.quat_rotate(R, joint_qd[i])
-        seg_xform[i] = wp.transform(x, R)
-        vertex_positions[vbase + k] = x
-        vertex_velocities[vbase + k] = v
-        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -seg_length[i]))
-        x = x + d
-        v = v + wp.cross(omega, d)
-    vertex_positions[vbase + S] = x
-    vertex_velocities[vbase + S] = v
+    fk_strand(strand, seg_per_strand, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q,
+              joint_qd, seg_xform, vertex_positions, vertex_velocities)
 
 
 @wp.kernel
