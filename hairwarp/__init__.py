@@ -18,6 +18,9 @@ _EXPORTS = {
     "Groom": "hairwarp.groom",
     "GroomError": "hairwarp.groom",
     "scalp_groom": "hairwarp.groom",
+    "read_tfx": "hairwarp.groom",
+    "read_hair": "hairwarp.groom",
+    "write_hair": "hairwarp.groom",
     "StrandParams": "hairwarp.model",
     "Model": "hairwarp.model",
     "State": "hairwarp.state",
@@ -28,11 +31,16 @@ _EXPORTS = {
     "Integrator": "hairwarp.kernels.types",
     "Fault": "hairwarp.kernels.types",
     "ColliderKind": "hairwarp.kernels.types",
+    # dense hair and output
+    "DenseHair": "hairwarp.dense",
+    "CacheWriter": "hairwarp.usd",
     # scenes and runs
     "Scene": "hairwarp.scene",
     "SceneError": "hairwarp.scene",
     "HeadMotion": "hairwarp.motion",
     "simulate": "hairwarp.runner",
+    "Simulation": "hairwarp.runner",
+    "Stepper": "hairwarp.runner",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
