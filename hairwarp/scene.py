@@ -311,7 +311,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "segments": Field("int", 20, "simulation segments per guide strand", range="[1, 1024]"),
             "device": Field("str", "cpu", "Warp device: cpu, cuda or cuda:N"),
             "gravity": Field("vec3", (0.0, 0.0, -9.81), "gravitational acceleration, world", "m/s^2"),
-            "max_rotation_per_step": Field("float", 0.5, "fault bound on a joint's rotation in one step", "rad",
+            "max_rotation_per_step": Field("float", 1.0, "fault bound on a joint's rotation in one step", "rad",
                                            range="(0, inf)"),
             "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),
         },
