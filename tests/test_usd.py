@@ -291,3 +291,22 @@ def test_bad_input_is_reported(tmp_path):
     stage = Usd.Stage.Open(str(path))
     attr = stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points")
     assert attr.GetTimeSamples() == [0.0]
+
+
+def test_rewrite_while_the_old_file_is_open(tmp_path):
+    """A stage still holding the previous cache sees the new one: the layer registry is refreshed at close."""
+    path = tmp_path / "cache.usdc"
+    _write_small_cache(path, frames=(0, 1))
+    held = Usd.Stage.Open(str(path))
+    _write_small_cache(path, frames=(0, 1, 2, 3))
+    attr = held.GetPrimAtPath("/World/Hair/dense").GetAttribute("points")
+    assert attr.GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    assert len(read_frames(path)) == 4
+
+
+def test_velocities_must_be_given_consistently(tmp_path):
+    with CacheWriter(tmp_path / "v.usdc", fps=24) as cache:
+        cache.add_curves("c", [3])
+        cache.write_frame(0, {"c": (np.zeros((3, 3)), np.zeros((3, 3)))})
+        with pytest.raises(UsdFileError, match="has velocities in earlier frames"):
+            cache.write_frame(1, {"c": (np.zeros((3, 3)), None)})
