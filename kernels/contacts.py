@@ -10,6 +10,7 @@ so every contact is an equal and opposite pair with no net torque.
 """
 
 import warp as wp
+
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -91,6 +92,28 @@ def strip_face_direction(
     ib = ab[1] * (seg_per_strand + 1) + k
     d = (vertex_positions[ia + 1] - vertex_positions[ia]) + (vertex_positions[ib + 1] - vertex_positions[ib])
     return wp.normalize(d)
+
+
+@wp.func
+def strip_feature_owned(w: wp.vec3, tri: int, seg_per_strand: int) -> bool:
+    """Whether a vertex-face contact whose closest point has barycentric weights w belongs to triangle ``tri``.
+
+    Closest points on a strand (a strip corner or a strand edge) are segment-segment contacts; an inner edge shared
+    by two triangles of a strip belongs to one of them. Otherwise a vertex near a strand would be pushed once per
+    triangle that touches it, up to eight times over.
+    """
+    if w[0] == 1.0 or w[1] == 1.0 or w[2] == 1.0:
+        return False
+    if tri % 2 == 0:
+        # (a_k, b_k, a_{k+1}): a_k a_{k+1} is strand a; it owns the diagonal and the horizontal edge a_k b_k.
+        return w[1] != 0.0
+    # (b_k, b_{k+1}, a_{k+1}): b_k b_{k+1} is strand b, the diagonal b_k a_{k+1} belongs to the first triangle,
+    # and the horizontal edge a_{k+1} b_{k+1} to the next segment's first triangle, except at the tips.
+    if w[2] == 0.0 or w[1] == 0.0:
+        return False
+    if w[0] == 0.0:
+        return (tri % (2 * seg_per_strand)) // 2 == seg_per_strand - 1
+    return True
 
 
 @wp.func
@@ -206,7 +229,7 @@ def vertex_face_contacts(
     """One thread per guide vertex (roots skipped): every strip triangle of other strands closer than the threshold.
 
     Queries the strip mesh BVH with the vertex's box grown by the threshold [m]; appends (vertex, triangle,
-    barycentric weights of the closest point on the triangle).
+    barycentric weights of the closest point) when that point lies inside the strip (``strip_feature_owned``).
     """
     vertex = wp.tid()
     strand = vertex // (seg_per_strand + 1)
@@ -225,7 +248,7 @@ def vertex_face_contacts(
         c = vertex_positions[strip_indices[3 * tri + 2]]
         w = closest_point_triangle(p, a, b, c)
         q = w[0] * a + w[1] * b + w[2] * c
-        if wp.length(p - q) < contact_threshold:
+        if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):
             push_contact(
                 CONTACT_VERTEX_FACE, vertex, tri, w, contact_capacity,
                 contact_kind, contact_a, contact_b, contact_w, contact_count, contact_overflow, fault,

@@ -11,16 +11,20 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE
-from hairwarp.kernels.types import Fault
 from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import HairContacts, InteractionError, TriangleStrips
+from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE
+from hairwarp.kernels.types import Fault
 
 # Distances within this of the threshold [m] may fall on either side in float32 (coordinates < 0.1 m).
 BOUNDARY_BAND = 1.0e-6
 # Float32 closest points agree with float64 ones to a few ulp of the coordinates [m].
 POINT_TOL = 1.0e-6
+# Barycentric weights of a float64 closest point on an edge or corner are zero (or one) to this round-off.
+FEATURE_TOL = 1.0e-9
+# A closest point this near (in barycentric weight) to another feature may be classed differently in float32.
+FEATURE_BAND = 1.0e-4
 # Closed-form force checks: float32 relative error of a few products.
 FORCE_RTOL = 1.0e-4
 # Momentum sums cancel many float32 terms: residual as a fraction of the sum of magnitudes.
@@ -138,7 +142,10 @@ def test_detection_matches_brute_force(seed):
     vv, tt = vv[~own], tt[~own]
     closest = trimesh.triangles.closest_point(flat[tris[tt]], flat[vv])
     dist = np.linalg.norm(closest - flat[vv], axis=1)
-    clear = np.abs(dist - THRESHOLD) > BOUNDARY_BAND
+    bary = trimesh.triangles.points_to_barycentric(flat[tris[tt]], closest)
+    owned = _strip_owned(bary, tt, FEATURE_TOL)
+    dist = np.where(owned, dist, np.inf)
+    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (owned == _strip_owned(bary, tt, FEATURE_BAND))
     expected = set(zip(vv[(dist < THRESHOLD) & clear].tolist(), tt[(dist < THRESHOLD) & clear].tolist(), strict=True))
     ambiguous = set(zip(vv[~clear].tolist(), tt[~clear].tolist(), strict=True))
     vf = found["kind"] == CONTACT_VERTEX_FACE
@@ -153,6 +160,22 @@ def test_detection_matches_brute_force(seed):
     point = np.einsum("ni,nij->nj", w, flat[tris[t_found]])
     ref = trimesh.triangles.closest_point(flat[tris[t_found]], flat[found["a"][vf]])
     np.testing.assert_allclose(point, ref, atol=POINT_TOL)
+
+
+def _strip_owned(w, tri, tol):
+    """Whether a closest point with barycentric weights w lies inside the strip as triangle ``tri`` sees it.
+
+    Corners and the strand edges (a_k a_{k+1} in the first triangle of a segment pair, b_k b_{k+1} in the second)
+    are the strands themselves; the diagonal belongs to the first triangle, the horizontal edge between two
+    segment pairs to the upper pair's first triangle. Weights within ``tol`` of 0 or 1 count as 0 or 1.
+    """
+    zero = w < tol
+    corner = np.any(w > 1.0 - tol, axis=1)
+    first = tri % 2 == 0
+    tip = (tri % (2 * S)) // 2 == S - 1
+    owned_first = ~zero[:, 1]
+    owned_second = ~zero[:, 2] & ~zero[:, 1] & (~zero[:, 0] | tip)
+    return ~corner & np.where(first, owned_first, owned_second)
 
 
 def _pair(a0, a1, b0, b1):
@@ -231,6 +254,20 @@ def test_vertex_face_closed_form_with_density_scale():
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
                                atol=FORCE_RTOL * expected)
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
+
+
+def test_vertex_beside_a_strand_is_a_segment_contact():
+    """A tip 0.8 mm beside strand 0, outside the strip: the strip's strand edge is left to segment-segment contacts,
+    so the tip is pushed once, not once per strip triangle along that strand."""
+    verts = _strip_scene()
+    tip = np.array([-0.0008, 0.0, -0.018])
+    verts[2] = [tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip]
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16)
+    _apply(contacts, _model(3, 2), _state(verts))
+    found = contacts.contact_list()
+    assert list(found["kind"]) == [CONTACT_SEGMENT_SEGMENT]
+    assert (found["a"][0], found["b"][0]) == (1, 5)  # strand 0's lower segment, strand 2's last segment
 
 
 @pytest.mark.parametrize("seed", [3, 4])
