@@ -528,6 +528,7 @@ class DenseHair:
         guide_velocities: wp.array | None = None,
         head_xform: wp.array | None = None,
         head_velocity: wp.array | None = None,
+        hermite: bool = True,
     ) -> tuple[wp.array, wp.array | None]:
         """Interpolate and densify positions and, when given, velocities (for motion blur).
 
@@ -537,18 +538,24 @@ class DenseHair:
             head_xform: wp.transform (1,) head pose, identity when None.
             head_velocity: wp.spatial_vector (1,) head (angular, linear) velocity (``Control.head_velocity``);
                 its angular part moves the head-frame offsets. Zero when None.
+            hermite: densify with Hermite samples; False returns the interpolated vertices (for
+                Catmull-Rom curves, which a renderer evaluates itself).
 
         Returns:
-            ``(curve_points, curve_velocities)``, each vec3 (D*points_per_curve,), or None for velocities.
+            ``(points, velocities)``, each vec3 (D*points_per_curve,) (or (D*(S+1),) without ``hermite``),
+            or None for velocities.
         """
         self.interpolate(guide_vertices, head_xform)
-        self._densify(self.dense_vertices, self.curve_points)
+        if hermite:
+            self._densify(self.dense_vertices, self.curve_points)
         if guide_velocities is None:
-            return self.curve_points, None
+            return (self.curve_points if hermite else self.dense_vertices), None
         if self.dense_velocities is None:
             raise DenseHairError("velocities requested from a DenseHair built with with_velocities=False")
         self._check(guide_velocities, "guide_velocities")
         self._interpolate(guide_velocities, head_xform, head_velocity, True, self.dense_velocities)
+        if not hermite:
+            return self.dense_vertices, self.dense_velocities
         self._densify(self.dense_velocities, self.curve_velocities)
         return self.curve_points, self.curve_velocities
 

@@ -104,6 +104,31 @@ class Simulation:
         self.solver.forward_kinematics(state, control)
         self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
                                state=state)
+        self.dense = self._build_dense(scene.dense)
+
+    def _build_dense(self, cfg):
+        if not cfg.count and cfg.density is None:
+            return None
+        from hairwarp.dense import DenseHair
+
+        model = self.model
+        return DenseHair.build(
+            model.rest_vertex_positions, model.root_uv, count=cfg.count or None, density=cfg.density,
+            grid_shape=model.grid_shape, root_normal=model.root_normal, seed=int(cfg.seed),
+            length_variation=float(cfg.length_variation), tip_spread=float(cfg.tip_spread),
+            clumping=float(cfg.clumping), samples_per_segment=int(cfg.samples_per_segment),
+            with_velocities=bool(cfg.velocities), device=model.device,
+        )
+
+    def dense_curves(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Host copies of the dense hair's points and velocities for this frame (Hermite samples for
+        ``basis = "linear"``, interpolated vertices for ``"catmullRom"``)."""
+        s, c = self.stepper.state, self.stepper.control
+        hermite = self.scene.dense.basis == "linear"
+        velocities = s.vertex_velocities if self.scene.dense.velocities else None
+        points, vel = self.dense.evaluate(s.vertex_positions, velocities, c.head_xform, c.head_velocity,
+                                          hermite=hermite)
+        return points.numpy(), (vel.numpy() if vel is not None else None)
 
     def _before_step(self, t, control):
         control.set_motion(self.motion.evaluate(t))
@@ -210,9 +235,17 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     report = _Progress(frames, progress)
     overflow_noted = False
 
+    dense = sim.dense
     with CacheWriter(out_path, fps=float(scene.sim.fps), comment=f"scene: {scene.name}") as cache:
+        if dense is not None:
+            hermite = scene.dense.basis == "linear"
+            cache_counts = dense.curve_vertex_counts(hermite)
+            cache.add_curves("hair", cache_counts, widths=tuple(scene.dense.width), kind="dense",
+                             basis=scene.dense.basis)
         if scene.output.guides:
-            cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides")
+            # with dense hair the guides are a guide purpose: renderers skip them, viewports may show them
+            cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides",
+                             purpose="guide" if dense is not None else "default")
         if head is not None:
             cache.add_mesh("head", head[0], head[1])
         for frame in range(frames + 1):
@@ -230,12 +263,18 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             points, velocities = sim.guide_curves()
             head_m = sim.head_matrix(frame * sim.frame_dt)
             curves = {"guides": (points, velocities)} if scene.output.guides else {}
+            if dense is not None:
+                curves["hair"] = sim.dense_curves()
             cache.write_frame(frame, curves, xforms={"head": head_m} if head is not None else None)
             if frame in shown:
                 mesh = None
                 if head is not None:
                     mesh = (head[0] @ head_m[:3, :3].T + head_m[:3, 3], head[1])
-                kept.append((frame, points, mesh))
+                if dense is not None:  # the preview shows what renders: the dense hair
+                    shown_curves = {"hair": (curves["hair"][0].copy(), cache_counts)}
+                else:
+                    shown_curves = {"guides": (points, counts)}
+                kept.append((frame, shown_curves, mesh))
             report.update(frame)
 
     preview_path = None
@@ -244,7 +283,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
 
         preview_path = out_path.with_suffix(".png")
         render_frames(
-            [{"guides": (p, counts)} for _, p, _ in kept],
+            [c for _, c, _ in kept],
             preview_path,
             titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
             meshes=[m for _, _, m in kept] if head is not None else None,

@@ -403,6 +403,28 @@ SCHEMA: dict[str, Section | ArrayOf] = {
         doc="uniform wind, on between start and end (a gust); acts through strands.drag",
         check=_check_wind,
     ),
+    "dense": Section(
+        {
+            "count": Field("int", 0, "dense strands interpolated from the guides (0 = none)", range="[0, inf)"),
+            "density": Field("float", None, "dense strands per m^2 of scalp, instead of count", "1/m^2",
+                             range="(0, inf)"),
+            "samples_per_segment": Field("int", 4, "Hermite samples per guide segment (1 = no smoothing)",
+                                         range="[1, 64]"),
+            "basis": Field("str", "linear", "linear curves over the Hermite samples, or Catmull-Rom curves "
+                                            "over the interpolated vertices (smaller files)",
+                           choices=("linear", "catmullRom")),
+            "length_variation": Field("float", 0.1, "strand lengths vary in [1 - this, 1] of the guides'",
+                                      range="[0, 1)"),
+            "tip_spread": Field("float", 0.005, "random offset of a strand's tip from its interpolated path", "m",
+                                range="[0, inf)"),
+            "clumping": Field("float", 0.2, "pull toward the nearest guide, growing toward the tip", range="[0, 1]"),
+            "width": Field("vec2", (1.0e-4, 2.0e-5), "dense curve width at the root and at the tip", "m",
+                           range="[0, inf)"),
+            "velocities": Field("bool", True, "write velocities for motion blur"),
+            "seed": Field("int", 0, "seed of the root sampling and the per-strand variation", range="[0, inf)"),
+        },
+        doc="dense hair interpolated from the guides and smoothed with Hermite splines (hairwarp.DenseHair)",
+    ),
     "output": Section(
         {
             "guides": Field("bool", True, "write the guide strands to the cache"),

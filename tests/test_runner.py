@@ -69,3 +69,27 @@ def test_graph_capture_replays_the_eager_steps(tiny, substeps):
     graph, parity_g = run_steps(tiny, 4, True, substeps)
     assert parity_e == parity_g == (4 * substeps) % 2
     np.testing.assert_array_equal(eager, graph)
+
+
+@pytest.mark.parametrize("basis", ["linear", "catmullRom"])
+def test_dense_hair_in_the_cache(tiny, tmp_path, basis):
+    # dense curves read back by usd-core: one sample per frame, the counts of their basis, finite points,
+    # and the guides marked as guides so renderers skip them
+    scene = tiny.with_overrides(["dense.count=50", f"dense.basis={basis}", "dense.samples_per_segment=3"])
+    out = tmp_path / "dense.usdc"
+    simulate(scene, out, frames=2, progress=False, preview=False)
+    stage = Usd.Stage.Open(str(out))
+    hair = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/hair"))
+    S = scene.sim.segments
+    counts = np.array(hair.GetCurveVertexCountsAttr().Get())
+    assert len(counts) == 50 and (counts == (3 * S + 1 if basis == "linear" else S + 1)).all()
+    assert hair.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    pts = np.array(hair.GetPointsAttr().Get(2.0))
+    assert pts.shape == (counts.sum(), 3) and np.isfinite(pts).all()
+    if basis == "linear":
+        assert hair.GetTypeAttr().Get() == "linear"
+    else:
+        assert (hair.GetTypeAttr().Get(), hair.GetBasisAttr().Get(), hair.GetWrapAttr().Get()) == \
+            ("cubic", "catmullRom", "pinned")
+    guides = UsdGeom.Imageable(stage.GetPrimAtPath("/World/Hair/guides"))
+    assert guides.GetPurposeAttr().Get() == UsdGeom.Tokens.guide
