@@ -99,6 +99,49 @@ def shortest_arc_rotations(rest_vertices) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np.ndarray:
+    """Unordered pairs (a < b) such that b is among a's ``neighbours`` nearest segments of other strands within
+    ``radius``, or a among b's (exact segment-segment distances).
+
+    The ``4n + 8`` nearest midpoints give each segment an upper bound of its n-th nearest distance; a second search
+    to that bound plus the half-lengths then holds every segment that can be nearer, so the choice is exact while
+    the candidate count stays near the local density rather than growing with the cube of the segment length.
+    """
+    from scipy.spatial import cKDTree
+
+    count = len(p0)
+    mid = 0.5 * (p0 + p1)
+    half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
+    tree = cKDTree(mid)
+    k = min(count, 4 * neighbours + 8)
+    idx = tree.query(mid, k=k)[1].reshape(count, k)
+    i = np.repeat(np.arange(count), k)
+    j = idx.ravel()
+    other = strand[i] != strand[j]
+    near = np.full(count * k, np.inf)
+    near[other] = closest_points_segments(p0[i[other]], p1[i[other]], p0[j[other]], p1[j[other]])[2]
+    near = np.sort(near.reshape(count, k), axis=1)
+    bound = np.minimum(near[:, neighbours - 1] if k >= neighbours else np.inf, radius)
+
+    reach = bound + half + half.max()
+    found = tree.query_ball_point(mid, reach, return_sorted=False)
+    sizes = np.fromiter((len(x) for x in found), dtype=np.int64, count=count)
+    i = np.repeat(np.arange(count), sizes)
+    j = np.fromiter((x for row in found for x in row), dtype=np.int64, count=int(sizes.sum()))
+    keep = strand[i] != strand[j]
+    i, j = i[keep], j[keep]
+    dist = closest_points_segments(p0[i], p1[i], p0[j], p1[j])[2]
+    keep = dist <= radius
+    i, j, dist = i[keep], j[keep], dist[keep]
+
+    # i's candidates sorted by distance: keep the first n of each i.
+    order = np.lexsort((dist, i))
+    i, j = i[order], j[order]
+    rank = np.arange(len(i)) - np.searchsorted(i, i, side="left")
+    chosen = np.sort(np.stack([i[rank < neighbours], j[rank < neighbours]], axis=1), axis=1)
+    return np.unique(chosen, axis=0) if len(chosen) else np.zeros((0, 2), np.int64)
+
+
 class StaticLinks:
     """Breakable zero-rest-length springs between each segment and its nearest segments on other strands.
 
@@ -129,9 +172,9 @@ class StaticLinks:
     ) -> StaticLinks:
         """Link every segment to its ``neighbours`` nearest segments of other strands within ``radius``.
 
-        Candidates come from a k-d tree of segment midpoints (searched to ``radius`` plus the longest segment),
-        then exact segment-segment distances pick the nearest; a pair chosen from both sides is one link. The
-        link attaches at the two closest points, with the rest offset that makes it exactly slack at rest.
+        Candidates come from a k-d tree of segment midpoints, then exact segment-segment distances pick the
+        nearest; a pair chosen from both sides is one link. The link attaches at the two closest points, with the
+        rest offset that makes it exactly slack at rest.
 
         Args:
             rest_vertices: (G, S+1, 3) world vertex positions of the pose the links hold [m].
@@ -144,8 +187,6 @@ class StaticLinks:
             break_length: a link breaks for good when |l| exceeds this [m].
             device: Warp device.
         """
-        from scipy.spatial import cKDTree
-
         verts = _check_vertices(rest_vertices)
         G, S = verts.shape[0], verts.shape[1] - 1
         for name, value in (("radius", radius), ("break_length", break_length)):
@@ -165,24 +206,9 @@ class StaticLinks:
 
         p0 = verts[:, :-1].reshape(-1, 3)
         p1 = verts[:, 1:].reshape(-1, 3)
-        strand = np.repeat(np.arange(G), S)
-        reach = radius + float(np.linalg.norm(p1 - p0, axis=1).max())
-        pairs = cKDTree(0.5 * (p0 + p1)).query_pairs(reach, output_type="ndarray")
-        pairs = pairs[strand[pairs[:, 0]] != strand[pairs[:, 1]]] if len(pairs) else np.zeros((0, 2), np.int64)
-        i, j = pairs[:, 0], pairs[:, 1]
-        s, t, dist = closest_points_segments(p0[i], p1[i], p0[j], p1[j])
-        near = dist <= radius
-        i, j, s, t, dist = i[near], j[near], s[near], t[near], dist[near]
-
-        # Each segment keeps its n nearest partners; a pair kept from either side becomes one link.
-        seg = np.concatenate([i, j])
-        order = np.lexsort((np.concatenate([dist, dist]), seg))
-        seg_sorted = seg[order]
-        first = np.searchsorted(seg_sorted, seg_sorted, side="left")
-        rank = np.arange(len(order)) - first
-        keep = np.zeros(len(i), dtype=bool)
-        keep[order[rank < neighbours] % max(len(i), 1)] = True
-        a, b, fa, fb = i[keep], j[keep], s[keep], t[keep]
+        pairs = _nearest_segment_pairs(p0, p1, np.repeat(np.arange(G), S), int(neighbours), float(radius))
+        a, b = pairs[:, 0], pairs[:, 1]
+        fa, fb, _ = closest_points_segments(p0[a], p1[a], p0[b], p1[b])
 
         xa = p0[a] + fa[:, None] * (p1[a] - p0[a])
         xb = p0[b] + fb[:, None] * (p1[b] - p0[b])
