@@ -124,21 +124,25 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
     bound = np.minimum(near[:, neighbours - 1] if k >= neighbours else np.inf, radius)
 
     reach = bound + half + half.max()
-    found = tree.query_ball_point(mid, reach, return_sorted=False)
-    sizes = np.fromiter((len(x) for x in found), dtype=np.int64, count=count)
-    i = np.repeat(np.arange(count), sizes)
-    j = np.fromiter((x for row in found for x in row), dtype=np.int64, count=int(sizes.sum()))
-    keep = strand[i] != strand[j]
-    i, j = i[keep], j[keep]
-    dist = closest_points_segments(p0[i], p1[i], p0[j], p1[j])[2]
-    keep = dist <= radius
-    i, j, dist = i[keep], j[keep], dist[keep]
-
-    # i's candidates sorted by distance: keep the first n of each i.
-    order = np.lexsort((dist, i))
-    i, j = i[order], j[order]
-    rank = np.arange(len(i)) - np.searchsorted(i, i, side="left")
-    chosen = np.sort(np.stack([i[rank < neighbours], j[rank < neighbours]], axis=1), axis=1)
+    chosen = []
+    # In chunks of segments, so the candidate arrays stay small (a dense groom has ~100 candidates per segment).
+    for start in range(0, count, 4096):
+        rows = np.arange(start, min(start + 4096, count))
+        found = tree.query_ball_point(mid[rows], reach[rows], return_sorted=False)
+        sizes = np.fromiter((len(x) for x in found), dtype=np.int64, count=len(rows))
+        i = np.repeat(rows, sizes)
+        j = np.fromiter((x for row in found for x in row), dtype=np.int64, count=int(sizes.sum()))
+        keep = strand[i] != strand[j]
+        i, j = i[keep], j[keep]
+        dist = closest_points_segments(p0[i], p1[i], p0[j], p1[j])[2]
+        keep = dist <= np.minimum(bound[i], radius)
+        i, j, dist = i[keep], j[keep], dist[keep]
+        # i's candidates sorted by distance: keep the first n of each i.
+        order = np.lexsort((dist, i))
+        i, j = i[order], j[order]
+        rank = np.arange(len(i)) - np.searchsorted(i, i, side="left")
+        chosen.append(np.stack([i[rank < neighbours], j[rank < neighbours]], axis=1))
+    chosen = np.sort(np.concatenate(chosen), axis=1)
     return np.unique(chosen, axis=0) if len(chosen) else np.zeros((0, 2), np.int64)
 
 
