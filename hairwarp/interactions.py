@@ -486,6 +486,9 @@ class HairContacts:
         contacts.friction = float(friction)
         contacts.slip_velocity = float(slip_velocity)
         contacts.capacity = int(capacity)
+        # Threads of the force pass, each striding over the stored contacts: enough to fill a GPU, few enough
+        # that a large, mostly empty buffer costs nothing on a CPU.
+        contacts.force_threads = min(contacts.capacity, 1 << 16 if dev.is_cuda else 256)
 
         p0 = verts[:, :-1].reshape(-1, 3)
         p1 = verts[:, 1:].reshape(-1, 3)
@@ -557,11 +560,11 @@ class HairContacts:
         self.detect(model, state)
         wp.launch(
             contact_kernels.contact_forces,
-            dim=self.capacity,
+            dim=self.force_threads,
             inputs=[
                 model.seg_per_strand, model.seg_mass, self._indices, self._tri_strands, self._tri_scale,
                 self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.capacity,
-                state.vertex_positions, state.vertex_velocities, dt,
+                self.force_threads, state.vertex_positions, state.vertex_velocities, dt,
                 self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_counter,
             ],
             outputs=[seg_force, seg_torque, seg_implicit_mass],

@@ -274,9 +274,9 @@ def add_wrench(
     wp.atomic_add(seg_implicit_mass, seg, extra_mass)
 
 
-@wp.kernel
-def contact_forces(
-    # Model:
+@wp.func
+def contact_force(
+    slot: int,
     seg_per_strand: int,
     seg_mass: wp.array(dtype=float),
     strip_indices: wp.array(dtype=wp.int32),
@@ -287,35 +287,22 @@ def contact_forces(
     contact_damping: float,
     contact_friction: float,
     contact_slip_velocity: float,
-    contact_capacity: int,
-    # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
-    dt: wp.array(dtype=float),
+    h: float,
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
-    contact_count: wp.array(dtype=wp.int32),
-    # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_implicit_mass: wp.array(dtype=float),
 ):
-    """One thread per contact slot: repulsion, normal damping and regularised Coulomb friction of one contact.
-
-    Adds +F to side a and -F to side b (shared by barycentric weight among a face's vertices) at the midpoint of the
-    closest points (``seg_force`` [N], ``seg_torque`` [N m] about segment origins, world), and ``h^2 k + h c`` [kg] to
-    ``seg_implicit_mass``. Friction is capped so one explicit step cannot reverse the tangential velocity.
-    """
-    slot = wp.tid()
-    if slot >= wp.min(contact_count[0], contact_capacity):
-        return
+    """Forces of the contact in one buffer slot (see ``contact_forces``)."""
     kind = contact_kind[slot]
     ia = contact_a[slot]
     ib = contact_b[slot]
     w = contact_w[slot]
-    h = dt[0]
 
     k = contact_stiffness
     xa = wp.vec3()
@@ -410,3 +397,53 @@ def contact_forces(
     else:
         add_wrench(ia, seg_per_strand, point, f, extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
         add_wrench(ib, seg_per_strand, point, -f, extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+
+
+@wp.kernel
+def contact_forces(
+    # Model:
+    seg_per_strand: int,
+    seg_mass: wp.array(dtype=float),
+    strip_indices: wp.array(dtype=wp.int32),
+    tri_strands: wp.array(dtype=wp.vec2i),
+    tri_stiffness_scale: wp.array(dtype=float),
+    contact_threshold: float,
+    contact_stiffness: float,
+    contact_damping: float,
+    contact_friction: float,
+    contact_slip_velocity: float,
+    contact_capacity: int,
+    thread_count: int,
+    # State in:
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    dt: wp.array(dtype=float),
+    contact_kind: wp.array(dtype=wp.int32),
+    contact_a: wp.array(dtype=wp.int32),
+    contact_b: wp.array(dtype=wp.int32),
+    contact_w: wp.array(dtype=wp.vec3),
+    contact_count: wp.array(dtype=wp.int32),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_implicit_mass: wp.array(dtype=float),
+):
+    """Each of ``thread_count`` threads takes every thread_count-th stored contact: repulsion, normal damping and
+    regularised Coulomb friction.
+
+    Adds +F to side a and -F to side b (shared by barycentric weight among a face's vertices) at the midpoint of the
+    closest points (``seg_force`` [N], ``seg_torque`` [N m] about segment origins, world), and ``h^2 k + h c`` [kg] to
+    ``seg_implicit_mass``. Friction is capped so one explicit step cannot reverse the tangential velocity.
+    """
+    # A fixed thread count strides over however many contacts this step found (the count is only on the device).
+    slot = wp.tid()
+    count = wp.min(contact_count[0], contact_capacity)
+    h = dt[0]
+    while slot < count:
+        contact_force(
+            slot, seg_per_strand, seg_mass, strip_indices, tri_strands, tri_stiffness_scale, contact_threshold,
+            contact_stiffness, contact_damping, contact_friction, contact_slip_velocity, vertex_positions,
+            vertex_velocities, h, contact_kind, contact_a, contact_b, contact_w, seg_force, seg_torque,
+            seg_implicit_mass,
+        )
+        slot += thread_count
