@@ -1,0 +1,169 @@
+"""``hairwarp bench``: speed, accuracy, stability and scaling of the strand solver, with the peers.
+
+Usage::
+
+    hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
+    python -m hairwarp.bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
+
+SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling`` or ``all`` (the default). A run
+writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
+``benchmarks.md`` into the output folder: ``docs/`` of the source checkout for a full run,
+``out/bench-quick/`` for ``--quick`` (a smoke run never overwrites the committed report).
+Running one suite keeps the other suites' figures already in the folder's JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from hairwarp.benchmarks import SUITES
+
+JSON_NAME = "benchmarks.json"
+REPORT_NAME = "benchmarks.md"
+SCHEMA = 1
+
+
+def _log_to_stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def default_out(quick: bool) -> Path:
+    """``<checkout>/docs`` for a full run from a source checkout, else ``out/bench``; quick: ``out/bench-quick``."""
+    if quick:
+        return Path("out") / "bench-quick"
+    root = Path(__file__).resolve().parents[1]
+    if (root / "pyproject.toml").is_file() and (root / "docs").is_dir():
+        return root / "docs"
+    return Path("out") / "bench"
+
+
+def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
+    """Run ``suites`` with ``config`` (a :class:`hairwarp.benchmarks.common.BenchConfig`); write the JSON,
+    the charts and the report into ``out``; return the results (what the JSON holds)."""
+    import warp as wp
+
+    from hairwarp.benchmarks import common, report
+
+    wp.config.quiet = True
+    wp.init()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / JSON_NAME
+    results = {"schema": SCHEMA, "suites": {}}
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+            if old.get("schema") == SCHEMA:
+                results["suites"] = old.get("suites", {})
+        except (OSError, ValueError):
+            pass
+    machine = common.machine_info()
+    results["machine"] = machine
+    t_all = time.perf_counter()
+    for name in suites:
+        log(f"== suite {name} ==")
+        t0 = time.perf_counter()
+        data = _suite(name, config, out, log)
+        data["wall_s"] = round(time.perf_counter() - t0, 1)
+        data["quick"] = config.quick
+        data["machine"] = {**machine, "load_average_end": common.load_average()}
+        results["suites"][name] = data
+        log(f"== suite {name}: {data['wall_s']} s ==")
+        path.write_text(json.dumps(results, indent=1, default=_jsonable))
+    results["wall_s"] = round(time.perf_counter() - t_all, 1)
+    results["machine"]["load_average_end"] = common.load_average()
+    path.write_text(json.dumps(results, indent=1, default=_jsonable))
+    report.write_report(results, out)
+    return results
+
+
+def _suite(name, config, out, log) -> dict:
+    if name == "dynamics":
+        from hairwarp.benchmarks.dynamics import suite_dynamics
+
+        return suite_dynamics(config, log)
+    if name == "accuracy":
+        from hairwarp.benchmarks.accuracy import suite_accuracy
+
+        return suite_accuracy(config, out, log)
+    if name == "stability":
+        from hairwarp.benchmarks.stability import suite_stability
+
+        return suite_stability(config, log)
+    if name == "scaling":
+        from hairwarp.benchmarks.scaling import suite_scaling
+
+        return suite_scaling(config, log)
+    raise ValueError(f"unknown benchmark suite {name!r}; choose one of {', '.join(SUITES)} or all")
+
+
+def _jsonable(value):
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m hairwarp.bench", description="Benchmarks of the strand solver.")
+    parser.add_argument("suite", nargs="?", default="all", metavar="SUITE",
+                        help=f"one of {', '.join(SUITES)}, or all (default)")
+    parser.add_argument("--quick", action="store_true", help="small sizes, about a minute (smoke run)")
+    parser.add_argument("--device", default=None, metavar="D", help="Warp device; cuda adds a CUDA column")
+    parser.add_argument("--out", default=None, metavar="DIR", help="output folder (default: docs/ of the checkout)")
+    parser.add_argument("--format", choices=("human", "json"), default="human", help="what to print at the end")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    return parser
+
+
+def _child(request_json: str) -> int:
+    import warp as wp
+
+    from hairwarp.benchmarks.common import RESULT_TAG, child_result
+    from hairwarp.benchmarks.peers import run_request
+
+    wp.config.quiet = True
+    result = child_result(run_request, json.loads(request_json))
+    print(RESULT_TAG + json.dumps(result, default=_jsonable), flush=True)
+    return 0
+
+
+def main(args=None) -> int:
+    """Entry of ``hairwarp bench`` (``args``: a Namespace with suite, quick, device, out, format) and of
+    ``python -m hairwarp.bench`` (``args``: None or a list of strings)."""
+    if args is None or isinstance(args, (list, tuple)):
+        args = build_parser().parse_args(args)
+    if getattr(args, "child", None):
+        return _child(args.child)
+    from hairwarp.benchmarks.common import BenchConfig
+
+    suite = (getattr(args, "suite", None) or "all").lower()
+    if suite != "all" and suite not in SUITES:
+        raise ValueError(f"unknown benchmark suite {suite!r}; choose one of {', '.join(SUITES)} or all")
+    suites = list(SUITES) if suite == "all" else [suite]
+    device = getattr(args, "device", None) or "cpu"
+    quick = bool(getattr(args, "quick", False))
+    config = BenchConfig.quick_preset(device) if quick else BenchConfig.full(device)
+    out = Path(args.out) if getattr(args, "out", None) else default_out(quick)
+    results = run_suites(suites, config, out, _log_to_stderr)
+    if getattr(args, "format", "human") == "json":
+        print(json.dumps(results, indent=1, default=_jsonable))
+    else:
+        from hairwarp.benchmarks.report import summary_lines
+
+        print("\n".join(summary_lines(results, suites)))
+        print(f"\nwrote {out / JSON_NAME}, {out / REPORT_NAME} and the charts ({results['wall_s']} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

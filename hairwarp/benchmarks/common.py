@@ -1,0 +1,338 @@
+"""Shared pieces of the benchmark suites: the canonical scene, the timing protocol, child processes,
+the machine description and the settings of a run."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# The canonical benchmark scene of the peers' study: 0.3 m strands of solid cylinders, roots on a
+# 1 cm grid at z = 1, first joint turned 80 degrees about +y, gravity, joint damping 1e-10 N m s/rad.
+STRAND_LENGTH = 0.3
+RADIUS = 2.0e-3
+DENSITY = 1300.0
+GRAVITY = 9.81
+TILT_DEG = 80.0
+ROOT_SPACING = 0.01
+ROOT_Z = 1.0
+JOINT_DAMPING = 1.0e-10
+BENCH_DT = 1.0e-3
+
+RESULT_TAG = "@@RESULT@@"
+
+
+def tilt_direction(tilt_deg: float = TILT_DEG) -> np.ndarray:
+    """Unit vector root -> tip of a straight strand whose root joint is turned ``tilt_deg`` about +y."""
+    a = math.radians(tilt_deg)
+    return np.array([-math.sin(a), 0.0, -math.cos(a)])
+
+
+def root_grid(strands: int, spacing: float = ROOT_SPACING, z: float = ROOT_Z) -> np.ndarray:
+    """Roots (G, 3) on a square grid, row by row, as the peers place them."""
+    side = max(1, int(math.ceil(math.sqrt(strands))))
+    i = np.arange(strands)
+    return np.stack([(i % side) * spacing, (i // side) * spacing, np.full(strands, z)], axis=1)
+
+
+def straight_strands(roots: np.ndarray, segments: int, direction, length: float = STRAND_LENGTH) -> np.ndarray:
+    """Vertices (G, S+1, 3) of straight strands from ``roots`` along ``direction``."""
+    k = np.arange(segments + 1)[:, None] * (length / segments)
+    return np.asarray(roots, float)[:, None, :] + k[None] * np.asarray(direction, float)[None, None, :]
+
+
+def canonical_vertices(strands: int, segments: int) -> np.ndarray:
+    """The canonical scene's initial vertices (G, S+1, 3)."""
+    return straight_strands(root_grid(strands), segments, tilt_direction())
+
+
+def segment_mass(segments: int, length: float = STRAND_LENGTH) -> float:
+    seg = length / segments
+    return DENSITY * math.pi * RADIUS**2 * seg
+
+
+def segment_inertia(segments: int, length: float = STRAND_LENGTH) -> np.ndarray:
+    """Principal moments about the centre of mass (x, y, z) of one solid-cylinder segment, axis z."""
+    m, r, L = segment_mass(segments, length), RADIUS, length / segments
+    perp = m * (3.0 * r * r + L * L) / 12.0
+    return np.array([perp, perp, 0.5 * m * r * r])
+
+
+# ---------------------------------------------------------------------------------------------
+# timing
+
+
+def time_blocks(step, sync=lambda: None, *, steps: int = 100, blocks: int = 3, warmup: int = 3,
+                budget_s: float = 10.0) -> dict:
+    """The peers' timing protocol: one first step, ``warmup`` untimed steps, then ``blocks`` timed blocks.
+
+    ``step(k)`` advances by k steps. A block has ``steps`` steps unless ``blocks * steps`` times the
+    warm-up estimate exceeds ``budget_s``; then the block is halved (``downsized``) until it fits.
+
+    Returns:
+        ``{"first_step_s", "step_s" (median over blocks of block time / steps), "step_s_min",
+        "timed_steps", "blocks", "block_steps", "downsized"}``.
+    """
+    t0 = time.perf_counter()
+    step(1)
+    sync()
+    first = time.perf_counter() - t0
+    n = max(1, warmup)
+    t0 = time.perf_counter()
+    step(n)
+    sync()
+    estimate = (time.perf_counter() - t0) / n
+    k, downsized = max(1, steps), False
+    while k * blocks * estimate > budget_s and k > 1:
+        k = max(1, k // 2)
+        downsized = True
+    per = []
+    for _ in range(blocks):
+        t0 = time.perf_counter()
+        step(k)
+        sync()
+        per.append((time.perf_counter() - t0) / k)
+    return {
+        "first_step_s": first,
+        "step_s": statistics.median(per),
+        "step_s_min": min(per),
+        "timed_steps": k * blocks,
+        "blocks": blocks,
+        "block_steps": k,
+        "downsized": downsized,
+    }
+
+
+def fit_exponent(x, y) -> float | None:
+    """Least-squares slope of log y against log x (the exponent p of y ~ x^p); None with < 2 points."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = (x > 0) & (y > 0) & np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 2 or np.unique(x[ok]).size < 2:
+        return None
+    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# child processes
+
+
+def run_child(request: dict, timeout_s: float) -> dict:
+    """Run one peer measurement in a fresh interpreter; never raises.
+
+    The child is ``python -m hairwarp.bench --child JSON``; it prints one line ``@@RESULT@@{...}``.
+    A timeout, a crash or a missing result gives ``{"status": "timeout" | "error", "message": ...}``.
+    """
+    cmd = [sys.executable, "-m", "hairwarp.bench", "--child", json.dumps(request)]
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    # run in a scratch folder (MuJoCo writes MUJOCO_LOG.TXT into the working directory) with the
+    # package importable from there
+    package_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+    t0 = time.perf_counter()
+    try:
+        with tempfile.TemporaryDirectory(prefix="hairwarp-bench-") as scratch:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=env, cwd=scratch)
+    except subprocess.TimeoutExpired:
+        return {"status": "timeout", "message": f"no result within {timeout_s:.0f} s",
+                "wall_s": round(time.perf_counter() - t0, 2)}
+    for line in proc.stdout.splitlines():
+        if line.startswith(RESULT_TAG):
+            result = json.loads(line[len(RESULT_TAG):])
+            result.setdefault("wall_s", round(time.perf_counter() - t0, 2))
+            return result
+    tail = (proc.stderr or proc.stdout)[-800:]
+    signal = f" (signal {-proc.returncode})" if proc.returncode < 0 else ""
+    return {"status": "error", "message": f"child exited with code {proc.returncode}{signal} and no result",
+            "stderr_tail": tail, "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def child_result(fn, request: dict) -> dict:
+    """Call ``fn(request)`` in a child and wrap the outcome: ok, absent (a package is missing) or error."""
+    t0 = time.perf_counter()
+    try:
+        out = {"status": "ok", **fn(request)}
+    except ModuleNotFoundError as exc:
+        out = {"status": "absent", "message": f"package {exc.name!r} is not installed"}
+    except Exception as exc:  # noqa: BLE001 - one failing peer must not stop the run
+        out = {"status": "error", "message": f"{type(exc).__name__}: {exc}"[:600]}
+    out["wall_s"] = round(time.perf_counter() - t0, 2)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the machine
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _version(dist: str) -> str | None:
+    import importlib.metadata as md
+
+    try:
+        return md.version(dist)
+    except md.PackageNotFoundError:
+        return None
+
+
+def _git_commit() -> str | None:
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    try:
+        out = subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def load_average() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def machine_info() -> dict:
+    """CPU, cores, Python and package versions, date, load average: what a figure depends on."""
+    import warp as wp
+
+    from hairwarp import __version__
+
+    return {
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "hairwarp": __version__,
+        "git_commit": _git_commit(),
+        "versions": {
+            "warp": wp.config.version,
+            "numpy": np.__version__,
+            "pin": _version("pin"),
+            "mujoco": _version("mujoco"),
+            "newton": _version("newton"),
+            "matplotlib": _version("matplotlib"),
+            "scipy": _version("scipy"),
+        },
+        "load_average_start": load_average(),
+        "cuda_devices": [str(d) for d in wp.get_cuda_devices()] if wp.is_cuda_available() else [],
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# settings of a run
+
+
+@dataclass
+class BenchConfig:
+    """Sizes and time boxes of every suite; ``full()`` and ``quick()`` are the two presets."""
+
+    quick: bool = False
+    device: str = "cpu"
+    # dynamics
+    dyn_configs: list = field(default_factory=lambda: [(100, 20), (1000, 20), (100, 50)])
+    dyn_integrators: tuple = ("semi_implicit", "implicit_joints")
+    dyn_peers: tuple = ("pinocchio", "mujoco_euler", "mujoco_rollout_euler_t0", "newton_featherstone_tile",
+                        "newton_vbd")
+    block_steps: int = 100
+    blocks: int = 3
+    warmup: int = 3
+    ours_budget_s: float = 4.0
+    peer_budget_s: float = 8.0
+    peer_timeout_s: float = 240.0
+    graph_block: int = 10
+    # accuracy
+    acc_ref_dt: float = 1.0e-5
+    acc_duration: float = 1.0
+    acc_dts: tuple = (1e-3, 5e-4, 2e-4, 1e-4, 5e-5, 2e-5, 1e-5)
+    acc_integrators: tuple = ("semi_implicit", "implicit_joints", "rk4")
+    acc_peer_dts: dict = field(default_factory=lambda: {
+        "pinocchio_euler": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5, 2e-5),
+        "mujoco_euler": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5, 2e-5),
+        "mujoco_implicitfast": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),
+        "mujoco_rk4": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),
+        "newton_featherstone_tile": (1e-3, 5e-4, 2.5e-4),
+        "newton_vbd": (1e-3, 5e-4, 2.5e-4),
+    })
+    acc_cost_strands: int = 100
+    conv_segments: tuple = (5, 10, 20, 40, 80)
+    conv_bend_stiffness: float = 1.0e-3
+    # stability
+    stab_stiffness: tuple = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
+    stab_integrators: tuple = ("semi_implicit", "implicit_joints", "rk4")
+    stab_mujoco: tuple = ("Euler", "implicitfast")
+    stab_mujoco_stiffness: tuple = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
+    stab_duration: float = 2.0
+    stab_grid_bits: int = 6
+    stab_segments: tuple = (5, 10, 20, 40, 80)
+    stab_segment_stiffness: tuple = (1e-5, 1e-3, 1e-1)
+    stab_mass_ratios: tuple = (1.0, 0.3, 0.1, 0.03, 0.01)
+    stab_mass_stiffness: float = 1e-3
+    stab_side_duration: float = 1.0
+    stab_joint_damping: float = 1.0e-10
+    stab_hair_damping: float = 2.0e-7
+    stab_hair_integrators: tuple = ("semi_implicit", "implicit_joints")
+    # scaling
+    scale_strands: tuple = (32, 128, 512, 2228)
+    scale_segments: tuple = (8, 16, 31)
+    scale_budget_s: float = 1.0
+    dense_counts: tuple = (10_000, 100_000)
+
+    @classmethod
+    def full(cls, device: str = "cpu") -> BenchConfig:
+        return cls(device=device)
+
+    @classmethod
+    def quick_preset(cls, device: str = "cpu") -> BenchConfig:
+        """About a minute on a 2-core machine: small sizes, Newton skipped, short time boxes."""
+        return cls(
+            quick=True,
+            device=device,
+            dyn_configs=[(20, 10), (20, 20)],
+            dyn_peers=("pinocchio", "mujoco_euler", "mujoco_rollout_euler_t0"),
+            block_steps=20,
+            ours_budget_s=0.5,
+            peer_budget_s=1.0,
+            peer_timeout_s=60.0,
+            acc_ref_dt=1e-4,
+            acc_duration=0.5,
+            acc_dts=(1e-3, 1e-4),
+            acc_peer_dts={"pinocchio_euler": (1e-3, 1e-4), "mujoco_euler": (1e-3,), "mujoco_rk4": (1e-3,)},
+            acc_cost_strands=20,
+            conv_segments=(5, 10, 20),
+            stab_stiffness=(1e-5, 1e-3, 1e-1),
+            stab_integrators=("semi_implicit", "implicit_joints"),
+            stab_mujoco=("implicitfast",),
+            stab_mujoco_stiffness=(1e-5, 1e-1),
+            stab_duration=0.5,
+            stab_grid_bits=3,
+            stab_segments=(5, 20),
+            stab_segment_stiffness=(1e-3,),
+            stab_mass_ratios=(1.0, 0.1),
+            stab_side_duration=0.25,
+            stab_hair_integrators=("semi_implicit",),
+            scale_strands=(16, 64),
+            scale_segments=(8, 16),
+            scale_budget_s=0.2,
+            dense_counts=(1000,),
+        )

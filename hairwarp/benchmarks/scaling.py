@@ -1,0 +1,105 @@
+"""Suite ``scaling``: cost of the dynamics step over a grid of strand and segment counts, fitted
+exponents, and the other stages through the hooks their modules expose."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import time
+
+import numpy as np
+
+from hairwarp.benchmarks.common import BENCH_DT, fit_exponent
+from hairwarp.benchmarks.dynamics import cuda_device
+from hairwarp.benchmarks.ours import canonical_model, time_solver
+
+INTEGRATOR = "implicit_joints"
+
+# Other stages: (stage, module, function). A module exposes ``bench_<stage>(..., device=...)`` returning
+# a JSON-able dict; it is called when importable, else the stage is reported "not available".
+STAGE_HOOKS = (
+    ("dense interpolation + Hermite", "hairwarp.dense", "bench_dense"),
+    ("static links", "hairwarp.interactions", "bench_links"),
+    ("hair-hair contacts", "hairwarp.interactions", "bench_contacts"),
+    ("body collision", "hairwarp.colliders", "bench_collision"),
+    ("USD write", "hairwarp.usd", "bench_usd_write"),
+)
+
+
+def grid_point(G: int, S: int, device, cfg) -> dict:
+    model = canonical_model(G, S, device)
+    rows = {}
+    for graph in (False, True):
+        rows["graph" if graph else "launch"] = time_solver(
+            model, INTEGRATOR, BENCH_DT, graph=graph, steps=cfg.block_steps, blocks=cfg.blocks, warmup=cfg.warmup,
+            budget_s=cfg.scale_budget_s, graph_block=cfg.graph_block)
+    best = min(("launch", "graph"), key=lambda k: rows[k]["step_s"])
+    return {"G": G, "S": S, "step_s": rows[best]["step_s"], "mode": best,
+            "launch_step_s": rows["launch"]["step_s"], "graph_step_s": rows["graph"]["step_s"],
+            "seg_steps_per_s": G * S / rows[best]["step_s"]}
+
+
+def exponents(points: list[dict], key: str = "step_s") -> dict:
+    """Exponent of cost vs G at each S and vs S at each G (least squares in log-log)."""
+    Gs = sorted({p["G"] for p in points})
+    Ss = sorted({p["S"] for p in points})
+    vs_g = {S: fit_exponent([p["G"] for p in points if p["S"] == S], [p[key] for p in points if p["S"] == S])
+            for S in Ss}
+    vs_s = {G: fit_exponent([p["S"] for p in points if p["G"] == G], [p[key] for p in points if p["G"] == G])
+            for G in Gs}
+    big = [p for p in points if p["G"] >= max(Gs) / 4]
+    return {"vs_strands": {str(k): v for k, v in vs_g.items()}, "vs_segments": {str(k): v for k, v in vs_s.items()},
+            "vs_strands_largest_S": vs_g[Ss[-1]], "vs_segments_largest_G": vs_s[Gs[-1]],
+            "vs_segments_large_G": fit_exponent([p["S"] for p in big], [p[key] for p in big])}
+
+
+def call_hook(module: str, function: str, cfg, device) -> dict:
+    try:
+        fn = getattr(importlib.import_module(module), function)
+    except (ImportError, AttributeError):
+        return {"status": "not available", "message": f"{module}.{function} does not exist yet"}
+    kwargs = {"device": device}
+    params = inspect.signature(fn).parameters
+    if "counts" in params:
+        kwargs["counts"] = cfg.dense_counts
+    if "quick" in params:
+        kwargs["quick"] = cfg.quick
+    t0 = time.perf_counter()
+    try:
+        out = fn(**kwargs)
+    except Exception as exc:  # noqa: BLE001 - another stage's failure is reported, not fatal
+        return {"status": "error", "message": f"{type(exc).__name__}: {exc}"[:400]}
+    return {"status": "ok", "result": out, "wall_s": time.perf_counter() - t0}
+
+
+def suite_scaling(cfg, log=lambda msg: None) -> dict:
+    devices = ["cpu"]
+    cuda, cuda_reason = cuda_device(cfg.device)
+    if cuda is not None:
+        devices.append(str(cuda))
+    per_device = {}
+    for device in devices:
+        points = []
+        for S in cfg.scale_segments:
+            for G in cfg.scale_strands:
+                p = grid_point(G, S, device, cfg)
+                points.append(p)
+                log(f"scaling {device} {G} x {S}: {p['step_s'] * 1e3:.3g} ms/step ({p['mode']}), "
+                    f"{p['seg_steps_per_s']:.3g} seg-steps/s")
+        fit = exponents(points)
+        fit_launch = exponents(points, "launch_step_s")
+        per_device[device] = {"points": points, "exponents": fit, "exponents_launch": fit_launch}
+    cpu = per_device["cpu"]["exponents"]
+    worst = max(v for v in [*cpu["vs_strands"].values(), *cpu["vs_segments"].values()] if v is not None)
+    stages = []
+    for stage, module, function in STAGE_HOOKS:
+        log(f"scaling: stage {stage} ...")
+        r = call_hook(module, function, cfg, "cpu")
+        stages.append({"stage": stage, "hook": f"{module}.{function}", **r})
+        log(f"  {r['status']}")
+    return {"integrator": INTEGRATOR, "dt": BENCH_DT, "devices": per_device, "max_exponent": worst,
+            "exponent_goal": 1.1, "meets": bool(worst <= 1.1),
+            "largest": {"G": max(cfg.scale_strands), "S": max(cfg.scale_segments)},
+            "stages": stages, "cuda": {"device": str(cuda) if cuda is not None else None, "reason": cuda_reason},
+            "note": "cost = seconds per step (the faster of plain launches and a captured graph); "
+                    f"{np.prod([len(cfg.scale_strands), len(cfg.scale_segments)])} grid points"}

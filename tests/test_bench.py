@@ -1,0 +1,203 @@
+"""Smoke test of ``hairwarp bench`` on tiny sizes: the JSON has its fields, ratios and goals follow from
+the measured figures, the report and charts are written; plus the pieces the suites rely on (the grid
+bisection against brute force, the exponent fit against a closed form, the stability test's energy
+against Pinocchio). Speed is never asserted."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hairwarp import bench
+from hairwarp.benchmarks.common import BenchConfig, child_result, fit_exponent, run_child
+from hairwarp.benchmarks.stability import EnergyMeter, bisect_grid, stability_model
+from hairwarp.solver import Solver
+
+# float32 state against Pinocchio's float64 energies of the same configuration
+ENERGY_RTOL = 1e-4
+# ratios are stored as computed from the stored figures; only float formatting separates them
+RATIO_RTOL = 1e-12
+
+
+def tiny_config():
+    return dataclasses.replace(
+        BenchConfig.quick_preset(),
+        dyn_configs=[(4, 5)],
+        dyn_peers=("pinocchio", "mujoco_euler"),
+        block_steps=4,
+        blocks=2,
+        warmup=1,
+        graph_block=2,
+        ours_budget_s=0.2,
+        peer_budget_s=0.2,
+        acc_ref_dt=1e-4,
+        acc_duration=0.5,
+        acc_dts=(1e-3,),
+        acc_integrators=("semi_implicit", "implicit_joints"),
+        acc_peer_dts={"pinocchio_euler": (1e-3,)},
+        acc_cost_strands=4,
+        conv_segments=(4, 8),
+        stab_stiffness=(1e-3,),
+        stab_mujoco_stiffness=(1e-3,),
+        stab_duration=0.05,
+        stab_grid_bits=2,
+        stab_segments=(5,),
+        stab_segment_stiffness=(1e-3,),
+        stab_mass_ratios=(1.0, 0.1),
+        stab_side_duration=0.02,
+        scale_strands=(4, 8),
+        scale_segments=(4, 8),
+        scale_budget_s=0.05,
+        dense_counts=(50,),
+    )
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    results = bench.run_suites(["dynamics", "accuracy", "stability", "scaling"], tiny_config(), out,
+                               log=lambda msg: None)
+    return out, results
+
+
+def test_json_has_machine_and_suites(run):
+    out, results = run
+    data = json.loads((out / bench.JSON_NAME).read_text())
+    assert data == json.loads(json.dumps(results, default=bench._jsonable))
+    m = data["machine"]
+    for key in ("cpu", "cores", "python", "date", "versions"):
+        assert m[key], key
+    for pkg in ("warp", "numpy", "pin", "mujoco", "newton"):
+        assert pkg in m["versions"]
+    assert set(data["suites"]) == {"dynamics", "accuracy", "stability", "scaling"}
+    for suite in data["suites"].values():
+        assert suite["quick"] is True and suite["machine"]["date"]
+
+
+def test_dynamics_ratios_follow_from_measured_figures(run):
+    d = run[1]["suites"]["dynamics"]
+    (cfg,) = d["configs"]
+    G, S = cfg["G"], cfg["S"]
+    for row in cfg["hairwarp"]["cpu"].values():
+        best = row[row["best_mode"]]
+        assert best["status"] == "ok" and best["finite"]
+        assert math.isclose(row["seg_steps_per_s"], G * S / best["step_s"], rel_tol=RATIO_RTOL)
+        assert row["seg_steps_per_s"] == max(row[m]["seg_steps_per_s"] for m in ("launch", "graph"))
+    assert {r["peer"] for r in cfg["ratios"]} >= {"pinocchio", "mujoco_euler"}
+    for r in cfg["ratios"]:
+        peer = cfg["peers"][r["peer"]]
+        if peer["status"] != "ok":
+            assert r["ratio"] is None
+            continue
+        assert math.isclose(r["ratio"], cfg["hairwarp"]["cpu"][r["integrator"]]["seg_steps_per_s"]
+                            / peer["seg_steps_per_s"], rel_tol=RATIO_RTOL)
+        if r["goal"] is None:
+            assert r["meets"] is None
+        else:
+            assert r["meets"] == (r["ratio"] >= r["goal"])
+    pin = cfg["peers"]["pinocchio"]
+    if pin["status"] == "ok":
+        assert math.isclose(pin["seg_steps_per_s"], G * S / (pin["step_ms"] / 1e3), rel_tol=1e-9)
+        assert cfg["peers"]["pinocchio_aba_floor"]["seg_steps_per_s"] > 0
+    assert d["cuda"]["device"] is None and d["cuda"]["reason"]
+    assert d["profile"] and d["overhead_1x20"]
+
+
+def test_accuracy_errors_and_reference_cache(run):
+    out, results = run
+    a = results["suites"]["accuracy"]
+    assert a["reference"]["source"]
+    assert list(out.glob("accuracy_reference_*.npz"))
+    ours = [m for m in a["methods"] if m["kind"] == "hairwarp"]
+    assert {m["integrator"] for m in ours} == {"semi_implicit", "implicit_joints"}
+    for m in ours:
+        (r,) = m["runs"]
+        assert 0.0 < r["rms_0.5"] <= r["max_0.5"]
+        assert math.isclose(r["cpu_s_per_sim_s"], m["cost"]["s_per_strand_step"] / r["dt"], rel_tol=RATIO_RTOL)
+    conv = a["convergence"]
+    for variant in conv["variants"].values():
+        errors = [row["max_vertex_error_m"] for row in variant["rows"]]
+        assert errors[1] < errors[0]
+    # a second run reads the cached reference instead of recomputing it
+    from hairwarp.benchmarks.accuracy import reference_tips
+
+    again = reference_tips(tiny_config(), out, lambda msg: None)
+    assert again["cached"]
+
+
+def test_stability_and_scaling_fields(run):
+    out, results = run
+    s = results["suites"]["stability"]
+    assert {"semi_implicit", "implicit_joints"} <= set(s["vs_stiffness"])
+    for rows in s["vs_stiffness"].values():
+        for row in rows:
+            assert row["max_stable_dt"] is None or 1e-5 <= row["max_stable_dt"] <= 1 / 24 + 1e-12
+    assert s["mujoco"]["status"] in ("ok", "absent")
+    assert set(s["findings"]) >= {"implicit_stable_semi_not_at_frame_dt", "implicit_fails_at_frame_dt"}
+    sc = results["suites"]["scaling"]
+    assert sc["meets"] == (sc["max_exponent"] <= 1.1)
+    assert {st["stage"] for st in sc["stages"]} >= {"dense interpolation + Hermite"}
+    assert all(st["status"] in ("ok", "not available", "error") for st in sc["stages"])
+    report = (out / "benchmarks.md").read_text()
+    assert "CUDA: absent" in report
+    for name in ("bench_dynamics.png", "bench_accuracy.png", "bench_convergence.png", "bench_stability.png",
+                 "bench_scaling.png"):
+        assert (out / name).stat().st_size > 1000, name
+
+
+def test_failing_or_missing_peer_is_reported_not_raised():
+    def missing(_):
+        raise ModuleNotFoundError("no module", name="not_a_package")
+
+    assert child_result(missing, {})["status"] == "absent"
+    res = run_child({"kind": "throughput", "peer": "no_such_peer", "G": 1, "S": 2}, timeout_s=60)
+    assert res["status"] == "error" and "no_such_peer" in res["message"]
+
+
+def test_bisect_grid_matches_brute_force():
+    rng = np.random.default_rng(3)
+    n_grid, n_items = 33, 12
+    limits = rng.integers(-1, n_grid, size=n_items)  # item j stable at index i iff i <= limits[j]
+    calls = []
+
+    def probe(idx, items):
+        calls.append(idx)
+        return {j: idx <= limits[j] for j in range(n_items)}
+
+    found, _ = bisect_grid(n_grid, n_items, probe)
+    expected = [None if lim < 0 else int(lim) for lim in limits]
+    assert found == expected
+    assert len(set(calls)) < n_grid  # fewer simulations than a scan of the grid
+
+
+def test_fit_exponent_of_a_power_law():
+    x = np.array([10.0, 30.0, 100.0, 300.0])
+    assert math.isclose(fit_exponent(x, 2.5 * x**1.5), 1.5, rel_tol=1e-12)
+    assert fit_exponent([1.0], [1.0]) is None
+
+
+def test_energy_meter_matches_pinocchio():
+    pin = pytest.importorskip("pinocchio")
+    from hairwarp.benchmarks.peers import pinocchio_chain
+
+    S = 6
+    model = stability_model(S, [0.0], 0.0)
+    state = model.state()
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(S, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    qd = rng.normal(scale=3.0, size=(S, 3))
+    state.joint_q.assign(q.astype(np.float32))
+    state.joint_qd.assign(qd.astype(np.float32))
+    Solver(model).forward_kinematics(state, model.control())
+    ours = EnergyMeter(model)(state)[0]
+
+    pm = pinocchio_chain(S)
+    data = pm.createData()
+    qf = q.astype(np.float32).astype(float)
+    qf /= np.linalg.norm(qf, axis=1, keepdims=True)
+    qv, vv = qf.reshape(-1), qd.astype(np.float32).astype(float).reshape(-1)
+    expected = pin.computeKineticEnergy(pm, data, qv, vv) + pin.computePotentialEnergy(pm, data, qv)
+    assert ours == pytest.approx(expected, rel=ENERGY_RTOL)
