@@ -1,0 +1,533 @@
+"""Strand colliders: analytic primitives and closed triangle meshes, their placement and animation.
+
+A ``Collider`` is geometry in its own local frame plus a rigid placement ``local_xform`` in its parent,
+the head (``attach="head"``: it rides on ``Control.head_xform``) or the world (``attach="world"``:
+static, or driven by a ``motion`` object, or posed each step with ``ColliderSet.set_pose``).
+``ColliderSet`` puts a list of colliders on the device once and runs the per-step projection
+(``hairwarp.kernels.body_collision.collide_strands``): vertices closer than ``thickness`` take the
+object's velocity (``friction`` blends the sliding part), vertices inside are pushed out and the rest of
+the strand follows with its segment lengths kept (Chang, Jin & Yu 2002).
+
+Rest vertices that start inside a collider (real grooms have them: the TressFX Ratboy mohawk has roots
+and first vertices up to 1 mm inside the body) are *exempt* from that collider: ``ColliderSet.bind``
+marks every rest vertex inside a collider, the projection leaves such a vertex alone for that collider
+until it is first seen clear of the contact layer (distance >= thickness), and from then on it collides
+like any other. Pushing them out at the first step would kick the strands (the joint springs hold the
+rest shape inside), and holding them at the surface would pin them there for good.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from hairwarp.kernels.types import ColliderKind
+
+# Rotation part of a placement must be orthonormal to this tolerance (float32 matrices written to
+# text keep about 6 digits).
+_ORTHONORMAL_TOL = 1.0e-4
+
+# The exemption mask is an int32 per vertex, one bit per collider.
+MAX_EXEMPT_COLLIDERS = 31
+
+
+class ColliderError(ValueError):
+    """A collider description or mesh file is invalid; the message names the collider or the file."""
+
+
+class TfxMeshError(ColliderError):
+    """A ``.tfxmesh`` file could not be read; the message names the file and the line."""
+
+
+def _translation(offset) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = np.asarray(offset, dtype=float)
+    return m
+
+
+def _rigid_matrix(matrix, what: str) -> np.ndarray:
+    m = np.asarray(matrix, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ColliderError(f"{what}: placement must be a finite 4x4 matrix, got shape {m.shape}")
+    r = m[:3, :3]
+    if (np.abs(r.T @ r - np.eye(3)).max() > _ORTHONORMAL_TOL or np.linalg.det(r) <= 0.0
+            or np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > 0.0):
+        raise ColliderError(f"{what}: placement must be rigid (rotation and translation; put scale in the geometry)")
+    return m
+
+
+def matrix_to_transform(matrix) -> np.ndarray:
+    """A rigid 4x4 matrix as Warp transform components (px, py, pz, qx, qy, qz, qw)."""
+    m = np.asarray(matrix, dtype=float)
+    r = m[:3, :3]
+    tr = np.trace(r)
+    if tr > 0.0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = ((r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s)
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = (0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s)
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = ((r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s)
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = ((r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s)
+    q = np.asarray(q) / np.linalg.norm(q)
+    return np.concatenate([m[:3, 3], q])
+
+
+def read_tfxmesh(path) -> Any:
+    """Read a TressFX collision mesh (``.tfxmesh``, text) as a Z-up ``trimesh.Trimesh``.
+
+    The file is Y-up; points are turned to Z-up by (x, y, z) -> (x, -z, y), a proper rotation, so the
+    face winding (outward) is kept. Normals and skinning weights in the file are not used.
+
+    Args:
+        path: the ``.tfxmesh`` file.
+
+    Returns:
+        The mesh, not processed (vertex order and count as in the file).
+
+    Raises:
+        TfxMeshError: missing or malformed sections, counts that do not match, indices out of range,
+            non-finite coordinates.
+    """
+    import trimesh
+
+    path = Path(path)
+    try:
+        raw = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TfxMeshError(f"{path}: cannot read ({exc})") from exc
+    lines = [(n + 1, line.split()) for n, line in enumerate(raw) if line.strip() and not line.lstrip().startswith("#")]
+    pos = 0
+
+    def section(key: str, width: int):
+        nonlocal pos
+        if pos >= len(lines) or len(lines[pos][1]) != 2 or lines[pos][1][0] != key:
+            where = f"line {lines[pos][0]}" if pos < len(lines) else "end of file"
+            raise TfxMeshError(f"{path}: expected '{key} <count>' at {where}")
+        line_no, (_, count_text) = lines[pos]
+        try:
+            count = int(count_text)
+        except ValueError:
+            raise TfxMeshError(f"{path}: line {line_no}: bad count {count_text!r}") from None
+        rows = lines[pos + 1:pos + 1 + count]
+        if count < 0 or len(rows) != count:
+            raise TfxMeshError(f"{path}: line {line_no}: {key} {count} but {len(rows)} entries follow")
+        pos += 1 + count
+        if width == 0:
+            return None
+        bad = next((r for r in rows if len(r[1]) != width), None)
+        if bad is not None:
+            raise TfxMeshError(f"{path}: line {bad[0]}: expected {width} fields, got {len(bad[1])}")
+        try:
+            return np.array([r[1] for r in rows], dtype=float).reshape(count, width)
+        except ValueError as exc:
+            raise TfxMeshError(f"{path}: {key} block: non-numeric entry ({exc})") from None
+
+    section("numOfBones", 0)
+    vertices = section("numOfVertices", 15)
+    triangles = section("numOfTriangles", 4)
+    points = vertices[:, 1:4]
+    if not np.all(np.isfinite(points)):
+        raise TfxMeshError(f"{path}: non-finite vertex coordinates")
+    faces = triangles[:, 1:4]
+    if len(faces) == 0 or len(points) == 0:
+        raise TfxMeshError(f"{path}: no vertices or no triangles")
+    if np.any(faces != np.round(faces)) or faces.min() < 0 or faces.max() >= len(points):
+        raise TfxMeshError(f"{path}: triangle vertex indices must be integers in [0, {len(points)})")
+    z_up = np.stack([points[:, 0], -points[:, 2], points[:, 1]], axis=1)
+    return trimesh.Trimesh(vertices=z_up, faces=faces.astype(np.int64), process=False)
+
+
+@dataclasses.dataclass
+class Collider:
+    """One strand collider.
+
+    Attributes:
+        name: unique name, used in messages.
+        kind: ``ColliderKind`` (SPHERE, CAPSULE, PLANE, MESH).
+        radius: sphere or capsule radius [m].
+        half_height: capsule half length of its axis segment, along local z [m].
+        mesh: ``trimesh.Trimesh`` in the collider's local frame [m]; MESH only. Must be closed for the
+            inside test (a warning names a collider that is not).
+        local_xform: rigid 4x4 placement of the local frame in the parent (head or world).
+        attach: ``"head"`` (follows ``Control.head_xform``) or ``"world"``.
+        motion: for a world collider, an object with ``evaluate(t)`` returning a sample with
+            ``matrix()`` (4x4), ``linear_velocity`` (of its origin) and ``angular_velocity``, in world
+            (e.g. ``hairwarp.HeadMotion``); None for a static one.
+        thickness: contact layer [m]: vertices closer than this take the object's velocity; vertices
+            pushed out land this far above the surface.
+        friction: 0 = frictionless sliding, 1 = the seed's full velocity match; the tangential slip
+            relative to the object is scaled by ``1 - friction`` once per step in contact.
+    """
+
+    name: str
+    kind: ColliderKind
+    radius: float = 0.0
+    half_height: float = 0.0
+    mesh: Any = None
+    local_xform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    attach: str = "head"
+    motion: Any = None
+    thickness: float = 1.0e-3
+    friction: float = 0.5
+
+    def __post_init__(self):
+        what = f"collider {self.name!r}"
+        try:
+            self.kind = ColliderKind(self.kind)
+        except ValueError:
+            raise ColliderError(f"{what}: unknown kind {self.kind!r}") from None
+        if self.attach not in ("head", "world"):
+            raise ColliderError(f"{what}: attach must be 'head' or 'world', got {self.attach!r}")
+        if self.attach == "head" and self.motion is not None:
+            raise ColliderError(f"{what}: a head-attached collider follows the head; motion needs attach='world'")
+        self.local_xform = _rigid_matrix(self.local_xform, what)
+        for key in ("radius", "half_height", "thickness", "friction"):
+            value = float(getattr(self, key))
+            if not np.isfinite(value) or value < 0.0:
+                raise ColliderError(f"{what}: {key} must be a finite number >= 0, got {value}")
+            setattr(self, key, value)
+        if self.friction > 1.0:
+            raise ColliderError(f"{what}: friction must lie in [0, 1], got {self.friction}")
+        if self.kind in (ColliderKind.SPHERE, ColliderKind.CAPSULE) and self.radius <= 0.0:
+            raise ColliderError(f"{what}: radius must be > 0, got {self.radius}")
+        if self.kind == ColliderKind.MESH:
+            self._check_mesh(what)
+
+    def _check_mesh(self, what: str):
+        import trimesh
+
+        if not isinstance(self.mesh, trimesh.Trimesh) or len(self.mesh.faces) == 0:
+            raise ColliderError(f"{what}: a MESH collider needs a trimesh.Trimesh with faces")
+        if not np.all(np.isfinite(self.mesh.vertices)):
+            raise ColliderError(f"{what}: mesh has non-finite vertices")
+        closed = self.mesh.is_watertight
+        if not closed:
+            merged = self.mesh.copy()
+            merged.merge_vertices()
+            closed = merged.is_watertight
+        if not closed:
+            warnings.warn(f"{what}: mesh is not watertight; its inside test may be wrong", stacklevel=3)
+        elif self.mesh.volume < 0.0:
+            warnings.warn(f"{what}: mesh faces point inward; flipped", stacklevel=3)
+            self.mesh = self.mesh.copy()
+            self.mesh.invert()
+
+    @classmethod
+    def sphere(cls, radius: float, *, center=(0.0, 0.0, 0.0), name: str = "sphere", **options) -> Collider:
+        """A sphere of ``radius`` [m] at ``center`` in its parent; ``options``: attach, motion, thickness, friction."""
+        return cls(name=name, kind=ColliderKind.SPHERE, radius=radius, local_xform=_translation(center), **options)
+
+    @classmethod
+    def capsule(cls, radius: float, half_height: float, *, local_xform=None, name: str = "capsule",
+                **options) -> Collider:
+        """A capsule of ``radius`` around the local z segment ``[-half_height, half_height]`` [m]."""
+        return cls(name=name, kind=ColliderKind.CAPSULE, radius=radius, half_height=half_height,
+                   local_xform=np.eye(4) if local_xform is None else local_xform, **options)
+
+    @classmethod
+    def plane(cls, *, point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), name: str = "plane", **options) -> Collider:
+        """The half-space below the plane through ``point`` with outward ``normal`` (in its parent)."""
+        n = np.asarray(normal, dtype=float)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0.0:
+            raise ColliderError(f"collider {name!r}: plane normal must be a non-zero 3-vector, got {normal!r}")
+        n = n / np.linalg.norm(n)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, n)
+        x /= np.linalg.norm(x)
+        m = _translation(point)
+        m[:3, :3] = np.stack([x, np.cross(n, x), n], axis=1)
+        return cls(name=name, kind=ColliderKind.PLANE, local_xform=m, **options)
+
+    @classmethod
+    def from_trimesh(cls, mesh, *, local_xform=None, name: str = "mesh", **options) -> Collider:
+        """A mesh collider from a ``trimesh.Trimesh`` given in the collider's local frame [m]."""
+        return cls(name=name, kind=ColliderKind.MESH, mesh=mesh,
+                   local_xform=np.eye(4) if local_xform is None else local_xform, **options)
+
+    @classmethod
+    def from_mesh_file(cls, path, *, up_axis: str = "Z", scale: float = 1.0, name: str | None = None,
+                       **options) -> Collider:
+        """A mesh collider from a file: OBJ, PLY, STL, GLB (through trimesh) or TressFX ``.tfxmesh``.
+
+        Args:
+            path: the mesh file.
+            up_axis: the file's up axis, "Z" or "Y" ((x, y, z) -> (x, -z, y)); a ``.tfxmesh`` is Y-up by
+                definition and always turned, whatever this says.
+            scale: multiplies the points (file units to metres).
+            name: collider name; the file stem by default.
+            **options: ``local_xform``, ``attach``, ``motion``, ``thickness``, ``friction``.
+
+        Raises:
+            ColliderError: unreadable file, no triangles, bad ``up_axis`` or ``scale``.
+        """
+        import trimesh
+
+        path = Path(path)
+        axis = str(up_axis).upper()
+        if axis not in ("Y", "Z"):
+            raise ColliderError(f"{path}: up_axis must be 'Y' or 'Z', got {up_axis!r}")
+        if not (np.isfinite(scale) and scale > 0.0):
+            raise ColliderError(f"{path}: scale must be > 0, got {scale!r}")
+        if path.suffix.lower() == ".tfxmesh":
+            mesh = read_tfxmesh(path)
+        else:
+            try:
+                mesh = trimesh.load(str(path), force="mesh")
+            except Exception as exc:
+                raise ColliderError(f"{path}: cannot load mesh ({exc})") from exc
+            if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+                raise ColliderError(f"{path}: no triangles in the file")
+            if axis == "Y":
+                v = mesh.vertices
+                mesh = trimesh.Trimesh(vertices=np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1), faces=mesh.faces,
+                                       process=False)
+        if scale != 1.0:
+            mesh = trimesh.Trimesh(vertices=mesh.vertices * scale, faces=mesh.faces, process=False)
+        return cls.from_trimesh(mesh, name=path.stem if name is None else name, **options)
+
+    @classmethod
+    def ellipsoid(cls, center=(0.0, 0.0, 0.0), radii=(0.09, 0.1, 0.115), subdivisions: int = 3, *,
+                  name: str = "head", **options) -> Collider:
+        """A closed mesh ellipsoid (a scaled icosphere), e.g. a generated head; ``radii`` [m] along x, y, z."""
+        import trimesh
+
+        r = np.asarray(radii, dtype=float)
+        if r.shape != (3,) or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
+            raise ColliderError(f"collider {name!r}: radii must be three numbers > 0, got {radii!r}")
+        sphere = trimesh.creation.icosphere(subdivisions=int(subdivisions))
+        mesh = trimesh.Trimesh(vertices=sphere.vertices * r, faces=sphere.faces, process=False)
+        return cls.from_trimesh(mesh, local_xform=_translation(center), name=name, **options)
+
+
+class ColliderSet:
+    """Colliders on the device and the per-step strand projection.
+
+    Device arrays (one entry per collider, built once): ``collider_kind``, ``collider_attach`` (1 = head),
+    ``collider_local_xform``, ``collider_radius``, ``collider_half_height``, ``collider_thickness``,
+    ``collider_friction``, ``collider_mesh`` (``wp.Mesh`` ids, 0 for primitives), ``collider_bound_lo`` and
+    ``collider_bound_hi`` (mesh bounds, local frame), ``collider_far`` (unbounded query distance [m]);
+    per step ``collider_xform`` (world pose) and ``collider_velocity`` (world angular, linear velocity of
+    the collider origin), rewritten in place by ``set_pose`` and ``update``. The projection reads a
+    head-attached collider's pose from ``Control.head_xform`` and ``head_velocity`` on the device, so a
+    captured step follows the head without host updates; for such colliders the two per-step arrays only
+    mirror the pose given to ``update`` (for output).
+
+    Args:
+        colliders: the colliders; names must be unique.
+        device: Warp device.
+        model: if given, ``bind(model)`` is called.
+    """
+
+    def __init__(self, colliders, device=None, *, model=None):
+        self.colliders = list(colliders)
+        self.device = wp.get_device(device)
+        names = [c.name for c in self.colliders]
+        duplicate = next((n for n in names if names.count(n) > 1), None)
+        if duplicate is not None:
+            raise ColliderError(f"collider {duplicate!r}: names must be unique")
+        count = len(self.colliders)
+        self.count = count
+        self._index = {n: i for i, n in enumerate(names)}
+        self._xform_host = np.zeros((count, 7), dtype=np.float32)
+        self._velocity_host = np.zeros((count, 6), dtype=np.float32)
+        self._world_host = np.tile(np.eye(4), (count, 1, 1))
+        bound_lo = np.zeros((count, 3), dtype=np.float32)
+        bound_hi = np.zeros((count, 3), dtype=np.float32)
+        far = np.zeros(count, dtype=np.float32)
+        mesh_ids = np.zeros(count, dtype=np.uint64)
+        self.meshes: list[wp.Mesh | None] = []
+        for i, col in enumerate(self.colliders):
+            self._set_world(i, col.local_xform, np.zeros(3), np.zeros(3))
+            if col.attach == "world" and col.motion is not None:
+                self._pose_from_motion(i, col, 0.0)
+            mesh = None
+            if col.kind == ColliderKind.MESH:
+                points = np.asarray(col.mesh.vertices, dtype=np.float32)
+                mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3, device=self.device),
+                               indices=wp.array(np.asarray(col.mesh.faces, dtype=np.int32).ravel(), dtype=wp.int32,
+                                                device=self.device),
+                               )
+                mesh_ids[i] = mesh.id
+                bound_lo[i] = points.min(axis=0)
+                bound_hi[i] = points.max(axis=0)
+                # Farther than any inside point can be from the surface, so the unbounded query is exact.
+                far[i] = 10.0 * float(np.linalg.norm(bound_hi[i] - bound_lo[i])) + 10.0
+            self.meshes.append(mesh)
+
+        def arr(values, dtype):
+            return wp.array(values, dtype=dtype, device=self.device)
+
+        self.collider_kind = arr(np.array([int(c.kind) for c in self.colliders], dtype=np.int32), wp.int32)
+        self.collider_attach = arr(np.array([c.attach == "head" for c in self.colliders], dtype=np.int32), wp.int32)
+        self.collider_local_xform = arr(
+            np.array([matrix_to_transform(c.local_xform) for c in self.colliders], dtype=np.float32).reshape(count, 7),
+            wp.transform)
+        self.collider_radius = arr(np.array([c.radius for c in self.colliders], dtype=np.float32), float)
+        self.collider_half_height = arr(np.array([c.half_height for c in self.colliders], dtype=np.float32), float)
+        self.collider_thickness = arr(np.array([c.thickness for c in self.colliders], dtype=np.float32), float)
+        self.collider_friction = arr(np.array([c.friction for c in self.colliders], dtype=np.float32), float)
+        self.collider_mesh = arr(mesh_ids, wp.uint64)
+        self.collider_bound_lo = arr(bound_lo, wp.vec3)
+        self.collider_bound_hi = arr(bound_hi, wp.vec3)
+        self.collider_far = arr(far, float)
+        self.collider_xform = arr(self._xform_host, wp.transform)
+        self.collider_velocity = arr(self._velocity_host, wp.spatial_vector)
+        self.vert_exempt: wp.array | None = None
+        """Per-vertex exemption bits (bit c: vertex inside collider c at rest, not yet seen clear), shape
+        (G*(S+1),), int32; allocated by ``bind``."""
+        self.model = None
+        if model is not None:
+            self.bind(model)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def index(self, key) -> int:
+        """Index of a collider given by index or name."""
+        if isinstance(key, str):
+            if key not in self._index:
+                raise ColliderError(f"collider {key!r}: no such collider (have {sorted(self._index)})")
+            return self._index[key]
+        i = int(key)
+        if not 0 <= i < self.count:
+            raise ColliderError(f"collider index {key} out of range [0, {self.count})")
+        return i
+
+    def _set_world(self, i: int, matrix, linear_velocity, angular_velocity):
+        self._world_host[i] = matrix
+        self._xform_host[i] = matrix_to_transform(matrix)
+        self._velocity_host[i, :3] = angular_velocity
+        self._velocity_host[i, 3:] = linear_velocity
+
+    def _pose_from_sample(self, i: int, col: Collider, sample):
+        parent = np.asarray(sample.matrix(), dtype=float)
+        world = parent @ col.local_xform
+        w = np.asarray(sample.angular_velocity, dtype=float)
+        v = np.asarray(sample.linear_velocity, dtype=float) + np.cross(w, world[:3, 3] - parent[:3, 3])
+        self._set_world(i, world, v, w)
+
+    def _pose_from_motion(self, i: int, col: Collider, t: float):
+        self._pose_from_sample(i, col, col.motion.evaluate(t))
+
+    def set_pose(self, key, matrix, linear_velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0)):
+        """Set a world collider's world pose (rigid 4x4) and velocity [m/s, rad/s, world] for the next step.
+
+        ``linear_velocity`` is that of the collider origin. Head-attached colliders follow
+        ``Control.head_xform`` and cannot be posed here.
+        """
+        i = self.index(key)
+        col = self.colliders[i]
+        if col.attach == "head":
+            raise ColliderError(f"collider {col.name!r} rides on the head; set Control.head_xform instead")
+        self._set_world(i, _rigid_matrix(matrix, f"collider {col.name!r}"), np.asarray(linear_velocity, float),
+                        np.asarray(angular_velocity, float))
+        self.collider_xform.assign(self._xform_host)
+        self.collider_velocity.assign(self._velocity_host)
+
+    def update(self, t: float, head_sample=None):
+        """Pose every animated collider at time ``t`` [s]: world colliders from their ``motion``,
+        head-attached ones from ``head_sample`` (a ``HeadMotion`` sample; the projection itself reads the
+        head from ``Control``). Static world colliders keep their pose. Copies to the device in place."""
+        for i, col in enumerate(self.colliders):
+            if col.attach == "head":
+                if head_sample is not None:
+                    self._pose_from_sample(i, col, head_sample)
+            elif col.motion is not None:
+                self._pose_from_motion(i, col, t)
+        if self.count:
+            self.collider_xform.assign(self._xform_host)
+            self.collider_velocity.assign(self._velocity_host)
+
+    def world_matrices(self) -> np.ndarray:
+        """World 4x4 poses of the colliders as last set on the host, shape (C, 4, 4)."""
+        return self._world_host.copy()
+
+    def signed_distance(self, points, head_xform=None):
+        """Exact signed distances of world points to every collider (setup and diagnostics; allocates).
+
+        Args:
+            points: (N, 3) world points [m].
+            head_xform: 4x4 head pose for head-attached colliders (identity if None).
+
+        Returns:
+            ``(distance (N, C), closest (N, C, 3), normal (N, C, 3))`` as numpy arrays: signed distance [m]
+            (> 0 outside), closest surface point [m] and outward unit normal, world frame.
+        """
+        from hairwarp.kernels.body_collision import collider_distances
+
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        n = len(pts)
+        head = np.eye(4) if head_xform is None else _rigid_matrix(head_xform, "head_xform")
+        d = wp.empty((n, self.count), dtype=float, device=self.device)
+        cp = wp.empty((n, self.count), dtype=wp.vec3, device=self.device)
+        nrm = wp.empty((n, self.count), dtype=wp.vec3, device=self.device)
+        if n and self.count:
+            wp.launch(collider_distances, dim=(n, self.count), device=self.device, inputs=[
+                self.collider_kind, self.collider_attach, self.collider_local_xform, self.collider_radius,
+                self.collider_half_height, self.collider_mesh, self.collider_bound_lo, self.collider_bound_hi,
+                self.collider_far, self.collider_xform, self.collider_velocity,
+                wp.array(matrix_to_transform(head)[None].astype(np.float32), dtype=wp.transform, device=self.device),
+                wp.zeros(1, dtype=wp.spatial_vector, device=self.device),
+                wp.array(pts, dtype=wp.vec3, device=self.device),
+            ], outputs=[d, cp, nrm])
+        return d.numpy(), cp.numpy(), nrm.numpy()
+
+    def bind(self, model):
+        """Allocate the per-vertex state for ``model`` and mark rest vertices inside a collider as exempt.
+
+        Roots are never exempt: the projection never moves them.
+
+        The rest pose is ``model.rest_vertex_positions`` with the head at identity and world colliders at
+        their current pose. Call once, before the first ``project`` (and before capturing a step).
+        """
+        rest = np.asarray(model.rest_vertex_positions, dtype=float).reshape(model.strand_count, -1, 3)
+        bits = np.zeros(rest.shape[:2], dtype=np.int32)
+        if self.count:
+            distance = self.signed_distance(rest[:, 1:].reshape(-1, 3))[0]
+            for c in range(min(self.count, MAX_EXEMPT_COLLIDERS)):
+                inside = (distance[:, c] < 0.0).reshape(model.strand_count, -1)
+                bits[:, 1:] |= np.where(inside, np.int32(1 << c), np.int32(0))
+        self.vert_exempt = wp.array(bits.ravel(), dtype=wp.int32, device=self.device)
+        self.model = model
+
+    @property
+    def exempt_count(self) -> int:
+        """Number of vertices still exempt from at least one collider (reads the device)."""
+        return 0 if self.vert_exempt is None else int(np.count_nonzero(self.vert_exempt.numpy()))
+
+    def project(self, model, state, control, dt_array):
+        """Push the strands of ``state`` out of the colliders, in place (one launch; none without colliders).
+
+        Args:
+            model: the model passed to ``bind``.
+            state: ``joint_q``, ``joint_qd``, ``seg_xform``, ``vertex_positions``, ``vertex_velocities`` (current
+                forward kinematics) and ``fault``; all rewritten in place.
+            control: ``head_xform`` and ``head_velocity``.
+            dt_array: one-element float32 device array, the step [s].
+        """
+        from hairwarp.kernels.body_collision import collide_strands
+
+        if self.count == 0:
+            return
+        if self.model is not model:
+            raise RuntimeError("ColliderSet.project: call bind(model) with this model first (at setup)")
+        wp.launch(collide_strands, dim=model.strand_count, device=self.device, inputs=[
+            model.seg_per_strand, model.seg_length, model.strand_root_pos,
+            self.count, self.collider_kind, self.collider_attach, self.collider_local_xform, self.collider_radius,
+            self.collider_half_height, self.collider_thickness, self.collider_friction, self.collider_mesh,
+            self.collider_bound_lo, self.collider_bound_hi, self.collider_far,
+            self.collider_xform, self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
+            self.vert_exempt,
+            state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
+            state.fault,
+        ])

@@ -1,0 +1,431 @@
+"""Strand-object collision: signed distances to colliders, push-out, back to joint coordinates.
+
+One thread per strand (``collide_strands``), after integration and forward kinematics. The method is
+Chang, Jin & Yu 2002 (seed slides, "Strand-Object collision"): a vertex too close to an object takes the
+object's velocity; a vertex inside is moved out and the rest of the strand follows with segment lengths
+kept, ``p'_{k+1} = p'_k + L_k (p_{k+1} - p'_k) / |p_{k+1} - p'_k|``, to the tip.
+
+Sign convention of every query here: the signed distance ``d`` is positive outside, negative inside;
+the normal ``n`` is the outward unit normal at the closest surface point ``c``, pointing from the
+surface towards increasing ``d``, so ``x = c + d n`` for a query point ``x``. Queries run in the
+collider's local frame (rigid transforms keep distances); the kernel rotates results to world.
+
+Collider shapes (``ColliderKind``): SPHERE of ``radius`` about the origin; CAPSULE of ``radius`` around
+the local z segment ``[-half_height, half_height]``; PLANE z = 0 with +z outward; MESH, a closed
+consistently wound triangle mesh (pseudo-normal sign near the surface, a ray farther away, so a vertex
+deep inside is found whatever its depth).
+"""
+
+import warp as wp
+
+from hairwarp.kernels.types import ColliderKind, Fault
+
+wp.set_module_options({"enable_backward": False})
+
+# Push-out of one vertex against one collider is repeated at most this many times: each pass lifts the
+# vertex above the tangent plane at the current closest point; curved or concave surfaces may need more
+# than one pass, a plane or a convex body needs one.
+PUSH_ITERATIONS = wp.constant(4)
+
+# Collider bits of the per-vertex exemption mask (an int32 per vertex): colliders past this index are
+# never exempt.
+MAX_EXEMPT_COLLIDERS = wp.constant(31)
+
+# Segment directions and normals are taken from differences shorter than this [m] only through a
+# fallback: below it float32 differences at metre-sized coordinates are mostly rounding.
+TINY_LENGTH = wp.constant(1.0e-12)
+
+# Inside test of points away from a mesh surface: one ray, in a direction unlikely to run along the
+# edges of modelled (axis-aligned, symmetric) meshes.
+RAY_DIRECTION = wp.constant(wp.vec3(0.26726124, 0.53452248, 0.80178373))
+
+
+@wp.struct
+class SurfacePoint:
+    """Result of a closest-point query in one frame.
+
+    Attributes:
+        found: 1 when ``point`` and ``normal`` are valid; 0 when the query point is outside and farther
+            than the query distance (``distance`` then holds that query distance, a lower bound).
+        distance: signed distance [m], > 0 outside, < 0 inside.
+        point: closest surface point [m].
+        normal: outward unit normal at ``point``.
+    """
+
+    found: int
+    distance: float
+    point: wp.vec3
+    normal: wp.vec3
+
+
+@wp.func
+def _surface_point(found: int, distance: float, point: wp.vec3, normal: wp.vec3):
+    s = SurfacePoint()
+    s.found = found
+    s.distance = distance
+    s.point = point
+    s.normal = normal
+    return s
+
+
+@wp.func
+def _any_perpendicular(a: wp.vec3):
+    """A unit vector perpendicular to the unit vector ``a``."""
+    t = wp.cross(wp.vec3(1.0, 0.0, 0.0), a)
+    if wp.length_sq(t) < 1.0e-6:
+        t = wp.cross(wp.vec3(0.0, 1.0, 0.0), a)
+    return wp.normalize(t)
+
+
+@wp.func
+def _min_rotation(a: wp.vec3, b: wp.vec3):
+    """Minimal rotation taking unit vector ``a`` to unit vector ``b`` (axis ``a x b``, no twist about ``a``)."""
+    d = wp.dot(a, b)
+    if d < -0.999999:
+        axis = _any_perpendicular(a)
+        return wp.quat(axis[0], axis[1], axis[2], 0.0)
+    c = wp.cross(a, b)
+    return wp.normalize(wp.quat(c[0], c[1], c[2], 1.0 + d))
+
+
+@wp.func
+def sphere_surface(x: wp.vec3, radius: float):
+    """Closest point on a sphere of ``radius`` centred at the origin; at the centre the normal is +z."""
+    r = wp.length(x)
+    n = wp.vec3(0.0, 0.0, 1.0)
+    if r > TINY_LENGTH:
+        n = x / r
+    return _surface_point(1, r - radius, radius * n, n)
+
+
+@wp.func
+def capsule_surface(x: wp.vec3, radius: float, half_height: float):
+    """Closest point on a capsule: ``radius`` around the z segment ``[-half_height, half_height]``."""
+    axis_point = wp.vec3(0.0, 0.0, wp.clamp(x[2], -half_height, half_height))
+    s = sphere_surface(x - axis_point, radius)
+    if wp.length(x - axis_point) <= TINY_LENGTH:
+        s.normal = wp.vec3(1.0, 0.0, 0.0)
+        s.point = radius * s.normal
+    s.point = s.point + axis_point
+    return s
+
+
+@wp.func
+def plane_surface(x: wp.vec3):
+    """Closest point on the plane z = 0, outward normal +z."""
+    return _surface_point(1, x[2], wp.vec3(x[0], x[1], 0.0), wp.vec3(0.0, 0.0, 1.0))
+
+
+@wp.func
+def mesh_surface(mesh: wp.uint64, x: wp.vec3, bound_lo: wp.vec3, bound_hi: wp.vec3, max_dist: float,
+                 far: float):
+    """Closest point on a closed ``wp.Mesh`` (local frame) if nearer than ``max_dist`` or inside.
+
+    Within ``max_dist`` the sign is the angle-weighted pseudo-normal's (exact for a closed, consistently
+    wound mesh). Farther, one ray decides: from inside, its first hit is the back of a face; only then is
+    the closest point searched again, unbounded (``far``), so a vertex deep inside is found at any depth.
+    Points outside the mesh bounds widened by ``max_dist`` skip the BVH.
+    """
+    lo = bound_lo - wp.vec3(max_dist)
+    hi = bound_hi + wp.vec3(max_dist)
+    if x[0] < lo[0] or x[1] < lo[1] or x[2] < lo[2] or x[0] > hi[0] or x[1] > hi[1] or x[2] > hi[2]:
+        return _surface_point(0, max_dist, x, wp.vec3(0.0, 0.0, 1.0))
+    q = wp.mesh_query_point_sign_normal(mesh, x, max_dist)
+    sign = q.sign
+    if not q.result:
+        ray = wp.mesh_query_ray(mesh, x, RAY_DIRECTION, far)
+        if not ray.result or ray.sign >= 0.0:
+            return _surface_point(0, max_dist, x, wp.vec3(0.0, 0.0, 1.0))
+        sign = -1.0
+        q = wp.mesh_query_point_no_sign(mesh, x, far)
+        if not q.result:
+            return _surface_point(0, max_dist, x, wp.vec3(0.0, 0.0, 1.0))
+    c = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    delta = x - c
+    r = wp.length(delta)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if r > TINY_LENGTH:
+        n = delta / r
+        if sign < 0.0:
+            n = -n
+    d = r
+    if sign < 0.0:
+        d = -r
+    return _surface_point(1, d, c, n)
+
+
+@wp.func
+def collider_surface(kind: int, radius: float, half_height: float, mesh: wp.uint64, bound_lo: wp.vec3,
+                     bound_hi: wp.vec3, far: float, x: wp.vec3, max_dist: float):
+    """Signed-distance query of one collider of ``kind`` at the local point ``x`` (see the module notes)."""
+    if kind == ColliderKind.SPHERE:
+        return sphere_surface(x, radius)
+    if kind == ColliderKind.CAPSULE:
+        return capsule_surface(x, radius, half_height)
+    if kind == ColliderKind.PLANE:
+        return plane_surface(x)
+    return mesh_surface(mesh, x, bound_lo, bound_hi, max_dist, far)
+
+
+@wp.func
+def collider_world_motion(attach_head: int, local_xform: wp.transform, xform: wp.transform,
+                          velocity: wp.spatial_vector, head_xform: wp.transform, head_velocity: wp.spatial_vector):
+    """World pose and spatial velocity (angular, linear velocity of the collider origin) of a collider.
+
+    A head-attached collider rides on ``head_xform``, so it follows the Control arrays on the device;
+    any other one uses its own world pose and velocity.
+    """
+    if attach_head == 0:
+        return xform, velocity
+    X = wp.transform_multiply(head_xform, local_xform)
+    w = wp.spatial_top(head_velocity)
+    o = wp.transform_get_translation(X) - wp.transform_get_translation(head_xform)
+    v = wp.spatial_bottom(head_velocity) + wp.cross(w, o)
+    return X, wp.spatial_vector(w, v)
+
+
+@wp.func
+def _lift_on_sphere(p_prev: wp.vec3, length: float, x: wp.vec3, c: wp.vec3, n: wp.vec3, target: float):
+    """Point at ``length`` from ``p_prev``, nearest to ``x``, at least ``target`` above the plane (c, n).
+
+    The segment ending at the vertex cannot stretch, so the vertex moves on the sphere of radius
+    ``length`` about the previous vertex: its direction is turned towards ``n`` just enough to clear the
+    tangent plane, or straight along ``n`` when the plane cannot be cleared.
+    """
+    u0 = x - p_prev
+    l0 = wp.length(u0)
+    u = n
+    if l0 > TINY_LENGTH:
+        u = u0 / l0
+    c_min = wp.min((target - wp.dot(n, p_prev - c)) / wp.max(length, TINY_LENGTH), 1.0)
+    un = wp.dot(u, n)
+    if un >= c_min:
+        return p_prev + length * u
+    t = u - un * n
+    tl = wp.length(t)
+    if tl > 1.0e-6:
+        t = t / tl
+    else:
+        t = _any_perpendicular(n)
+    s = wp.sqrt(wp.max(1.0 - c_min * c_min, 0.0))
+    return p_prev + length * (c_min * n + s * t)
+
+
+@wp.func
+def _match_velocity(v: wp.vec3, v_object: wp.vec3, n: wp.vec3, friction: float):
+    """Velocity of a vertex in contact: no approach along ``n``, tangential slip scaled by ``1 - friction``."""
+    rel = v - v_object
+    vn = wp.dot(rel, n)
+    tangential = rel - vn * n
+    return v_object + wp.max(vn, 0.0) * n + (1.0 - friction) * tangential
+
+
+@wp.kernel
+def collider_distances(
+    # Model:
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_attach: wp.array(dtype=wp.int32),
+    collider_local_xform: wp.array(dtype=wp.transform),
+    collider_radius: wp.array(dtype=float),
+    collider_half_height: wp.array(dtype=float),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_bound_lo: wp.array(dtype=wp.vec3),
+    collider_bound_hi: wp.array(dtype=wp.vec3),
+    collider_far: wp.array(dtype=float),
+    # Control:
+    collider_xform: wp.array(dtype=wp.transform),
+    collider_velocity: wp.array(dtype=wp.spatial_vector),
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    # State in:
+    points: wp.array(dtype=wp.vec3),
+    # Out:
+    distance_out: wp.array2d(dtype=float),
+    closest_out: wp.array2d(dtype=wp.vec3),
+    normal_out: wp.array2d(dtype=wp.vec3),
+):
+    """One thread per (point, collider): exact signed distance [m], closest point [m] and outward normal.
+
+    World frame in and out. Used at setup (which rest vertices start inside) and by diagnostics; the
+    mesh query is unbounded here (``collider_far``), so every entry is exact.
+    """
+    p, c = wp.tid()
+    X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
+                                   collider_velocity[c], head_xform[0], head_velocity[0])
+    x_local = wp.transform_point(wp.transform_inverse(X), points[p])
+    s = collider_surface(collider_kind[c], collider_radius[c], collider_half_height[c], collider_mesh[c],
+                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local, collider_far[c])
+    distance_out[p, c] = s.distance
+    closest_out[p, c] = wp.transform_point(X, s.point)
+    normal_out[p, c] = wp.transform_vector(X, s.normal)
+
+
+@wp.kernel
+def collide_strands(
+    # Model:
+    seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
+    strand_root_pos: wp.array(dtype=wp.vec3),
+    collider_count: int,
+    collider_kind: wp.array(dtype=wp.int32),
+    collider_attach: wp.array(dtype=wp.int32),
+    collider_local_xform: wp.array(dtype=wp.transform),
+    collider_radius: wp.array(dtype=float),
+    collider_half_height: wp.array(dtype=float),
+    collider_thickness: wp.array(dtype=float),
+    collider_friction: wp.array(dtype=float),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_bound_lo: wp.array(dtype=wp.vec3),
+    collider_bound_hi: wp.array(dtype=wp.vec3),
+    collider_far: wp.array(dtype=float),
+    # Control:
+    collider_xform: wp.array(dtype=wp.transform),
+    collider_velocity: wp.array(dtype=wp.spatial_vector),
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    dt: wp.array(dtype=float),
+    # Scratch:
+    vert_exempt: wp.array(dtype=wp.int32),
+    # Out (read and updated in place):
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: push vertices 1..S out of the colliders and match contact velocities.
+
+    A strand that moved gets new ``joint_q``, ``seg_xform`` and ``vertex_positions`` [m, world] such that
+    forward kinematics reproduces them; a strand in contact gets new ``vertex_velocities`` [m/s] and the
+    ``joint_qd`` [rad/s, child frame] recovered from them. A strand clear of every collider is not written.
+    """
+    strand = wp.tid()
+    S = seg_per_strand
+    sbase = strand * S
+    vbase = strand * (S + 1)
+    h = dt[0]
+    X_head = head_xform[0]
+    V_head = head_velocity[0]
+
+    # Pass 1, root to tip: propagate upstream moves, push out, match velocities (seed rule).
+    moved = int(0)
+    first_moved = S + 1
+    touched = int(0)
+    p_prev = vertex_positions[vbase]
+    for k in range(1, S + 1):
+        vi = vbase + k
+        length = seg_length[sbase + k - 1]
+        p_old = vertex_positions[vi]
+        v = vertex_velocities[vi]
+        p = p_old
+        if moved != 0:
+            u = p_old - p_prev
+            ul = wp.length(u)
+            if ul > TINY_LENGTH:
+                p = p_prev + (length / ul) * u
+            v = v + (p - p_old) / h
+        contact = int(0)
+        exempt = vert_exempt[vi]
+        exempt_new = exempt
+        for c in range(collider_count):
+            bit = int(0)
+            if c < MAX_EXEMPT_COLLIDERS:
+                bit = 1 << c
+            thickness = collider_thickness[c]
+            max_dist = thickness + 1.0e-6
+            X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
+                                           collider_velocity[c], X_head, V_head)
+            X_inv = wp.transform_inverse(X)
+            kind = collider_kind[c]
+            s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
+                                 collider_bound_lo[c], collider_bound_hi[c], collider_far[c],
+                                 wp.transform_point(X_inv, p), max_dist)
+            if (exempt_new & bit) != 0:
+                # Inside at rest: left alone until first seen clear of the contact layer.
+                if s.distance >= thickness:
+                    exempt_new = exempt_new & ~bit
+                continue
+            if s.found == 0 or s.distance >= thickness:
+                continue
+            n_local = s.normal
+            if s.distance < 0.0:
+                p_prev_local = wp.transform_point(X_inv, p_prev)
+                x_local = wp.transform_point(X_inv, p)
+                for _it in range(PUSH_ITERATIONS):
+                    x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, thickness)
+                    s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
+                                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local,
+                                         max_dist)
+                    if s.found != 0:
+                        n_local = s.normal
+                    if s.found == 0 or s.distance >= 0.0:
+                        break
+                p = wp.transform_point(X, x_local)
+                if moved == 0:
+                    first_moved = k
+                moved = 1
+            n = wp.transform_vector(X, n_local)
+            origin = wp.transform_get_translation(X)
+            v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
+            v = _match_velocity(v, v_object, n, collider_friction[c])
+            contact = 1
+        if exempt_new != exempt:
+            vert_exempt[vi] = exempt_new
+        if contact != 0:
+            touched = 1
+        if moved != 0 or contact != 0:
+            vertex_positions[vi] = p
+            vertex_velocities[vi] = v
+            if not (wp.isfinite(p) and wp.isfinite(v)):
+                wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
+        p_prev = p
+
+    if moved == 0 and touched == 0:
+        return
+
+    # Pass 2, root to tip: minimal rotations onto the new directions (twist kept), joint coordinates
+    # from world rotations, forward kinematics exactly as ``articulated.fk_strand`` does it, and joint
+    # velocities from the vertex velocities.
+    R_head = wp.transform_get_rotation(X_head)
+    R_old = R_head
+    R_new = R_head
+    w_head = wp.spatial_top(V_head)
+    w_old = w_head
+    w_new_prev = w_head
+    x = wp.transform_point(X_head, strand_root_pos[strand])
+    v_prev = vertex_velocities[vbase]
+    for k in range(S):
+        i = sbase + k
+        vi = vbase + k + 1
+        length = seg_length[i]
+        R_parent = R_new
+        R_old = R_old * joint_q[i]
+        w_old = w_old + wp.quat_rotate(R_old, joint_qd[i])
+        d_old = wp.quat_rotate(R_old, wp.vec3(0.0, 0.0, -1.0))
+        if k + 1 >= first_moved:
+            target = vertex_positions[vi] - x
+            tl = wp.length(target)
+            d_new = d_old
+            if tl > TINY_LENGTH:
+                d_new = target / tl
+            q = wp.normalize(wp.quat_inverse(R_parent) * (_min_rotation(d_old, d_new) * R_old))
+            joint_q[i] = q
+            R_new = R_parent * q
+            seg_xform[i] = wp.transform(x, R_new)
+            x = x + wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -length))
+            vertex_positions[vi] = x
+            if not (wp.isfinite(q) and wp.isfinite(x)):
+                wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
+        else:
+            R_new = R_old
+            x = vertex_positions[vi]
+        d = wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -1.0))
+        v_next = vertex_velocities[vi]
+        w_new = wp.dot(w_old, d_old) * d + wp.cross(d, v_next - v_prev) / wp.max(length, TINY_LENGTH)
+        qd = wp.quat_rotate_inv(R_new, w_new - w_new_prev)
+        joint_qd[i] = qd
+        if not wp.isfinite(qd):
+            wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
+        w_new_prev = w_new
+        v_prev = v_next

@@ -1,0 +1,539 @@
+"""Strand-object collision: collider queries against trimesh and closed forms, projection against a float64
+numpy forward kinematics written here from the contract conventions (independent of the kernels)."""
+
+import warnings
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from scipy.spatial.transform import Rotation
+
+from hairwarp.colliders import Collider, ColliderError, ColliderSet, TfxMeshError, read_tfxmesh
+from hairwarp.kernels.types import ColliderKind, Fault
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RATBOY_BODY = DATA / "tressfx_ratboy" / "Ratboy_body.tfxmesh"
+
+# float32 coordinates of metre-sized meshes carry ~1e-7 m rounding; distances and closest points are
+# compared to 1e-5 of the mesh size, as float32 BVH queries against float64 trimesh allow.
+QUERY_RTOL = 1.0e-5
+# Inside flags are compared away from the surface only: closer than this [m] the float32 sign is a coin toss.
+SIGN_BAND = 1.0e-4
+# Closed-form primitives: float32 arithmetic on ~1 m coordinates.
+PRIMITIVE_ATOL = 2.0e-6
+# After projection no vertex may be deeper than this [m] (float32 rounding at 0.1-1 m coordinates).
+DEPTH_TOL = 2.0e-6
+# Segment lengths after projection, relative (float32 normalisation and rotation).
+LENGTH_RTOL = 1.0e-5
+# Float64 forward kinematics of the new float32 joint rotations against the stored vertices [m].
+FK_ATOL = 2.0e-6
+# Rotation matrices and velocity identities computed in float32, compared in float64.
+ROT_ATOL = 2.0e-5
+VEL_ATOL = 2.0e-5
+# Velocity identities through float32 chains of joint velocities, relative to the largest angular speed.
+VEL_RTOL = 1.0e-5
+
+DT = 1.0 / 600.0
+
+
+# ---------------------------------------------------------------- independent references
+
+
+def _has_rtree():
+    try:
+        import rtree  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def reference_closest(mesh, points):
+    """Closest points and unsigned distances from trimesh (its R-tree query, or trimesh's per-triangle
+    routine over every triangle when rtree is missing)."""
+    if _has_rtree():
+        closest, distance, _ = trimesh.proximity.closest_point(mesh, points)
+        return closest, distance
+    triangles = mesh.triangles
+    closest = np.empty_like(points)
+    for j, p in enumerate(points):
+        candidates = trimesh.triangles.closest_point(triangles, np.repeat(p[None], len(triangles), 0))
+        closest[j] = candidates[np.argmin(np.linalg.norm(candidates - p, axis=1))]
+    return closest, np.linalg.norm(closest - points, axis=1)
+
+
+def reference_inside(mesh, points):
+    """Inside flags: trimesh's ray test, or the exact winding number of a closed mesh without rtree."""
+    if _has_rtree():
+        return mesh.contains(points)
+    inside = np.empty(len(points), dtype=bool)
+    for j, p in enumerate(points):
+        a, b, c = (mesh.triangles[:, i] - p for i in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+               + np.einsum("ij,ij->i", c, a) * lb)
+        inside[j] = np.arctan2(det, den).sum() / (2.0 * np.pi) > 0.5
+    return inside
+
+
+def quat_matrix(q):
+    return Rotation.from_quat(np.asarray(q, dtype=float).reshape(-1, 4)).as_matrix()
+
+
+def fk64(head, root_pos, joint_q, seg_length, joint_qd=None, head_velocity=(0, 0, 0, 0, 0, 0)):
+    """Float64 forward kinematics by the contract: R(k) = R(k-1) R(q_k), vertex k+1 = vertex k + R(k) (0, 0, -L_k).
+
+    Args:
+        head: 4x4 head pose; root_pos (G, 3) in the head frame; joint_q (G, S, 4) xyzw; seg_length (G, S);
+        joint_qd (G, S, 3) in the child frame; head_velocity (angular, linear) world.
+
+    Returns:
+        vertices (G, S+1, 3), world rotations (G, S, 3, 3), vertex velocities (G, S+1, 3), omegas (G, S, 3).
+    """
+    G, S = seg_length.shape
+    w_h = np.asarray(head_velocity[:3], dtype=float)
+    v_h = np.asarray(head_velocity[3:], dtype=float)
+    qd = np.zeros((G, S, 3)) if joint_qd is None else joint_qd
+    R = np.tile(head[:3, :3], (G, 1, 1))
+    x = root_pos @ head[:3, :3].T + head[:3, 3]
+    w = np.tile(w_h, (G, 1))
+    v = v_h + np.cross(w_h, x - head[:3, 3])
+    verts, rots, vels, omegas = [x], [], [v], []
+    for k in range(S):
+        R = R @ quat_matrix(joint_q[:, k])
+        w = w + np.einsum("gij,gj->gi", R, qd[:, k])
+        d = np.einsum("gij,j->gi", R, (0.0, 0.0, -1.0)) * seg_length[:, k, None]
+        x = x + d
+        v = v + np.cross(w, d)
+        verts.append(x)
+        rots.append(R)
+        vels.append(v)
+        omegas.append(w)
+    return np.stack(verts, 1), np.stack(rots, 1), np.stack(vels, 1), np.stack(omegas, 1)
+
+
+def min_rotation64(a, b):
+    """Rodrigues: the rotation matrix of smallest angle taking unit a to unit b (rows of a, b)."""
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis, axis=-1)
+    c = np.einsum("...i,...i->...", a, b)
+    angle = np.arctan2(s, c)
+    axis = axis / np.maximum(s, 1e-300)[..., None]
+    return Rotation.from_rotvec(axis * angle[..., None]).as_matrix()
+
+
+def make_strands(rng, G, S, seg_len, root_pos, first_dirs, bend=0.3):
+    """Joint rotations of G strands: joint 0 turns body -z onto ``first_dirs`` (head frame) with a random
+    twist, later joints bend by up to ``bend`` rad."""
+    q = np.empty((G, S, 4))
+    for g in range(G):
+        twist = Rotation.from_rotvec((0.0, 0.0, rng.uniform(-np.pi, np.pi)))
+        align, _ = Rotation.align_vectors([first_dirs[g]], [[0.0, 0.0, -1.0]])
+        q[g, 0] = (align * twist).as_quat()
+        q[g, 1:] = Rotation.from_rotvec(rng.uniform(-bend, bend, (S - 1, 3))).as_quat()
+    return SimpleNamespace(root_pos=np.asarray(root_pos, float), joint_q=q, seg_length=np.full((G, S), seg_len),
+                           joint_qd=rng.normal(0.0, 2.0, (G, S, 3)))
+
+
+def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None):
+    """Model, State and Control stand-ins with the contract's names, filled from float64 FK."""
+    G, S = strands.seg_length.shape
+    verts, rots, vels, _ = fk64(head, strands.root_pos, strands.joint_q, strands.seg_length, strands.joint_qd,
+                                head_velocity)
+    xf = np.concatenate([verts[:, :S], Rotation.from_matrix(rots.reshape(-1, 3, 3)).as_quat().reshape(G, S, 4)], -1)
+    f32 = np.float32
+    model = SimpleNamespace(
+        strand_count=G, seg_per_strand=S, seg_count=G * S, vert_count=G * (S + 1),
+        seg_length=wp.array(strands.seg_length.ravel().astype(f32), dtype=float),
+        strand_root_pos=wp.array(strands.root_pos.astype(f32), dtype=wp.vec3),
+        rest_vertex_positions=np.full((G, S + 1, 3), 100.0) if rest is None else rest)
+    state = SimpleNamespace(
+        joint_q=wp.array(strands.joint_q.reshape(-1, 4).astype(f32), dtype=wp.quat),
+        joint_qd=wp.array(strands.joint_qd.reshape(-1, 3).astype(f32), dtype=wp.vec3),
+        seg_xform=wp.array(xf.reshape(-1, 7).astype(f32), dtype=wp.transform),
+        vertex_positions=wp.array(verts.reshape(-1, 3).astype(f32), dtype=wp.vec3),
+        vertex_velocities=wp.array(vels.reshape(-1, 3).astype(f32), dtype=wp.vec3),
+        fault=wp.zeros(1, dtype=wp.int32))
+    from hairwarp.colliders import matrix_to_transform
+
+    control = SimpleNamespace(
+        head_xform=wp.array(matrix_to_transform(head)[None].astype(f32), dtype=wp.transform),
+        head_velocity=wp.array(np.asarray(head_velocity, f32)[None], dtype=wp.spatial_vector))
+    return model, state, control
+
+
+def snapshot(state):
+    return {k: getattr(state, k).numpy().copy() for k in
+            ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")}
+
+
+def random_rigid(rng, scale=0.2):
+    m = np.eye(4)
+    m[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    m[:3, 3] = rng.uniform(-scale, scale, 3)
+    return m
+
+
+@pytest.fixture(scope="module")
+def dt_array():
+    return wp.array([DT], dtype=float)
+
+
+@pytest.fixture(scope="module")
+def ratboy_body():
+    if not RATBOY_BODY.exists():
+        pytest.skip(f"TressFX Ratboy assets not found at {RATBOY_BODY} (shared data beside the checkout)")
+    return read_tfxmesh(RATBOY_BODY)
+
+
+# ---------------------------------------------------------------- reader and constructors
+
+
+def test_tfxmesh_reader(ratboy_body):
+    assert len(ratboy_body.vertices) == 12909
+    assert len(ratboy_body.faces) == 25814
+    assert ratboy_body.is_watertight
+    assert ratboy_body.volume > 0.0  # outward winding survives the Y-up -> Z-up turn
+    lo, hi = ratboy_body.bounds
+    assert hi[2] - lo[2] == pytest.approx(0.9125, abs=1e-3)  # body height along +Z
+    assert lo[2] > -1e-3
+
+
+def test_tfxmesh_errors(tmp_path):
+    bad = tmp_path / "bad.tfxmesh"
+    bad.write_text("numOfBones 0\nnumOfVertices 3\n0 0 0 0 0 0 1 0 0 0 0 1 0 0 0\n")
+    with pytest.raises(TfxMeshError, match="bad.tfxmesh"):
+        read_tfxmesh(bad)
+    bad.write_text("numOfBones 0\nnumOfVertices 1\n0 0 0 0 0 0 1 0 0 0 0 1 0 0 0\nnumOfTriangles 1\n0 0 1 2\n")
+    with pytest.raises(TfxMeshError, match="indices"):
+        read_tfxmesh(bad)
+    with pytest.raises(ColliderError, match="missing.obj"):
+        Collider.from_mesh_file(tmp_path / "missing.obj")
+
+
+def test_collider_validation_and_open_mesh_warning():
+    with pytest.raises(ColliderError, match="'ball'"):
+        Collider.sphere(-1.0, name="ball")
+    with pytest.raises(ColliderError, match="friction"):
+        Collider.sphere(0.1, friction=2.0)
+    with pytest.raises(ColliderError, match="rigid"):
+        Collider.capsule(0.1, 0.2, local_xform=np.diag([2.0, 1.0, 1.0, 1.0]))
+    with pytest.raises(ColliderError, match="unique"):
+        ColliderSet([Collider.sphere(0.1), Collider.sphere(0.2)], "cpu")
+    open_box = trimesh.creation.box()
+    open_box.update_faces(np.arange(len(open_box.faces)) > 0)
+    with pytest.warns(UserWarning, match="'lid'.*not watertight"):
+        Collider.from_trimesh(open_box, name="lid")
+
+
+def test_mesh_file_up_axis(tmp_path):
+    box = trimesh.creation.box(extents=(0.1, 0.2, 0.4))
+    path = tmp_path / "box.obj"
+    box.export(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z_up = Collider.from_mesh_file(path, scale=2.0)
+        y_up = Collider.from_mesh_file(path, up_axis="Y")
+    assert z_up.name == "box" and z_up.kind == ColliderKind.MESH
+    np.testing.assert_allclose(z_up.mesh.extents, (0.2, 0.4, 0.8), atol=1e-12)
+    np.testing.assert_allclose(y_up.mesh.extents, (0.1, 0.4, 0.2), atol=1e-12)
+
+
+# ---------------------------------------------------------------- queries
+
+
+def check_mesh_queries(collider, rng, n_box, n_surface):
+    mesh = collider.mesh
+    world = mesh.copy()
+    world.apply_transform(collider.local_xform)
+    size = float(np.linalg.norm(world.extents))
+    lo, hi = world.bounds
+    margin = 0.05 * size
+    surface = world.sample(n_surface, seed=int(rng.integers(1 << 31)))
+    offsets = rng.uniform(-0.03, 0.03, (n_surface, 1)) * size * rng.normal(size=(n_surface, 3))
+    points = np.concatenate([rng.uniform(lo - margin, hi + margin, (n_box, 3)), surface + offsets])
+    points = points.astype(np.float32).astype(float)
+
+    colliders = ColliderSet([collider], "cpu")
+    d, cp, n = colliders.signed_distance(points)
+    d, cp, n = d[:, 0], cp[:, 0], n[:, 0]
+    ref_cp, ref_dist = reference_closest(world, points)
+    tol = QUERY_RTOL * size
+    np.testing.assert_allclose(np.abs(d), ref_dist, atol=tol)
+    # A surface point at the reference distance is a closest point (ties make the point itself non-unique).
+    np.testing.assert_allclose(reference_closest(world, cp)[1], 0.0, atol=tol)
+    np.testing.assert_allclose(np.linalg.norm(points - cp, axis=1), ref_dist, atol=tol)
+    assert np.mean(np.linalg.norm(cp - ref_cp, axis=1) < tol) > 0.99
+    far = np.abs(d) > SIGN_BAND
+    assert far.sum() > 0.8 * len(points)
+    np.testing.assert_array_equal(d[far] < 0.0, reference_inside(world, points[far]))
+    assert (d < 0).sum() > 0.1 * len(points)  # the sample does probe the inside
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    away = np.abs(d) > 1e-3 * size
+    np.testing.assert_allclose(points[away], cp[away] + d[away, None] * n[away], atol=tol)
+
+
+def test_mesh_queries_ratboy_body(ratboy_body):
+    check_mesh_queries(Collider.from_trimesh(ratboy_body, name="body"), np.random.default_rng(1), 150, 100)
+
+
+def test_mesh_queries_ellipsoid_head():
+    rng = np.random.default_rng(2)
+    head = Collider.ellipsoid(center=(0.01, -0.02, 0.03), radii=(0.08, 0.095, 0.11), subdivisions=3)
+    head.local_xform = random_rigid(rng) @ head.local_xform
+    check_mesh_queries(head, rng, 200, 100)
+
+
+def test_primitive_queries_closed_form():
+    rng = np.random.default_rng(3)
+    sphere = Collider.sphere(0.12, center=(0.1, -0.05, 0.2))
+    capsule = Collider.capsule(0.04, 0.15, local_xform=random_rigid(rng))
+    plane = Collider.plane(point=(0.0, 0.1, -0.2), normal=(0.3, -0.2, 1.0))
+    points = rng.uniform(-0.4, 0.4, (500, 3)).astype(np.float32).astype(float)
+    d, cp, n = ColliderSet([sphere, capsule, plane], "cpu").signed_distance(points)
+
+    centre = sphere.local_xform[:3, 3]
+    r = np.linalg.norm(points - centre, axis=1)
+    np.testing.assert_allclose(d[:, 0], r - 0.12, atol=PRIMITIVE_ATOL)
+    np.testing.assert_allclose(cp[:, 0], centre + 0.12 * (points - centre) / r[:, None], atol=PRIMITIVE_ATOL)
+
+    m = capsule.local_xform
+    local = (points - m[:3, 3]) @ m[:3, :3]
+    axis_point = np.zeros_like(local)
+    axis_point[:, 2] = np.clip(local[:, 2], -0.15, 0.15)
+    off = local - axis_point
+    np.testing.assert_allclose(d[:, 1], np.linalg.norm(off, axis=1) - 0.04, atol=PRIMITIVE_ATOL)
+    ref = (axis_point + 0.04 * off / np.linalg.norm(off, axis=1)[:, None]) @ m[:3, :3].T + m[:3, 3]
+    np.testing.assert_allclose(cp[:, 1], ref, atol=PRIMITIVE_ATOL)
+
+    normal = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    height = (points - (0.0, 0.1, -0.2)) @ normal
+    np.testing.assert_allclose(d[:, 2], height, atol=PRIMITIVE_ATOL)
+    np.testing.assert_allclose(cp[:, 2], points - height[:, None] * normal, atol=PRIMITIVE_ATOL)
+    np.testing.assert_allclose(n[:, 2], np.tile(normal, (len(points), 1)), atol=PRIMITIVE_ATOL)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=2), 1.0, atol=1e-6)
+
+
+# ---------------------------------------------------------------- projection
+
+
+def run_projection(colliders, strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dt_array=None):
+    model, state, control = device_setup(strands, head, head_velocity, rest)
+    colliders.bind(model)
+    before = snapshot(state)
+    colliders.project(model, state, control, dt_array)
+    return model, state, before, snapshot(state)
+
+
+def signed_distance64(collider, points, head):
+    """Float64 signed distance of world points to one collider: closed forms, or trimesh for meshes."""
+    m = (head if collider.attach == "head" else np.eye(4)) @ collider.local_xform
+    local = (points - m[:3, 3]) @ m[:3, :3]
+    if collider.kind == ColliderKind.SPHERE:
+        return np.linalg.norm(local, axis=-1) - collider.radius
+    if collider.kind == ColliderKind.PLANE:
+        return local[..., 2]
+    flat = local.reshape(-1, 3)
+    _, dist = reference_closest(collider.mesh, flat)
+    return np.where(reference_inside(collider.mesh, flat), -dist, dist).reshape(points.shape[:-1])
+
+
+@pytest.mark.parametrize("shape", ["sphere", "ellipsoid", "plane"])
+def test_projection_invariants(shape, dt_array):
+    rng = np.random.default_rng(4)
+    G, S, L = 32, 12, 0.02
+    head = random_rigid(rng, 0.5)
+    head_velocity = (0.5, -1.0, 0.3, 0.2, 0.1, -0.4)
+    if shape == "sphere":
+        collider = Collider.sphere(0.1, thickness=1e-3, friction=0.5)
+    elif shape == "ellipsoid":
+        collider = Collider.ellipsoid(radii=(0.1, 0.09, 0.11), subdivisions=3, thickness=1e-3, friction=0.5)
+    else:
+        collider = Collider.plane(point=(0.0, 0.0, -0.03), normal=(0.1, 0.0, 1.0), thickness=1e-3, friction=0.5)
+    dirs = rng.normal(size=(G, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2]) + 0.3  # roots on the upper part, above the plane
+    roots = 0.112 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = -roots + rng.normal(0.0, 0.08, (G, 3))  # mostly into the body, some tangent, a few away
+    dirs[-4:] = roots[-4:]  # straight out: these stay clear of the collider
+    strands = make_strands(rng, G, S, L, roots, dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
+    colliders = ColliderSet([collider], "cpu")
+    model, state, before, after = run_projection(colliders, strands, head, head_velocity, dt_array=dt_array)
+
+    old_v = before["vertex_positions"].reshape(G, S + 1, 3).astype(float)
+    new_v = after["vertex_positions"].reshape(G, S + 1, 3).astype(float)
+    assert after["fault"][0] == 0
+    d_old = signed_distance64(collider, old_v[:, 1:], head)
+    d_new = signed_distance64(collider, new_v[:, 1:], head)
+    assert (d_old < 0).sum() > G  # the setup does penetrate
+    assert d_new.min() > -DEPTH_TOL
+
+    lengths = np.linalg.norm(np.diff(new_v, axis=1), axis=2)
+    np.testing.assert_allclose(lengths, L, rtol=LENGTH_RTOL)
+
+    new_q = after["joint_q"].reshape(G, S, 4).astype(float)
+    new_qd = after["joint_qd"].reshape(G, S, 3).astype(float)
+    fk_v, fk_R, fk_vel, fk_w = fk64(head, strands.root_pos, new_q, strands.seg_length, new_qd, head_velocity)
+    np.testing.assert_allclose(fk_v, new_v, atol=FK_ATOL)
+    xf = after["seg_xform"].reshape(G, S, 7).astype(float)
+    np.testing.assert_allclose(xf[..., :3], new_v[:, :S], atol=FK_ATOL)
+    np.testing.assert_allclose(quat_matrix(xf[..., 3:].reshape(-1, 4)).reshape(G, S, 3, 3), fk_R, atol=ROT_ATOL)
+
+    # Twist kept: each new segment frame is its old frame turned by the minimal rotation old -> new direction.
+    _, old_R, _, old_w = fk64(head, strands.root_pos, strands.joint_q, strands.seg_length, strands.joint_qd,
+                              head_velocity)
+    d_dir_old = -old_R[..., :, 2]
+    d_dir_new = -fk_R[..., :, 2]
+    np.testing.assert_allclose(np.einsum("gkij,gkjl->gkil", min_rotation64(d_dir_old, d_dir_new), old_R), fk_R,
+                               atol=ROT_ATOL)
+
+    # Strands clear of the contact layer are not written at all.
+    clear = (d_old > collider.thickness + 1e-4).all(axis=1)
+    assert clear.sum() >= 4
+    for key in ("joint_q", "joint_qd", "seg_xform"):
+        np.testing.assert_array_equal(after[key].reshape(G, S, -1)[clear], before[key].reshape(G, S, -1)[clear])
+    for key in ("vertex_positions", "vertex_velocities"):
+        np.testing.assert_array_equal(after[key].reshape(G, S + 1, 3)[clear], before[key].reshape(G, S + 1, 3)[clear])
+
+    # Joint velocities recovered from the vertex velocities: twist rate about the segment kept, the rest
+    # of the segment's angular velocity from the velocity difference of its two ends.
+    new_vel = after["vertex_velocities"].reshape(G, S + 1, 3).astype(float)
+    # Pushes of centimetres in one step make angular speeds of hundreds of rad/s: compare relative to them.
+    scale = np.abs(fk_w).max(axis=(1, 2))[:, None]
+    twist_old = np.einsum("gki,gki->gk", old_w, d_dir_old)
+    assert np.all(np.abs(np.einsum("gki,gki->gk", fk_w, d_dir_new) - twist_old) <= VEL_RTOL * scale)
+    perp = np.cross(d_dir_new, np.diff(new_vel, axis=1)) / L
+    err = np.linalg.norm(fk_w - np.einsum("gk,gki->gki", twist_old, d_dir_new) - perp, axis=2)
+    assert np.all(err <= VEL_RTOL * scale)
+
+    # Vertices only carried along (not in contact) get v + (p_new - p_old) / h.
+    old_vel = before["vertex_velocities"].reshape(G, S + 1, 3).astype(float)
+    # The seed's rule from the new previous vertex towards the old vertex; a vertex that sits there and
+    # clear of the contact layer was only carried along.
+    prop = new_v[:, :-1] + L * (old_v[:, 1:] - new_v[:, :-1]) / np.linalg.norm(old_v[:, 1:] - new_v[:, :-1],
+                                                                               axis=2, keepdims=True)
+    carried = ((np.linalg.norm(prop - new_v[:, 1:], axis=2) < FK_ATOL) & (d_new > collider.thickness + 1e-5)
+               & (np.linalg.norm(new_v - old_v, axis=2)[:, 1:] > 1e-5))
+    if shape != "plane":  # below a plane the followers end up inside too: all are pushed
+        assert carried.sum() > 0
+    expect = old_vel[:, 1:] + (new_v[:, 1:] - old_v[:, 1:]) / DT
+    np.testing.assert_allclose(new_vel[:, 1:][carried], expect[carried], rtol=1e-4, atol=1e-3)
+
+
+def test_deep_penetration_mesh(dt_array):
+    """A vertex far deeper than the contact layer is still found (winding-number sign) and pushed out."""
+    rng = np.random.default_rng(5)
+    G, S = 6, 10
+    collider = Collider.ellipsoid(radii=(0.1, 0.1, 0.1), subdivisions=3, thickness=5e-4)
+    roots = np.tile((0.0, 0.0, 0.101), (G, 1))
+    dirs = np.tile((0.0, 0.0, -1.0), (G, 1)) + rng.normal(0.0, 0.05, (G, 3))
+    strands = make_strands(rng, G, S, 0.015, roots, dirs / np.linalg.norm(dirs, axis=1, keepdims=True), bend=0.05)
+    _, state, before, after = run_projection(ColliderSet([collider], "cpu"), strands, np.eye(4), dt_array=dt_array)
+    old_v = before["vertex_positions"].reshape(G, S + 1, 3).astype(float)
+    new_v = after["vertex_positions"].reshape(G, S + 1, 3).astype(float)
+    assert signed_distance64(collider, old_v[:, 1:], np.eye(4)).min() < -0.05
+    assert signed_distance64(collider, new_v[:, 1:], np.eye(4)).min() > -DEPTH_TOL
+    np.testing.assert_allclose(np.linalg.norm(np.diff(new_v, axis=1), axis=2), 0.015, rtol=LENGTH_RTOL)
+
+
+def resting_strand_setup(rng, friction, plane_velocity, plane_omega=(0.0, 0.0, 0.0)):
+    """Strands lying along +x at 0.5 mm above a world plane z = 0 (thickness 1 mm), head at rest."""
+    G, S = 3, 8
+    roots = np.stack([np.zeros(G), np.arange(G) * 0.1, np.full(G, 5e-4)], 1)
+    strands = make_strands(rng, G, S, 0.01, roots, np.tile((1.0, 0.0, 0.0), (G, 1)), bend=0.0)
+    strands.joint_q[:, 1:] = (0.0, 0.0, 0.0, 1.0)
+    collider = Collider.plane(attach="world", thickness=1e-3, friction=friction)
+    colliders = ColliderSet([collider], "cpu")
+    colliders.set_pose(0, np.eye(4), linear_velocity=plane_velocity, angular_velocity=plane_omega)
+    return strands, colliders
+
+
+def test_friction_one_matches_object_velocity(dt_array):
+    rng = np.random.default_rng(6)
+    # Spin about the strands' axis (+x): the matched velocities differ between strands but stay
+    # perpendicular to every segment, so joint velocities can represent them exactly.
+    u, w = np.array([0.0, 0.3, 0.0]), np.array([0.5, 0.0, 0.0])
+    strands, colliders = resting_strand_setup(rng, 1.0, u, w)
+    strands.joint_qd[:] = 0.0
+    _, state, before, after = run_projection(colliders, strands, np.eye(4), dt_array=dt_array)
+    pos = after["vertex_positions"].reshape(3, 9, 3).astype(float)
+    vel = after["vertex_velocities"].reshape(3, 9, 3).astype(float)
+    np.testing.assert_array_equal(after["vertex_positions"], before["vertex_positions"])  # near, not inside
+    np.testing.assert_allclose(vel[:, 1:], u + np.cross(w, pos[:, 1:]), atol=VEL_ATOL)
+    np.testing.assert_allclose(vel[:, 0], 0.0)
+    assert np.ptp(vel[:, 1:, 2]) > 0.05  # the spin shows
+    qd = after["joint_qd"].reshape(3, 8, 3).astype(float)
+    _, _, fk_vel, _ = fk64(np.eye(4), strands.root_pos, strands.joint_q, strands.seg_length, qd)
+    np.testing.assert_allclose(fk_vel, vel, atol=VEL_ATOL)
+
+
+def test_friction_zero_keeps_tangential_velocity(dt_array):
+    rng = np.random.default_rng(7)
+    u = np.array([0.05, -0.02, 0.0])
+    strands, colliders = resting_strand_setup(rng, 0.0, u)
+    _, state, before, after = run_projection(colliders, strands, np.eye(4), dt_array=dt_array)
+    v_old = before["vertex_velocities"].reshape(3, 9, 3).astype(float)[:, 1:]
+    v_new = after["vertex_velocities"].reshape(3, 9, 3).astype(float)[:, 1:]
+    rel = v_old - u
+    expect = v_old.copy()
+    expect[..., 2] = np.where(rel[..., 2] < 0.0, u[2], v_old[..., 2])  # approach along +z removed only
+    assert (rel[..., 2] < 0.0).any() and (rel[..., 2] > 0.0).any()
+    np.testing.assert_allclose(v_new, expect, atol=VEL_ATOL)
+
+
+def test_inside_at_rest_policy(dt_array):
+    """Vertices inside at rest are left alone (no kick) until first seen clear, then collide as usual."""
+    rng = np.random.default_rng(8)
+    G, S = 4, 6
+    collider = Collider.sphere(0.1, thickness=1e-3, attach="world")
+    roots = np.tile((0.0, 0.0, 0.099), (G, 1))  # root and first vertices start inside
+    dirs = np.tile((0.0, 0.0, 1.0), (G, 1)) + rng.normal(0.0, 0.2, (G, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2])
+    strands = make_strands(rng, G, S, 0.004, roots, dirs / np.linalg.norm(dirs, axis=1, keepdims=True), bend=0.0)
+    strands.joint_q[:, 1:] = (0.0, 0.0, 0.0, 1.0)
+    strands.joint_q[:, 0] = (0.0, 0.0, 0.0, 1.0)  # first segment straight down, deeper in
+    strands.joint_q[:, 1] = Rotation.from_rotvec((np.pi - 0.2, 0.0, 0.0)).as_quat()  # then back up and out
+    rest, _, _, _ = fk64(np.eye(4), strands.root_pos, strands.joint_q, strands.seg_length)
+    colliders = ColliderSet([collider], "cpu")
+    model, state, control = device_setup(strands, np.eye(4), rest=rest)
+    colliders.bind(model)
+    inside = signed_distance64(collider, rest, np.eye(4)) < 0.0
+    assert inside[:, :3].all() and not inside[:, 3:].any()
+    np.testing.assert_array_equal(colliders.vert_exempt.numpy().reshape(G, S + 1) != 0, inside & (np.arange(S + 1) > 0))
+
+    before = snapshot(state)
+    colliders.project(model, state, control, dt_array)
+    after = snapshot(state)
+    np.testing.assert_array_equal(after["vertex_positions"], before["vertex_positions"])
+    np.testing.assert_array_equal(after["joint_q"], before["joint_q"])
+
+    # Lift the strands clear (head moved up 8 mm): their exemptions clear for good.
+    up = np.eye(4)
+    up[2, 3] = 0.008
+    control.head_xform.assign(np.array([[0, 0, 0.008, 0, 0, 0, 1]], dtype=np.float32))
+    verts, _, _, _ = fk64(up, strands.root_pos, strands.joint_q, strands.seg_length)
+    state.vertex_positions.assign(verts.reshape(-1, 3).astype(np.float32))
+    colliders.project(model, state, control, dt_array)
+    assert colliders.exempt_count == 0
+
+    # Back at rest: the formerly exempt vertices are now pushed out.
+    model2, state2, control2 = device_setup(strands, np.eye(4), rest=rest)
+    colliders.model = model2  # keep the cleared flags, bind a fresh state
+    colliders.project(model2, state2, control2, dt_array)
+    new_v = state2.vertex_positions.numpy().reshape(G, S + 1, 3).astype(float)
+    assert signed_distance64(collider, new_v[:, 1:], np.eye(4)).min() > -DEPTH_TOL
+    assert state2.fault.numpy()[0] == 0
+
+
+def test_nonfinite_flagged(dt_array):
+    rng = np.random.default_rng(9)
+    strands, colliders = resting_strand_setup(rng, 0.5, (0.0, 0.0, 0.0))
+    model, state, control = device_setup(strands, np.eye(4))
+    colliders.bind(model)
+    v = state.vertex_velocities.numpy()
+    v[3] = np.nan
+    state.vertex_velocities.assign(v)
+    colliders.project(model, state, control, dt_array)
+    assert state.fault.numpy()[0] & int(Fault.NONFINITE_COLLISION)
