@@ -282,23 +282,23 @@ class StaticLinks:
 
 
 class TriangleStrips:
-    """Triangle strips between guide strands with adjacent roots, in a ``wp.Mesh`` refit every step.
+    """Triangle strips between guide strands with adjacent roots (topology; :class:`HairContacts` keeps their BVH).
 
-    Pair ``p = (a, b)`` and segment ``k`` give triangles ``2 S p + 2 k + 0 = (a_k, b_k, a_{k+1})`` and
-    ``2 S p + 2 k + 1 = (b_k, b_{k+1}, a_{k+1})``, as indices ``g*(S+1) + k`` into the guide vertex array.
+    Pair ``p = (a, b)`` and segment ``k`` make quad ``q = S p + k``, split into triangles
+    ``2q = (a_k, b_k, a_{k+1})`` and ``2q + 1 = (b_k, b_{k+1}, a_{k+1})``, as indices ``g*(S+1) + k`` into the
+    guide vertex array, so the strips follow the state's vertices without a copy.
 
     Attributes:
         device: Warp device.
-        strand_count: G. seg_per_strand: S. pair_count: number of strand pairs P. tri_count: 2 S P.
+        strand_count: G. seg_per_strand: S. pair_count: number of strand pairs P. quad_count: S P.
+        tri_count: 2 S P.
         pairs: numpy int32 (P, 2), the strand pairs (a < b).
         tri_width: numpy float64 (2SP,), rest length of each triangle's "horizontal" edge (a_k b_k or
             a_{k+1} b_{k+1}) [m]; width_ref: its median s0.
-        points: vec3 (G*(S+1),) on the device, owned by the mesh; :meth:`update` copies the vertices in.
         indices: int32 (3 * 2SP,) on the device, the triangles.
         tri_strands: vec2i (2SP,) on the device, the strands (a, b) of each triangle.
         tri_stiffness_scale: float32 (2SP,) on the device, s0 / s clamped to [1/4, 4], the density factor of the
             vertex-face stiffness.
-        mesh: the ``wp.Mesh`` (None when there are no pairs).
     """
 
     @classmethod
@@ -335,9 +335,8 @@ class TriangleStrips:
         strips.strand_count, strips.seg_per_strand = G, S
         strips.pairs = pairs
         strips.pair_count = len(pairs)
+        strips.quad_count = S * len(pairs)
         strips.tri_count = 2 * S * len(pairs)
-        strips.points = wp.array(verts.reshape(-1, 3), dtype=wp.vec3, device=strips.device)
-        strips.mesh = None
         if strips.pair_count == 0:
             strips.tri_width = np.zeros(0)
             strips.width_ref = 0.0
@@ -367,15 +366,7 @@ class TriangleStrips:
         strips.indices = wp.array(tri.reshape(-1).astype(np.int32), dtype=wp.int32, device=strips.device)
         strips.tri_strands = wp.array(tri_strands, dtype=wp.vec2i, device=strips.device)
         strips.tri_stiffness_scale = wp.array(scale, dtype=float, device=strips.device)
-        strips.mesh = wp.Mesh(points=strips.points, indices=strips.indices)
         return strips
-
-    def update(self, state):
-        """Copy the state's vertex positions into the mesh points and refit the mesh BVH (launch only)."""
-        if self.mesh is None:
-            return
-        wp.copy(self.points, state.vertex_positions)
-        self.mesh.refit()
 
 
 def _root_adjacency(roots: np.ndarray, root_uv, max_edge_ratio: float) -> np.ndarray:
@@ -422,6 +413,9 @@ class HairContacts:
         threshold: contact distance [m]; stiffness: k0 [N/m]; damping: normal damping [N s/m]; friction: mu;
             slip_velocity: regularisation speed of the Coulomb law [m/s]; capacity: contact slots.
         seg_lowers, seg_uppers: vec3 (G*S,), threshold-grown segment boxes of the ``seg_bvh``.
+        strip_lowers, strip_uppers: vec3 (quad_count,), threshold-grown boxes of the strip quads (two triangles
+            each) in the ``strip_bvh``. A ``wp.Bvh`` rather than a ``wp.Mesh``: ``Bvh.refit`` is recorded by a CPU
+            graph capture, ``Mesh.refit`` is not (Warp 1.19), and the boxes read the state's vertices directly.
         contact_kind: int32 (capacity,): ``CONTACT_VERTEX_FACE`` (a = vertex, b = triangle, w = barycentric
             weights) or ``CONTACT_SEGMENT_SEGMENT`` (a, b = segments, w = (s, t, 0) along each).
         contact_a, contact_b: int32 (capacity,). contact_w: vec3 (capacity,).
@@ -444,7 +438,7 @@ class HairContacts:
         segment_segment: bool = True,
         device=None,
     ) -> HairContacts:
-        """Allocate the segment BVH and the contact buffers.
+        """Allocate the segment and strip BVHs and the contact buffers.
 
         Args:
             rest_vertices: (G, S+1, 3) vertex positions for the initial BVH [m].
@@ -478,7 +472,7 @@ class HairContacts:
         contacts = cls()
         dev = contacts.device = wp.get_device(device)
         contacts.strand_count, contacts.seg_per_strand = G, S
-        contacts.strips = strips if strips is not None and strips.mesh is not None else None
+        contacts.strips = strips if strips is not None and strips.pair_count > 0 else None
         contacts.segment_segment = bool(segment_segment) and G > 1
         contacts.threshold = float(threshold)
         contacts.stiffness = float(stiffness)
@@ -495,6 +489,13 @@ class HairContacts:
         contacts.seg_lowers = wp.array(np.minimum(p0, p1) - threshold, dtype=wp.vec3, device=dev)
         contacts.seg_uppers = wp.array(np.maximum(p0, p1) + threshold, dtype=wp.vec3, device=dev)
         contacts.seg_bvh = wp.Bvh(contacts.seg_lowers, contacts.seg_uppers) if contacts.segment_segment else None
+        contacts.strip_bvh = None
+        if contacts.strips is not None:
+            corners = contacts.strips.indices.numpy().reshape(-1, 6)[:, [0, 1, 2, 4]]  # a_k, b_k, a_k+1, b_k+1
+            quad = verts.reshape(-1, 3)[corners]
+            contacts.strip_lowers = wp.array(quad.min(axis=1) - threshold, dtype=wp.vec3, device=dev)
+            contacts.strip_uppers = wp.array(quad.max(axis=1) + threshold, dtype=wp.vec3, device=dev)
+            contacts.strip_bvh = wp.Bvh(contacts.strip_lowers, contacts.strip_uppers)
 
         contacts.contact_kind = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
         contacts.contact_a = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
@@ -519,7 +520,7 @@ class HairContacts:
         return self.strips is not None or self.segment_segment
 
     def detect(self, model, state):
-        """Refit the strip mesh and the segment BVH to ``state`` and fill the contact buffers (launch only)."""
+        """Refit the strip and segment BVHs to ``state`` and fill the contact buffers (launch only)."""
         S = model.seg_per_strand
         self.contact_counter.zero_()
         buffers = [
@@ -527,11 +528,18 @@ class HairContacts:
             self.contact_counter, self.contact_overflow, state.fault,
         ]
         if self.strips is not None:
-            self.strips.update(state)
+            wp.launch(
+                contact_kernels.strip_bounds,
+                dim=self.strips.quad_count,
+                inputs=[self.threshold, self.strips.indices, state.vertex_positions],
+                outputs=[self.strip_lowers, self.strip_uppers],
+                device=self.device,
+            )
+            self.strip_bvh.refit()
             wp.launch(
                 contact_kernels.vertex_face_contacts,
                 dim=len(state.vertex_positions),
-                inputs=[S, self.threshold, self.capacity, self.strips.mesh.id, self.strips.indices,
+                inputs=[S, self.threshold, self.capacity, self.strip_bvh.id, self.strips.indices,
                         self.strips.tri_strands, state.vertex_positions],
                 outputs=buffers,
                 device=self.device,
@@ -572,9 +580,10 @@ class HairContacts:
         )
 
     def rebuild(self):
-        """Rebuild the segment BVH from its current boxes (host; optional, e.g. once per frame after large motion)."""
-        if self.seg_bvh is not None:
-            self.seg_bvh.rebuild()
+        """Rebuild both BVHs from their current boxes (optional, e.g. once per frame after large motion)."""
+        for bvh in (self.seg_bvh, self.strip_bvh):
+            if bvh is not None:
+                bvh.rebuild()
 
     def contact_count(self) -> int:
         """Contacts found in the last step, including any dropped for want of capacity (host read)."""

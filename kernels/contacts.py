@@ -207,12 +207,35 @@ def segment_segment_contacts(
 
 
 @wp.kernel
+def strip_bounds(
+    # Model:
+    contact_threshold: float,
+    strip_indices: wp.array(dtype=wp.int32),
+    # State in:
+    vertex_positions: wp.array(dtype=wp.vec3),
+    # Out:
+    strip_lowers: wp.array(dtype=wp.vec3),
+    strip_uppers: wp.array(dtype=wp.vec3),
+):
+    """One thread per strip quad (two triangles): its world box [m] grown by the threshold, for the strip BVH."""
+    quad = wp.tid()
+    # Triangles 2q = (a_k, b_k, a_{k+1}) and 2q+1 = (b_k, b_{k+1}, a_{k+1}): corners at index slots 0, 1, 2 and 4.
+    p0 = vertex_positions[strip_indices[6 * quad + 0]]
+    p1 = vertex_positions[strip_indices[6 * quad + 1]]
+    p2 = vertex_positions[strip_indices[6 * quad + 2]]
+    p3 = vertex_positions[strip_indices[6 * quad + 4]]
+    grow = wp.vec3(contact_threshold)
+    strip_lowers[quad] = wp.min(wp.min(p0, p1), wp.min(p2, p3)) - grow
+    strip_uppers[quad] = wp.max(wp.max(p0, p1), wp.max(p2, p3)) + grow
+
+
+@wp.kernel
 def vertex_face_contacts(
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
     contact_capacity: int,
-    strip_mesh: wp.uint64,
+    strip_bvh: wp.uint64,
     strip_indices: wp.array(dtype=wp.int32),
     tri_strands: wp.array(dtype=wp.vec2i),
     # State in:
@@ -228,7 +251,7 @@ def vertex_face_contacts(
 ):
     """One thread per guide vertex (roots skipped): every strip triangle of other strands closer than the threshold.
 
-    Queries the strip mesh BVH with the vertex's box grown by the threshold [m]; appends (vertex, triangle,
+    Queries the BVH of threshold-grown strip quads with the vertex position [m]; appends (vertex, triangle,
     barycentric weights of the closest point) when that point lies inside the strip (``strip_feature_owned``).
     """
     vertex = wp.tid()
@@ -236,23 +259,24 @@ def vertex_face_contacts(
     if vertex == strand * (seg_per_strand + 1):
         return
     p = vertex_positions[vertex]
-    grow = wp.vec3(contact_threshold)
-    query = wp.mesh_query_aabb(strip_mesh, p - grow, p + grow)
-    tri = int(0)
-    while wp.mesh_query_next(query, tri):
-        ab = tri_strands[tri]
+    query = wp.bvh_query_aabb(strip_bvh, p, p)
+    quad = int(0)
+    while wp.bvh_query_next(query, quad):
+        ab = tri_strands[2 * quad]
         if ab[0] == strand or ab[1] == strand:
             continue
-        a = vertex_positions[strip_indices[3 * tri + 0]]
-        b = vertex_positions[strip_indices[3 * tri + 1]]
-        c = vertex_positions[strip_indices[3 * tri + 2]]
-        w = closest_point_triangle(p, a, b, c)
-        q = w[0] * a + w[1] * b + w[2] * c
-        if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):
-            push_contact(
-                CONTACT_VERTEX_FACE, vertex, tri, w, contact_capacity,
-                contact_kind, contact_a, contact_b, contact_w, contact_count, contact_overflow, fault,
-            )
+        for j in range(2):
+            tri = 2 * quad + j
+            a = vertex_positions[strip_indices[3 * tri + 0]]
+            b = vertex_positions[strip_indices[3 * tri + 1]]
+            c = vertex_positions[strip_indices[3 * tri + 2]]
+            w = closest_point_triangle(p, a, b, c)
+            q = w[0] * a + w[1] * b + w[2] * c
+            if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):
+                push_contact(
+                    CONTACT_VERTEX_FACE, vertex, tri, w, contact_capacity,
+                    contact_kind, contact_a, contact_b, contact_w, contact_count, contact_overflow, fault,
+                )
 
 
 @wp.func

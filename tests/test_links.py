@@ -268,6 +268,38 @@ def test_breaking_follows_numpy_and_is_permanent(setup):
     assert links.broken_count() == 0
 
 
+def test_captured_step_follows_the_state(setup):
+    """Links captured in a graph once, replayed on a moved state, give the forces and breaks of a direct call."""
+    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=RADIUS, stiffness=K_S,
+                              damping=K_D, break_length=0.004)
+    model = setup.model
+    state = _arrays(setup.verts, setup.rot, np.zeros_like(setup.verts))
+    force, torque, mass = wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=float)
+    dt = wp.array([DT], dtype=float)
+    links.apply(model, state, dt, force, torque, mass)
+    links.break_links(model, state)
+    with wp.ScopedCapture(device=force.device) as capture:
+        force.zero_()
+        torque.zero_()
+        mass.zero_()
+        links.apply(model, state, dt, force, torque, mass)
+        links.break_links(model, state)
+    assert links.broken_count() == 0
+    rng = np.random.default_rng(5)
+    rot = setup.rot * Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
+    verts = _chain(setup.roots, rot)
+    moved = _arrays(verts, rot, np.zeros_like(verts))
+    for name in ("seg_xform", "vertex_positions", "vertex_velocities"):
+        wp.copy(getattr(state, name), getattr(moved, name))
+    wp.capture_launch(capture.graph)
+    ref_force, _, length = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)))
+    np.testing.assert_allclose(force.numpy(), ref_force, atol=FORCE_RTOL * np.abs(ref_force).max())
+    clear = np.abs(length - links.break_length) > BREAK_BAND
+    broken = links.link_broken.numpy()[: links.link_count].astype(bool)
+    np.testing.assert_array_equal(broken[clear], (length > links.break_length)[clear])
+    assert links.broken_count() == broken.sum() > 0
+
+
 def test_bad_input_is_named():
     with pytest.raises(InteractionError, match="rest_vertices"):
         StaticLinks.build(np.zeros((3, 4)), radius=1.0, stiffness=1.0, damping=0.0, break_length=1.0)
