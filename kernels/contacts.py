@@ -127,12 +127,12 @@ def push_contact(
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
-    contact_count: wp.array(dtype=wp.int32),
+    contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
 ):
     """Append one contact; past the capacity, count it, drop it and raise the overflow flags."""
-    slot = wp.atomic_add(contact_count, 0, 1)
+    slot = wp.atomic_add(contact_counter, 0, 1)
     if slot < contact_capacity:
         contact_kind[slot] = kind
         contact_a[slot] = a
@@ -178,7 +178,7 @@ def segment_segment_contacts(
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
-    contact_count: wp.array(dtype=wp.int32),
+    contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
 ):
@@ -202,7 +202,7 @@ def segment_segment_contacts(
         if st[2] < contact_threshold:
             push_contact(
                 CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), contact_capacity,
-                contact_kind, contact_a, contact_b, contact_w, contact_count, contact_overflow, fault,
+                contact_kind, contact_a, contact_b, contact_w, contact_counter, contact_overflow, fault,
             )
 
 
@@ -245,7 +245,7 @@ def vertex_face_contacts(
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
-    contact_count: wp.array(dtype=wp.int32),
+    contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
 ):
@@ -275,7 +275,7 @@ def vertex_face_contacts(
             if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):
                 push_contact(
                     CONTACT_VERTEX_FACE, vertex, tri, w, contact_capacity,
-                    contact_kind, contact_a, contact_b, contact_w, contact_count, contact_overflow, fault,
+                    contact_kind, contact_a, contact_b, contact_w, contact_counter, contact_overflow, fault,
                 )
 
 
@@ -441,12 +441,14 @@ def contact_forces(
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
+    # Control:
     dt: wp.array(dtype=float),
+    # Scratch:
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
-    contact_count: wp.array(dtype=wp.int32),
+    contact_counter: wp.array(dtype=wp.int32),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -461,7 +463,7 @@ def contact_forces(
     """
     # A fixed thread count strides over however many contacts this step found (the count is only on the device).
     slot = wp.tid()
-    count = wp.min(contact_count[0], contact_capacity)
+    count = wp.min(contact_counter[0], contact_capacity)
     h = dt[0]
     while slot < count:
         contact_force(

@@ -75,6 +75,7 @@ def link_forces(
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
+    # Control:
     dt: wp.array(dtype=float),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
