@@ -81,21 +81,39 @@ def _quat_rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return v + w * t + np.cross(u, t)
 
 
-def shortest_arc_rotations(rest_vertices) -> np.ndarray:
-    """Per-segment world rotations (x, y, z, w), shape (G*S, 4), turning body -z onto each segment's direction.
+def _quat_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Minimal rotations (x, y, z, w) taking unit vectors a to b, row by row (a half turn for opposite vectors)."""
+    q = np.concatenate([np.cross(a, b), 1.0 + np.einsum("ij,ij->i", a, b)[:, None]], axis=1)
+    opposite = q[:, 3] < 1e-12
+    if opposite.any():
+        perp = np.cross(a[opposite], [1.0, 0.0, 0.0])
+        weak = np.linalg.norm(perp, axis=1) < 1e-6
+        perp[weak] = np.cross(a[opposite][weak], [0.0, 1.0, 0.0])
+        q[opposite] = np.concatenate([perp, np.zeros((len(perp), 1))], axis=1)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
-    The frames of a chain whose rest joint rotations carry no twist about the segments; a model whose frames
-    do carry twist must pass its own rotations to :meth:`StaticLinks.build`.
+
+def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton products p q of quaternions (x, y, z, w), row by row."""
+    pv, pw, qv, qw = p[:, :3], p[:, 3:], q[:, :3], q[:, 3:]
+    return np.concatenate([pw * qv + qw * pv + np.cross(pv, qv), pw * qw - np.sum(pv * qv, axis=1, keepdims=True)], 1)
+
+
+def twist_free_rotations(rest_vertices) -> np.ndarray:
+    """World rotations (x, y, z, w), shape (G*S, 4), of twist-free segment frames with body -z along each segment.
+
+    The first segment takes the minimal rotation from world -z, each next one the minimal rotation from its parent
+    (parallel transport): the frames ``hairwarp.Model`` builds for its rest pose with the head at identity.
     """
     verts = _check_vertices(rest_vertices)
-    d = np.diff(verts, axis=1).reshape(-1, 3)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    down = np.array([0.0, 0.0, -1.0])
-    axis = np.cross(down, d)
-    cos = d @ down
-    q = np.concatenate([axis, (1.0 + cos)[:, None]], axis=1)
-    opposite = 1.0 + cos < 1e-12
-    q[opposite] = [1.0, 0.0, 0.0, 0.0]
+    d = np.diff(verts, axis=1)
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    G, S = d.shape[:2]
+    q = np.empty((G, S, 4))
+    q[:, 0] = _quat_between(np.broadcast_to([0.0, 0.0, -1.0], (G, 3)), d[:, 0])
+    for k in range(1, S):
+        q[:, k] = _quat_mul(_quat_between(d[:, k - 1], d[:, k]), q[:, k - 1])
+    q = q.reshape(-1, 4)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
@@ -183,7 +201,8 @@ class StaticLinks:
         Args:
             rest_vertices: (G, S+1, 3) world vertex positions of the pose the links hold [m].
             rest_rotations: world rotations (x, y, z, w) of the segments in that pose, shape (G*S, 4) (or
-                (G*S, 7) transforms, as ``state.seg_xform.numpy()``); default :func:`shortest_arc_rotations`.
+                (G*S, 7) transforms, as ``state.seg_xform.numpy()``); default :func:`twist_free_rotations`, the
+                model's own frames when ``rest_vertices`` is its ``rest_vertex_positions``.
             neighbours: links made per segment (n of the seed).
             radius: largest segment-segment distance that gets a link [m].
             stiffness: spring stiffness k_s [N/m].
@@ -201,7 +220,7 @@ class StaticLinks:
                 raise InteractionError(f"{name} must be >= 0, got {value}")
         if int(neighbours) < 1:
             raise InteractionError(f"neighbours must be >= 1, got {neighbours}")
-        rot = shortest_arc_rotations(verts) if rest_rotations is None else np.asarray(rest_rotations, np.float64)
+        rot = twist_free_rotations(verts) if rest_rotations is None else np.asarray(rest_rotations, np.float64)
         if rot.ndim == 2 and rot.shape == (G * S, 7):
             rot = rot[:, 3:7]
         if rot.shape != (G * S, 4):

@@ -189,6 +189,32 @@ def test_rest_pose_is_slack(setup):
     np.testing.assert_allclose(mass, counts * (DT * DT * K_S + DT * K_D), rtol=1e-6)
 
 
+def _min_rotation(a, b):
+    """Rodrigues: the rotations of least angle taking unit vectors a to b, row by row."""
+    axis = np.cross(a, b)
+    sin = np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.arctan2(sin[:, 0], np.sum(a * b, axis=1))
+    return Rotation.from_rotvec(axis / np.maximum(sin, 1e-300) * angle[:, None])
+
+
+def test_default_frames_are_parallel_transport(setup):
+    """Without rest_rotations the builder assumes twist-free frames (parallel transport from world -z, as the
+    model builds them): links on such chains are slack at rest."""
+    rng = np.random.default_rng(9)
+    d = np.array([0.0, 0.0, -1.0]) + rng.normal(0.0, 0.3, (G, S, 3))
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    frames = [_min_rotation(np.tile([0.0, 0.0, -1.0], (G, 1)), d[:, 0])]
+    for k in range(1, S):
+        frames.append(_min_rotation(d[:, k - 1], d[:, k]) * frames[-1])
+    rot = Rotation.from_quat(np.stack([f.as_quat() for f in frames], axis=1).reshape(-1, 4))
+    verts = _chain(setup.roots, rot)
+    links = StaticLinks.build(verts, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=0.004)
+    force, _, _ = _apply(links, setup.model, _arrays(verts, rot, np.zeros_like(verts)))
+    counts = np.bincount(np.concatenate([links.seg_a, links.seg_b]), minlength=G * S)
+    assert links.link_count > G * S
+    assert np.linalg.norm(force, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max()
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_forces_match_seed_formula_and_conserve_momentum(setup, seed):
     """After a rigid motion and a bend of every joint, forces match float64 numpy and sum to a zero wrench."""
