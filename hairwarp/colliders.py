@@ -531,3 +531,87 @@ class ColliderSet:
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
             state.fault,
         ])
+
+
+def bench_collision(device=None, quick: bool = False, *, strands: int = 2000, segments: int = 31,
+                    groom_path=None, body_path=None, repeats: int = 10) -> dict:
+    """Time ``ColliderSet.project`` on a groom against a body mesh.
+
+    By default a generated groom (``scalp_groom``) on a closed ellipsoid head mesh; with ``groom_path``
+    and ``body_path`` (e.g. the TressFX Ratboy ``.tfx`` and ``.tfxmesh``) those files instead. Two
+    states are timed: the rest pose, and the rest pose with every joint turned by up to 0.3 rad at random
+    so that many vertices start inside.
+
+    Args:
+        device: Warp device; the default device when None.
+        quick: fewer strands (a fifth) and repeats, for smoke runs.
+        strands: generated guide strands.
+        segments: segments per strand S.
+        groom_path: a groom file for ``Groom.load``; needs ``body_path``.
+        body_path: a mesh file for ``Collider.from_mesh_file``.
+        repeats: timed repetitions per figure; the median is reported.
+
+    Returns:
+        ``{"device", "strands", "segments", "body_triangles", "exempt_vertices", "results": [{"state",
+        "project_s", "vertices_moved", "max_depth_after_m"}, ...]}``, times in seconds per call (median
+        after one warm-up call); the depth is over vertices that are not exempt and follow one outside.
+    """
+    import time
+
+    from hairwarp.groom import Groom, scalp_groom
+    from hairwarp.model import Model
+
+    device = wp.get_device(device)
+    if quick:
+        strands, repeats = max(strands // 5, 1), 3
+    if groom_path is not None and body_path is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            groom = Groom.load(groom_path, min_length=0.0)
+        body = Collider.from_mesh_file(body_path)
+    else:
+        center, radii = (0.0, 0.0, 1.6), (0.085, 0.1, 0.11)
+        groom = scalp_groom(strands, 0.3, points=segments + 1, scalp_center=center, scalp_radii=radii)
+        body = Collider.ellipsoid(center, radii, subdivisions=5)
+    model = Model.build(groom, segments=segments, device=device)
+    colliders = ColliderSet([body], device, model=model)
+    exempt = colliders.exempt_count
+    control = model.control()
+    dt = wp.array([1.0 / 600.0], dtype=float, device=device)
+    rest = model.state()
+    perturbed = model.state()
+    rng = np.random.default_rng(0)
+    q = rest.joint_q.numpy()
+    angle = rng.uniform(-0.3, 0.3, (len(q), 3))
+    half = 0.5 * np.linalg.norm(angle, axis=1, keepdims=True)
+    dq = np.concatenate([np.sinc(half / np.pi) * 0.5 * angle, np.cos(half)], axis=1)
+    x1, y1, z1, w1 = q.T
+    x2, y2, z2, w2 = dq.T
+    perturbed.joint_q.assign(np.stack([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                                       w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2],
+                                      axis=1).astype(np.float32))
+    from hairwarp.solver import forward_kinematics
+
+    forward_kinematics(model, perturbed, control)
+    work = model.state()
+    results = []
+    for name, source in (("rest", rest), ("perturbed", perturbed)):
+        samples = []
+        for _ in range(repeats + 1):
+            work.assign(source)
+            colliders.bind(model)
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            colliders.project(model, work, control, dt)
+            wp.synchronize_device(device)
+            samples.append(time.perf_counter() - t0)
+        before = source.vertex_positions.numpy()
+        after = work.vertex_positions.numpy()
+        depth = colliders.signed_distance(after)[0][:, 0].reshape(model.strand_count, -1)
+        # Behind a vertex that is inside (exempt) the next one can rise by one segment length only.
+        reachable = (colliders.vert_exempt.numpy().reshape(depth.shape) == 0)[:, 1:] & (depth[:, :-1] >= 0.0)
+        results.append({"state": name, "project_s": float(np.median(samples[1:])),
+                        "vertices_moved": int(np.count_nonzero(np.any(after != before, axis=1))),
+                        "max_depth_after_m": float(max(0.0, -depth[:, 1:][reachable].min(initial=0.0)))})
+    return {"device": str(device), "strands": model.strand_count, "segments": segments,
+            "body_triangles": int(len(body.mesh.faces)), "exempt_vertices": exempt, "results": results}
