@@ -402,6 +402,8 @@ def collide_strands(
                         break
                 p = wp.transform_point(X, x_local)
                 pushed = 1
+                # The bound held where the vertex was; the colliders after this one start from none.
+                bound = -UNBOUNDED
                 if moved == 0:
                     first_moved = k
                 moved = 1

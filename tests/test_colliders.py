@@ -134,7 +134,7 @@ def make_strands(rng, G, S, seg_len, root_pos, first_dirs, bend=0.3):
                            joint_qd=rng.normal(0.0, 2.0, (G, S, 3)))
 
 
-def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None):
+def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, device="cpu"):
     """Model, State and Control stand-ins with the contract's names, filled from float64 FK."""
     G, S = strands.seg_length.shape
     verts, rots, vels, _ = fk64(head, strands.root_pos, strands.joint_q, strands.seg_length, strands.joint_qd,
@@ -143,21 +143,21 @@ def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None):
     f32 = np.float32
     model = SimpleNamespace(
         strand_count=G, seg_per_strand=S, seg_count=G * S, vert_count=G * (S + 1),
-        seg_length=wp.array(strands.seg_length.ravel().astype(f32), dtype=float),
-        strand_root_pos=wp.array(strands.root_pos.astype(f32), dtype=wp.vec3),
+        seg_length=wp.array(strands.seg_length.ravel().astype(f32), dtype=float, device=device),
+        strand_root_pos=wp.array(strands.root_pos.astype(f32), dtype=wp.vec3, device=device),
         rest_vertex_positions=np.full((G, S + 1, 3), 100.0) if rest is None else rest)
     state = SimpleNamespace(
-        joint_q=wp.array(strands.joint_q.reshape(-1, 4).astype(f32), dtype=wp.quat),
-        joint_qd=wp.array(strands.joint_qd.reshape(-1, 3).astype(f32), dtype=wp.vec3),
-        seg_xform=wp.array(xf.reshape(-1, 7).astype(f32), dtype=wp.transform),
-        vertex_positions=wp.array(verts.reshape(-1, 3).astype(f32), dtype=wp.vec3),
-        vertex_velocities=wp.array(vels.reshape(-1, 3).astype(f32), dtype=wp.vec3),
-        fault=wp.zeros(1, dtype=wp.int32))
+        joint_q=wp.array(strands.joint_q.reshape(-1, 4).astype(f32), dtype=wp.quat, device=device),
+        joint_qd=wp.array(strands.joint_qd.reshape(-1, 3).astype(f32), dtype=wp.vec3, device=device),
+        seg_xform=wp.array(xf.reshape(-1, 7).astype(f32), dtype=wp.transform, device=device),
+        vertex_positions=wp.array(verts.reshape(-1, 3).astype(f32), dtype=wp.vec3, device=device),
+        vertex_velocities=wp.array(vels.reshape(-1, 3).astype(f32), dtype=wp.vec3, device=device),
+        fault=wp.zeros(1, dtype=wp.int32, device=device))
     from hairwarp.colliders import matrix_to_transform
 
     control = SimpleNamespace(
-        head_xform=wp.array(matrix_to_transform(head)[None].astype(f32), dtype=wp.transform),
-        head_velocity=wp.array(np.asarray(head_velocity, f32)[None], dtype=wp.spatial_vector))
+        head_xform=wp.array(matrix_to_transform(head)[None].astype(f32), dtype=wp.transform, device=device),
+        head_velocity=wp.array(np.asarray(head_velocity, f32)[None], dtype=wp.spatial_vector, device=device))
     return model, state, control
 
 
@@ -316,8 +316,9 @@ def test_primitive_queries_closed_form():
 # ---------------------------------------------------------------- projection
 
 
-def run_projection(colliders, strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dt_array=None):
-    model, state, control = device_setup(strands, head, head_velocity, rest)
+def run_projection(colliders, strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dt_array=None,
+                   device="cpu"):
+    model, state, control = device_setup(strands, head, head_velocity, rest, device)
     colliders.bind(model)
     before = snapshot(state)
     colliders.project(model, state, control, dt_array)
@@ -337,33 +338,39 @@ def signed_distance64(collider, points, head):
     return np.where(reference_inside(collider.mesh, flat), -dist, dist).reshape(points.shape[:-1])
 
 
-@pytest.mark.parametrize("shape", ["sphere", "ellipsoid", "plane"])
-def test_projection_invariants(shape, dt_array):
+@pytest.mark.parametrize("shape", ["sphere", "ellipsoid", "plane", "sphere+floor"])
+def test_projection_invariants(shape, dt_array, device):
     rng = np.random.default_rng(4)
     G, S, L = 32, 12, 0.02
     head = random_rigid(rng, 0.5)
     head_velocity = (0.5, -1.0, 0.3, 0.2, 0.1, -0.4)
-    if shape == "sphere":
-        collider = Collider.sphere(0.1, thickness=1e-3, friction=0.5)
-    elif shape == "ellipsoid":
-        collider = Collider.ellipsoid(radii=(0.1, 0.09, 0.11), subdivisions=3, thickness=1e-3, friction=0.5)
-    else:
-        collider = Collider.plane(point=(0.0, 0.0, -0.03), normal=(0.1, 0.0, 1.0), thickness=1e-3, friction=0.5)
+    layer = dict(thickness=1e-3, friction=0.5)
+    shapes = {
+        "sphere": [Collider.sphere(0.1, **layer)],
+        "ellipsoid": [Collider.ellipsoid(radii=(0.1, 0.09, 0.11), subdivisions=3, **layer)],
+        "plane": [Collider.plane(point=(0.0, 0.0, -0.03), normal=(0.1, 0.0, 1.0), **layer)],
+        "sphere+floor": [Collider.sphere(0.1, **layer), Collider.plane(point=(0.0, 0.0, -0.11), name="floor", **layer)],
+    }
+    shape_list = shapes[shape]
     dirs = rng.normal(size=(G, 3))
     dirs[:, 2] = np.abs(dirs[:, 2]) + 0.3  # roots on the upper part, above the plane
     roots = 0.112 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     dirs = -roots + rng.normal(0.0, 0.08, (G, 3))  # mostly into the body, some tangent, a few away
     dirs[-4:] = roots[-4:]  # straight out: these stay clear of the collider
     strands = make_strands(rng, G, S, L, roots, dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
-    colliders = ColliderSet([collider], "cpu")
-    model, state, before, after = run_projection(colliders, strands, head, head_velocity, dt_array=dt_array)
+    colliders = ColliderSet(shape_list, device)
+    dt_array = wp.array([DT], dtype=float, device=device)
+    model, state, before, after = run_projection(colliders, strands, head, head_velocity, dt_array=dt_array,
+                                                 device=device)
 
     old_v = before["vertex_positions"].reshape(G, S + 1, 3).astype(float)
     new_v = after["vertex_positions"].reshape(G, S + 1, 3).astype(float)
     assert after["fault"][0] == 0
-    d_old = signed_distance64(collider, old_v[:, 1:], head)
-    d_new = signed_distance64(collider, new_v[:, 1:], head)
+    d_old = np.min([signed_distance64(c, old_v[:, 1:], head) for c in shape_list], axis=0)
+    d_new = np.min([signed_distance64(c, new_v[:, 1:], head) for c in shape_list], axis=0)
     assert (d_old < 0).sum() > G  # the setup does penetrate
+    if shape == "sphere+floor":
+        assert (signed_distance64(shape_list[1], old_v[:, 1:], head) < 0).sum() > 5  # the floor too
     assert d_new.min() > -DEPTH_TOL
 
     lengths = np.linalg.norm(np.diff(new_v, axis=1), axis=2)
@@ -386,7 +393,7 @@ def test_projection_invariants(shape, dt_array):
                                atol=ROT_ATOL)
 
     # Strands clear of the contact layer are not written at all.
-    clear = (d_old > collider.thickness + 1e-4).all(axis=1)
+    clear = (d_old > layer["thickness"] + 1e-4).all(axis=1)
     assert clear.sum() >= 4
     for key in ("joint_q", "joint_qd", "seg_xform"):
         np.testing.assert_array_equal(after[key].reshape(G, S, -1)[clear], before[key].reshape(G, S, -1)[clear])
@@ -410,9 +417,9 @@ def test_projection_invariants(shape, dt_array):
     # clear of the contact layer was only carried along.
     prop = new_v[:, :-1] + L * (old_v[:, 1:] - new_v[:, :-1]) / np.linalg.norm(old_v[:, 1:] - new_v[:, :-1],
                                                                                axis=2, keepdims=True)
-    carried = ((np.linalg.norm(prop - new_v[:, 1:], axis=2) < FK_ATOL) & (d_new > collider.thickness + 1e-5)
+    carried = ((np.linalg.norm(prop - new_v[:, 1:], axis=2) < FK_ATOL) & (d_new > layer["thickness"] + 1e-5)
                & (np.linalg.norm(new_v - old_v, axis=2)[:, 1:] > 1e-5))
-    if shape != "plane":  # below a plane the followers end up inside too: all are pushed
+    if shape in ("sphere", "ellipsoid"):  # below a plane the followers end up inside too: all are pushed
         assert carried.sum() > 0
     expect = old_vel[:, 1:] + (new_v[:, 1:] - old_v[:, 1:]) / DT
     np.testing.assert_allclose(new_vel[:, 1:][carried], expect[carried], rtol=1e-4, atol=1e-3)
@@ -484,10 +491,8 @@ def test_inside_at_rest_policy(dt_array):
     rng = np.random.default_rng(8)
     G, S = 4, 6
     collider = Collider.sphere(0.1, thickness=1e-3, attach="world")
-    roots = np.tile((0.0, 0.0, 0.099), (G, 1))  # root and first vertices start inside
-    dirs = np.tile((0.0, 0.0, 1.0), (G, 1)) + rng.normal(0.0, 0.2, (G, 3))
-    dirs[:, 2] = np.abs(dirs[:, 2])
-    strands = make_strands(rng, G, S, 0.004, roots, dirs / np.linalg.norm(dirs, axis=1, keepdims=True), bend=0.0)
+    roots = np.column_stack([rng.uniform(-0.01, 0.01, (G, 2)), np.full(G, 0.099)])  # root starts inside
+    strands = make_strands(rng, G, S, 0.004, roots, np.tile((0.0, 0.0, -1.0), (G, 1)), bend=0.0)
     strands.joint_q[:, 1:] = (0.0, 0.0, 0.0, 1.0)
     strands.joint_q[:, 0] = (0.0, 0.0, 0.0, 1.0)  # first segment straight down, deeper in
     strands.joint_q[:, 1] = Rotation.from_rotvec((np.pi - 0.2, 0.0, 0.0)).as_quat()  # then back up and out
@@ -497,7 +502,8 @@ def test_inside_at_rest_policy(dt_array):
     colliders.bind(model)
     inside = signed_distance64(collider, rest, np.eye(4)) < 0.0
     assert inside[:, :3].all() and not inside[:, 3:].any()
-    np.testing.assert_array_equal(colliders.vert_exempt.numpy().reshape(G, S + 1) != 0, inside & (np.arange(S + 1) > 0))
+    np.testing.assert_array_equal(colliders.vert_exempt.numpy().reshape(G, S + 1) != 0,
+                                  inside & (np.arange(S + 1) > 0))  # roots never collide, never exempt
 
     before = snapshot(state)
     colliders.project(model, state, control, dt_array)
@@ -521,6 +527,50 @@ def test_inside_at_rest_policy(dt_array):
     new_v = state2.vertex_positions.numpy().reshape(G, S + 1, 3).astype(float)
     assert signed_distance64(collider, new_v[:, 1:], np.eye(4)).min() > -DEPTH_TOL
     assert state2.fault.numpy()[0] == 0
+
+
+class _Sample:
+    def __init__(self, matrix, linear_velocity, angular_velocity):
+        self._matrix = matrix
+        self.linear_velocity = linear_velocity
+        self.angular_velocity = angular_velocity
+
+    def matrix(self):
+        return self._matrix
+
+
+class _Spin:
+    """A motion: turning about world z at ``rate`` about the point ``centre``."""
+
+    def __init__(self, rate, centre):
+        self.rate, self.centre = rate, np.asarray(centre, float)
+
+    def evaluate(self, t):
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_rotvec((0.0, 0.0, self.rate * t)).as_matrix()
+        m[:3, 3] = self.centre - m[:3, :3] @ self.centre
+        w = np.array([0.0, 0.0, self.rate])
+        return _Sample(m, np.cross(w, m[:3, 3] - self.centre), w)
+
+
+def test_update_poses_from_motion():
+    rng = np.random.default_rng(10)
+    local = random_rigid(rng)
+    spin = _Spin(2.0, (0.3, -0.1, 0.0))
+    colliders = ColliderSet([Collider.capsule(0.05, 0.1, local_xform=local, attach="world", motion=spin, name="arm"),
+                             Collider.sphere(0.1, name="skull")], "cpu")
+    head = random_rigid(rng)
+    colliders.update(0.4, _Sample(head, np.array([0.1, 0.0, 0.2]), np.array([0.0, 1.0, 0.0])))
+    xf, vel = colliders.collider_xform.numpy(), colliders.collider_velocity.numpy()
+    world = spin.evaluate(0.4).matrix() @ local
+    np.testing.assert_allclose(xf[0, :3], world[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(quat_matrix(xf[0, 3:])[0], world[:3, :3], atol=1e-6)
+    # Velocity of the capsule's origin, a point on the spinning body.
+    np.testing.assert_allclose(vel[0, 3:], np.cross((0.0, 0.0, 2.0), world[:3, 3] - spin.centre), atol=1e-6)
+    np.testing.assert_allclose(colliders.world_matrices()[1], head, atol=1e-12)
+    np.testing.assert_allclose(vel[1], (0.0, 1.0, 0.0, 0.1, 0.0, 0.2), atol=1e-7)
+    with pytest.raises(ColliderError, match="'skull' rides on the head"):
+        colliders.set_pose("skull", np.eye(4))
 
 
 def test_nonfinite_flagged(dt_array):
