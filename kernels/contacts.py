@@ -170,6 +170,7 @@ def segment_segment_contacts(
     seg_per_strand: int,
     contact_threshold: float,
     contact_capacity: int,
+    contact_alignment_cutoff: float,
     seg_bvh: wp.uint64,
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
@@ -185,20 +186,27 @@ def segment_segment_contacts(
     """One thread per segment i: every segment j > i of another strand closer than the threshold [m].
 
     Queries the BVH of threshold-grown segment boxes with i's own box; appends (i, j, (s, t, 0)) with the
-    closest-point parameters along each segment (0 at the segment origin, 1 at its end).
+    closest-point parameters along each segment (0 at the segment origin, 1 at its end). Pairs more nearly
+    parallel than the alignment cutoff (``1 - |T_a . T_b|`` below it) are left out: their repulsion is negligible.
     """
     i = wp.tid()
     strand = i // seg_per_strand
     vi = i + strand
     p0 = vertex_positions[vi]
     p1 = vertex_positions[vi + 1]
+    ta = wp.normalize(p1 - p0)
     query = wp.bvh_query_aabb(seg_bvh, wp.min(p0, p1), wp.max(p0, p1))
     j = int(0)
     while wp.bvh_query_next(query, j):
         if j <= i or j // seg_per_strand == strand:
             continue
         vj = j + j // seg_per_strand
-        st = wp.closest_point_edge_edge(p0, p1, vertex_positions[vj], vertex_positions[vj + 1], _DEGENERATE_EDGE_SQ)
+        q0 = vertex_positions[vj]
+        q1 = vertex_positions[vj + 1]
+        if contact_alignment_cutoff > 0.0:
+            if 1.0 - wp.abs(wp.dot(ta, wp.normalize(q1 - q0))) < contact_alignment_cutoff:
+                continue
+        st = wp.closest_point_edge_edge(p0, p1, q0, q1, _DEGENERATE_EDGE_SQ)
         if st[2] < contact_threshold:
             push_contact(
                 CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), contact_capacity,
@@ -235,6 +243,7 @@ def vertex_face_contacts(
     seg_per_strand: int,
     contact_threshold: float,
     contact_capacity: int,
+    contact_alignment_cutoff: float,
     strip_bvh: wp.uint64,
     strip_indices: wp.array(dtype=wp.int32),
     tri_strands: wp.array(dtype=wp.vec2i),
@@ -252,24 +261,36 @@ def vertex_face_contacts(
     """One thread per guide vertex (roots skipped): every strip triangle of other strands closer than the threshold.
 
     Queries the BVH of threshold-grown strip quads with the vertex position [m]; appends (vertex, triangle,
-    barycentric weights of the closest point) when that point lies inside the strip (``strip_feature_owned``).
+    barycentric weights of the closest point) when that point lies inside the strip (``strip_feature_owned``) and
+    the strand crosses the strip by more than the alignment cutoff.
     """
     vertex = wp.tid()
     strand = vertex // (seg_per_strand + 1)
     if vertex == strand * (seg_per_strand + 1):
         return
     p = vertex_positions[vertex]
+    ta = vertex_tangent(vertex, seg_per_strand, vertex_positions)
     query = wp.bvh_query_aabb(strip_bvh, p, p)
     quad = int(0)
     while wp.bvh_query_next(query, quad):
         ab = tri_strands[2 * quad]
         if ab[0] == strand or ab[1] == strand:
             continue
+        if contact_alignment_cutoff > 0.0:
+            tb = strip_face_direction(2 * quad, seg_per_strand, tri_strands, vertex_positions)
+            if 1.0 - wp.abs(wp.dot(ta, tb)) < contact_alignment_cutoff:
+                continue
         for j in range(2):
             tri = 2 * quad + j
             a = vertex_positions[strip_indices[3 * tri + 0]]
             b = vertex_positions[strip_indices[3 * tri + 1]]
             c = vertex_positions[strip_indices[3 * tri + 2]]
+            # Cheap rejection first: a point farther than the threshold from the triangle's plane is farther from
+            # the triangle (compared squared, scaled by |n|^2, to avoid a square root).
+            n = wp.cross(b - a, c - a)
+            h = wp.dot(p - a, n)
+            if h * h > contact_threshold * contact_threshold * wp.dot(n, n):
+                continue
             w = closest_point_triangle(p, a, b, c)
             q = w[0] * a + w[1] * b + w[2] * c
             if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):

@@ -25,6 +25,8 @@ POINT_TOL = 1.0e-6
 FEATURE_TOL = 1.0e-9
 # A closest point this near (in barycentric weight) to another feature may be classed differently in float32.
 FEATURE_BAND = 1.0e-4
+# 1 - |T_a . T_b| this near the alignment cutoff may fall on either side in float32.
+ALIGN_BAND = 1.0e-5
 # Closed-form force checks: float32 relative error of a few products.
 FORCE_RTOL = 1.0e-4
 # Momentum sums cancel many float32 terms: residual as a fraction of the sum of magnitudes.
@@ -105,11 +107,13 @@ def _segment_distances(p0, p1, q0, q1):
     return np.where(inside, np.minimum(best, perp), best)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_detection_matches_brute_force(seed):
+@pytest.mark.parametrize("seed, cutoff", [(0, 0.0), (1, 0.0), (2, 0.0), (0, 0.2), (1, 0.2)])
+def test_detection_matches_brute_force(seed, cutoff):
+    """All pairs closer than the threshold (and crossing by more than the alignment cutoff) are found, once."""
     verts, _ = _tangled(seed)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000)
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000,
+                                  alignment_cutoff=cutoff)
     # Detect on a moved configuration: the BVH and the mesh are refit, not rebuilt.
     moved, _ = _tangled(seed + 100)
     model = _model(G, S)
@@ -123,7 +127,10 @@ def test_detection_matches_brute_force(seed):
     other = i // S != j // S
     i, j = i[other], j[other]
     dist = _segment_distances(p0[i], p1[i], p0[j], p1[j])
-    clear = np.abs(dist - THRESHOLD) > BOUNDARY_BAND
+    unit = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
+    align = 1.0 - np.abs(np.sum(unit[i] * unit[j], axis=1))
+    dist = np.where(align >= cutoff, dist, np.inf)
+    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (np.abs(align - cutoff) > ALIGN_BAND)
     expected = set(zip(i[(dist < THRESHOLD) & clear].tolist(), j[(dist < THRESHOLD) & clear].tolist(), strict=True))
     ambiguous = set(zip(i[~clear].tolist(), j[~clear].tolist(), strict=True))
     ee = found["kind"] == CONTACT_SEGMENT_SEGMENT
@@ -144,8 +151,10 @@ def test_detection_matches_brute_force(seed):
     dist = np.linalg.norm(closest - flat[vv], axis=1)
     bary = trimesh.triangles.points_to_barycentric(flat[tris[tt]], closest)
     owned = _strip_owned(bary, tt, FEATURE_TOL)
-    dist = np.where(owned, dist, np.inf)
+    align = 1.0 - np.abs(np.sum(_vertex_tangents(moved)[vv] * _face_directions(moved, tri_strands)[tt], axis=1))
+    dist = np.where(owned & (align >= cutoff), dist, np.inf)
     clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (owned == _strip_owned(bary, tt, FEATURE_BAND))
+    clear &= np.abs(align - cutoff) > ALIGN_BAND
     expected = set(zip(vv[(dist < THRESHOLD) & clear].tolist(), tt[(dist < THRESHOLD) & clear].tolist(), strict=True))
     ambiguous = set(zip(vv[~clear].tolist(), tt[~clear].tolist(), strict=True))
     vf = found["kind"] == CONTACT_VERTEX_FACE
@@ -160,6 +169,24 @@ def test_detection_matches_brute_force(seed):
     point = np.einsum("ni,nij->nj", w, flat[tris[t_found]])
     ref = trimesh.triangles.closest_point(flat[tris[t_found]], flat[found["a"][vf]])
     np.testing.assert_allclose(point, ref, atol=POINT_TOL)
+
+
+def _vertex_tangents(verts):
+    """Unit tangent at every vertex (G*(S+1), 3): central differences, one-sided at the root and the tip."""
+    t = np.empty_like(verts)
+    t[:, 1:-1] = verts[:, 2:] - verts[:, :-2]
+    t[:, 0] = verts[:, 1] - verts[:, 0]
+    t[:, -1] = verts[:, -1] - verts[:, -2]
+    t = t.reshape(-1, 3)
+    return t / np.linalg.norm(t, axis=1, keepdims=True)
+
+
+def _face_directions(verts, tri_strands):
+    """The along-strand direction of every strip triangle: the sum of its two strands' segments, normalised."""
+    k = (np.arange(len(tri_strands)) % (2 * S)) // 2
+    d = np.diff(verts, axis=1)
+    t = d[tri_strands[:, 0], k] + d[tri_strands[:, 1], k]
+    return t / np.linalg.norm(t, axis=1, keepdims=True)
 
 
 def _strip_owned(w, tri, tol):
@@ -193,12 +220,16 @@ def test_repulsion_vanishes_for_parallel_segments(angle):
     vel[0] = [0.1, 0.05, 0.0]
     vel[1] = [-0.1, 0.0, 0.02]
     contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.1, friction=0.5,
-                                  capacity=8)
+                                  capacity=8, alignment_cutoff=0.0)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel))
     assert contacts.contact_count() == 1
     assert np.abs(force).max() < 1e-6 * 10.0 * THRESHOLD
     assert np.abs(torque).max() < 1e-6 * 10.0 * THRESHOLD * SEG_LEN
     np.testing.assert_allclose(mass, 0.0, atol=1e-12)
+    # With the default cutoff such a pair is not even stored.
+    default = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, capacity=8)
+    _apply(default, _model(2, 1), _state(verts, vel))
+    assert default.contact_count() == 0
 
 
 def test_crossing_segments_closed_form():
