@@ -31,6 +31,10 @@ _EXPORTS = {
     "Integrator": "hairwarp.kernels.types",
     "Fault": "hairwarp.kernels.types",
     "ColliderKind": "hairwarp.kernels.types",
+    # colliders and interactions
+    "Collider": "hairwarp.colliders",
+    "ColliderSet": "hairwarp.colliders",
+    "ColliderError": "hairwarp.colliders",
     # dense hair and output
     "DenseHair": "hairwarp.dense",
     "CacheWriter": "hairwarp.usd",

@@ -97,7 +97,15 @@ class Simulation:
                                  device=device or sim.device, gravity=tuple(sim.gravity))
         self.motion = scene.head_motion()
         self.frame_dt = scene.frame_dt
-        self.solver = Solver(self.model, sim.integrator, max_rotation_per_step=float(sim.max_rotation_per_step))
+        self.colliders = self._build_colliders(scene)
+        collider_set = None
+        if self.colliders:
+            from hairwarp.colliders import ColliderSet
+
+            collider_set = ColliderSet(self.colliders, self.model.device, model=self.model)
+        self.collider_set = collider_set
+        self.solver = Solver(self.model, sim.integrator, colliders=collider_set,
+                             max_rotation_per_step=float(sim.max_rotation_per_step))
         control = self.model.control()
         control.set_motion(self.motion.evaluate(0.0))
         state = self.model.state()
@@ -130,6 +138,50 @@ class Simulation:
                                           hermite=hermite)
         return points.numpy(), (vel.numpy() if vel is not None else None)
 
+    @staticmethod
+    def _build_colliders(scene) -> list:
+        """The head's collider (``[head]``) and the ``[[colliders]]`` of the scene."""
+        from hairwarp.colliders import Collider
+        from hairwarp.motion import euler_xyz_deg_to_quat, quat_to_matrix
+
+        out = []
+        head = scene.head
+        contact = {"thickness": float(head.thickness), "friction": float(head.friction), "attach": "head"}
+        if head.shape == "sphere":
+            out.append(Collider.sphere(float(head.radii[0]), center=tuple(head.center), name="head", **contact))
+        elif head.shape == "ellipsoid":
+            out.append(Collider.ellipsoid(tuple(head.center), tuple(head.radii), name="head", **contact))
+        elif head.shape == "mesh":
+            out.append(_mesh_collider(head.file, head.up_axis, head.scale, head.translate, np.zeros(3), "head",
+                                      contact))
+        for c in scene.colliders:
+            place = np.eye(4)
+            place[:3, :3] = quat_to_matrix(euler_xyz_deg_to_quat(c.rotate_deg))
+            place[:3, 3] = c.translate
+            opts = {"thickness": float(c.thickness), "friction": float(c.friction), "attach": c.attach}
+            if c.kind == "sphere":
+                out.append(Collider.sphere(float(c.radius), center=tuple(c.translate), name=c.name, **opts))
+            elif c.kind == "capsule":
+                out.append(Collider.capsule(float(c.radius), float(c.half_height), local_xform=place, name=c.name,
+                                            **opts))
+            elif c.kind == "plane":
+                out.append(Collider.plane(point=tuple(c.translate), normal=tuple(place[:3, 2]), name=c.name, **opts))
+            elif c.kind == "ellipsoid":
+                out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, **opts))
+            else:
+                out.append(_mesh_collider(c.file, c.up_axis, c.scale, c.translate, c.rotate_deg, c.name, opts))
+        return out
+
+    def collider_meshes(self, t: float) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+        """(name, local vertices, faces, world matrix at time t) of every collider, for the cache and previews."""
+        head_m = self.head_matrix(t)
+        out = []
+        for col in self.colliders:
+            verts, faces = _display_mesh(col)
+            world = (head_m if col.attach == "head" else np.eye(4)) @ col.local_xform
+            out.append((col.name, verts, faces, world))
+        return out
+
     def _before_step(self, t, control):
         control.set_motion(self.motion.evaluate(t))
         control.set_wind(self.scene.wind_at(t))
@@ -149,16 +201,46 @@ class Simulation:
     def head_matrix(self, t: float) -> np.ndarray:
         return self.motion.evaluate(t).matrix()
 
-    def head_mesh(self):
-        """(vertices, faces) of the head shape in the head frame at rest, or None."""
-        head = self.scene.head
-        if head.shape == "none" or head.center is None:
-            return None
-        import trimesh
 
-        mesh = trimesh.creation.icosphere(subdivisions=3)
-        radii = np.asarray(head.radii, float)
-        return mesh.vertices * radii + np.asarray(head.center, float), np.asarray(mesh.faces)
+def _mesh_collider(path, up_axis, scale, translate, rotate_deg, name, options):
+    from hairwarp.colliders import Collider
+    from hairwarp.motion import euler_xyz_deg_to_quat, quat_to_matrix
+
+    col = Collider.from_mesh_file(path, up_axis=up_axis, scale=float(scale), name=name, **options)
+    place = np.eye(4)
+    place[:3, :3] = quat_to_matrix(euler_xyz_deg_to_quat(rotate_deg))
+    place[:3, 3] = translate
+    col.local_xform = place @ col.local_xform
+    return col
+
+
+def _display_mesh(col) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle mesh of a collider in its local frame (analytic shapes tessellated for display)."""
+    import trimesh
+
+    from hairwarp.kernels.types import ColliderKind
+
+    if col.kind == ColliderKind.MESH:
+        mesh = col.mesh
+    elif col.kind == ColliderKind.SPHERE:
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=col.radius)
+    elif col.kind == ColliderKind.CAPSULE:
+        mesh = trimesh.creation.capsule(height=2.0 * col.half_height, radius=col.radius, count=[16, 16])
+    else:
+        mesh = trimesh.creation.box(extents=(1.0, 1.0, 1e-3))  # a 1 m square of the plane z = 0
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
+
+
+def _merged_world_mesh(meshes):
+    """One (vertices, faces) in world space of all collider meshes, or None."""
+    if not meshes:
+        return None
+    verts, faces, offset = [], [], 0
+    for _, v, f, world in meshes:
+        verts.append(v @ world[:3, :3].T + world[:3, 3])
+        faces.append(f + offset)
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces)
 
 
 @dataclass
@@ -229,7 +311,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     model = sim.model
     G, S = model.strand_count, model.seg_per_strand
     counts = np.full(G, S + 1, dtype=np.int32)
-    head = sim.head_mesh()
+    meshes0 = sim.collider_meshes(0.0)
     shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
     kept, notes = [], []
     report = _Progress(frames, progress)
@@ -246,8 +328,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             # with dense hair the guides are a guide purpose: renderers skip them, viewports may show them
             cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides",
                              purpose="guide" if dense is not None else "default")
-        if head is not None:
-            cache.add_mesh("head", head[0], head[1])
+        for name, verts, faces, _ in meshes0:
+            cache.add_mesh(name, verts, faces)
         for frame in range(frames + 1):
             if frame > 0:
                 try:
@@ -261,15 +343,13 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                     overflow_noted = True
                     notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
             points, velocities = sim.guide_curves()
-            head_m = sim.head_matrix(frame * sim.frame_dt)
+            meshes = sim.collider_meshes(frame * sim.frame_dt)
             curves = {"guides": (points, velocities)} if scene.output.guides else {}
             if dense is not None:
                 curves["hair"] = sim.dense_curves()
-            cache.write_frame(frame, curves, xforms={"head": head_m} if head is not None else None)
+            cache.write_frame(frame, curves, xforms={name: world for name, _, _, world in meshes} or None)
             if frame in shown:
-                mesh = None
-                if head is not None:
-                    mesh = (head[0] @ head_m[:3, :3].T + head_m[:3, 3], head[1])
+                mesh = _merged_world_mesh(meshes)
                 if dense is not None:  # the preview shows what renders: the dense hair
                     shown_curves = {"hair": (curves["hair"][0].copy(), cache_counts)}
                 else:
@@ -286,7 +366,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             [c for _, c, _ in kept],
             preview_path,
             titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
-            meshes=[m for _, _, m in kept] if head is not None else None,
+            meshes=[m for _, _, m in kept] if meshes0 else None,
         )
     seconds = time.perf_counter() - t_start
     return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames, 1), notes)

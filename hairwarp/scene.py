@@ -181,6 +181,7 @@ def _in_range(x: float, spec: str) -> bool:
 # sections
 
 _GROOM_SUFFIXES = (".tfx", ".hair", ".usd", ".usda", ".usdc", ".usdz")
+_MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off", ".tfxmesh")
 _SCALP_KEYS = ("count", "length", "points", "curl", "curl_period", "scalp_center", "scalp_radii", "cap_angle_deg",
                "front_cutoff_deg", "margin", "seed")
 _FILE_KEYS = ("up_axis", "scale", "translate")
@@ -252,6 +253,17 @@ def _check_head(values, given, error):
     if values["shape"] == "sphere" and values["radii"] is not None and "radii" in given:
         if len(set(values["radii"])) != 1:
             error("radii", f"a sphere needs three equal radii, got {_fmt(values['radii'])}")
+    if values["shape"] == "mesh" and values["file"] is None:
+        error("file", 'shape = "mesh" needs the mesh file')
+
+
+def _check_collider(values, given, error):
+    kind = values["kind"]
+    needs = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "ellipsoid": ("radii",),
+             "mesh": ("file",), "plane": ()}[kind]
+    for key in needs:
+        if values[key] is None:
+            error(key, f'kind = "{kind}" needs {key}')
 
 
 def _check_scene(values, given, error):
@@ -290,6 +302,27 @@ _MOTION_KEY = Section(
     },
     doc="one key of a keyframed head motion; no rotation keeps the rest orientation",
     check=_check_keys,
+)
+
+_COLLIDER = Section(
+    {
+        "name": Field("str", REQUIRED, "unique name of the collider (messages, the cache's prim)"),
+        "kind": Field("str", REQUIRED, "shape", choices=("sphere", "capsule", "plane", "ellipsoid", "mesh")),
+        "radius": Field("float", None, "sphere, capsule: radius", "m", range="(0, inf)"),
+        "half_height": Field("float", None, "capsule: half length of its axis (local z)", "m", range="[0, inf)"),
+        "radii": Field("vec3", None, "ellipsoid: semi-axes along local x, y, z", "m", range="(0, inf)"),
+        "file": Field("path", None, "mesh: the mesh file, relative to the scene file", suffixes=_MESH_SUFFIXES),
+        "up_axis": Field("str", "Z", "mesh: up axis of the file (converted to Z up)", choices=("Z", "Y")),
+        "scale": Field("float", 1.0, "mesh: factor to metres", range="(0, inf)"),
+        "translate": Field("vec3", (0.0, 0.0, 0.0), "placement in its parent (the head or the world)", "m"),
+        "rotate_deg": Field("vec3", (0.0, 0.0, 0.0), "placement: extrinsic x-y-z Euler angles; a plane's "
+                                                    "normal is its local +z", "deg"),
+        "attach": Field("str", "world", "head: moves with the head; world: stays put", choices=("head", "world")),
+        "thickness": Field("float", 0.002, "contact layer", "m", range="[0, inf)"),
+        "friction": Field("float", 0.3, "0 = frictionless sliding, 1 = full velocity match", range="[0, 1]"),
+    },
+    doc="one collider besides the head",
+    check=_check_collider,
 )
 
 #: The scene schema: section name -> :class:`Section` (or :class:`ArrayOf` for ``[[name]]``).
@@ -367,10 +400,22 @@ SCHEMA: dict[str, Section | ArrayOf] = {
     ),
     "head": Section(
         {
-            "shape": Field("str", "ellipsoid", "collision shape of the head", choices=("ellipsoid", "sphere", "none")),
+            "shape": Field("str", "ellipsoid", "collision shape of the head: an ellipsoid mesh, an analytic sphere, "
+                                              "a mesh file, or none", choices=("ellipsoid", "sphere", "mesh", "none")),
             "center": Field("vec3", None, "centre of the head shape, world; default: the scalp centre", "m"),
             "radii": Field("vec3", None, "semi-axes of the head shape; default: the scalp radii", "m",
                            range="(0, inf)"),
+            "file": Field("path", None, "shape = mesh: the head or body mesh, relative to the scene file",
+                          suffixes=_MESH_SUFFIXES),
+            "up_axis": Field("str", "Z", "shape = mesh: up axis of the mesh file (converted to Z up)",
+                             choices=("Z", "Y")),
+            "scale": Field("float", 1.0, "shape = mesh: factor to metres", range="(0, inf)"),
+            "translate": Field("vec3", (0.0, 0.0, 0.0), "shape = mesh: offset after scaling and the up-axis turn",
+                               "m"),
+            "thickness": Field("float", 0.002, "contact layer: closer vertices take the head's velocity, "
+                                               "pushed-out vertices land this far above it", "m", range="[0, inf)"),
+            "friction": Field("float", 0.3, "0 = hair slides freely, 1 = the head carries it along (full match)",
+                              range="[0, 1]"),
             "motion": Section(
                 {
                     "kind": Field("str", "still", "how the head moves", choices=_motion.MOTION_KINDS),
@@ -403,6 +448,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
         doc="uniform wind, on between start and end (a gust); acts through strands.drag",
         check=_check_wind,
     ),
+    "colliders": ArrayOf(_COLLIDER, doc="colliders besides the head: shoulders, a body, the floor"),
     "dense": Section(
         {
             "count": Field("int", 0, "dense strands interpolated from the guides (0 = none)", range="[0, inf)"),
