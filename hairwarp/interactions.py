@@ -429,11 +429,12 @@ class HairContacts:
         device: Warp device. strand_count: G. seg_per_strand: S.
         strips: the :class:`TriangleStrips`, or None (no vertex-face contacts).
         segment_segment: whether segment-segment contacts are detected.
-        threshold: contact distance [m]; stiffness: k0 [N/m]; damping: normal damping [N s/m]; friction: mu;
+        threshold: contact distance [m]; margin: extra detection distance [m]; detect_each_step: see ``build``;
+            stiffness: k0 [N/m]; damping: normal damping [N s/m]; friction: mu;
             slip_velocity: regularisation speed of the Coulomb law [m/s]; capacity: contact slots;
             alignment_cutoff: least ``1 - |T_a . T_b|`` of a contact.
-        seg_lowers, seg_uppers: vec3 (G*S,), threshold-grown segment boxes of the ``seg_bvh``.
-        strip_lowers, strip_uppers: vec3 (quad_count,), threshold-grown boxes of the strip quads (two triangles
+        seg_lowers, seg_uppers: vec3 (G*S,), segment boxes of the ``seg_bvh``, grown by threshold + margin.
+        strip_lowers, strip_uppers: vec3 (quad_count,), grown boxes of the strip quads (two triangles
             each) in the ``strip_bvh``. A ``wp.Bvh`` rather than a ``wp.Mesh``: ``Bvh.refit`` is recorded by a CPU
             graph capture, ``Mesh.refit`` is not (Warp 1.19), and the boxes read the state's vertices directly.
         contact_kind: int32 (capacity,): ``CONTACT_VERTEX_FACE`` (a = vertex, b = triangle, w = barycentric
@@ -457,6 +458,8 @@ class HairContacts:
         capacity: int,
         alignment_cutoff: float = 1.0e-3,
         segment_segment: bool = True,
+        margin: float = 0.0,
+        detect_each_step: bool = True,
         device=None,
     ) -> HairContacts:
         """Allocate the segment and strip BVHs and the contact buffers.
@@ -474,6 +477,11 @@ class HairContacts:
                 this fraction of a right-angle crossing's. 1e-3 (2.6 degrees) drops most neighbour pairs of a
                 combed groom (88% on a 2000-guide scalp); 0 keeps every pair.
             segment_segment: detect segment-segment contacts.
+            margin: detection looks ``threshold + margin`` far [m], so a list detected now still holds the pairs
+                that come within the threshold while the strands move less than the margin.
+            detect_each_step: detect in every :meth:`apply`; when False, :meth:`apply` only evaluates the stored
+                pairs at the current positions and the caller runs :meth:`detect` (e.g. once per output frame,
+                with a margin covering the motion of a frame), which is where the time goes.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -487,6 +495,8 @@ class HairContacts:
             raise InteractionError(f"slip_velocity must be > 0, got {slip_velocity}")
         if not 0.0 <= alignment_cutoff < 1.0:
             raise InteractionError(f"alignment_cutoff must be in [0, 1), got {alignment_cutoff}")
+        if not margin >= 0.0:
+            raise InteractionError(f"margin must be >= 0, got {margin}")
         if int(capacity) < 1:
             raise InteractionError(f"capacity must be >= 1, got {capacity}")
         if strips is not None and (strips.strand_count, strips.seg_per_strand) != (G, S):
@@ -501,6 +511,9 @@ class HairContacts:
         contacts.strips = strips if strips is not None and strips.pair_count > 0 else None
         contacts.segment_segment = bool(segment_segment) and G > 1
         contacts.threshold = float(threshold)
+        contacts.margin = float(margin)
+        contacts.detect_each_step = bool(detect_each_step)
+        reach = contacts.threshold + contacts.margin
         contacts.stiffness = float(stiffness)
         contacts.damping = float(damping)
         contacts.friction = float(friction)
@@ -513,15 +526,15 @@ class HairContacts:
 
         p0 = verts[:, :-1].reshape(-1, 3)
         p1 = verts[:, 1:].reshape(-1, 3)
-        contacts.seg_lowers = wp.array(np.minimum(p0, p1) - threshold, dtype=wp.vec3, device=dev)
-        contacts.seg_uppers = wp.array(np.maximum(p0, p1) + threshold, dtype=wp.vec3, device=dev)
+        contacts.seg_lowers = wp.array(np.minimum(p0, p1) - reach, dtype=wp.vec3, device=dev)
+        contacts.seg_uppers = wp.array(np.maximum(p0, p1) + reach, dtype=wp.vec3, device=dev)
         contacts.seg_bvh = wp.Bvh(contacts.seg_lowers, contacts.seg_uppers) if contacts.segment_segment else None
         contacts.strip_bvh = None
         if contacts.strips is not None:
             corners = contacts.strips.indices.numpy().reshape(-1, 6)[:, [0, 1, 2, 4]]  # a_k, b_k, a_k+1, b_k+1
             quad = verts.reshape(-1, 3)[corners]
-            contacts.strip_lowers = wp.array(quad.min(axis=1) - threshold, dtype=wp.vec3, device=dev)
-            contacts.strip_uppers = wp.array(quad.max(axis=1) + threshold, dtype=wp.vec3, device=dev)
+            contacts.strip_lowers = wp.array(quad.min(axis=1) - reach, dtype=wp.vec3, device=dev)
+            contacts.strip_uppers = wp.array(quad.max(axis=1) + reach, dtype=wp.vec3, device=dev)
             contacts.strip_bvh = wp.Bvh(contacts.strip_lowers, contacts.strip_uppers)
 
         contacts.contact_kind = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
@@ -549,6 +562,7 @@ class HairContacts:
     def detect(self, model, state):
         """Refit the strip and segment BVHs to ``state`` and fill the contact buffers (launch only)."""
         S = model.seg_per_strand
+        reach = self.threshold + self.margin
         self.contact_counter.zero_()
         buffers = [
             self.contact_kind, self.contact_a, self.contact_b, self.contact_w,
@@ -558,7 +572,7 @@ class HairContacts:
             wp.launch(
                 contact_kernels.strip_bounds,
                 dim=self.strips.quad_count,
-                inputs=[self.threshold, self.strips.indices, state.vertex_positions],
+                inputs=[reach, self.strips.indices, state.vertex_positions],
                 outputs=[self.strip_lowers, self.strip_uppers],
                 device=self.device,
             )
@@ -566,7 +580,7 @@ class HairContacts:
             wp.launch(
                 contact_kernels.vertex_face_contacts,
                 dim=len(state.vertex_positions),
-                inputs=[S, self.threshold, self.capacity, self.alignment_cutoff, self.strip_bvh.id,
+                inputs=[S, reach, self.capacity, self.alignment_cutoff, self.strip_bvh.id,
                         self.strips.indices, self.strips.tri_strands, state.vertex_positions],
                 outputs=buffers,
                 device=self.device,
@@ -575,7 +589,7 @@ class HairContacts:
             wp.launch(
                 contact_kernels.segment_bounds,
                 dim=len(self.seg_lowers),
-                inputs=[S, self.threshold, state.vertex_positions],
+                inputs=[S, reach, state.vertex_positions],
                 outputs=[self.seg_lowers, self.seg_uppers],
                 device=self.device,
             )
@@ -583,17 +597,19 @@ class HairContacts:
             wp.launch(
                 contact_kernels.segment_segment_contacts,
                 dim=len(self.seg_lowers),
-                inputs=[S, self.threshold, self.capacity, self.alignment_cutoff, self.seg_bvh.id,
+                inputs=[S, reach, self.capacity, self.alignment_cutoff, self.seg_bvh.id,
                         state.vertex_positions],
                 outputs=buffers,
                 device=self.device,
             )
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
-        """Detect the contacts of ``state`` and accumulate their forces into the solver's arrays (launch only)."""
+        """Detect the contacts of ``state`` (unless ``detect_each_step`` is off) and accumulate their forces into the
+        solver's arrays (launch only)."""
         if not self.enabled:
             return
-        self.detect(model, state)
+        if self.detect_each_step:
+            self.detect(model, state)
         wp.launch(
             contact_kernels.contact_forces,
             dim=self.force_threads,

@@ -265,6 +265,26 @@ def _strip_scene():
     return np.stack([s0, s1, s2])
 
 
+def test_stored_pairs_with_margin():
+    """Detected once with a margin, a pair not yet within the threshold is kept and pushes once it comes closer,
+    without a new detection (``detect_each_step=False``)."""
+    k = 10.0
+    a0, a1 = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, -SEG_LEN])
+    far = _pair(a0, a1, [-0.003, 0.0025, -0.002], [0.003, 0.0025, -0.002])
+    contacts = HairContacts.build(far, threshold=THRESHOLD, stiffness=k, capacity=4, margin=0.001,
+                                  detect_each_step=False)
+    model = _model(2, 1)
+    contacts.detect(model, _state(far))
+    assert contacts.contact_count() == 1
+    force, _, mass = _apply(contacts, model, _state(far))
+    assert np.abs(force).max() == 0.0 and np.abs(mass).max() == 0.0  # 2.5 mm apart: beyond the threshold
+    near = _pair(a0, a1, [-0.003, 0.0008, -0.002], [0.003, 0.0008, -0.002])
+    force, _, _ = _apply(contacts, model, _state(near))
+    fn = k * (THRESHOLD - 0.0008)
+    np.testing.assert_allclose(force[0], [0.0, -fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
+    assert contacts.contact_count() == 1
+
+
 def test_vertex_face_closed_form_with_density_scale():
     """A strand tip 0.8 mm in front of a strip face, crossing it at right angles: F = k0 (s0 / s) (thr - 0.8 mm)."""
     k, S2 = 10.0, 2
