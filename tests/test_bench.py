@@ -91,7 +91,10 @@ def test_dynamics_ratios_follow_from_measured_figures(run):
         if peer["status"] != "ok":
             assert r["ratio"] is None
             continue
-        assert math.isclose(r["ratio"], cfg["hairwarp"]["cpu"][r["integrator"]]["seg_steps_per_s"]
+        over_run = cfg["hairwarp_over_run"][r["integrator"]]
+        assert r["ours_seg_steps_per_s"] == over_run["median"] == float(np.median(over_run["samples"]))
+        assert len(over_run["samples"]) == len(tiny_config().dyn_peers) + 2
+        assert math.isclose(r["ratio"], r["ours_seg_steps_per_s"]
                             / peer["seg_steps_per_s"], rel_tol=RATIO_RTOL)
         if r["goal"] is None:
             assert r["meets"] is None

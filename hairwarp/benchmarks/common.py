@@ -153,7 +153,10 @@ def run_child(request: dict, timeout_s: float) -> dict:
             return result
     tail = (proc.stderr or proc.stdout)[-800:]
     signal = f" (signal {-proc.returncode})" if proc.returncode < 0 else ""
-    return {"status": "error", "message": f"child exited with code {proc.returncode}{signal} and no result",
+    cause = next((ln.strip() for ln in tail.splitlines() if "Assertion failed" in ln or "Error" in ln), "")
+    return {"status": "error",
+            "message": f"child exited with code {proc.returncode}{signal} and no result" + (f": {cause}" if cause
+                                                                                             else ""),
             "stderr_tail": tail, "wall_s": round(time.perf_counter() - t0, 2)}
 
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import statistics
+
 import warp as wp
 
 from hairwarp.benchmarks.common import BENCH_DT, run_child
-from hairwarp.benchmarks.ours import canonical_model, profile_step, time_solver
+from hairwarp.benchmarks.ours import aba_only_ms, canonical_model, profile_step, time_solver
 
 # Acceptance goals: (peer, segments the goal applies to or None for all, least ratio hairwarp / peer).
 GOALS = (
@@ -43,9 +45,9 @@ def cuda_device(requested: str | None):
     return wp.get_device(requested), None
 
 
-def measure_ours(G: int, S: int, device, cfg, integrators) -> dict:
+def measure_ours(G: int, S: int, device, cfg, integrators, model=None) -> dict:
     """Launch and graph timings of each integrator; ``best`` is the faster of the two."""
-    model = canonical_model(G, S, device)
+    model = model or canonical_model(G, S, device)
     out = {}
     for integrator in integrators:
         row = {}
@@ -65,9 +67,31 @@ def measure_ours(G: int, S: int, device, cfg, integrators) -> dict:
     return out
 
 
-def peer_rows(G: int, S: int, cfg, log) -> dict:
+def retime(model, ours: dict, cfg) -> dict:
+    """Seg-steps per second of each integrator in its faster mode, measured again now (next to a peer)."""
+    out = {}
+    for integrator, row in ours.items():
+        if row.get("best_mode") is None:
+            continue
+        r = time_solver(model, integrator, BENCH_DT, graph=row["best_mode"] == "graph", steps=cfg.block_steps,
+                        blocks=cfg.blocks, warmup=cfg.warmup, budget_s=cfg.ours_budget_s / 2,
+                        graph_block=cfg.graph_block)
+        out[integrator] = r["seg_steps_per_s"]
+    return out
+
+
+def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
+    """Each peer in a child process; hairwarp is timed again before each peer and after the last.
+
+    Returns the peers' results and, per integrator, every seg-steps/s figure of hairwarp at this
+    size (the first measurement, then those around the peers): the machine's load drifts during a
+    run, and the median of these spans the same stretch of time as the peers' figures.
+    """
     rows = {}
+    samples = {i: [r["seg_steps_per_s"]] for i, r in ours.items() if r.get("seg_steps_per_s")}
     for peer in cfg.dyn_peers:
+        for integrator, value in retime(model, ours, cfg).items():
+            samples[integrator].append(value)
         log(f"  peer {peer} at {G} x {S} ...")
         req = {"kind": "throughput", "peer": peer, "G": G, "S": S, "dt": BENCH_DT, "steps": cfg.block_steps,
                "blocks": cfg.blocks, "warmup": cfg.warmup, "budget_s": cfg.peer_budget_s}
@@ -77,6 +101,8 @@ def peer_rows(G: int, S: int, cfg, log) -> dict:
             log(f"    {res['step_ms']:.3g} ms/step, {res['seg_steps_per_s']:.3g} seg-steps/s")
         else:
             log(f"    {res.get('status')}: {res.get('message', '')[:200]}")
+    for integrator, value in retime(model, ours, cfg).items():
+        samples[integrator].append(value)
     # the C floors reported by two of them, as peers of their own
     pin = rows.get("pinocchio", {})
     if pin.get("status") == "ok":
@@ -88,17 +114,19 @@ def peer_rows(G: int, S: int, cfg, log) -> dict:
         rows["mujoco_euler_c_only"] = {"status": "ok", "derived_from": "mujoco_euler",
                                        "seg_steps_per_s": mj["extra"]["C_only_seg_steps_per_s"],
                                        "us_per_strand_step": mj["extra"]["mj_step_us_per_strand_C_only"]}
-    return rows
+    summary = {i: {"samples": v, "median": statistics.median(v), "min": min(v), "max": max(v)}
+               for i, v in samples.items()}
+    return rows, summary
 
 
 def ratios(G: int, S: int, ours: dict, peers: dict) -> list[dict]:
-    """hairwarp / peer in seg-steps per second, from the figures measured in this run."""
+    """hairwarp / peer in seg-steps per second; hairwarp's figure is the median over the run at this size."""
     rows = []
     for integrator, mine in ours.items():
         for peer, res in peers.items():
             goal = goal_for(peer, S)
             row = {"G": G, "S": S, "integrator": integrator, "peer": peer, "goal": goal,
-                   "ours_seg_steps_per_s": mine.get("seg_steps_per_s"),
+                   "ours_seg_steps_per_s": mine.get("median"),
                    "peer_seg_steps_per_s": res.get("seg_steps_per_s") if res.get("status") == "ok" else None,
                    "peer_status": res.get("status")}
             if row["ours_seg_steps_per_s"] and row["peer_seg_steps_per_s"]:
@@ -131,7 +159,8 @@ def suite_dynamics(cfg, log=lambda msg: None) -> dict:
     configs = []
     for G, S in cfg.dyn_configs:
         log(f"dynamics {G} x {S}: hairwarp on cpu ...")
-        ours = measure_ours(G, S, "cpu", cfg, cfg.dyn_integrators)
+        model = canonical_model(G, S, "cpu")
+        ours = measure_ours(G, S, "cpu", cfg, cfg.dyn_integrators, model)
         for integrator, row in ours.items():
             launch, graph = row.get("launch", {}), row.get("graph", {})
             log(f"  {integrator}: launch {launch.get('step_ms', float('nan')):.3g} ms, "
@@ -140,8 +169,8 @@ def suite_dynamics(cfg, log=lambda msg: None) -> dict:
         if cuda is not None:
             log(f"dynamics {G} x {S}: hairwarp on {cuda} ...")
             entry["hairwarp"][str(cuda)] = measure_ours(G, S, cuda, cfg, cfg.dyn_integrators)
-        entry["peers"] = peer_rows(G, S, cfg, log)
-        entry["ratios"] = ratios(G, S, ours, entry["peers"])
+        entry["peers"], entry["hairwarp_over_run"] = peer_rows(G, S, cfg, log, model, ours)
+        entry["ratios"] = ratios(G, S, entry["hairwarp_over_run"], entry["peers"])
         configs.append(entry)
     log("dynamics: profile of one step ...")
     profiles = []
@@ -149,6 +178,7 @@ def suite_dynamics(cfg, log=lambda msg: None) -> dict:
         model = canonical_model(G, S, "cpu")
         for integrator in cfg.dyn_integrators:
             p = profile_step(model, integrator, BENCH_DT, steps=10 if cfg.quick else 30)
+            p["aba_only_ms"] = aba_only_ms(model, integrator, steps=10 if cfg.quick else 30)
             profiles.append({"G": G, "S": S, "integrator": integrator, **p})
     return {
         "scene": {"length_m": 0.3, "radius_m": 2e-3, "density": 1300.0, "tilt_deg": 80.0, "root_spacing_m": 0.01,

@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from hairwarp.benchmarks.common import (
+    BENCH_DT,
     DENSITY,
     JOINT_DAMPING,
     RADIUS,
@@ -162,3 +163,18 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
              for k, v in sorted(acc.items(), key=lambda kv: -kv[1][0])}
     return {"wall_ms_per_step": wall * 1e3, "calls": calls,
             "calls_per_step": sum(v[1] for v in acc.values()) / steps}
+
+
+def aba_only_ms(model: Model, integrator: str, steps: int = 20) -> float:
+    """Milliseconds of one ``aba_accelerations`` launch (the three ABA passes, no integration or
+    kinematics) on ``model``'s initial state, median of ``steps`` launches."""
+    solver = Solver(model, integrator)
+    state, control = model.state(), model.control()
+    implicit = integrator == "implicit_joints"
+    times = []
+    for _ in range(steps + 2):
+        t0 = time.perf_counter()
+        solver.joint_accelerations(state, control, dt=BENCH_DT, implicit=implicit)
+        wp.synchronize_device(model.device)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times[2:]) * 1e3)

@@ -105,7 +105,9 @@ def chart_accuracy(a: dict, path: Path):
             ok = [(x, y) for x, y in pts if y is not None and y > 0]
             if ok:
                 line, = ax.plot(*zip(*ok), label=m["method"], **style)
-                for r in runs:
+                for n_run, r in enumerate(runs):
+                    if not ours and 0 < n_run < len(runs) - 1:
+                        continue
                     if r.get(key) is not None and r.get(key) > 0:
                         ax.annotate(f"{r['dt']:g}", (r["cpu_s_per_sim_s"], r[key]), fontsize=5.5,
                                     color=line.get_color(), xytext=(3, 2), textcoords="offset points")
@@ -279,10 +281,11 @@ def md_dynamics(d: dict) -> list[str]:
                 cells.append(cell)
         out.append(f"| {labels.get(peer, peer)} | " + " | ".join(cells) + " |")
     out += ["", "### Ratios hairwarp / peer and the goals", "",
-            "Ratio of segment-steps per second, hairwarp's faster mode (launches or captured graph) over the peer, "
-            "both measured above.", "",
-            "| size | peer | goal | `semi_implicit` | `implicit_joints` | meets (semi / implicit) |",
-            "|---|---|---|---|---|---|"]
+            "Ratio of segment-steps per second, hairwarp over the peer. The load of this shared machine drifts "
+            "during a run, so hairwarp (its faster mode) is timed again before each peer and after the last; the "
+            "ratio uses the median of those timings, given in brackets with their range below the table.", "",
+            "| size | peer | goal | peer seg-steps/s | `semi_implicit` | `implicit_joints` | meets (semi / implicit) |",
+            "|---|---|---|---|---|---|---|"]
     for c in d["configs"]:
         by = {}
         for r in c["ratios"]:
@@ -297,11 +300,30 @@ def md_dynamics(d: dict) -> list[str]:
             ratio_cells = []
             for i in OURS:
                 r = rs.get(i, {})
-                ratio_cells.append(f"{r['ratio']:.2f}×" if r.get("ratio") else r.get("peer_status") or "–")
+                ratio_cells.append(f"{r['ratio']:.2f}× ({_g(r['ours_seg_steps_per_s'])})" if r.get("ratio")
+                                   else r.get("peer_status") or "–")
+            peer_fig = _g(next(iter(rs.values())).get("peer_seg_steps_per_s"))
             out.append(f"| {c['G']}×{c['S']} | {labels.get(peer, peer)} | {'≥ ' + _g(goal) + '×' if goal else 'info'}"
-                       f" | {ratio_cells[0]} | {ratio_cells[1]} | {meets} |")
+                       f" | {peer_fig} | {ratio_cells[0]} | {ratio_cells[1]} | {meets} |")
+    out.append("")
+    for c in d["configs"]:
+        over = c.get("hairwarp_over_run", {})
+        if over:
+            out.append(f"- {c['G']}×{c['S']}: " + "; ".join(
+                f"`{i}` median {_g(v['median'])} of {len(v['samples'])} timings, range {_g(v['min'])}–{_g(v['max'])}"
+                for i, v in over.items()))
     ov = d.get("overhead_1x20", {})
     out += ["", "### Where a step's time goes", ""]
+    shares = []
+    for c in d["configs"]:
+        for integ in OURS:
+            r = c["hairwarp"]["cpu"].get(integ, {})
+            la, gr = r.get("launch", {}).get("step_ms"), r.get("graph", {}).get("step_ms")
+            if la and gr:
+                shares.append(f"{c['G']}×{c['S']} `{integ}` {100 * (la - gr) / la:.0f} %")
+    if shares:
+        out += ["Share of a plain step that a captured graph removes (launch overhead): " + ", ".join(shares) + ".",
+                ""]
     if ov:
         out.append("One strand of 20 segments (the step is then all overhead): "
                    + "; ".join(f"`{k}` {v['launch_us']:.1f} µs per step with launches, {v['graph_us']:.1f} µs "
@@ -309,16 +331,19 @@ def md_dynamics(d: dict) -> list[str]:
                                "overhead per step**" for k, v in ov.items()) + ".")
         out.append("")
     if d.get("profile"):
-        out += ["Wall time of each Warp call in a plain step (CPU launches are synchronous), and the compute per "
-                "segment from the graph replay:", "",
-                "| size | integrator | calls per step | per call: ms/step | graph ns per segment-step |",
-                "|---|---|---|---|---|"]
+        out += ["Wall time of each Warp call in a plain step (CPU launches are synchronous), the three ABA passes "
+                "alone (`Solver.joint_accelerations`, one `aba_accelerations` launch: no integration, no kinematics) "
+                "and the compute per segment from the graph replay:", "",
+                "| size | integrator | calls per step | per call: ms/step | ABA alone: ms "
+                "| graph ns per segment-step |",
+                "|---|---|---|---|---|---|"]
         for p in d["profile"]:
             calls = ", ".join(f"`{k}` {v['ms_per_step']:.3g}" for k, v in p["calls"].items())
             cfg = next((c for c in d["configs"] if c["G"] == p["G"] and c["S"] == p["S"]), None)
             g = cfg["hairwarp"]["cpu"][p["integrator"]].get("graph", {}) if cfg else {}
             ns = g.get("step_s", 0) / (p["G"] * p["S"]) * 1e9 if g.get("step_s") else None
-            out.append(f"| {p['G']}×{p['S']} | `{p['integrator']}` | {p['calls_per_step']:.0f} | {calls} | {_g(ns)} |")
+            out.append(f"| {p['G']}×{p['S']} | `{p['integrator']}` | {p['calls_per_step']:.0f} | {calls} | "
+                       f"{_g(p.get('aba_only_ms'))} | {_g(ns)} |")
     cuda = d.get("cuda", {})
     where = f"measured on {cuda['device']}" if cuda.get("device") else f"absent — {cuda.get('reason')}"
     out += ["", f"CUDA: {where}."]
@@ -401,7 +426,8 @@ def md_stability(s: dict) -> list[str]:
                          + (f" ({r['fails_above_because']})" if r.get("fails_above_because") else ""))
         for k in mj:
             r = mj[k].get(ei)
-            cells.append("not run" if r is None else _dt(r["max_stable_dt"]) + ("+" if r["at_top"] else ""))
+            cells.append("not run" if r is None else _dt(r["max_stable_dt"]) + ("+" if r["at_top"] else "")
+                         + (f" ({r['fails_above_because']})" if r.get("fails_above_because") else ""))
         out.append(f"| {ei:g} | " + " | ".join(cells) + " |")
     if s.get("mujoco", {}).get("status") not in (None, "ok"):
         out.append(f"\nMuJoCo: {s['mujoco'].get('status')} — {s['mujoco'].get('message')}")
@@ -530,13 +556,28 @@ def _summary_md(s: dict) -> list[str]:
                              f"{_g(r.get('max_1')) if r.get('finite', True) else 'blew up'} m")
             out.append(f"| `{m['integrator']}` | " + " | ".join(cells) + " |")
         out.append("")
+    conv = (a or {}).get("convergence")
+    if conv:
+        parts = []
+        for label, v in conv["variants"].items():
+            row = next((r for r in v["rows"] if r["segments"] == 20), v["rows"][-1])
+            parts.append(f"{label}: {_g(row['max_vertex_error_m'])} m at S = {row['segments']}, order "
+                         f"{_g(v['fitted_order'], 2)}")
+        out.append(f"- Static shape against the continuum (EI = {conv['bend_stiffness']:g} N m² cantilever): "
+                   + "; ".join(parts) + ".")
     st = s.get("stability")
     if st:
         f = st["findings"]
+        why = f.get("implicit_failure_reasons", {})
+
+        def eis(values):
+            return ", ".join(f"{x:g}" + (f" ({why[f'{x:g}']})" if why.get(f"{x:g}") else "") for x in values)
+
         out.append(f"- Stability: `implicit_joints` holds 1/240 s where `semi_implicit` fails for EI = "
-                   f"{', '.join(f'{x:g}' for x in f['implicit_stable_semi_not_at_frame_dt']) or 'none'} N m²; it "
-                   f"fails at 1/240 s for EI = {', '.join(f'{x:g}' for x in f['implicit_fails_at_frame_dt']) or 'none'}"
-                   f" and at 1/24 s for EI = {', '.join(f'{x:g}' for x in f['implicit_fails_at_1_24']) or 'none'}.")
+                   f"{', '.join(f'{x:g}' for x in f['implicit_stable_semi_not_at_frame_dt']) or 'none'} N m². "
+                   "`implicit_joints` itself fails at 1/240 s for EI = "
+                   f"{eis(f['implicit_fails_at_frame_dt']) or 'none'}, and at 1/24 s for EI = "
+                   f"{eis(f['implicit_fails_at_1_24']) or 'none'} N m².")
     sc = s.get("scaling")
     if sc:
         out.append(f"- Scaling: largest fitted cost exponent {_g(sc['max_exponent'])} over G × S up to "

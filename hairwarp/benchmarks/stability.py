@@ -279,9 +279,12 @@ def findings(res: dict) -> dict:
     frame = 1.0 / 240.0
     tol = 1.0 - 1e-9
     semi = {r["bend_stiffness"]: r["max_stable_dt"] for r in res["vs_stiffness"].get("semi_implicit", [])}
-    impl = {r["bend_stiffness"]: r["max_stable_dt"] for r in res["vs_stiffness"].get("implicit_joints", [])}
+    impl_rows = res["vs_stiffness"].get("implicit_joints", [])
+    impl = {r["bend_stiffness"]: r["max_stable_dt"] for r in impl_rows}
     ok = lambda dt, bound: dt is not None and dt >= bound * tol  # noqa: E731
     return {
+        "implicit_failure_reasons": {f"{r['bend_stiffness']:g}": r.get("fails_above_because") for r in impl_rows
+                                     if not r.get("at_top")},
         "frame_dt": frame,
         "implicit_stable_semi_not_at_frame_dt": [ei for ei in impl if ok(impl[ei], frame) and not ok(semi.get(ei),
                                                                                                       frame)],
