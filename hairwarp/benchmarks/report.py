@@ -132,16 +132,24 @@ def chart_accuracy(a: dict, path: Path):
 def chart_convergence(conv: dict, path: Path):
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    ticks = []
     for label, v in conv["variants"].items():
         S = [r["segments"] for r in v["rows"]]
-        ax.plot(S, [r["max_vertex_error_m"] for r in v["rows"]], "o-", label=f"{label}, max over vertices")
-        ax.plot(S, [r["tip_error_m"] for r in v["rows"]], "x:", label=f"{label}, tip")
+        err = [r["max_vertex_error_m"] for r in v["rows"]]
+        ax.plot(S, err, "o-", label=f"{label} (order {_g(v['fitted_order'], 2)})")
+        ticks = S
+    if ticks:
+        s0, e0 = ticks[0], max(r["max_vertex_error_m"] for v in conv["variants"].values() for r in v["rows"])
+        for order, ls in ((1, ":"), (2, "-.")):
+            ax.plot(ticks, [e0 * (s0 / x) ** order for x in ticks], ls, color="0.5", lw=0.8, label=f"∝ 1/S^{order}")
     for tol in (1e-2, 1e-3, 1e-4):
         ax.axhline(tol, color="0.6", lw=0.7, ls="--")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.set_xticks(ticks, [str(x) for x in ticks])
+    ax.minorticks_off()
     ax.set_xlabel("segments S (same 0.3 m strand)")
-    ax.set_ylabel("distance to the continuum shape [m]")
+    ax.set_ylabel("largest vertex distance to the continuum shape [m]")
     ax.set_title(f"Static cantilever, EI = {conv['bend_stiffness']:g} N m², tip sag {conv['tip_deflection_m']:.3g} m")
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -158,18 +166,23 @@ def chart_stability(s: dict, path: Path):
                 label=f"hairwarp {label}")
     mj = s.get("mujoco", {})
     if mj.get("status") == "ok":
-        for integ, rows in mj["results"].items():
-            ax.plot([r["bend_stiffness"] for r in rows], [r["max_stable_dt"] or 5e-6 for r in rows], "s--",
+        for n, (integ, rows) in enumerate(mj["results"].items()):
+            ax.plot([r["bend_stiffness"] for r in rows], [r["max_stable_dt"] or 5e-6 for r in rows],
+                    "s--" if n == 0 else "x:", mfc="none", ms=9 if n == 0 else 6, color="k" if n == 0 else "0.45",
                     label=f"MuJoCo {integ} (ball-joint stiffness)")
     ax.set_xlabel("bend stiffness EI [N m²]")
     ax.set_title("20 segments, released from 60 deg")
     ax = axes[1]
+    colors = plt.cm.tab10.colors
     for integ, rows in s["vs_segments"].items():
-        for ei in sorted({r["bend_stiffness"] for r in rows}):
+        for n, ei in enumerate(sorted({r["bend_stiffness"] for r in rows})):
             sel = [r for r in rows if r["bend_stiffness"] == ei]
             ax.plot([r["segments"] for r in sel], [r["max_stable_dt"] or 5e-6 for r in sel],
-                    "o-" if integ == "implicit_joints" else "^--", label=f"{integ}, EI = {ei:g}")
+                    "o-" if integ == "implicit_joints" else "^--", color=colors[n], label=f"{integ}, EI = {ei:g}")
+    seg_ticks = sorted({r["segments"] for rows in s["vs_segments"].values() for r in rows})
     ax.set_xscale("log")
+    ax.set_xticks(seg_ticks, [str(x) for x in seg_ticks])
+    ax.minorticks_off()
     ax.set_xlabel("segments S (same 0.3 m strand)")
     ax.set_title("against segment count")
     ax = axes[2]
@@ -179,7 +192,8 @@ def chart_stability(s: dict, path: Path):
     ax.set_xlabel("tip / root segment mass (tapered radius)")
     ax.set_title(f"against taper, EI = {s['vs_mass_ratio']['bend_stiffness']:g} N m²")
     for ax in axes:
-        ax.set_xscale("log")
+        if ax is not axes[1]:
+            ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_ylim(4e-6, 0.08)
         ax.axhline(1 / 24, color="0.5", lw=0.8, ls=":")
@@ -345,14 +359,8 @@ def md_dynamics(d: dict) -> list[str]:
             out.append(f"| {p['G']}×{p['S']} | `{p['integrator']}` | {p['calls_per_step']:.0f} | {calls} | "
                        f"{_g(p.get('aba_only_ms'))} | {_g(ns)} |")
     cuda = d.get("cuda", {})
-    where = f"measured on {cuda['device']}" if cuda.get("device") else f"absent — {cuda.get('reason')}"
+    where = f"measured on {cuda['device']} (section 5)" if cuda.get("device") else f"absent — {cuda.get('reason')}"
     out += ["", f"CUDA: {where}."]
-    if cuda.get("device"):
-        out += ["", "| size | integrator | CUDA ms/step (launch / graph) | seg-steps/s |", "|---|---|---|---|"]
-        for c in d["configs"]:
-            for integ, r in c["hairwarp"].get(cuda["device"], {}).items():
-                out.append(f"| {c['G']}×{c['S']} | `{integ}` | {_g(r['launch'].get('step_ms'))} / "
-                           f"{_g(r['graph'].get('step_ms'))} | {_g(r.get('seg_steps_per_s'))} |")
     return out
 
 
@@ -490,6 +498,33 @@ def md_scaling(sc: dict) -> list[str]:
     return out
 
 
+def md_cuda(s: dict) -> list[str]:
+    """The CUDA column: figures when a suite ran on a CUDA device, else why they are absent."""
+    out = ["## 5. CUDA", ""]
+    rows = []
+    for name in ("dynamics", "scaling"):
+        cuda = s.get(name, {}).get("cuda")
+        if not cuda:
+            continue
+        if not cuda.get("device"):
+            out.append(f"- `{name}`: CUDA figures absent — {cuda.get('reason')}.")
+            continue
+        dev = cuda["device"]
+        if name == "dynamics":
+            for c in s[name]["configs"]:
+                for integ, r in c["hairwarp"].get(dev, {}).items():
+                    rows.append(f"| dynamics {c['G']}×{c['S']} | `{integ}` | {_g(r['launch'].get('step_ms'))} / "
+                                f"{_g(r['graph'].get('step_ms'))} | {_g(r.get('seg_steps_per_s'))} |")
+        else:
+            for p in s[name]["devices"].get(dev, {}).get("points", []):
+                rows.append(f"| scaling {p['G']}×{p['S']} | `{s[name]['integrator']}` | "
+                            f"{_g(p['launch_step_s'] * 1e3)} / {_g(p['graph_step_s'] * 1e3)} | "
+                            f"{_g(p['seg_steps_per_s'])} |")
+    if rows:
+        out += ["", "| figure | integrator | ms/step (launches / graph) | seg-steps/s |", "|---|---|---|---|", *rows]
+    return out
+
+
 def summary_lines(results: dict, suites=None) -> list[str]:
     """A short plain-text summary of the figures of ``suites`` (all in ``results`` when None)."""
     s = results.get("suites", {})
@@ -615,6 +650,7 @@ def write_report(results: dict, out: Path) -> Path:
             lines += fn(s[name]) + ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}, load "
                                         f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}.*",
                                     ""]
+    lines += md_cuda(s) + [""]
     lines += ["## Reproduce", "", "```", "hairwarp bench                 # all suites, about 15 min on 2 cores; "
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"
               "         # smoke run (~1 min) into out/bench-quick/", "```", "",
