@@ -487,15 +487,27 @@ def md_scaling(sc: dict) -> list[str]:
             "", "Other stages (hooks: a module exposes `bench_<stage>(..., device=...)` returning a dict; it is "
             "called when it exists):", "", "| stage | hook | status | figures |", "|---|---|---|---|"]
     for st in sc["stages"]:
-        fig = "–"
-        if st["status"] == "ok" and isinstance(st.get("result"), dict) and "results" in st["result"]:
-            fig = "; ".join(f"{r.get('count')} strands: interpolate {_g(r.get('interpolate_s', 0) * 1e3)} ms, "
-                            f"Hermite {_g(r.get('hermite_s', 0) * 1e3)} ms per frame"
-                            for r in st["result"]["results"])
-        elif st["status"] != "ok":
-            fig = st.get("message", "")
+        fig = _stage_figures(st.get("result")) if st["status"] == "ok" else st.get("message", "")
         out.append(f"| {st['stage']} | `{st['hook']}` | {st['status']} | {fig} |")
     return out
+
+
+def _stage_figures(result) -> str:
+    """Times (keys ending in ``_s``, build time left out) of each entry of a hook's ``results``, in ms."""
+    if not isinstance(result, dict) or not isinstance(result.get("results"), list):
+        return "–"
+    parts = []
+    for r in result["results"]:
+        label = r.get("state") or (f"{r['count']} dense strands" if "count" in r else "")
+        times = ", ".join(f"{k[:-2].replace('_', ' ')} {_g(v * 1e3)} ms" for k, v in r.items()
+                          if k.endswith("_s") and k != "build_s" and isinstance(v, (int, float)))
+        parts.append(f"{label}: {times}" if label else times)
+    head = ""
+    if "strands" in result:
+        head = f"{result['strands']} guides × {result.get('segments')} segments; "
+    elif "guides" in result:
+        head = f"{result['guides']} guides × {result.get('segments')} segments; "
+    return head + "; ".join(parts)
 
 
 def md_cuda(s: dict) -> list[str]:
