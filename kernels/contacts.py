@@ -11,6 +11,7 @@ so every contact is an equal and opposite pair with no net torque.
 
 import warp as wp
 
+from hairwarp.kernels.links import lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -312,11 +313,14 @@ def add_wrench(
     seg_torque: wp.array(dtype=wp.vec3),
     seg_implicit_mass: wp.array(dtype=float),
 ):
-    """Add force f at a world point to a segment (torque about its origin, vertex k) and its implicit mass."""
-    origin = vertex_positions[seg + seg // seg_per_strand]
+    """Add force f at a world point to a segment (torque about its origin, vertex k) and its lever-scaled implicit
+    mass."""
+    v = seg + seg // seg_per_strand
+    origin = vertex_positions[v]
     wp.atomic_add(seg_force, seg, f)
     wp.atomic_add(seg_torque, seg, wp.cross(point - origin, f))
-    wp.atomic_add(seg_implicit_mass, seg, extra_mass)
+    half = 0.5 * wp.length(vertex_positions[v + 1] - origin)
+    wp.atomic_add(seg_implicit_mass, seg, lever_scaled_mass(extra_mass, point - origin, half))
 
 
 @wp.func
@@ -479,8 +483,8 @@ def contact_forces(
     regularised Coulomb friction.
 
     Adds +F to side a and -F to side b (shared by barycentric weight among a face's vertices) at the midpoint of the
-    closest points (``seg_force`` [N], ``seg_torque`` [N m] about segment origins, world), and ``h^2 k + h c`` [kg] to
-    ``seg_implicit_mass``. Friction is capped so one explicit step cannot reverse the tangential velocity.
+    closest points (``seg_force`` [N], ``seg_torque`` [N m] about segment origins, world), and ``h^2 k + h c`` [kg]
+    (lever-scaled) to ``seg_implicit_mass``. Friction is capped so one explicit step cannot reverse the slip.
     """
     # A fixed thread count strides over however many contacts this step found (the count is only on the device).
     slot = wp.tid()

@@ -3,7 +3,11 @@
 Seed slides, "Static Links": ``f = sum_i [k_s |l_i| - k_d (v_i . l_i) / |l_i|] l_i / |l_i|``. A link joins a
 point fixed in segment ``a`` (its closest point to ``b`` at rest plus the rest offset ``r0``, both in ``a``'s
 frame) to the closest point on segment ``b``; at rest the two coincide, so ``l = x_b - x_a'`` is zero there
-(DESIGN §4.3). The force acts along ``l`` at both ends, so a link carries no net torque.
+(DESIGN §4.3). The force acts along ``l`` at both ends, so a link carries no net force and no net torque, except
+this: the rest offset is a lever about segment ``a``'s own axis, and that spin torque is left out. A thin
+segment's spin inertia is about (radius / length)^2 of its bending inertia, and the vertex velocities do not show
+spin, so the lever would drive a stiff mode the damping cannot see (with it, linked hair under a turning head
+blows up); without it, the damping term is exactly dissipative.
 """
 
 import warp as wp
@@ -40,6 +44,18 @@ def seg_point_velocity(
     v0 = vertex_velocities[v]
     w = wp.cross(d, vertex_velocities[v + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
     return v0 + wp.cross(w, p - x0)
+
+
+@wp.func
+def lever_scaled_mass(extra_mass: float, arm: wp.vec3, half_length: float) -> float:
+    """Implicit mass [kg] to put at a segment's centre of mass for a spring acting at ``arm`` from its origin.
+
+    DESIGN §4.1 adds ``h^2 k + h c`` at the spring's point; the solver takes one mass at the centre of mass
+    (L/2 from the origin). Scaled by ``(|arm| / (L/2))^2`` (at least 1), it gives at least the inertia about the
+    segment's joint that the mass at the point would, so springs near a segment's tip are not under-treated by up
+    to a factor of four.
+    """
+    return extra_mass * wp.max(1.0, wp.dot(arm, arm) / (half_length * half_length))
 
 
 @wp.func
@@ -84,8 +100,8 @@ def link_forces(
 ):
     """One thread per link: the seed's spring-damper between the link's two attachment points.
 
-    Adds +f at x_a' to segment a and -f at x_b to segment b (``seg_force`` [N], ``seg_torque`` [N m] about each
-    segment origin, world frame) and ``h^2 k_s + h k_d`` [kg] to both ``seg_implicit_mass``; broken links add nothing.
+    Adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b (``seg_force`` [N],
+    ``seg_torque`` [N m] about each segment origin, world) and ``h^2 k_s + h k_d`` [kg] to both ``seg_implicit_mass``.
     """
     link = wp.tid()
     if link_broken[link] != 0:
@@ -107,15 +123,17 @@ def link_forces(
 
     oa = wp.transform_get_translation(seg_xform[a])
     ob = wp.transform_get_translation(seg_xform[b])
+    torque_a = wp.cross(xa - oa, f)
+    axis_a = wp.transform_vector(seg_xform[a], wp.vec3(0.0, 0.0, -1.0))
     wp.atomic_add(seg_force, a, f)
-    wp.atomic_add(seg_torque, a, wp.cross(xa - oa, f))
+    wp.atomic_add(seg_torque, a, torque_a - wp.dot(torque_a, axis_a) * axis_a)
     wp.atomic_add(seg_force, b, -f)
     wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
 
     h = dt[0]
     extra = h * h * link_stiffness + h * link_damping
-    wp.atomic_add(seg_implicit_mass, a, extra)
-    wp.atomic_add(seg_implicit_mass, b, extra)
+    wp.atomic_add(seg_implicit_mass, a, lever_scaled_mass(extra, xa - oa, 0.5 * seg_length[a]))
+    wp.atomic_add(seg_implicit_mass, b, lever_scaled_mass(extra, xb - ob, 0.5 * seg_length[b]))
 
 
 @wp.kernel

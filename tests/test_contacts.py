@@ -250,7 +250,11 @@ def test_crossing_segments_closed_form():
     tol = FORCE_RTOL * fn * SEG_LEN
     np.testing.assert_allclose(torque[0], np.cross(point - a0, force[0]), rtol=FORCE_RTOL, atol=tol)
     np.testing.assert_allclose(torque[1], np.cross(point - b0, force[1]), rtol=FORCE_RTOL, atol=tol)
-    np.testing.assert_allclose(mass, h * h * k + h * c, rtol=1e-5)
+    # h^2 k + h c at each end, as a centre-of-mass mass with at least the point's inertia about the segment's joint:
+    # b's contact point lies 3.03 mm from its origin, beyond its half length (3 mm).
+    lever = [max(1.0, np.sum((point - o) ** 2) / (0.5 * SEG_LEN) ** 2) for o in (a0, b0)]
+    assert lever[0] == 1.0 and lever[1] > 1.0
+    np.testing.assert_allclose(mass, (h * h * k + h * c) * np.array(lever), rtol=1e-5)
 
 
 def _strip_scene():

@@ -96,28 +96,41 @@ def _apply(links, model, state):
 
 
 def _reference(links, verts, rot, vel, omega, skip=None):
-    """Float64 seed formula f = [k_s |l| - k_d (v . l)/|l|] l/|l| on a at x_a' and -f on b at x_b, per segment."""
+    """Float64 seed formula f = [k_s |l| - k_d (v . l)/|l|] l/|l| on a at x_a' and -f on b at x_b, per segment.
+
+    Returns the per-segment force and torque (the torque on a without its spin about a's axis), the link lengths,
+    the spin torques left out (L, 3), and the lever-scaled implicit mass per segment.
+    """
     a, b = links.seg_a, links.seg_b
     origin = verts[:, :-1].reshape(-1, 3)
     v_origin = vel[:, :-1].reshape(-1, 3)
-    xa = origin[a] + rot[a].apply(np.stack([0 * links.frac_a, 0 * links.frac_a, -links.frac_a * SEG_LEN], 1)
-                                  + links.rest_offset)
-    xb = origin[b] + rot[b].apply(np.stack([0 * links.frac_b, 0 * links.frac_b, -links.frac_b * SEG_LEN], 1))
+    zero = np.zeros(links.link_count)
+    xa = origin[a] + rot[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1) + links.rest_offset)
+    xb = origin[b] + rot[b].apply(np.stack([zero, zero, -links.frac_b * SEG_LEN], 1))
     l_vec = xb - xa
     length = np.linalg.norm(l_vec, axis=1)
     va = v_origin[a] + np.cross(omega[a], xa - origin[a])
     vb = v_origin[b] + np.cross(omega[b], xb - origin[b])
-    n = l_vec / length[:, None]
+    n = l_vec / np.maximum(length, 1e-300)[:, None]
     f = (K_S * length - K_D * np.sum((va - vb) * n, axis=1))[:, None] * n
     if skip is not None:
         f[skip] = 0.0
+    axis = rot[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
+    torque_a = np.cross(xa - origin[a], f)
+    spin = np.sum(torque_a * axis, axis=1, keepdims=True) * axis
     force = np.zeros((G * S, 3))
     torque = np.zeros((G * S, 3))
     np.add.at(force, a, f)
     np.add.at(force, b, -f)
-    np.add.at(torque, a, np.cross(xa - origin[a], f))
+    np.add.at(torque, a, torque_a - spin)
     np.add.at(torque, b, np.cross(xb - origin[b], -f))
-    return force, torque, length
+    # h^2 k + h c per end, as a mass at the centre of mass with at least the end's inertia about the joint.
+    extra = DT * DT * K_S + DT * K_D
+    keep = np.ones(links.link_count) if skip is None else (~skip).astype(float)
+    mass = np.zeros(G * S)
+    for seg, arm in ((a, xa - origin[a]), (b, xb - origin[b])):
+        np.add.at(mass, seg, keep * extra * np.maximum(1.0, np.sum(arm * arm, axis=1) / (0.5 * SEG_LEN) ** 2))
+    return force, torque, length, spin, mass
 
 
 def _segment_distances(p0, p1, q0, q1):
@@ -186,7 +199,9 @@ def test_rest_pose_is_slack(setup):
     counts = np.bincount(np.concatenate([setup.links.seg_a, setup.links.seg_b]), minlength=G * S)
     assert np.linalg.norm(force, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max()
     assert np.linalg.norm(torque, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max() * 2 * SEG_LEN
-    np.testing.assert_allclose(mass, counts * (DT * DT * K_S + DT * K_D), rtol=1e-6)
+    ref_mass = _reference(setup.links, setup.verts, setup.rot, np.zeros_like(setup.verts), np.zeros((G * S, 3)))[4]
+    np.testing.assert_allclose(mass, ref_mass, rtol=1e-5)
+    assert np.all(mass >= counts * (DT * DT * K_S + DT * K_D) * (1 - 1e-6))
 
 
 def _min_rotation(a, b):
@@ -229,15 +244,16 @@ def test_forces_match_seed_formula_and_conserve_momentum(setup, seed):
     state = _arrays(verts, rot, vel)
     force, torque, _ = _apply(setup.links, setup.model, state)
 
-    ref_force, ref_torque, length = _reference(setup.links, verts, rot, vel, omega)
+    ref_force, ref_torque, length, spin, _ = _reference(setup.links, verts, rot, vel, omega)
     assert length.max() > 1e-4  # the perturbation stretched the links
     scale = np.abs(ref_force).max()
     np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * scale)
     np.testing.assert_allclose(torque, ref_torque, atol=FORCE_RTOL * scale * SEG_LEN)
 
+    # Momentum: no net force; no net torque about the world origin but the spin torques left out on purpose.
     origin = verts[:, :-1].reshape(-1, 3)
     total_force = force.sum(axis=0)
-    total_torque = (torque + np.cross(origin, force)).sum(axis=0)
+    total_torque = (torque + np.cross(origin, force)).sum(axis=0) + spin.sum(axis=0)
     magnitude = np.linalg.norm(force, axis=1).sum()
     assert np.linalg.norm(total_force) <= MOMENTUM_RTOL * magnitude
     moment_scale = (np.linalg.norm(force, axis=1) * np.linalg.norm(origin, axis=1)).sum()
@@ -268,7 +284,7 @@ def test_breaking_follows_numpy_and_is_permanent(setup):
     rot = setup.rot * bend
     verts = _chain(setup.roots, rot)
     zero = np.zeros_like(verts)
-    _, _, length = _reference(links, verts, rot, zero, np.zeros((G * S, 3)))
+    length = _reference(links, verts, rot, zero, np.zeros((G * S, 3)))[2]
     expected = length > links.break_length
     clear = np.abs(length - links.break_length) > BREAK_BAND
     assert 0 < expected.sum() < links.link_count
@@ -281,10 +297,9 @@ def test_breaking_follows_numpy_and_is_permanent(setup):
 
     # Broken links exert nothing, the others still match the seed formula.
     force, _, mass = _apply(links, setup.model, state)
-    ref_force, _, _ = _reference(links, verts, rot, zero, np.zeros((G * S, 3)), skip=broken)
+    ref_force, _, _, _, ref_mass = _reference(links, verts, rot, zero, np.zeros((G * S, 3)), skip=broken)
     np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * np.abs(ref_force).max())
-    intact = np.concatenate([links.seg_a[~broken], links.seg_b[~broken]])
-    np.testing.assert_allclose(mass, np.bincount(intact, minlength=G * S) * (DT * DT * K_S + DT * K_D), rtol=1e-6)
+    np.testing.assert_allclose(mass, ref_mass, rtol=1e-5, atol=1e-12)
 
     # Back at rest nothing mends.
     links.break_links(setup.model, _arrays(setup.verts, setup.rot, zero))
@@ -318,7 +333,7 @@ def test_captured_step_follows_the_state(setup):
     for name in ("seg_xform", "vertex_positions", "vertex_velocities"):
         wp.copy(getattr(state, name), getattr(moved, name))
     wp.capture_launch(capture.graph)
-    ref_force, _, length = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)))
+    ref_force, _, length, _, _ = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)))
     np.testing.assert_allclose(force.numpy(), ref_force, atol=FORCE_RTOL * np.abs(ref_force).max())
     clear = np.abs(length - links.break_length) > BREAK_BAND
     broken = links.link_broken.numpy()[: links.link_count].astype(bool)
