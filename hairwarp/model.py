@@ -132,7 +132,7 @@ class Model:
         self.seg_count = G * S
         self.vert_count = G * (S + 1)
         self.params = params
-        self.gravity = wp.vec3(*[float(g) for g in gravity])
+        self._gravity = wp.vec3(*[float(g) for g in gravity])
         self.drag = float(params.drag)
         self.rest_vertex_positions = rest
         self.root_uv = getattr(groom, "root_uv", None)
@@ -174,7 +174,32 @@ class Model:
         self.joint_q0 = arr(q0.reshape(-1, 4), wp.quat)
         self.joint_stiffness = arr(stiffness.reshape(-1, 3), wp.vec3)
         self.joint_damping = arr(damping.reshape(-1, 3), wp.vec3)
+
+        from hairwarp.kernels.articulated import StrandChains
+
+        chains = StrandChains()
+        chains.seg_per_strand = S
+        chains.seg_length = self.seg_length
+        chains.seg_mass = self.seg_mass
+        chains.seg_inertia = self.seg_inertia
+        chains.strand_root_pos = self.strand_root_pos
+        chains.joint_rest_q = self.joint_rest_q
+        chains.joint_stiffness = self.joint_stiffness
+        chains.joint_damping = self.joint_damping
+        chains.gravity = self._gravity
+        self.chains = chains
+        """The chain arrays bundled for the ABA kernels (the same arrays, not copies)."""
         return self
+
+    @property
+    def gravity(self) -> wp.vec3:
+        """Gravitational acceleration [m/s^2], world."""
+        return self._gravity
+
+    @gravity.setter
+    def gravity(self, value):
+        self._gravity = wp.vec3(*[float(g) for g in value])
+        self.chains.gravity = self._gravity
 
     def state(self) -> State:
         """A new state in the initial configuration (the groom's shape), at rest, with its world quantities."""

@@ -24,8 +24,7 @@ def forward_kinematics(model, state, control):
     wp.launch(
         articulated.forward_kinematics,
         dim=model.strand_count,
-        inputs=[model.seg_per_strand, model.seg_length, model.strand_root_pos,
-                control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
+        inputs=[model.chains, control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
         outputs=[state.seg_xform, state.vertex_positions, state.vertex_velocities],
         device=model.device,
     )
@@ -73,12 +72,15 @@ class Solver:
 
         self.dt = wp.zeros(1, dtype=float, device=device)
         self._dt_host = None
-        self.aba_p = wp.zeros(n, dtype=wp.spatial_vector, device=device)
-        self.aba_c = wp.zeros(n, dtype=wp.spatial_vector, device=device)
-        self.aba_DA = wp.zeros(n, dtype=wp.mat33, device=device)
-        self.aba_DB = wp.zeros(n, dtype=wp.mat33, device=device)
-        self.aba_Du = wp.zeros(n, dtype=wp.vec3, device=device)
-        self.joint_qdd = wp.zeros(n, dtype=wp.vec3, device=device)
+        scratch = articulated.AbaScratch()
+        scratch.p = wp.zeros(n, dtype=wp.spatial_vector, device=device)
+        scratch.c = wp.zeros(n, dtype=wp.spatial_vector, device=device)
+        scratch.DA = wp.zeros(n, dtype=wp.mat33, device=device)
+        scratch.DB = wp.zeros(n, dtype=wp.mat33, device=device)
+        scratch.Du = wp.zeros(n, dtype=wp.vec3, device=device)
+        scratch.qdd = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.scratch = scratch
+        self.joint_qdd = scratch.qdd
         if self.integrator == Integrator.RK4:
             self.rk_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.rk_w = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -92,6 +94,16 @@ class Solver:
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_implicit_mass = wp.zeros(n if self.has_implicit_mass else 1, dtype=float, device=device)
+        self.loads = self._loads(self.seg_force, self.seg_torque, self.has_forces)
+
+    def _loads(self, seg_force, seg_torque, has_force):
+        loads = articulated.SegmentLoads()
+        loads.seg_force = seg_force
+        loads.seg_torque = seg_torque
+        loads.seg_implicit_mass = self.seg_implicit_mass
+        loads.has_force = int(has_force)
+        loads.has_implicit_mass = int(self.has_implicit_mass)
+        return loads
 
     # -- the step -------------------------------------------------------------------------
 
@@ -145,24 +157,20 @@ class Solver:
 
     def _integrate(self, state_in, state_out, control):
         model = self.model
-        common = [
-            model.seg_per_strand, model.seg_length, model.seg_mass, model.seg_inertia, model.strand_root_pos,
-            model.joint_rest_q, model.joint_stiffness, model.joint_damping, model.gravity, self.max_rotation_per_step,
-            control.head_xform, control.head_velocity, control.head_acceleration, self.dt,
-        ]
-        forces = [self.seg_force, self.seg_torque, int(self.has_forces), self.seg_implicit_mass,
-                  int(self.has_implicit_mass), state_in.joint_q, state_in.joint_qd,
-                  self.aba_p, self.aba_c, self.aba_DA, self.aba_DB, self.aba_Du, self.joint_qdd]
+        head = [control.head_xform, control.head_velocity, control.head_acceleration, self.dt]
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
         if self.integrator == Integrator.RK4:
             wp.launch(articulated.integrate_rk4, dim=model.strand_count,
-                      inputs=common + forces + [self.rk_q, self.rk_w, self.rk_dq, self.rk_dw],
+                      inputs=[model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
+                              state_in.joint_qd, self.scratch, self.rk_q, self.rk_w, self.rk_dq, self.rk_dw],
                       outputs=outputs, device=model.device)
         else:
             implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
             wp.launch(articulated.integrate_euler, dim=model.strand_count,
-                      inputs=common + [implicit] + forces, outputs=outputs, device=model.device)
+                      inputs=[model.chains, self.max_rotation_per_step, *head, implicit, self.loads,
+                              state_in.joint_q, state_in.joint_qd, self.scratch],
+                      outputs=outputs, device=model.device)
 
     # -- tools ----------------------------------------------------------------------------
 
@@ -178,24 +186,18 @@ class Solver:
         model = self.model
         self.dt.fill_(float(dt))
         self._dt_host = None
-        has_ext = self.has_forces
         if seg_force is not None:
-            has_ext = True
-        elif self.has_forces:
-            self._accumulate_forces(state, control)
-            seg_force, seg_torque = self.seg_force, self.seg_torque
+            loads = self._loads(seg_force, seg_torque, True)
         else:
-            seg_force, seg_torque = self.seg_force, self.seg_torque
+            if self.has_forces:
+                self._accumulate_forces(state, control)
+            loads = self.loads
         wp.launch(
             articulated.aba_accelerations,
             dim=model.strand_count,
-            inputs=[model.seg_per_strand, model.seg_length, model.seg_mass, model.seg_inertia, model.strand_root_pos,
-                    model.joint_rest_q, model.joint_stiffness, model.joint_damping, model.gravity,
-                    control.head_xform, control.head_velocity, control.head_acceleration, self.dt, int(implicit),
-                    seg_force, seg_torque, int(has_ext), self.seg_implicit_mass,
-                    int(self.has_implicit_mass), state.joint_q, state.joint_qd,
-                    self.aba_p, self.aba_c, self.aba_DA, self.aba_DB, self.aba_Du],
-            outputs=[self.joint_qdd],
+            inputs=[model.chains, control.head_xform, control.head_velocity, control.head_acceleration, self.dt,
+                    int(implicit), loads, state.joint_q, state.joint_qd],
+            outputs=[self.scratch],
             device=model.device,
         )
         return self.joint_qdd

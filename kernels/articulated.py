@@ -14,6 +14,7 @@ them; the three passes are ``aba_forward_pass1``, ``aba_backward_pass`` and ``ab
 """
 
 import warp as wp
+
 from hairwarp.kernels.spatial import (
     inertia_shift,
     quat_exp,
@@ -25,6 +26,46 @@ from hairwarp.kernels.spatial import (
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class StrandChains:
+    """The model's chain arrays, as the ABA kernels read them (see ``hairwarp.Model``)."""
+
+    seg_per_strand: int
+    seg_length: wp.array(dtype=float)
+    seg_mass: wp.array(dtype=float)
+    seg_inertia: wp.array(dtype=wp.vec3)
+    strand_root_pos: wp.array(dtype=wp.vec3)
+    joint_rest_q: wp.array(dtype=wp.quat)
+    joint_stiffness: wp.array(dtype=wp.vec3)
+    joint_damping: wp.array(dtype=wp.vec3)
+    gravity: wp.vec3
+
+
+@wp.struct
+class SegmentLoads:
+    """External loads of a step: force [N] and torque [N m] about each segment's origin (world), the
+    semi-implicit inertia [kg] of interaction springs at each centre of mass; flags say which are in use."""
+
+    seg_force: wp.array(dtype=wp.vec3)
+    seg_torque: wp.array(dtype=wp.vec3)
+    seg_implicit_mass: wp.array(dtype=float)
+    has_force: int
+    has_implicit_mass: int
+
+
+@wp.struct
+class AbaScratch:
+    """Per-segment ABA workspace: bias forces p, velocity-product accelerations c, ``D^-1 A``,
+    ``D^-1 B``, ``D^-1 u`` and the joint accelerations; allocated once by the solver."""
+
+    p: wp.array(dtype=wp.spatial_vector)
+    c: wp.array(dtype=wp.spatial_vector)
+    DA: wp.array(dtype=wp.mat33)
+    DB: wp.array(dtype=wp.mat33)
+    Du: wp.array(dtype=wp.vec3)
+    qdd: wp.array(dtype=wp.vec3)
 
 
 @wp.func
@@ -45,34 +86,26 @@ def head_body_motion(head_xform: wp.transform, head_velocity: wp.spatial_vector,
 
 
 @wp.func
-def joint_offset(
-    strand: int, k: int, i: int, seg_length: wp.array(dtype=float), strand_root_pos: wp.array(dtype=wp.vec3)
-):
+def joint_offset(chains: StrandChains, strand: int, k: int, i: int):
     """Position of joint k in its parent's frame: the root in the head frame, else the parent's tip."""
     if k == 0:
-        return strand_root_pos[strand]
-    return wp.vec3(0.0, 0.0, -seg_length[i - 1])
+        return chains.strand_root_pos[strand]
+    return wp.vec3(0.0, 0.0, -chains.seg_length[i - 1])
 
 
 @wp.func
 def aba_forward_pass1(
+    chains: StrandChains,
     strand: int,
-    S: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    strand_root_pos: wp.array(dtype=wp.vec3),
     head_rot: wp.quat,
     v_head: wp.spatial_vector,
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    has_ext: int,
+    loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
+    scratch: AbaScratch,
 ):
     """Outward pass: body velocities, velocity-product accelerations c and bias forces p."""
+    S = chains.seg_per_strand
     w_p = wp.spatial_top(v_head)
     v_p = wp.spatial_bottom(v_head)
     R_world = head_rot
@@ -80,54 +113,45 @@ def aba_forward_pass1(
         i = strand * S + k
         q = joint_q[i]
         w = joint_qd[i]
-        r = joint_offset(strand, k, i, seg_length, strand_root_pos)
+        r = joint_offset(chains, strand, k, i)
         om = wp.quat_rotate_inv(q, w_p) + w
         vl = wp.quat_rotate_inv(q, v_p + wp.cross(w_p, r))
-        aba_c[i] = wp.spatial_vector(wp.cross(om, w), wp.cross(vl, w))
+        scratch.c[i] = wp.spatial_vector(wp.cross(om, w), wp.cross(vl, w))
 
-        m = seg_mass[i]
-        com = wp.vec3(0.0, 0.0, -0.5 * seg_length[i])
-        A, B = segment_inertia_blocks(m, seg_length[i], seg_inertia[i], 0.0)
+        m = chains.seg_mass[i]
+        L = chains.seg_length[i]
+        com = wp.vec3(0.0, 0.0, -0.5 * L)
+        A, B = segment_inertia_blocks(m, L, chains.seg_inertia[i], 0.0)
         n_I = A * om + B * vl
         f_I = m * (vl + wp.cross(om, com))
         p_ang = wp.cross(om, n_I) + wp.cross(vl, f_I)
         p_lin = wp.cross(om, f_I)
         R_world = R_world * q
-        if has_ext != 0:
-            p_ang = p_ang - wp.quat_rotate_inv(R_world, seg_torque[i])
-            p_lin = p_lin - wp.quat_rotate_inv(R_world, seg_force[i])
-        aba_p[i] = wp.spatial_vector(p_ang, p_lin)
+        if loads.has_force != 0:
+            p_ang = p_ang - wp.quat_rotate_inv(R_world, loads.seg_torque[i])
+            p_lin = p_lin - wp.quat_rotate_inv(R_world, loads.seg_force[i])
+        scratch.p[i] = wp.spatial_vector(p_ang, p_lin)
         w_p = om
         v_p = vl
 
 
 @wp.func
 def aba_backward_pass(
+    chains: StrandChains,
     strand: int,
-    S: int,
     dt: float,
     implicit: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    joint_rest_q: wp.array(dtype=wp.quat),
-    joint_stiffness: wp.array(dtype=wp.vec3),
-    joint_damping: wp.array(dtype=wp.vec3),
-    seg_implicit_mass: wp.array(dtype=float),
-    has_implicit_mass: int,
+    loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
 ):
     """Inward pass: articulated inertias and bias forces, tip to root.
 
     The chain has one child per body, so the child's contribution is carried in registers.
     Stores ``D^-1 A``, ``D^-1 B`` and ``D^-1 u`` for the second outward pass.
     """
+    S = chains.seg_per_strand
     cA = wp.mat33()
     cB = wp.mat33()
     cC = wp.mat33()
@@ -138,43 +162,43 @@ def aba_backward_pass(
         k = S - 1 - kk
         i = strand * S + k
         extra = float(0.0)
-        if has_implicit_mass != 0:
-            extra = seg_implicit_mass[i]
-        A0, B0 = segment_inertia_blocks(seg_mass[i], seg_length[i], seg_inertia[i], extra)
+        if loads.has_implicit_mass != 0:
+            extra = loads.seg_implicit_mass[i]
+        m = chains.seg_mass[i]
+        A0, B0 = segment_inertia_blocks(m, chains.seg_length[i], chains.seg_inertia[i], extra)
         A = A0 + cA
         B = B0 + cB
-        C = (seg_mass[i] + extra) * eye + cC
-        p = aba_p[i]
+        C = (m + extra) * eye + cC
+        p = scratch.p[i]
         n = wp.spatial_top(p) + cn
         f = wp.spatial_bottom(p) + cf
 
         q = joint_q[i]
         w = joint_qd[i]
-        K = joint_stiffness[i]
-        Cd = joint_damping[i]
-        theta = quat_log(wp.quat_inverse(joint_rest_q[i]) * q)
+        K = chains.joint_stiffness[i]
+        Cd = chains.joint_damping[i]
+        theta = quat_log(wp.quat_inverse(chains.joint_rest_q[i]) * q)
         tau = -wp.cw_mul(K, theta) - wp.cw_mul(Cd, w)
         D = A
         if implicit != 0:
             # springs and dampers at the end of the step: (M + hC + h^2 K) qdd = -K theta - (C + hK) w - bias
             tau = tau - dt * wp.cw_mul(K, w)
-            arm = dt * Cd + dt * dt * K
-            D = A + wp.diag(arm)
+            D = A + wp.diag(dt * Cd + dt * dt * K)
         Dinv = wp.inverse(D)
         u = tau - n
         DA = Dinv * A
         DB = Dinv * B
         Du = Dinv * u
-        aba_DA[i] = DA
-        aba_DB[i] = DB
-        aba_Du[i] = Du
+        scratch.DA[i] = DA
+        scratch.DB[i] = DB
+        scratch.Du[i] = Du
 
         if k > 0:
-            c = aba_c[i]
+            c = scratch.c[i]
             c_ang = wp.spatial_top(c)
             c_lin = wp.spatial_bottom(c)
             R = wp.quat_to_matrix(q)
-            r = wp.vec3(0.0, 0.0, -seg_length[i - 1])
+            r = wp.vec3(0.0, 0.0, -chains.seg_length[i - 1])
             Ca = C - wp.transpose(B) * DB
             if implicit != 0:
                 # I^a = I^A - U D^-1 U^T keeps all three blocks when D carries armature
@@ -202,71 +226,47 @@ def aba_backward_pass(
 
 @wp.func
 def aba_forward_pass2(
+    chains: StrandChains,
     strand: int,
-    S: int,
-    seg_length: wp.array(dtype=float),
-    strand_root_pos: wp.array(dtype=wp.vec3),
     a_head: wp.spatial_vector,
     joint_q: wp.array(dtype=wp.quat),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
-    joint_qdd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
 ):
     """Second outward pass: body accelerations and joint accelerations ``qdd = D^-1 (u - U^T a')``."""
+    S = chains.seg_per_strand
     a_ang_p = wp.spatial_top(a_head)
     a_lin_p = wp.spatial_bottom(a_head)
     for k in range(S):
         i = strand * S + k
         q = joint_q[i]
-        r = joint_offset(strand, k, i, seg_length, strand_root_pos)
-        c = aba_c[i]
+        r = joint_offset(chains, strand, k, i)
+        c = scratch.c[i]
         a_ang = wp.quat_rotate_inv(q, a_ang_p) + wp.spatial_top(c)
         a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r)) + wp.spatial_bottom(c)
-        qdd = aba_Du[i] - aba_DA[i] * a_ang - aba_DB[i] * a_lin
-        joint_qdd[i] = qdd
+        qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+        scratch.qdd[i] = qdd
         a_ang_p = a_ang + qdd
         a_lin_p = a_lin
 
 
 @wp.func
 def aba_strand(
+    chains: StrandChains,
     strand: int,
-    S: int,
     dt: float,
     implicit: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    strand_root_pos: wp.array(dtype=wp.vec3),
-    joint_rest_q: wp.array(dtype=wp.quat),
-    joint_stiffness: wp.array(dtype=wp.vec3),
-    joint_damping: wp.array(dtype=wp.vec3),
     head_rot: wp.quat,
     v_head: wp.spatial_vector,
     a_head: wp.spatial_vector,
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    has_ext: int,
-    seg_implicit_mass: wp.array(dtype=float),
-    has_implicit_mass: int,
+    loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
-    joint_qdd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
 ):
-    """Joint accelerations of one strand [rad/s^2, child frame] by the three ABA passes."""
-    aba_forward_pass1(strand, S, seg_length, seg_mass, seg_inertia, strand_root_pos, head_rot, v_head,
-                      seg_force, seg_torque, has_ext, joint_q, joint_qd, aba_p, aba_c)
-    aba_backward_pass(strand, S, dt, implicit, seg_length, seg_mass, seg_inertia, joint_rest_q, joint_stiffness,
-                      joint_damping, seg_implicit_mass, has_implicit_mass, joint_q, joint_qd, aba_p, aba_c,
-                      aba_DA, aba_DB, aba_Du)
-    aba_forward_pass2(strand, S, seg_length, strand_root_pos, a_head, joint_q, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+    """Joint accelerations of one strand [rad/s^2, child frame] into ``scratch.qdd``, by the three ABA passes."""
+    aba_forward_pass1(chains, strand, head_rot, v_head, loads, joint_q, joint_qd, scratch)
+    aba_backward_pass(chains, strand, dt, implicit, loads, joint_q, joint_qd, scratch)
+    aba_forward_pass2(chains, strand, a_head, joint_q, scratch)
 
 
 @wp.func
@@ -281,85 +281,47 @@ def flag_joint(w: wp.vec3, q: wp.quat, dt: float, max_rotation: float, fault: wp
 @wp.kernel
 def aba_accelerations(
     # Model:
-    seg_per_strand: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    strand_root_pos: wp.array(dtype=wp.vec3),
-    joint_rest_q: wp.array(dtype=wp.quat),
-    joint_stiffness: wp.array(dtype=wp.vec3),
-    joint_damping: wp.array(dtype=wp.vec3),
-    gravity: wp.vec3,
+    chains: StrandChains,
     # Control:
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
     head_acceleration: wp.array(dtype=wp.spatial_vector),
-    # In:
     dt: wp.array(dtype=float),
+    # In:
     implicit: int,
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    has_ext: int,
-    seg_implicit_mass: wp.array(dtype=float),
-    has_implicit_mass: int,
+    loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
-    # Scratch:
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
     # Out:
-    joint_qdd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
 ):
-    """One thread per strand: joint accelerations only, no integration (tests and tools).
+    """One thread per strand: joint accelerations only, into ``scratch.qdd`` [rad/s^2, child frame].
 
-    Writes ``joint_qdd`` [rad/s^2, child frame]; with ``implicit`` != 0 it solves
-    ``(M + hC + h^2 K) qdd = tau - bias`` as ``implicit_joints`` does.
+    With ``implicit`` != 0 it solves ``(M + hC + h^2 K) qdd = tau - bias`` as ``implicit_joints`` does.
     """
     strand = wp.tid()
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
-    aba_strand(strand, seg_per_strand, dt[0], implicit, seg_length, seg_mass, seg_inertia, strand_root_pos,
-               joint_rest_q, joint_stiffness, joint_damping, wp.transform_get_rotation(head_xform[0]), v_head, a_head,
-               seg_force, seg_torque, has_ext, seg_implicit_mass, has_implicit_mass, joint_q, joint_qd,
-               aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
+    aba_strand(chains, strand, dt[0], implicit, wp.transform_get_rotation(head_xform[0]), v_head, a_head, loads,
+               joint_q, joint_qd, scratch)
 
 
 @wp.kernel
 def integrate_euler(
     # Model:
-    seg_per_strand: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    strand_root_pos: wp.array(dtype=wp.vec3),
-    joint_rest_q: wp.array(dtype=wp.quat),
-    joint_stiffness: wp.array(dtype=wp.vec3),
-    joint_damping: wp.array(dtype=wp.vec3),
-    gravity: wp.vec3,
+    chains: StrandChains,
     max_rotation: float,
     # Control:
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
     head_acceleration: wp.array(dtype=wp.spatial_vector),
-    # In:
     dt: wp.array(dtype=float),
+    # State in:
     implicit: int,
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    has_ext: int,
-    seg_implicit_mass: wp.array(dtype=float),
-    has_implicit_mass: int,
+    loads: SegmentLoads,
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
     # Scratch:
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
-    joint_qdd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
     # Out:
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
@@ -375,57 +337,38 @@ def integrate_euler(
     world frames and vertices (forward kinematics, fused), and fault bits.
     """
     strand = wp.tid()
-    S = seg_per_strand
+    S = chains.seg_per_strand
     h = dt[0]
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
-    aba_strand(strand, S, h, implicit, seg_length, seg_mass, seg_inertia, strand_root_pos, joint_rest_q,
-               joint_stiffness, joint_damping, wp.transform_get_rotation(head_xform[0]), v_head, a_head,
-               seg_force, seg_torque, has_ext, seg_implicit_mass, has_implicit_mass, joint_q_in, joint_qd_in,
-               aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
+    aba_strand(chains, strand, h, implicit, wp.transform_get_rotation(head_xform[0]), v_head, a_head, loads,
+               joint_q_in, joint_qd_in, scratch)
     for k in range(S):
         i = strand * S + k
-        w = joint_qd_in[i] + h * joint_qdd[i]
+        w = joint_qd_in[i] + h * scratch.qdd[i]
         q = wp.normalize(joint_q_in[i] * quat_exp(h * w))
         flag_joint(w, q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
-    fk_strand(strand, S, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
+    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
               seg_xform_out, vertex_positions_out, vertex_velocities_out)
 
 
 @wp.kernel
 def integrate_rk4(
     # Model:
-    seg_per_strand: int,
-    seg_length: wp.array(dtype=float),
-    seg_mass: wp.array(dtype=float),
-    seg_inertia: wp.array(dtype=wp.vec3),
-    strand_root_pos: wp.array(dtype=wp.vec3),
-    joint_rest_q: wp.array(dtype=wp.quat),
-    joint_stiffness: wp.array(dtype=wp.vec3),
-    joint_damping: wp.array(dtype=wp.vec3),
-    gravity: wp.vec3,
+    chains: StrandChains,
     max_rotation: float,
     # Control:
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
     head_acceleration: wp.array(dtype=wp.spatial_vector),
-    # In:
     dt: wp.array(dtype=float),
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    has_ext: int,
-    seg_implicit_mass: wp.array(dtype=float),
-    has_implicit_mass: int,
+    # State in:
+    loads: SegmentLoads,
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
     # Scratch:
-    aba_p: wp.array(dtype=wp.spatial_vector),
-    aba_c: wp.array(dtype=wp.spatial_vector),
-    aba_DA: wp.array(dtype=wp.mat33),
-    aba_DB: wp.array(dtype=wp.mat33),
-    aba_Du: wp.array(dtype=wp.vec3),
-    joint_qdd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
     rk_q: wp.array(dtype=wp.quat),
     rk_w: wp.array(dtype=wp.vec3),
     rk_dq: wp.array(dtype=wp.vec3),
@@ -441,13 +384,13 @@ def integrate_rk4(
     """One thread per strand: classical RK4 on the Lie group, as MuJoCo's ``RK4`` does.
 
     Stage configurations are ``q0 exp(c h w)``; the update is ``q0 exp(h/6 (w1 + 2w2 + 2w3 + w4))``.
-    External forces, held by the accumulators, stay fixed over the step. Writes ``joint_q_out``,
-    ``joint_qd_out``, the new state's world frames and vertices, and fault bits.
+    External loads stay fixed over the step. Writes ``joint_q_out``, ``joint_qd_out``, the new
+    state's world frames and vertices, and fault bits.
     """
     strand = wp.tid()
-    S = seg_per_strand
+    S = chains.seg_per_strand
     h = dt[0]
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], gravity)
+    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
     head_rot = wp.transform_get_rotation(head_xform[0])
     for k in range(S):
         i = strand * S + k
@@ -456,9 +399,7 @@ def integrate_rk4(
         rk_dq[i] = wp.vec3()
         rk_dw[i] = wp.vec3()
     for stage in range(4):
-        aba_strand(strand, S, h, 0, seg_length, seg_mass, seg_inertia, strand_root_pos, joint_rest_q,
-                   joint_stiffness, joint_damping, head_rot, v_head, a_head, seg_force, seg_torque, has_ext,
-                   seg_implicit_mass, has_implicit_mass, rk_q, rk_w, aba_p, aba_c, aba_DA, aba_DB, aba_Du, joint_qdd)
+        aba_strand(chains, strand, h, 0, head_rot, v_head, a_head, loads, rk_q, rk_w, scratch)
         weight = 2.0
         step = 0.5 * h
         if stage == 0 or stage == 3:
@@ -468,7 +409,7 @@ def integrate_rk4(
         for k in range(S):
             i = strand * S + k
             w = rk_w[i]
-            qdd = joint_qdd[i]
+            qdd = scratch.qdd[i]
             rk_dq[i] = rk_dq[i] + weight * w
             rk_dw[i] = rk_dw[i] + weight * qdd
             if stage < 3:
@@ -481,16 +422,14 @@ def integrate_rk4(
         flag_joint(w, q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
-    fk_strand(strand, S, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
+    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
               seg_xform_out, vertex_positions_out, vertex_velocities_out)
 
 
 @wp.func
 def fk_strand(
+    chains: StrandChains,
     strand: int,
-    S: int,
-    seg_length: wp.array(dtype=float),
-    strand_root_pos: wp.array(dtype=wp.vec3),
     X_h: wp.transform,
     v_head: wp.spatial_vector,
     joint_q: wp.array(dtype=wp.quat),
@@ -500,10 +439,11 @@ def fk_strand(
     vertex_velocities: wp.array(dtype=wp.vec3),
 ):
     """World segment frames, vertex positions [m] and velocities [m/s] of one strand, root to tip."""
+    S = chains.seg_per_strand
     R = wp.transform_get_rotation(X_h)
     p_h = wp.transform_get_translation(X_h)
     omega = wp.spatial_top(v_head)
-    x = wp.transform_point(X_h, strand_root_pos[strand])
+    x = wp.transform_point(X_h, chains.strand_root_pos[strand])
     v = wp.spatial_bottom(v_head) + wp.cross(omega, x - p_h)
     vbase = strand * (S + 1)
     for k in range(S):
@@ -513,7 +453,7 @@ def fk_strand(
         seg_xform[i] = wp.transform(x, R)
         vertex_positions[vbase + k] = x
         vertex_velocities[vbase + k] = v
-        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -seg_length[i]))
+        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
         x = x + d
         v = v + wp.cross(omega, d)
     vertex_positions[vbase + S] = x
@@ -523,9 +463,7 @@ def fk_strand(
 @wp.kernel
 def forward_kinematics(
     # Model:
-    seg_per_strand: int,
-    seg_length: wp.array(dtype=float),
-    strand_root_pos: wp.array(dtype=wp.vec3),
+    chains: StrandChains,
     # Control:
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
@@ -539,8 +477,8 @@ def forward_kinematics(
 ):
     """One thread per strand: world segment frames, vertex positions [m] and velocities [m/s]."""
     strand = wp.tid()
-    fk_strand(strand, seg_per_strand, seg_length, strand_root_pos, head_xform[0], head_velocity[0], joint_q,
-              joint_qd, seg_xform, vertex_positions, vertex_velocities)
+    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q, joint_qd, seg_xform, vertex_positions,
+              vertex_velocities)
 
 
 @wp.kernel
