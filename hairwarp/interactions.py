@@ -13,6 +13,11 @@ and, after integration and forward kinematics of ``state_out``::
 
 ``dt`` is the solver's one-element float32 device array. ``model`` needs ``seg_per_strand``, ``seg_length`` and
 ``seg_mass``; a state needs ``seg_xform``, ``vertex_positions``, ``vertex_velocities`` and ``fault``.
+
+Once per output frame, outside a captured step, a runner reads ``links.broken_count()``,
+``contacts.contact_count()`` and ``contacts.overflowed()``. Contact detection costs far more than the force pass;
+with ``HairContacts.build(..., detect_each_step=False, margin=...)`` the runner calls ``contacts.detect(model,
+state)`` itself (e.g. at the first substep of a frame) and each step only evaluates the stored pairs.
 """
 
 from __future__ import annotations
