@@ -94,15 +94,17 @@ class Solver:
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_implicit_mass = wp.zeros(n if self.has_implicit_mass else 1, dtype=float, device=device)
-        self.loads = self._loads(self.seg_force, self.seg_torque, self.has_forces)
+        self.loads = self._loads(self.seg_force, self.seg_torque, self.has_forces, self.seg_implicit_mass,
+                                 self.has_implicit_mass)
 
-    def _loads(self, seg_force, seg_torque, has_force):
+    @staticmethod
+    def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
         loads = articulated.SegmentLoads()
         loads.seg_force = seg_force
         loads.seg_torque = seg_torque
-        loads.seg_implicit_mass = self.seg_implicit_mass
+        loads.seg_implicit_mass = seg_implicit_mass
         loads.has_force = int(has_force)
-        loads.has_implicit_mass = int(self.has_implicit_mass)
+        loads.has_implicit_mass = int(has_implicit_mass)
         return loads
 
     # -- the step -------------------------------------------------------------------------
@@ -114,9 +116,9 @@ class Solver:
         previous step does; after editing its joints call :meth:`forward_kinematics`).
         """
         self.set_dt(dt)
-        wp.copy(state_out.fault, state_in.fault)
         if self.has_forces:
             self._accumulate_forces(state_in, control)
+        wp.copy(state_out.fault, state_in.fault)  # after the force stages, which may flag an overflow
         self._integrate(state_in, state_out, control)  # forward kinematics of state_out fused in
         if self.colliders is not None:
             self.colliders.project(self.model, state_out, control, self.dt)
@@ -175,11 +177,12 @@ class Solver:
     # -- tools ----------------------------------------------------------------------------
 
     def joint_accelerations(self, state, control, *, dt: float = 0.0, implicit: bool = False,
-                            seg_force=None, seg_torque=None) -> wp.array:
+                            seg_force=None, seg_torque=None, seg_implicit_mass=None) -> wp.array:
         """Joint accelerations of ``state`` [rad/s^2] by ABA alone.
 
         The external forces are those the solver's stages accumulate now, or ``seg_force`` and
-        ``seg_torque`` (world, torque about each segment's origin) when given. With ``implicit``
+        ``seg_torque`` (world, torque about each segment's origin) when given, with
+        ``seg_implicit_mass`` (the semi-implicit inertia of interaction springs [kg]). With ``implicit``
         it solves ``(M + hC + h^2 K) qdd = -K theta - (C + hK) w - bias`` as the ``implicit_joints``
         integrator does with step ``dt``.
         """
@@ -187,7 +190,8 @@ class Solver:
         self.dt.fill_(float(dt))
         self._dt_host = None
         if seg_force is not None:
-            loads = self._loads(seg_force, seg_torque, True)
+            extra = self.seg_implicit_mass if seg_implicit_mass is None else seg_implicit_mass
+            loads = self._loads(seg_force, seg_torque, True, extra, seg_implicit_mass is not None)
         else:
             if self.has_forces:
                 self._accumulate_forces(state, control)

@@ -130,6 +130,12 @@ def aba_forward_pass1(
         if loads.has_force != 0:
             p_ang = p_ang - wp.quat_rotate_inv(R_world, loads.seg_torque[i])
             p_lin = p_lin - wp.quat_rotate_inv(R_world, loads.seg_force[i])
+        if loads.has_implicit_mass != 0:
+            # The semi-implicit spring inertia m_e resists the point's true acceleration, but gravity
+            # enters ABA as a base acceleration, which would give m_e a weight: hold it up with -m_e g.
+            lift = wp.quat_rotate_inv(R_world, -loads.seg_implicit_mass[i] * chains.gravity)
+            p_ang = p_ang - wp.cross(com, lift)
+            p_lin = p_lin - lift
         scratch.p[i] = wp.spatial_vector(p_ang, p_lin)
         w_p = om
         v_p = vl

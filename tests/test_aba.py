@@ -129,3 +129,30 @@ def test_aba_moving_head_matches_crba(S, implicit, device):
         ref, M = accelerations_dense(c["lengths"], c["masses"], c["inertias"], c["root"], c["q"], c["qd"], tau,
                                      c["forces"], c["torques"], armature=armature, **head)
         assert_close(qdd, ref, M)
+
+
+@pytest.mark.parametrize("S", [2, 7])
+def test_implicit_spring_mass_adds_inertia_not_weight(S, device):
+    # The semi-implicit share of interaction springs is inertia m_e at each centre of mass that must
+    # not feel gravity: reference = Pinocchio ABA with masses m + m_e and an upward force m_e g there.
+    rng = np.random.default_rng(300 + S)
+    model, state, c, f_arr, t_arr = build_case(rng, S, device)
+    extra = rng.uniform(0.5, 5.0, S) * c["masses"]
+    extra32 = extra.astype(np.float32)
+    qdd = Solver(model, "semi_implicit").joint_accelerations(
+        state, model.control(), seg_force=f_arr, seg_torque=t_arr,
+        seg_implicit_mass=wp.array(extra32, dtype=float, device=device)).numpy()
+    extra = extra32.astype(np.float64)
+    tau = joint_torques(c["q"], c["qd"], c["rest"], c["K"], c["C"])
+    R = [Rotation.from_quat(q) for q in c["q"]]
+    forces, torques, rot = [], [], Rotation.identity()
+    for k in range(S):
+        rot = rot * R[k]
+        lift = -extra[k] * np.array([0.0, 0.0, -9.81])
+        com_world = rot.apply([0.0, 0.0, -0.5 * c["lengths"][k]])
+        forces.append(c["forces"][k] + lift)
+        torques.append(c["torques"][k] + np.cross(com_world, lift))
+    masses = c["masses"] + extra
+    # extra mass at the centre of mass adds m_e (L/2)^2 to the transverse moments about the top end only
+    ref = aba_fixed_base(c["lengths"], masses, c["inertias"], c["root"], c["q"], c["qd"], tau, forces, torques)
+    assert_close(qdd, ref, joint_inertia(c["lengths"], masses, c["inertias"], c["root"], c["q"]))
