@@ -104,8 +104,10 @@ class Simulation:
 
             collider_set = ColliderSet(self.colliders, self.model.device, model=self.model)
         self.collider_set = collider_set
-        self.solver = Solver(self.model, sim.integrator, colliders=collider_set,
-                             max_rotation_per_step=float(sim.max_rotation_per_step))
+        self.links = self._build_links(scene.links)
+        self.contacts = self._build_contacts(scene.interactions)
+        self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
+                             contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step))
         control = self.model.control()
         control.set_motion(self.motion.evaluate(0.0))
         state = self.model.state()
@@ -113,6 +115,34 @@ class Simulation:
         self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
                                state=state)
         self.dense = self._build_dense(scene.dense)
+
+    def _build_links(self, cfg):
+        if not cfg.enabled:
+            return None
+        from hairwarp.interactions import StaticLinks
+
+        return StaticLinks.build(self.model.rest_vertex_positions, neighbours=int(cfg.neighbours),
+                                 radius=float(cfg.radius), stiffness=float(cfg.stiffness),
+                                 damping=float(cfg.damping), break_length=float(cfg.break_length),
+                                 device=self.model.device)
+
+    def _build_contacts(self, cfg):
+        if not cfg.enabled:
+            return None
+        from hairwarp.interactions import HairContacts, TriangleStrips
+
+        model = self.model
+        strips = None
+        if cfg.vertex_face:
+            strips = TriangleStrips.build(model.rest_vertex_positions, model.root_uv, model.grid_shape,
+                                          device=model.device)
+        per_frame = cfg.detect == "frame"
+        return HairContacts.build(
+            model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
+            damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
+            capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
+            detect_each_step=not per_frame, device=model.device,
+        )
 
     def _build_dense(self, cfg):
         if not cfg.count and cfg.density is None:
@@ -187,7 +217,18 @@ class Simulation:
         control.set_wind(self.scene.wind_at(t))
 
     def advance_frame(self) -> Fault:
+        if self.contacts is not None and not self.contacts.detect_each_step:
+            self.contacts.detect(self.model, self.stepper.state)  # pairs for this frame, within the margin
         return self.stepper.advance_frame(self._before_step)
+
+    def frame_stats(self) -> dict:
+        """Counters of the frame just simulated (one small read each): broken links, contacts."""
+        stats = {}
+        if self.links is not None:
+            stats["broken_links"] = self.links.broken_count()
+        if self.contacts is not None:
+            stats["contacts"] = self.contacts.contact_count()
+        return stats
 
     @property
     def state(self):
@@ -253,6 +294,7 @@ class RunResult:
     seconds: float
     seconds_per_frame: float
     notes: list[str] = field(default_factory=list)
+    frame_stats: list[dict] = field(default_factory=list)
 
 
 class _Progress:
@@ -266,13 +308,15 @@ class _Progress:
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._last_decile = -1
 
-    def update(self, done: int):
+    def update(self, done: int, stats: dict | None = None):
         if not self.enabled:
             return
         elapsed = time.perf_counter() - self.start
         rate = done / elapsed if elapsed > 0 else 0.0
         left = (self.total - done) / rate if rate > 0 else float("inf")
         line = f"frame {done}/{self.total}  {rate:.2f} frames/s  {left:.0f} s left"
+        if stats:
+            line += "  " + "  ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items())
         if self.tty:
             self.stream.write("\r" + line.ljust(60))
             if done == self.total:
@@ -313,7 +357,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     counts = np.full(G, S + 1, dtype=np.int32)
     meshes0 = sim.collider_meshes(0.0)
     shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
-    kept, notes = [], []
+    kept, notes, all_stats = [], [], []
     report = _Progress(frames, progress)
     overflow_noted = False
 
@@ -342,6 +386,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                 if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
                     overflow_noted = True
                     notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
+            stats = sim.frame_stats()
+            all_stats.append(stats)
             points, velocities = sim.guide_curves()
             meshes = sim.collider_meshes(frame * sim.frame_dt)
             curves = {"guides": (points, velocities)} if scene.output.guides else {}
@@ -355,7 +401,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                 else:
                     shown_curves = {"guides": (points, counts)}
                 kept.append((frame, shown_curves, mesh))
-            report.update(frame)
+            report.update(frame, stats)
 
     preview_path = None
     if preview and kept:
@@ -369,4 +415,4 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             meshes=[m for _, _, m in kept] if meshes0 else None,
         )
     seconds = time.perf_counter() - t_start
-    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames, 1), notes)
+    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames, 1), notes, all_stats)

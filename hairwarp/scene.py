@@ -449,6 +449,37 @@ SCHEMA: dict[str, Section | ArrayOf] = {
         check=_check_wind,
     ),
     "colliders": ArrayOf(_COLLIDER, doc="colliders besides the head: shoulders, a body, the floor"),
+    "links": Section(
+        {
+            "enabled": Field("bool", False, "static links: breakable zero-rest-length springs between neighbours"),
+            "neighbours": Field("int", 3, "links per segment to its nearest segments of other strands",
+                                range="[1, 32]"),
+            "radius": Field("float", 0.012, "largest distance of a linked segment at rest", "m", range="(0, inf)"),
+            "stiffness": Field("float", 5.0, "spring stiffness k_s", "N/m", range="[0, inf)"),
+            "damping": Field("float", 0.01, "spring damping k_d", "N s/m", range="[0, inf)"),
+            "break_length": Field("float", 0.03, "a link stretched past this breaks for good", "m",
+                                  range="(0, inf)"),
+        },
+        doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
+    ),
+    "interactions": Section(
+        {
+            "enabled": Field("bool", False, "dynamic hair-hair contacts: repulsion and friction"),
+            "threshold": Field("float", 0.002, "pairs closer than this interact", "m", range="(0, inf)"),
+            "stiffness": Field("float", 20.0, "repulsion stiffness k0 (vertex-face: scaled by local density)",
+                               "N/m", range="[0, inf)"),
+            "damping": Field("float", 0.01, "normal damping", "N s/m", range="[0, inf)"),
+            "friction": Field("float", 0.3, "Coulomb friction coefficient", range="[0, inf)"),
+            "vertex_face": Field("bool", True, "vertex against the triangle strips between guides with adjacent roots"),
+            "segment_segment": Field("bool", True, "segment against segment of different strands"),
+            "detect": Field("str", "frame", "find contact pairs every step, or once per frame with a margin",
+                            choices=("step", "frame")),
+            "margin": Field("float", 0.004, "detect = frame: pairs within threshold + margin are kept for the frame",
+                            "m", range="[0, inf)"),
+            "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
+        },
+        doc="dynamic interactions (hairwarp.interactions.HairContacts on TriangleStrips)",
+    ),
     "dense": Section(
         {
             "count": Field("int", 0, "dense strands interpolated from the guides (0 = none)", range="[0, inf)"),
