@@ -118,8 +118,8 @@ class Solver:
         self.set_dt(dt)
         if self.has_forces:
             self._accumulate_forces(state_in, control)
-        wp.copy(state_out.fault, state_in.fault)  # after the force stages, which may flag an overflow
-        self._integrate(state_in, state_out, control)  # forward kinematics of state_out fused in
+        # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
+        self._integrate(state_in, state_out, control)
         if self.colliders is not None:
             self.colliders.project(self.model, state_out, control, self.dt)
         if self.links is not None:
@@ -165,13 +165,14 @@ class Solver:
         if self.integrator == Integrator.RK4:
             wp.launch(articulated.integrate_rk4, dim=model.strand_count,
                       inputs=[model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
-                              state_in.joint_qd, self.scratch, self.rk_q, self.rk_w, self.rk_dq, self.rk_dw],
+                              state_in.joint_qd, state_in.fault, self.scratch, self.rk_q, self.rk_w, self.rk_dq,
+                              self.rk_dw],
                       outputs=outputs, device=model.device)
         else:
             implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
             wp.launch(articulated.integrate_euler, dim=model.strand_count,
                       inputs=[model.chains, self.max_rotation_per_step, *head, implicit, self.loads,
-                              state_in.joint_q, state_in.joint_qd, self.scratch],
+                              state_in.joint_q, state_in.joint_qd, state_in.fault, self.scratch],
                       outputs=outputs, device=model.device)
 
     # -- tools ----------------------------------------------------------------------------

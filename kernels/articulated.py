@@ -326,6 +326,7 @@ def integrate_euler(
     loads: SegmentLoads,
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
+    fault_in: wp.array(dtype=wp.int32),
     # Scratch:
     scratch: AbaScratch,
     # Out:
@@ -343,6 +344,9 @@ def integrate_euler(
     world frames and vertices (forward kinematics, fused), and fault bits.
     """
     strand = wp.tid()
+    if strand == 0:
+        # faults are sticky: the new state starts from the old state's bits (a superset of its own)
+        wp.atomic_or(fault, 0, fault_in[0])
     S = chains.seg_per_strand
     h = dt[0]
     v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
@@ -373,6 +377,7 @@ def integrate_rk4(
     loads: SegmentLoads,
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
+    fault_in: wp.array(dtype=wp.int32),
     # Scratch:
     scratch: AbaScratch,
     rk_q: wp.array(dtype=wp.quat),
@@ -394,6 +399,9 @@ def integrate_rk4(
     state's world frames and vertices, and fault bits.
     """
     strand = wp.tid()
+    if strand == 0:
+        # faults are sticky: the new state starts from the old state's bits (a superset of its own)
+        wp.atomic_or(fault, 0, fault_in[0])
     S = chains.seg_per_strand
     h = dt[0]
     v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
