@@ -67,7 +67,12 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
     for name in suites:
         log(f"== suite {name} ==")
         t0 = time.perf_counter()
+        common.GATE.enabled = config.quiet_gate
+        common.GATE.budget_s = config.quiet_budget_s
+        common.GATE.max_wait_s = config.quiet_max_wait_s
+        common.GATE.reset()
         data = _suite(name, config, out, log)
+        data["quiet_gate"] = common.GATE.summary()
         data["wall_s"] = round(time.perf_counter() - t0, 1)
         data["quick"] = config.quick
         data["machine"] = {**machine, "load_average_end": common.load_average()}

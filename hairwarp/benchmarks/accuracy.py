@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from hairwarp.benchmarks.common import DENSITY, GRAVITY, RADIUS, STRAND_LENGTH, run_child, time_blocks
+from hairwarp.benchmarks.common import DENSITY, GATE, GRAVITY, RADIUS, STRAND_LENGTH, run_child, time_blocks
 from hairwarp.benchmarks.ours import StepRunner, reference_model
 from hairwarp.model import Model, StrandParams
 from hairwarp.solver import Solver
@@ -69,6 +69,7 @@ def our_cost(integrator: str, strands: int, device, cfg) -> dict:
     for graph in (False, True):
         solver = Solver(model, integrator)
         runner = StepRunner(model, solver, 1e-3, cfg.graph_block if graph else 1, graph=graph)
+        GATE.wait()
         r = time_blocks(runner.advance, lambda: wp.synchronize_device(model.device),
                         steps=max(1, 100 // runner.chunk), blocks=3, warmup=2, budget_s=cfg.ours_budget_s)
         best["graph" if graph else "launch"] = r["step_s"] / runner.chunk / strands
@@ -192,6 +193,7 @@ def suite_accuracy(cfg, out: Path, log=lambda msg: None) -> dict:
                         "cost": cost, "runs": runs})
     for peer, dts in cfg.acc_peer_dts.items():
         log(f"accuracy: peer {peer} ...")
+        GATE.wait()
         res = run_child({"kind": "trajectory", "peer": peer, "dts": list(dts), "duration": cfg.acc_duration,
                          "S": 20, "cost_strands": cfg.acc_cost_strands}, cfg.peer_timeout_s)
         entry = {"method": peer, "kind": "peer", "status": res.get("status")}

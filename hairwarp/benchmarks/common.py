@@ -174,6 +174,74 @@ def child_result(fn, request: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
+# other programs on a shared machine
+
+
+def _cpu_times():
+    try:
+        with open("/proc/stat") as f:
+            fields = [float(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)
+    return sum(fields[:8]), idle
+
+
+def busy_cores(window_s: float = 0.3) -> float | None:
+    """Cores kept busy over ``window_s`` by everything on the machine (this process is idle meanwhile)."""
+    a = _cpu_times()
+    if a is None:
+        return None
+    time.sleep(window_s)
+    b = _cpu_times()
+    total, idle = b[0] - a[0], b[1] - a[1]
+    return (total - idle) / total * (os.cpu_count() or 1) if total > 0 else 0.0
+
+
+class QuietGate:
+    """Waits, before a timing, until other programs leave the machine's cores alone.
+
+    A timing starts once fewer than ``threshold`` cores are busy (others' work: this process is
+    idle while it looks), or when the wait for that timing or the whole run's ``budget_s`` is spent;
+    every call records what it saw, so a figure taken under load can be told apart.
+    """
+
+    def __init__(self, budget_s: float = 120.0, threshold: float = 0.35, max_wait_s: float = 30.0):
+        self.enabled = True
+        self.budget_s, self.threshold, self.max_wait_s = budget_s, threshold, max_wait_s
+        self.reset()
+
+    def reset(self):
+        self.waited_s = 0.0
+        self.loaded = 0
+        self.timings = 0
+
+    def wait(self) -> dict:
+        if not self.enabled:
+            return {"others_busy_cores": None, "waited_s": 0.0, "under_load": False}
+        self.timings += 1
+        t0 = time.perf_counter()
+        busy = busy_cores()
+        while (busy is not None and busy >= self.threshold and time.perf_counter() - t0 < self.max_wait_s
+               and self.waited_s + time.perf_counter() - t0 < self.budget_s):
+            time.sleep(0.7)
+            busy = busy_cores()
+        waited = time.perf_counter() - t0
+        self.waited_s += waited
+        loaded = busy is not None and busy >= self.threshold
+        self.loaded += int(loaded)
+        return {"others_busy_cores": None if busy is None else round(busy, 2), "waited_s": round(waited, 2),
+                "under_load": loaded}
+
+    def summary(self) -> dict:
+        return {"enabled": self.enabled, "waited_s": round(self.waited_s, 1), "timings": self.timings,
+                "timings_under_load": self.loaded, "threshold_cores": self.threshold}
+
+
+GATE = QuietGate()
+
+
+# ---------------------------------------------------------------------------------------------
 # the machine
 
 
@@ -295,6 +363,10 @@ class BenchConfig:
     stab_joint_damping: float = 1.0e-10
     stab_hair_damping: float = 2.0e-7
     stab_hair_integrators: tuple = ("semi_implicit", "implicit_joints")
+    # timings wait for other programs to leave the cores (QuietGate), within this budget per suite
+    quiet_gate: bool = True
+    quiet_budget_s: float = 60.0
+    quiet_max_wait_s: float = 15.0
     # scaling
     scale_strands: tuple = (32, 128, 512, 2228)
     scale_segments: tuple = (8, 16, 31)
@@ -338,4 +410,6 @@ class BenchConfig:
             scale_segments=(8, 16),
             scale_budget_s=0.2,
             dense_counts=(1000,),
+            quiet_budget_s=5.0,
+            quiet_max_wait_s=2.0,
         )

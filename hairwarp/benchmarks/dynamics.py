@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 
 import warp as wp
 
-from hairwarp.benchmarks.common import BENCH_DT, run_child
+from hairwarp.benchmarks.common import BENCH_DT, GATE, run_child
 from hairwarp.benchmarks.ours import aba_only_ms, canonical_model, profile_step, time_solver
 
 # Acceptance goals: (peer, segments the goal applies to or None for all, least ratio hairwarp / peer).
@@ -81,11 +82,11 @@ def retime(model, ours: dict, cfg) -> dict:
 
 
 def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
-    """Each peer in a child process; hairwarp is timed again before each peer and after the last.
+    """Each peer in a child process, bracketed by timings of hairwarp just before and just after it.
 
-    Returns the peers' results and, per integrator, every seg-steps/s figure of hairwarp at this
-    size (the first measurement, then those around the peers): the machine's load drifts during a
-    run, and the median of these spans the same stretch of time as the peers' figures.
+    A shared machine's load drifts within a run; the geometric mean of the two timings around a peer
+    is hairwarp's figure for that peer's ratio (``bracket``). Every timing is kept (``samples``: the
+    first measurement, then one before each peer and one after the last).
     """
     rows = {}
     samples = {i: [r["seg_steps_per_s"]] for i, r in ours.items() if r.get("seg_steps_per_s")}
@@ -95,7 +96,9 @@ def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
         log(f"  peer {peer} at {G} x {S} ...")
         req = {"kind": "throughput", "peer": peer, "G": G, "S": S, "dt": BENCH_DT, "steps": cfg.block_steps,
                "blocks": cfg.blocks, "warmup": cfg.warmup, "budget_s": cfg.peer_budget_s}
+        gate = GATE.wait()
         res = run_child(req, cfg.peer_timeout_s)
+        res["gate"] = gate
         rows[peer] = res
         if res.get("status") == "ok":
             log(f"    {res['step_ms']:.3g} ms/step, {res['seg_steps_per_s']:.3g} seg-steps/s")
@@ -103,7 +106,10 @@ def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
             log(f"    {res.get('status')}: {res.get('message', '')[:200]}")
     for integrator, value in retime(model, ours, cfg).items():
         samples[integrator].append(value)
-    # the C floors reported by two of them, as peers of their own
+    brackets = {}
+    for integrator, v in samples.items():
+        brackets[integrator] = {peer: math.sqrt(v[n + 1] * v[n + 2]) for n, peer in enumerate(cfg.dyn_peers)}
+    # the C floors reported by two of them, as peers of their own, bracketed as their parent
     pin = rows.get("pinocchio", {})
     if pin.get("status") == "ok":
         rows["pinocchio_aba_floor"] = {"status": "ok", "derived_from": "pinocchio",
@@ -114,19 +120,23 @@ def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
         rows["mujoco_euler_c_only"] = {"status": "ok", "derived_from": "mujoco_euler",
                                        "seg_steps_per_s": mj["extra"]["C_only_seg_steps_per_s"],
                                        "us_per_strand_step": mj["extra"]["mj_step_us_per_strand_C_only"]}
-    summary = {i: {"samples": v, "median": statistics.median(v), "min": min(v), "max": max(v)}
-               for i, v in samples.items()}
+    for b in brackets.values():
+        for derived, parent in (("pinocchio_aba_floor", "pinocchio"), ("mujoco_euler_c_only", "mujoco_euler")):
+            if parent in b:
+                b[derived] = b[parent]
+    summary = {i: {"samples": v, "median": statistics.median(v), "min": min(v), "max": max(v),
+                   "bracket": brackets[i]} for i, v in samples.items()}
     return rows, summary
 
 
 def ratios(G: int, S: int, ours: dict, peers: dict) -> list[dict]:
-    """hairwarp / peer in seg-steps per second; hairwarp's figure is the median over the run at this size."""
+    """hairwarp / peer in seg-steps per second; hairwarp's figure is the bracket around that peer."""
     rows = []
     for integrator, mine in ours.items():
         for peer, res in peers.items():
             goal = goal_for(peer, S)
             row = {"G": G, "S": S, "integrator": integrator, "peer": peer, "goal": goal,
-                   "ours_seg_steps_per_s": mine.get("median"),
+                   "ours_seg_steps_per_s": mine["bracket"].get(peer, mine["median"]),
                    "peer_seg_steps_per_s": res.get("seg_steps_per_s") if res.get("status") == "ok" else None,
                    "peer_status": res.get("status")}
             if row["ours_seg_steps_per_s"] and row["peer_seg_steps_per_s"]:

@@ -11,6 +11,7 @@ import warp as wp
 from hairwarp.benchmarks.common import (
     BENCH_DT,
     DENSITY,
+    GATE,
     JOINT_DAMPING,
     RADIUS,
     STRAND_LENGTH,
@@ -106,8 +107,10 @@ def time_solver(model: Model, integrator: str, dt: float, *, graph: bool, steps:
         wp.synchronize_device(device)
 
     per = runner.chunk
+    gate = GATE.wait()
     res = time_blocks(runner.advance, sync, steps=max(1, steps // per), blocks=blocks, warmup=warmup,
                       budget_s=budget_s)
+    res["gate"] = gate
     for key in ("step_s", "step_s_min", "first_step_s"):
         res[key] = res[key] / per
     res["timed_steps"] *= per

@@ -214,10 +214,12 @@ def chart_scaling(sc: dict, path: Path):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
     for S in sorted({p["S"] for p in pts}):
         sel = sorted((p for p in pts if p["S"] == S), key=lambda p: p["G"])
-        axes[0].plot([p["G"] for p in sel], [p["step_s"] * 1e3 for p in sel], "o-", label=f"S = {S}")
+        axes[0].plot([p["G"] for p in sel], [p.get("step_s_min", p["step_s"]) * 1e3 for p in sel], "o-",
+                     label=f"S = {S}")
     for G in sorted({p["G"] for p in pts}):
         sel = sorted((p for p in pts if p["G"] == G), key=lambda p: p["S"])
-        axes[1].plot([p["S"] for p in sel], [p["step_s"] * 1e3 for p in sel], "o-", label=f"G = {G}")
+        axes[1].plot([p["S"] for p in sel], [p.get("step_s_min", p["step_s"]) * 1e3 for p in sel], "o-",
+                     label=f"G = {G}")
     ex = sc["devices"]["cpu"]["exponents"]
     axes[0].set_xlabel("strands G")
     axes[0].set_title(f"cost vs strands (exponent at S = max: {_g(ex['vs_strands_largest_S'])})")
@@ -226,7 +228,7 @@ def chart_scaling(sc: dict, path: Path):
     for ax in axes:
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_ylabel("ms per step (implicit_joints, CPU)")
+        ax.set_ylabel("ms per step, fastest block (implicit_joints, CPU)")
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
@@ -272,8 +274,10 @@ def md_dynamics(d: dict) -> list[str]:
             if not r or not r.get("seg_steps_per_s"):
                 cells.append("–")
                 continue
+            loaded = any(r[m].get("gate", {}).get("under_load") for m in ("launch", "graph"))
             cells.append(f"**{_g(r['step_ms'])} ms, {_g(r['seg_steps_per_s'])}** ({r['best_mode']}; launches "
-                         f"{_g(r['launch'].get('step_ms'))} ms, graph {_g(r['graph'].get('step_ms'))} ms)")
+                         f"{_g(r['launch'].get('step_ms'))} ms, graph {_g(r['graph'].get('step_ms'))} ms)"
+                         + (" †" if loaded else ""))
         out.append(f"| hairwarp `{integ}` | " + " | ".join(cells) + " |")
     labels = d.get("peer_labels", {})
     for peer in PEER_ORDER:
@@ -290,14 +294,17 @@ def md_dynamics(d: dict) -> list[str]:
                 cell = _peer_figure(r)
                 if r.get("downsized"):
                     cell += " (downsized)"
+                if r.get("gate", {}).get("under_load"):
+                    cell += " †"
                 if r.get("status") not in (None, "ok") and r.get("message"):
                     cell += f": {r['message'][:90]}"
                 cells.append(cell)
         out.append(f"| {labels.get(peer, peer)} | " + " | ".join(cells) + " |")
     out += ["", "### Ratios hairwarp / peer and the goals", "",
             "Ratio of segment-steps per second, hairwarp over the peer. The load of this shared machine drifts "
-            "during a run, so hairwarp (its faster mode) is timed again before each peer and after the last; the "
-            "ratio uses the median of those timings, given in brackets with their range below the table.", "",
+            "during a run, so hairwarp (its faster mode) is timed again just before and just after each peer; "
+            "the ratio uses the geometric mean of those two timings (in brackets). All timings of hairwarp at "
+            "each size are summarised below the table.", "",
             "| size | peer | goal | peer seg-steps/s | `semi_implicit` | `implicit_joints` | meets (semi / implicit) |",
             "|---|---|---|---|---|---|---|"]
     for c in d["configs"]:
@@ -479,11 +486,16 @@ def md_scaling(sc: dict) -> list[str]:
     for G in sorted({p["G"] for p in pts}):
         row = {p["S"]: p for p in pts if p["G"] == G}
         out.append(f"| {G} | " + " | ".join(f"{row[S]['step_s'] * 1e3:.3g} ms ({_g(row[S]['seg_steps_per_s'])}/s)"
-                                            for S in sorted(row)) + " |")
+                                            + (" †" if row[S].get("under_load") else "") for S in sorted(row)) + " |")
     out += ["", "Fitted exponents of the cost (least squares in log-log; goal ≤ 1.1): vs strands "
             + ", ".join(f"{_g(v)} at S = {k}" for k, v in ex["vs_strands"].items()) + "; vs segments "
             + ", ".join(f"{_g(v)} at G = {k}" for k, v in ex["vs_segments"].items())
-            + f". Largest: **{_g(sc['max_exponent'])}** — {'meets' if sc['meets'] else '**does not meet**'} the goal.",
+            + f". Largest: **{_g(sc['max_exponent'])}** — {'meets' if sc['meets'] else '**does not meet**'} the goal."
+            + (" Fitted to the median blocks instead: vs strands "
+               + ", ".join(f"{_g(v)}" for v in sc["devices"]["cpu"]["exponents_median"]["vs_strands"].values())
+               + "; vs segments "
+               + ", ".join(f"{_g(v)}" for v in sc["devices"]["cpu"]["exponents_median"]["vs_segments"].values())
+               + "." if "exponents_median" in sc["devices"]["cpu"] else ""),
             "", "Other stages (hooks: a module exposes `bench_<stage>(..., device=...)` returning a dict; it is "
             "called when it exists):", "", "| stage | hook | status | figures |", "|---|---|---|---|"]
     for st in sc["stages"]:
@@ -659,9 +671,15 @@ def write_report(results: dict, out: Path) -> Path:
                      ("scaling", md_scaling)):
         if name in s:
             sm = s[name].get("machine", {})
+            qg = s[name].get("quiet_gate", {})
+            gate = ""
+            if qg.get("enabled"):
+                gate = (f" Before each of its {qg['timings']} timings it waited for other programs to leave the "
+                        f"cores ({qg['waited_s']} s in all); {qg['timings_under_load']} still started with others "
+                        f"using ≥ {qg['threshold_cores']} core (marked †).")
             lines += fn(s[name]) + ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}, load "
-                                        f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}.*",
-                                    ""]
+                                        f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}."
+                                        f"{gate}*", ""]
     lines += md_cuda(s) + [""]
     lines += ["## Reproduce", "", "```", "hairwarp bench                 # all suites, about 15 min on 2 cores; "
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"
