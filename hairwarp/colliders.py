@@ -4,9 +4,10 @@ A ``Collider`` is geometry in its own local frame plus a rigid placement ``local
 the head (``attach="head"``: it rides on ``Control.head_xform``) or the world (``attach="world"``:
 static, or driven by a ``motion`` object, or posed each step with ``ColliderSet.set_pose``).
 ``ColliderSet`` puts a list of colliders on the device once and runs the per-step projection
-(``hairwarp.kernels.body_collision.collide_strands``): vertices closer than ``thickness`` take the
-object's velocity (``friction`` blends the sliding part), vertices inside are pushed out and the rest of
-the strand follows with its segment lengths kept (Chang, Jin & Yu 2002).
+(``hairwarp.kernels.body_collision.collide_strands``): vertices closer than ``thickness`` lose their
+approach speed and rub on the object with Coulomb friction (``friction`` 1 is the seed's full velocity
+match), vertices inside are pushed out onto the surface and the rest of the strand follows with its
+segment lengths kept (Chang, Jin & Yu 2002).
 
 Rest vertices that start inside a collider (real grooms have them: the TressFX Ratboy mohawk has roots
 and first vertices up to 1 mm inside the body) are *exempt* from that collider: ``ColliderSet.bind``
@@ -166,10 +167,13 @@ class Collider:
         motion: for a world collider, an object with ``evaluate(t)`` returning a sample with
             ``matrix()`` (4x4), ``linear_velocity`` (of its origin) and ``angular_velocity``, in world
             (e.g. ``hairwarp.HeadMotion``); None for a static one.
-        thickness: contact layer [m]: vertices closer than this take the object's velocity; vertices
-            pushed out land this far above the surface.
-        friction: 0 = frictionless sliding, 1 = the seed's full velocity match; the tangential slip
-            relative to the object is scaled by ``1 - friction`` once per step in contact.
+        thickness: contact layer [m]: vertices closer than this lose their approach speed and feel
+            friction. Pushed-out vertices land just above the surface (``PUSH_MARGIN``, 10 um), not at the
+            top of the layer, so a push is no larger than the penetration it undoes.
+        friction: Coulomb friction: a vertex in contact may change its slip relative to the object by at
+            most ``mu`` times the approach speed it lost, ``mu = friction / (1 - friction)`` (0.5 gives
+            mu = 1), so friction does not depend on the step size; 0 = frictionless, 1 = the seed's full
+            velocity match (the vertex takes the object's velocity).
     """
 
     name: str

@@ -486,6 +486,35 @@ def test_friction_zero_keeps_tangential_velocity(dt_array):
     np.testing.assert_allclose(v_new, expect, atol=VEL_ATOL)
 
 
+@pytest.mark.parametrize("friction", [0.2, 0.5, 0.8])
+def test_coulomb_friction_limits_slip_change(friction, dt_array):
+    """Closed-form Coulomb rule: the slip relative to the object changes by at most mu times the approach
+    speed removed, mu = friction / (1 - friction), and never reverses; a separating vertex keeps its slip."""
+    rng = np.random.default_rng(11)
+    u = np.array([0.05, -0.02, 0.01])
+    strands, colliders = resting_strand_setup(rng, friction, u)
+    model, state, control = device_setup(strands, np.eye(4))
+    colliders.bind(model)
+    v_old = state.vertex_velocities.numpy().reshape(3, 9, 3).astype(float)
+    rel = np.zeros((3, 8, 3))
+    rel[..., :2] = rng.uniform(-0.3, 0.3, (3, 8, 2))  # slip
+    rel[..., 2] = rng.uniform(-0.3, 0.1, (3, 8))  # mostly approaching, some separating
+    v_old[:, 1:] = u + rel
+    state.vertex_velocities.assign(v_old.reshape(-1, 3).astype(np.float32))
+    colliders.project(model, state, control, dt_array)
+    v_new = state.vertex_velocities.numpy().reshape(3, 9, 3).astype(float)[:, 1:]
+    rel = v_old[:, 1:].astype(np.float32).astype(float) - u
+    approach = np.maximum(-rel[..., 2], 0.0)
+    slip = rel.copy()
+    slip[..., 2] = 0.0
+    mu = friction / (1.0 - friction)
+    kept = np.clip(1.0 - mu * approach[..., None] / np.linalg.norm(slip, axis=-1, keepdims=True), 0.0, 1.0)
+    expect = u + kept * slip
+    expect[..., 2] = u[2] + np.maximum(rel[..., 2], 0.0)
+    assert (kept == 0.0).any() and ((kept > 0.0) & (kept < 1.0)).any()  # both regimes: stuck and sliding
+    np.testing.assert_allclose(v_new, expect, atol=VEL_ATOL)
+
+
 def test_inside_at_rest_policy(dt_array):
     """Vertices inside at rest are left alone (no kick) until first seen clear, then collide as usual."""
     rng = np.random.default_rng(8)
