@@ -4,7 +4,8 @@ Every rendered strand is bound at setup to the guides around its root (barycentr
 Delaunay triangulation of the roots' scalp coordinates, or bilinear weights on a generator's root
 grid). Once per output frame :meth:`DenseHair.evaluate` launches two kernels from
 ``hairwarp.kernels.interpolate``: interpolation of the dense vertices, then cubic Hermite
-densification with Catmull-Rom tangents (DESIGN.md §4.5, seed: dense hair).
+densification with Catmull-Rom tangents (DESIGN.md §4.5, seed: dense hair). Given body colliders,
+a third launch between the two lifts interpolated vertices out of them (:meth:`DenseHair.push_out`).
 
 The per-frame operator is affine in the guide vertices, so velocities for motion blur come out
 of the same kernels applied to the guide velocities.
@@ -337,6 +338,7 @@ class DenseHair:
         self.dense_tip_offset = wp.array(tip_offset, dtype=wp.vec3, device=dev)
         self._identity_xform = wp.array([wp.transform_identity()], dtype=wp.transform, device=dev)
         self._zero_velocity = wp.zeros(1, dtype=wp.spatial_vector, device=dev)
+        self._push_counts = wp.zeros(2, dtype=wp.int32, device=dev)
 
         n_dense_vert = D * n_vert
         n_curve = D * self.points_per_curve
@@ -522,6 +524,79 @@ class DenseHair:
         )
         return out
 
+    def push_out(self, colliders, head_xform: wp.array | None = None, dense_vertices: wp.array | None = None,
+                 head_velocity: wp.array | None = None) -> wp.array:
+        """Lift interpolated vertices out of body colliders, keeping segment lengths (one launch, in place).
+
+        Interpolated hair can cut into the head where the guides around it pass on either side. Every
+        vertex after the root that lies inside a collider or within its ``thickness`` is moved to
+        ``thickness`` above the surface: it turns about the previous vertex on the sphere of its segment
+        (so that segment keeps its length) until it clears the tangent plane at its closest surface point,
+        re-queried up to ``PUSH_ITERATIONS`` times; only where the sphere cannot reach that far (the
+        previous vertex is deep, e.g. a root under the surface) is it put at the closest point plus
+        ``thickness`` along the normal. The rest of the strand then follows by the seed's rule
+        ``p'_{k+1} = p'_k + L_k (p_{k+1} - p'_k) / |p_{k+1} - p'_k|``, with ``L_k`` the interpolated
+        segment lengths. Roots are never moved; strands clear of every contact layer are not written.
+        Velocities are left as interpolated. The colliders are queried as the guides' projection queries
+        them (``hairwarp.kernels.body_collision``), at their pose on the device: head-attached ones at
+        ``head_xform``, world ones at ``ColliderSet.collider_xform`` (set by ``update`` / ``set_pose``).
+
+        Call it after :meth:`interpolate` and before :meth:`densify`, or pass ``colliders`` to
+        :meth:`evaluate`, which does both. Pushed-vertex counts of the last call: :attr:`push_counts`.
+
+        Args:
+            colliders: a :class:`hairwarp.colliders.ColliderSet` on this device (no launch when empty or None).
+            head_xform: wp.transform (1,) head pose (``Control.head_xform``), identity when None.
+            dense_vertices: vec3 (D*(S+1),) strands to push out, world; ``dense_vertices`` when None.
+            head_velocity: wp.spatial_vector (1,) (``Control.head_velocity``); not used by the push, only
+                passed to the collider pose function. Zero when None.
+
+        Returns:
+            The pushed array (``dense_vertices`` unless another one is given).
+        """
+        src = self.dense_vertices if dense_vertices is None else dense_vertices
+        if src.shape[0] != self.dense_count * (self.seg_per_strand + 1):
+            raise DenseHairError(f"dense_vertices has {src.shape[0]} entries, expected D*(S+1)")
+        self._push_counts.zero_()
+        if colliders is None or colliders.count == 0:
+            return src
+        if colliders.device != self.device:
+            raise DenseHairError(f"colliders are on {colliders.device}, dense hair on {self.device}")
+        wp.launch(
+            _k.dense_push_out,
+            dim=self.dense_count,
+            inputs=[
+                self.seg_per_strand,
+                colliders.count,
+                colliders.collider_kind,
+                colliders.collider_attach,
+                colliders.collider_local_xform,
+                colliders.collider_radius,
+                colliders.collider_half_height,
+                colliders.collider_thickness,
+                colliders.collider_mesh,
+                colliders.collider_bound_lo,
+                colliders.collider_bound_hi,
+                colliders.collider_far,
+                colliders.collider_xform,
+                colliders.collider_velocity,
+                self._identity_xform if head_xform is None else head_xform,
+                self._zero_velocity if head_velocity is None else head_velocity,
+                self._push_counts,
+            ],
+            outputs=[src],
+            device=self.device,
+        )
+        return src
+
+    @property
+    def push_counts(self) -> tuple[int, int]:
+        """``(lifted, projected)`` vertices of the last :meth:`push_out`: lifted ones kept every segment length,
+        projected ones (out of their segment's reach) changed the length of the segment ending at them.
+        Reads the device (diagnostics, not per frame)."""
+        lifted, projected = self._push_counts.numpy()
+        return int(lifted), int(projected)
+
     def evaluate(
         self,
         guide_vertices: wp.array,
@@ -529,8 +604,10 @@ class DenseHair:
         head_xform: wp.array | None = None,
         head_velocity: wp.array | None = None,
         hermite: bool = True,
+        colliders=None,
     ) -> tuple[wp.array, wp.array | None]:
-        """Interpolate and densify positions and, when given, velocities (for motion blur).
+        """Interpolate, push out of the colliders (when given) and densify positions and, when given,
+        velocities (for motion blur).
 
         Args:
             guide_vertices: vec3 (G*(S+1),) guide vertices [m], world.
@@ -540,12 +617,16 @@ class DenseHair:
                 its angular part moves the head-frame offsets. Zero when None.
             hermite: densify with Hermite samples; False returns the interpolated vertices (for
                 Catmull-Rom curves, which a renderer evaluates itself).
+            colliders: a :class:`hairwarp.colliders.ColliderSet`: the interpolated vertices are pushed out
+                of it (:meth:`push_out`) before densifying; None (default) skips the pass at no cost.
 
         Returns:
             ``(points, velocities)``, each vec3 (D*points_per_curve,) (or (D*(S+1),) without ``hermite``),
             or None for velocities.
         """
         self.interpolate(guide_vertices, head_xform)
+        if colliders is not None:
+            self.push_out(colliders, head_xform, head_velocity=head_velocity)
         if hermite:
             self._densify(self.dense_vertices, self.curve_points)
         if guide_velocities is None:

@@ -1,18 +1,21 @@
-"""Dense hair: root sampling and weights, interpolation, Hermite densification, velocities.
+"""Dense hair: root sampling and weights, interpolation, Hermite densification, velocities, push-out.
 
 References: SciPy (Delaunay barycentric transforms, CubicHermiteSpline, Rotation), a float64 NumPy
-implementation of the documented interpolation operator, closed forms (straight strands, a sphere).
+implementation of the documented interpolation operator, closed forms (straight strands, a sphere,
+a capsule, a plane), trimesh signed distances to mesh colliders.
 """
 
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
-from hairwarp.kernels import interpolate as kernels
 from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
+from hairwarp.colliders import Collider, ColliderSet
 from hairwarp.dense import DenseHair, DenseHairError, bench_dense, scalp_uv
+from hairwarp.kernels import interpolate as kernels
 
 DEVICE = "cpu"
 RADIUS = 0.1  # scalp sphere [m]
@@ -26,6 +29,15 @@ FD_STEP = 1e-3
 FD_TOL = 1e-4
 # Weights are computed in float64.
 WEIGHT_TOL = 1e-12
+# Push-out: a vertex ends at least the collider thickness above the surface, less the kernel's layer
+# tolerance (1e-6 m) and float32 rounding of coordinates up to 1.7 m (ulp 1.2e-7), measured in float64.
+LAYER_TOL = 2e-6
+# Push-out keeps segment lengths up to float32 rounding of the propagated vertices (coordinates <= 1.7 m).
+LENGTH_TOL = 1e-6
+THICKNESS = 0.002  # collider contact layer [m]
+# Push-out on a posed head vs the rest result posed: float32 rounding may switch a vertex's closest mesh face
+# or its number of lifts, which moves that one vertex (and the strand after it) by up to ~2e-5 m.
+RIGID_TOL = 1e-4
 
 
 def cap_guides(G, S, seed=0, cap_deg=70.0):
@@ -370,3 +382,171 @@ def test_bench_dense_reports_times():
     (row,) = result["results"]
     assert row["count"] == 200 and row["points"] == 200 * (4 * 6 + 1)
     assert row["interpolate_s"] > 0 and row["hermite_s"] > 0
+
+
+# ---------------------------------------------------------------- push-out from body colliders
+
+
+def draped_guides(G, S, hover, seed=0):
+    """Guides lying on the scalp sphere (radius RADIUS, centre 0): roots on it, every later vertex ``hover[g]``
+    above it, each strand following its meridian down and round the sphere. Interpolating between them cuts
+    chords into the sphere."""
+    _, normal = cap_guides(G, S, seed=seed)
+    down = np.array([0.0, 0.0, -1.0])
+    tangent = down - (normal @ down)[:, None] * normal
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    phi = np.arange(S + 1)[None, :] * (LENGTH / S) / RADIUS  # (1, S+1) angle along the meridian
+    radius = np.where(np.arange(S + 1)[None, :] == 0, RADIUS, RADIUS + np.asarray(hover)[:, None])
+    verts = radius[..., None] * (np.cos(phi)[..., None] * normal[:, None] + np.sin(phi)[..., None] * tangent[:, None])
+    return verts, normal
+
+
+def sphere_distance(x, center=(0.0, 0.0, 0.0), radius=RADIUS):
+    return np.linalg.norm(x - np.asarray(center), axis=-1) - radius
+
+
+def pushed(hair, guides, colliders, head_xform=None):
+    """(interpolated vertices before, after push_out), float64 (D, S+1, 3)."""
+    hair.interpolate(to_wp(guides), head_xform)
+    before = strands(hair, hair.dense_vertices)
+    after = strands(hair, hair.push_out(colliders, head_xform))
+    return before, after
+
+
+def seg_lengths(x):
+    return np.linalg.norm(np.diff(x, axis=1), axis=2)
+
+
+def check_untouched_before_first_contact(before, after, distance_before):
+    """Roots never move; a strand moves only from its first vertex within the layer on; clear strands are bitwise
+    unchanged."""
+    in_layer = distance_before[:, 1:] < THICKNESS
+    first = np.where(in_layer.any(1), in_layer.argmax(1) + 1, before.shape[1])
+    k = np.arange(before.shape[1])[None, :]
+    keep = k < first[:, None]
+    assert np.array_equal(after[keep], before[keep])
+    assert np.array_equal(after[:, 0], before[:, 0])
+    return first
+
+
+def test_push_out_sphere_keeps_lengths_and_leaves_clear_strands():
+    G, S = 60, 10
+    _, normal = cap_guides(G, S)
+    hover = np.where(normal[:, 0] < 0.0, 0.0015, 0.02)  # low on one side (chords cut in), high on the other
+    guides, normal = draped_guides(G, S, hover)
+    hair = DenseHair.build(guides, count=3000, root_normal=normal, tip_spread=0.004, seed=2, device=DEVICE)
+    colliders = ColliderSet([Collider.sphere(RADIUS, thickness=THICKNESS)], DEVICE)
+    before, after = pushed(hair, guides, colliders)
+    d0, d1 = sphere_distance(before), sphere_distance(after)
+    # The set-up does what it is for: interpolated hair cuts into the sphere, and some strands are clear.
+    assert (d0[:, 1:] < 0.0).sum() > 100 and (d0[:, 1:] < THICKNESS).any(1).mean() < 0.8
+    assert d1[:, 1:].min() >= THICKNESS - LAYER_TOL
+    lifted, projected = hair.push_counts
+    assert projected == 0 and lifted > 0
+    # Every segment keeps its length (roots lie on the sphere, so every lift is within its segment's reach).
+    np.testing.assert_allclose(seg_lengths(after), seg_lengths(before), atol=LENGTH_TOL)
+    first = check_untouched_before_first_contact(before, after, d0)
+    clear = first == S + 1
+    assert clear.sum() > 300
+    # The first vertex in the layer is the first one moved (it turns about the previous one, so it may end
+    # higher than the layer's top on a curved surface).
+    hit = np.flatnonzero(~clear)
+    assert np.all(np.any(after[hit, first[hit]] != before[hit, first[hit]], axis=1))
+
+
+def test_push_out_mesh_on_moved_head_against_trimesh():
+    """A head-attached ellipsoid mesh on a turned and translated head: depths measured by trimesh on the posed
+    mesh, and the result is the rest-pose result moved rigidly."""
+    G, S = 50, 8
+    guides, normal = draped_guides(G, S, np.full(G, 0.001), seed=3)
+    head = Collider.ellipsoid((0.0, 0.0, 0.0), (RADIUS, RADIUS, 0.95 * RADIUS), subdivisions=4, thickness=THICKNESS)
+    colliders = ColliderSet([head], DEVICE)
+    hair = DenseHair.build(guides, count=1000, root_normal=normal, tip_spread=0.003, seed=4, device=DEVICE)
+    rot = Rotation.from_rotvec([0.2, -0.4, 0.7]).as_matrix()
+    trans = np.array([0.1, -0.2, 1.6])
+    xf, _ = head_arrays(rot, trans)
+    before, after = pushed(hair, guides @ rot.T + trans, colliders, xf)
+    posed = trimesh.Trimesh(head.mesh.vertices @ rot.T + trans, head.mesh.faces, process=False)
+    # trimesh: signed distance positive inside.
+    d0 = -trimesh.proximity.signed_distance(posed, before.reshape(-1, 3)).reshape(before.shape[:2])
+    d1 = -trimesh.proximity.signed_distance(posed, after.reshape(-1, 3)).reshape(after.shape[:2])
+    assert (d0[:, 1:] < 0.0).sum() > 50
+    assert d1[:, 1:].min() >= THICKNESS - LAYER_TOL
+    check_untouched_before_first_contact(before, after, d0)
+    _, rest_after = pushed(hair, guides, colliders)
+    moved_rest = rest_after @ rot.T + trans
+    err = np.linalg.norm(after - moved_rest, axis=2)
+    assert np.mean(err < 10 * LENGTH_TOL) > 0.999 and err.max() < RIGID_TOL
+    assert hair.push_counts[1] == 0
+    np.testing.assert_allclose(seg_lengths(after), seg_lengths(before), atol=LENGTH_TOL)
+
+
+def test_push_out_roots_deep_inside_projects_out_of_reach():
+    """Roots 30 mm under a larger sphere, segments of 21 mm: vertex 1 cannot clear the layer on its segment's
+    sphere, so it is projected; every vertex after the root still ends on or above the layer."""
+    G, S = 30, 12
+    guides, normal = draped_guides(G, S, np.full(G, 0.001), seed=5)
+    big = RADIUS + 0.03
+    colliders = ColliderSet([Collider.sphere(big, thickness=THICKNESS)], DEVICE)
+    hair = DenseHair.build(guides, count=400, root_normal=normal, seed=6, device=DEVICE)
+    before, after = pushed(hair, guides, colliders)
+    assert sphere_distance(after, radius=big)[:, 1:].min() >= THICKNESS - LAYER_TOL
+    lifted, projected = hair.push_counts
+    assert projected > 0
+    assert np.array_equal(after[:, 0], before[:, 0])
+    # Segments after the first keep their lengths (the seed's rule), the first one stretches.
+    np.testing.assert_allclose(seg_lengths(after)[:, 1:], seg_lengths(before)[:, 1:], atol=LENGTH_TOL)
+
+
+def test_push_out_world_capsule_and_plane_closed_forms():
+    """Hair hanging down onto a world plane (a table at the tips) and through a capsule (an arm)."""
+    S = 8
+    guides = grid_guides(5, 8, S, seed=7)
+    guides[..., 2] *= -1.0  # hanging down from z = 0 to about z = -LENGTH
+    floor = -0.6 * LENGTH
+    axis_y = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    arm_center = np.array([0.1, 0.05, -0.35 * LENGTH])
+    axis_y[:3, 3] = arm_center
+    capsule = Collider.capsule(0.02, 0.1, local_xform=axis_y, name="arm", attach="world", thickness=THICKNESS)
+    plane = Collider.plane(point=(0.0, 0.0, floor), name="table", attach="world", thickness=THICKNESS)
+    colliders = ColliderSet([capsule, plane], DEVICE)
+    hair = DenseHair.build(guides, grid_shape=(5, 8), count=1500, seed=8, device=DEVICE)
+    before, after = pushed(hair, guides, colliders)
+
+    def capsule_distance(x):
+        rel = x - arm_center
+        t = np.clip(rel[..., 1], -0.1, 0.1)  # the capsule axis is world y here
+        return np.linalg.norm(rel - t[..., None] * np.array([0.0, 1.0, 0.0]), axis=-1) - 0.02
+
+    for dist in (capsule_distance, lambda x: x[..., 2] - floor):
+        assert (dist(before)[:, 1:] < 0.0).any()
+        assert dist(after)[:, 1:].min() >= THICKNESS - LAYER_TOL
+    d0 = np.minimum(capsule_distance(before), before[..., 2] - floor)
+    check_untouched_before_first_contact(before, after, d0)
+    assert hair.push_counts[1] == 0
+    np.testing.assert_allclose(seg_lengths(after), seg_lengths(before), atol=LENGTH_TOL)
+
+
+def test_evaluate_with_colliders_is_push_out_between_interpolate_and_densify():
+    G, S = 40, 8
+    guides, normal = draped_guides(G, S, np.full(G, 0.0015), seed=9)
+    colliders = ColliderSet([Collider.sphere(RADIUS, thickness=THICKNESS)], DEVICE)
+    hair = DenseHair.build(guides, count=800, root_normal=normal, tip_spread=0.004, seed=1, device=DEVICE)
+    x, v = to_wp(guides), to_wp(np.ones_like(guides))
+    plain, plain_vel = (strands(hair, a) for a in hair.evaluate(x, v))
+    assert sphere_distance(plain).min() < 0.0
+    points, vel = hair.evaluate(x, v, colliders=colliders)
+    got = strands(hair, points)
+    hair.interpolate(x)
+    hair.push_out(colliders)
+    np.testing.assert_array_equal(got, strands(hair, hair.densify()))
+    np.testing.assert_array_equal(strands(hair, vel), plain_vel)  # velocities stay as interpolated
+    # The Hermite curves through lifted vertices stay out of the sphere (they may dip into the layer); the root
+    # segment, which starts on the sphere, is left out.
+    assert sphere_distance(got[:, hair.samples_per_segment:]).min() > 0.0
+    vertices, _ = hair.evaluate(x, colliders=colliders, hermite=False)
+    assert sphere_distance(strands(hair, vertices))[:, 1:].min() >= THICKNESS - LAYER_TOL
+    # No colliders: nothing launched, the vertices are the interpolated ones.
+    assert hair.push_out(ColliderSet([], DEVICE)) is hair.dense_vertices and hair.push_counts == (0, 0)
+    with pytest.raises(DenseHairError, match="dense_vertices"):
+        hair.push_out(colliders, dense_vertices=to_wp(guides))
