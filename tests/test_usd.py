@@ -3,9 +3,21 @@ against stages authored by hand with pxr and numbers worked out by hand."""
 
 import numpy as np
 import pytest
+import trimesh
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdUtils, Vt
 
-from hairwarp.usd import CacheWriter, UsdFileError, describe, read_curves, read_frames, write_curves
+from hairwarp.colliders import ColliderSet
+from hairwarp.usd import (
+    CacheWriter,
+    UsdFileError,
+    describe,
+    mesh_motion,
+    read_animated_collider,
+    read_animated_mesh,
+    read_curves,
+    read_frames,
+    write_curves,
+)
 
 F32_ATOL = 1e-6
 """Values pass through float32 in the file: ~1e-7 relative for the metre-scale numbers used here."""
@@ -237,6 +249,19 @@ def test_write_curves_round_trip(tmp_path, suffix):
     np.testing.assert_allclose(w[2:9], np.linspace(1e-2, 1e-3, 7), rtol=F32_RTOL)  # centimetres
 
 
+def test_groom_written_to_usd_loads_back_the_same_strands(tmp_path):
+    from hairwarp.groom import Groom, scalp_groom
+
+    groom = scalp_groom(40, 0.3, points=12, curl=0.004, seed=2)
+    for suffix, up, mpu in ((".usdc", "Z", 1.0), (".usda", "Y", 0.01)):
+        path = write_curves(tmp_path / f"groom{suffix}", groom.strands, up_axis=up, meters_per_unit=mpu)
+        back = Groom.load(path)
+        assert back.strand_count == groom.strand_count
+        for a, b in zip(groom.strands, back.strands, strict=True):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(b, a, atol=2 * F32_ATOL)  # float32 in the file, metres ~1.7
+
+
 def test_read_frames_and_describe(tmp_path):
     path = tmp_path / "cache.usdc"
     written = _write_small_cache(path)
@@ -310,3 +335,159 @@ def test_velocities_must_be_given_consistently(tmp_path):
         cache.write_frame(0, {"c": (np.zeros((3, 3)), np.zeros((3, 3)))})
         with pytest.raises(UsdFileError, match="has velocities in earlier frames"):
             cache.write_frame(1, {"c": (np.zeros((3, 3)), None)})
+
+
+# --- animated colliders ----------------------------------------------------------------------------------------
+
+ANIM_FPS = 24.0
+ANIM_FRAMES = 25
+OMEGA = np.pi  # [rad/s]: one sway per 2 s
+# Catmull-Rom keys every h = 1/24 s: the interpolated velocity is off by O(h^2) times the third derivative,
+# measured 0.2 % of the peak speed of the sway (0.3 % of the peak turn rate).
+VEL_REL_TOL = 0.01
+# The motion's own velocities against central differences of its poses (step FD_H): O(FD_H^2) truncation.
+FD_H = 1e-5
+FD_REL_TOL = 1e-5
+
+_CUBE_POINTS = np.array([(x, y, z) for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], dtype=float)[
+    [0, 1, 3, 2, 4, 5, 7, 6]] * 10.0  # cm, a 20 cm cube
+_CUBE_QUADS = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (0, 4, 7, 3), (1, 2, 6, 5)]  # outward
+
+
+def _sway(t):
+    """The rig's animation in the Y-up centimetre stage: translation [cm] and rotation about +Y [deg]."""
+    return np.array([10.0 * np.sin(OMEGA * t), 5.0 * t, 0.0]), 30.0 * np.sin(OMEGA * t)
+
+
+def _expected_world(t, points_cm):
+    """World points [m, Z up] of mesh-local points at time t [s], worked out in numpy from the authored ops."""
+    trans, angle = _sway(t)
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    rot_y = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    local = 2.0 * points_cm + [0.0, 170.0, 0.0]  # the mesh's own ops: translate, then scale (applied first)
+    world_cm = local @ rot_y.T + trans  # the rig's ops: translate, then rotateY (applied first)
+    return 0.01 * world_cm @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]).T  # (x, -z, y)
+
+
+def _write_animated_stage(path, *, animated_points=False, left_handed=False, scale_anim=False):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(ANIM_FPS)
+    rig = UsdGeom.Xform.Define(stage, "/Rig")
+    translate, rotate = rig.AddTranslateOp(), rig.AddRotateYOp()
+    body = UsdGeom.Mesh.Define(stage, "/Rig/Body")
+    body.AddTranslateOp().Set(Gf.Vec3d(0.0, 170.0, 0.0))
+    scale = body.AddScaleOp()
+    scale.Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    quads = [q[::-1] for q in _CUBE_QUADS] if left_handed else _CUBE_QUADS
+    body.CreateFaceVertexCountsAttr(Vt.IntArray([4] * 6))
+    body.CreateFaceVertexIndicesAttr(Vt.IntArray([i for q in quads for i in q]))
+    if left_handed:
+        body.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    points = body.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(_CUBE_POINTS.astype(np.float32)))
+    for f in range(ANIM_FRAMES):
+        trans, angle = _sway(f / ANIM_FPS)
+        translate.Set(Gf.Vec3d(*trans), f)
+        rotate.Set(float(angle), f)
+        if animated_points:
+            points.Set(Vt.Vec3fArray.FromNumpy((_CUBE_POINTS * (1.0 + 0.01 * f)).astype(np.float32)), f)
+        if scale_anim:
+            scale.Set(Gf.Vec3f(2.0 + 0.1 * f, 2.0, 2.0), f)
+    stage.Save()
+    return path
+
+
+def _moved(matrix, vertices):
+    return vertices @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def test_read_animated_mesh_poses_against_the_authored_animation(tmp_path):
+    path = _write_animated_stage(tmp_path / "rig.usda")
+    vertices, faces, times, matrices = read_animated_mesh(path)
+    np.testing.assert_allclose(times, np.arange(ANIM_FRAMES) / ANIM_FPS, rtol=0, atol=1e-12)
+    assert vertices.shape == (8, 3) and faces.shape == (12, 3) and matrices.shape == (ANIM_FRAMES, 4, 4)
+    for t, m in zip(times, matrices, strict=True):
+        np.testing.assert_allclose(m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-12)  # rigid: the scale is baked
+        assert np.linalg.det(m[:3, :3]) > 0.0
+        np.testing.assert_allclose(_moved(m, vertices), _expected_world(t, _CUBE_POINTS), atol=F32_ATOL)
+    cube = trimesh.Trimesh(vertices, faces, process=False)
+    assert cube.is_watertight and cube.volume == pytest.approx(0.4**3, rel=1e-9)  # outward: positive volume
+    # The same mesh named explicitly; a left-handed copy comes back with the same (outward) winding.
+    assert np.array_equal(read_animated_mesh(path, "/Rig/Body")[1], faces)
+    left = read_animated_mesh(_write_animated_stage(tmp_path / "left.usda", left_handed=True))
+    assert trimesh.Trimesh(left[0], left[1], process=False).volume > 0.0
+
+
+def test_mesh_motion_velocities_against_the_authored_animation(tmp_path):
+    vertices, _, times, matrices = read_animated_mesh(_write_animated_stage(tmp_path / "rig.usdc"))
+    motion = mesh_motion(times, matrices)
+    for t, m in zip(times, matrices, strict=True):
+        np.testing.assert_allclose(motion.evaluate(t).matrix(), m, atol=1e-12)
+    turn_rate = np.radians(30.0) * OMEGA
+    peak = 0.01 * 10.0 * OMEGA + 0.01 * 5.0 + turn_rate * 0.4  # sway, drift, and the turn at 0.4 m from the axis
+    for t in np.linspace(times[2], times[-3], 17) + 0.3 / ANIM_FPS:  # between keys, away from the held ends
+        sample = motion.evaluate(t)
+        x = _moved(sample.matrix(), vertices)
+        v = sample.linear_velocity + np.cross(sample.angular_velocity, x - sample.matrix()[:3, 3])
+        # Independent: central differences of the authored animation, worked out in numpy.
+        v_true = (_expected_world(t + FD_H, _CUBE_POINTS) - _expected_world(t - FD_H, _CUBE_POINTS)) / (2 * FD_H)
+        np.testing.assert_allclose(v, v_true, atol=VEL_REL_TOL * peak)
+        np.testing.assert_allclose(sample.angular_velocity, [0.0, 0.0, turn_rate * np.cos(OMEGA * t)],
+                                   atol=VEL_REL_TOL * turn_rate)
+        # The motion's velocities and accelerations are the derivatives of its own poses.
+        before, after = motion.evaluate(t - FD_H), motion.evaluate(t + FD_H)
+        fd_x = (_moved(after.matrix(), vertices) - _moved(before.matrix(), vertices)) / (2 * FD_H)
+        np.testing.assert_allclose(v, fd_x, atol=FD_REL_TOL * peak)
+        fd_a = (after.linear_velocity - before.linear_velocity) / (2 * FD_H)
+        np.testing.assert_allclose(sample.linear_acceleration, fd_a, atol=1e-3 * np.abs(fd_a).max() + 1e-6)
+        fd_al = (after.angular_velocity - before.angular_velocity) / (2 * FD_H)
+        np.testing.assert_allclose(sample.angular_acceleration, fd_al, atol=1e-3 * np.abs(fd_al).max() + 1e-6)
+    # Held before the first and after the last sample.
+    np.testing.assert_allclose(motion.evaluate(-1.0).matrix(), matrices[0], atol=1e-12)
+    assert np.all(motion.evaluate(10.0).linear_velocity == 0.0)
+
+
+def test_animated_collider_follows_the_stage(tmp_path):
+    path = _write_animated_stage(tmp_path / "rig.usd")
+    collider = read_animated_collider(path, thickness=0.001)
+    assert collider.name == "Body" and collider.attach == "world" and collider.motion is not None
+    colliders = ColliderSet([collider], "cpu")
+    _, _, times, matrices = read_animated_mesh(path)
+    for i in (3, 11):
+        colliders.update(times[i])
+        np.testing.assert_allclose(colliders.world_matrices()[0], matrices[i], atol=1e-9)
+        centre = _expected_world(times[i], np.zeros((1, 3)))
+        corner = _expected_world(times[i], _CUBE_POINTS[:1] * 1.5)  # 0.1 m beyond a corner along every axis
+        d = colliders.signed_distance(np.concatenate([centre, corner]))[0][:, 0]
+        np.testing.assert_allclose(d, [-0.2, 0.1 * np.sqrt(3.0)], atol=1e-5)
+
+
+def test_read_animated_mesh_points_scale_and_errors(tmp_path):
+    path = _write_animated_stage(tmp_path / "points.usda", animated_points=True)
+    vertices, _, times, matrices = read_animated_mesh(path)
+    assert vertices.shape == (ANIM_FRAMES, 8, 3)
+    for f in (0, 7, 24):
+        expected = _expected_world(times[f], _CUBE_POINTS * (1.0 + 0.01 * f))
+        np.testing.assert_allclose(_moved(matrices[f], vertices[f]), expected, atol=F32_ATOL)
+    with pytest.raises(UsdFileError, match="deforms"):
+        read_animated_collider(path)
+    with pytest.raises(UsdFileError, match="scale changes with time"):
+        read_animated_mesh(_write_animated_stage(tmp_path / "scale.usda", scale_anim=True))
+    with pytest.raises(UsdFileError, match="/Rig is a Xform, not a Mesh"):
+        read_animated_mesh(path, "/Rig")
+    with pytest.raises(UsdFileError, match="no prim at /Nope"):
+        read_animated_mesh(path, "/Nope")
+    with pytest.raises(UsdFileError, match="no Mesh prim"):
+        read_animated_mesh(write_curves(tmp_path / "groom.usda", [np.zeros((2, 3)) + [[0, 0, 0], [0, 0, 1]]]))
+    # A static stage: one pose at time 0.
+    static = tmp_path / "static.usda"
+    stage = Usd.Stage.CreateNew(str(static))
+    mesh = UsdGeom.Mesh.Define(stage, "/m")
+    mesh.CreatePointsAttr(Vt.Vec3fArray([(0, 0, 0), (1, 0, 0), (0, 1, 0)]))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3]))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([0, 1, 2]))
+    stage.Save()
+    vertices, faces, times, matrices = read_animated_mesh(static)
+    assert times.tolist() == [0.0] and np.array_equal(matrices, np.eye(4)[None])
+    np.testing.assert_array_equal(faces, [[0, 1, 2]])
