@@ -365,12 +365,13 @@ class BenchConfig:
     stab_hair_integrators: tuple = ("semi_implicit", "implicit_joints")
     # timings wait for other programs to leave the cores (QuietGate), within this budget per suite
     quiet_gate: bool = True
-    quiet_budget_s: float = 60.0
-    quiet_max_wait_s: float = 15.0
+    quiet_budget_s: float = 30.0
+    quiet_max_wait_s: float = 8.0
     # scaling
     scale_strands: tuple = (32, 128, 512, 2228)
     scale_segments: tuple = (8, 16, 31)
     scale_budget_s: float = 1.0
+    scale_passes: int = 2
     dense_counts: tuple = (10_000, 100_000)
 
     @classmethod
@@ -409,6 +410,7 @@ class BenchConfig:
             scale_strands=(16, 64),
             scale_segments=(8, 16),
             scale_budget_s=0.2,
+            scale_passes=1,
             dense_counts=(1000,),
             quiet_budget_s=5.0,
             quiet_max_wait_s=2.0,

@@ -80,13 +80,17 @@ def suite_scaling(cfg, log=lambda msg: None) -> dict:
         devices.append(str(cuda))
     per_device = {}
     for device in devices:
-        points = []
-        for S in cfg.scale_segments:
-            for G in cfg.scale_strands:
-                p = grid_point(G, S, device, cfg)
-                points.append(p)
-                log(f"scaling {device} {G} x {S}: {p['step_s'] * 1e3:.3g} ms/step ({p['mode']}), "
-                    f"{p['seg_steps_per_s']:.3g} seg-steps/s")
+        best: dict = {}
+        for n_pass in range(cfg.scale_passes):
+            for S in cfg.scale_segments:
+                for G in cfg.scale_strands:
+                    p = grid_point(G, S, device, cfg)
+                    p["passes"] = n_pass + 1
+                    if (G, S) not in best or p["step_s_min"] < best[(G, S)]["step_s_min"]:
+                        best[(G, S)] = p
+                    log(f"scaling {device} pass {n_pass + 1} {G} x {S}: {p['step_s'] * 1e3:.3g} ms/step "
+                        f"({p['mode']}), {p['seg_steps_per_s']:.3g} seg-steps/s")
+        points = list(best.values())
         per_device[device] = {"points": points, "exponents": exponents(points, "step_s_min"),
                               "exponents_median": exponents(points, "step_s"),
                               "exponents_launch": exponents(points, "launch_step_s")}
@@ -105,4 +109,5 @@ def suite_scaling(cfg, log=lambda msg: None) -> dict:
             "note": "cost = seconds per step, the faster of plain launches and a captured graph; exponents are "
                     "fitted to the fastest timed block of each point (other programs only ever slow a block "
                     "down), and to the median block as well; "
-                    f"{np.prod([len(cfg.scale_strands), len(cfg.scale_segments)])} grid points"}
+                    f"{np.prod([len(cfg.scale_strands), len(cfg.scale_segments)])} grid points, each timed in "
+                    f"{cfg.scale_passes} passes over the grid (the pass with the fastest block is kept)"}
