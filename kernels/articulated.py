@@ -16,12 +16,13 @@ them; the three passes are ``aba_forward_pass1``, ``aba_backward_pass`` and ``ab
 import warp as wp
 
 from hairwarp.kernels.spatial import (
-    inertia_shift,
+    inertia_shift_z,
     quat_exp,
     quat_log,
     rotate_blocks,
     segment_inertia_blocks,
-    skew,
+    skew_z_left,
+    skew_z_right,
 )
 from hairwarp.kernels.types import Fault
 
@@ -204,7 +205,8 @@ def aba_backward_pass(
             c_ang = wp.spatial_top(c)
             c_lin = wp.spatial_bottom(c)
             R = wp.quat_to_matrix(q)
-            r = wp.vec3(0.0, 0.0, -chains.seg_length[i - 1])
+            z = -chains.seg_length[i - 1]  # the joint sits at (0, 0, z) in the parent
+            r = wp.vec3(0.0, 0.0, z)
             Ca = C - wp.transpose(B) * DB
             if implicit != 0:
                 # I^a = I^A - U D^-1 U^T keeps all three blocks when D carries armature
@@ -213,16 +215,15 @@ def aba_backward_pass(
                 na = n + Aa * c_ang + Ba * c_lin + A * Du
                 fa = f + wp.transpose(Ba) * c_ang + Ca * c_lin + wp.transpose(B) * Du
                 Aa, Ba, Ca = rotate_blocks(R, Aa, Ba, Ca)
-                cA, cB = inertia_shift(Aa, Ba, Ca, r)
+                cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
             else:
                 # D = A: the rotational and coupling blocks vanish and the joint passes its torque,
                 # so only the translational block travels to the parent
                 na = tau
                 fa = f + Ca * c_lin + wp.transpose(B) * Du
                 Ca = R * Ca * wp.transpose(R)
-                rx = skew(r)
-                cB = rx * Ca
-                cA = -(cB * rx)
+                cB = skew_z_left(Ca, z)
+                cA = -skew_z_right(cB, z)
             na = R * na
             fa = R * fa
             cC = Ca

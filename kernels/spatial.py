@@ -95,16 +95,31 @@ def segment_inertia_blocks(mass: float, length: float, inertia_com: wp.vec3, ext
 
 
 @wp.func
-def inertia_shift(A: wp.mat33, B: wp.mat33, C: wp.mat33, r: wp.vec3):
-    """Re-express a spatial inertia given about a point at ``r`` about the origin (same axes).
+def skew_z_left(M: wp.mat33, z: float):
+    """``skew((0, 0, z)) @ M`` without the zero products: rows (-z M[1], z M[0], 0)."""
+    return wp.mat33(-z * M[1, 0], -z * M[1, 1], -z * M[1, 2],
+                    z * M[0, 0], z * M[0, 1], z * M[0, 2],
+                    0.0, 0.0, 0.0)
 
-    With ``T = [[I, 0], [-[r]x, I]]`` mapping motion at the origin to motion at ``r``, the result
-    is ``T^T I T``: A' = A + [r]x B^T - B [r]x - [r]x C [r]x, B' = B + [r]x C, C' = C.
-    Returns (A', B'); C is unchanged.
+
+@wp.func
+def skew_z_right(M: wp.mat33, z: float):
+    """``M @ skew((0, 0, z))`` without the zero products: columns (z M[:, 1], -z M[:, 0], 0)."""
+    return wp.mat33(z * M[0, 1], -z * M[0, 0], 0.0,
+                    z * M[1, 1], -z * M[1, 0], 0.0,
+                    z * M[2, 1], -z * M[2, 0], 0.0)
+
+
+@wp.func
+def inertia_shift_z(A: wp.mat33, B: wp.mat33, C: wp.mat33, z: float):
+    """Re-express a spatial inertia given about the point ``r = (0, 0, z)`` about the origin (same axes).
+
+    With ``T = [[I, 0], [-[r]x, I]]`` mapping motion at the origin to motion at ``r``, the result is
+    ``T^T I T``: A' = A + [r]x B^T - B [r]x - [r]x C [r]x, B' = B + [r]x C, C' = C. A child joint
+    always sits on its parent's axis, so r has only a z component. Returns (A', B').
     """
-    rx = skew(r)
-    rxC = rx * C
-    A2 = A + rx * wp.transpose(B) - B * rx - rxC * rx
+    rxC = skew_z_left(C, z)
+    A2 = A + skew_z_left(wp.transpose(B), z) - skew_z_right(B, z) - skew_z_right(rxC, z)
     B2 = B + rxC
     return A2, B2
 
