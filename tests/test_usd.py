@@ -491,3 +491,26 @@ def test_read_animated_mesh_points_scale_and_errors(tmp_path):
     vertices, faces, times, matrices = read_animated_mesh(static)
     assert times.tolist() == [0.0] and np.array_equal(matrices, np.eye(4)[None])
     np.testing.assert_array_equal(faces, [[0, 1, 2]])
+
+
+
+def test_writer_timings_add_up_per_phase(tmp_path):
+    with CacheWriter(tmp_path / "t.usdc", fps=24) as cache:
+        cache.add_curves("c", np.full(2, 4))
+        assert cache.timings == {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0}
+        for f in range(3):
+            cache.write_frame(f, {"c": (_strands(2, 4, f), np.ones((8, 3)))})
+        assert all(v > 0.0 for v in cache.timings.values())
+        bad = np.ones((8, 3))
+        bad[5, 1] = np.inf
+        with pytest.raises(UsdFileError, match="velocities: contains NaN or infinite"):
+            cache.write_frame(3, {"c": (_strands(2, 4, 3), bad)})
+
+
+def test_bench_usd_write_reports_phases():
+    from hairwarp.usd import bench_usd_write
+
+    result = bench_usd_write(counts=(50,), quick=True, points_per_curve=9)
+    (row,) = result["results"]
+    assert row["points"] == 450 and row["write_s"] > 0 and row["convert_s"] > 0 and row["save_s"] > 0
+    assert row["bytes_per_frame"] >= 24 * 450  # float32 points and velocities
