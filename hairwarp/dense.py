@@ -500,17 +500,22 @@ class DenseHair:
         self._check(guide_vertices, "guide_vertices")
         return self._interpolate(guide_vertices, head_xform, None, False, self.dense_vertices)
 
-    def densify(self, dense_vertices: wp.array | None = None) -> wp.array:
-        """Hermite-sample dense strands (``dense_vertices`` when None) into ``curve_points``.
+    def densify(self, dense_vertices: wp.array | None = None, out: wp.array | None = None) -> wp.array:
+        """Hermite-sample dense strands (``dense_vertices`` when None) into ``out`` (``curve_points`` when None).
 
         Args:
-            dense_vertices: vec3 (D*(S+1),) strand vertices; any per-vertex vec3 quantity works.
+            dense_vertices: vec3 (D*(S+1),) strand vertices; any per-vertex vec3 quantity works (e.g.
+                ``dense_velocities`` into ``out=curve_velocities``).
+            out: vec3 (D*points_per_curve,) destination.
 
         Returns:
-            ``curve_points``, vec3 (D*points_per_curve,); the same array on every call.
+            ``out``, vec3 (D*points_per_curve,); the same array on every call.
         """
         src = self.dense_vertices if dense_vertices is None else dense_vertices
-        return self._densify(src, self.curve_points)
+        dst = self.curve_points if out is None else out
+        if dst.shape[0] != self.dense_count * self.points_per_curve:
+            raise DenseHairError(f"out has {dst.shape[0]} entries, expected D*points_per_curve")
+        return self._densify(src, dst)
 
     def _densify(self, src, out):
         if src.shape[0] != self.dense_count * (self.seg_per_strand + 1):

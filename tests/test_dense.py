@@ -552,3 +552,22 @@ def test_evaluate_with_colliders_is_push_out_between_interpolate_and_densify():
     assert hair.push_out(ColliderSet([], DEVICE)) is hair.dense_vertices and hair.push_counts == (0, 0)
     with pytest.raises(DenseHairError, match="dense_vertices"):
         hair.push_out(colliders, dense_vertices=to_wp(guides))
+
+
+def test_bench_dense_frame_reports_every_stage(monkeypatch):
+    from hairwarp.benchmarks import common
+    from hairwarp.benchmarks.dense import bench_dense_frame
+
+    monkeypatch.setattr(common.GATE, "enabled", False)
+    result = bench_dense_frame(counts=(300,), quick=True, device=DEVICE)
+    assert result["simulate_frame_s"] > 0 and result["guides"] > 100 and result["substeps"] == 8
+    (row,) = result["results"]
+    assert row["count"] == 300 and row["points"] == 300 * row["points_per_curve"]
+    for key in ("interpolate_s", "hermite_s", "push_out_s", "write_s", "frame_output_s", "catmull_rom_write_s"):
+        assert row[key] > 0, key
+    linear, catmull_rom = row["write"]
+    assert (linear["basis"], catmull_rom["basis"]) == ("linear", "catmullRom")
+    # Points and velocities, float32: 24 bytes a vertex, plus the crate's bookkeeping and the static topology.
+    assert 24 * row["points"] <= linear["bytes_per_frame"] <= 1.5 * 24 * row["points"] + 2e5
+    assert linear["convert_s"] > 0 and linear["save_s"] > 0
+    assert row["write_cheaper_than_simulate"] == (row["write_s"] < result["simulate_frame_s"])
