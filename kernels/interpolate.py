@@ -233,7 +233,7 @@ def dense_push_out(
             s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
                                  collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local, max_dist,
                                  outside_known)
-            if k == 0 or s.found == 0 or s.distance >= thickness:
+            if s.found == 0 or s.distance >= thickness:
                 clearance = wp.min(clearance, s.distance)
                 continue
             p_prev_local = wp.transform_point(X_inv, p_prev)
