@@ -104,6 +104,7 @@ class Simulation:
 
             collider_set = ColliderSet(self.colliders, self.model.device, model=self.model)
         self.collider_set = collider_set
+        self._moving_colliders = any(c.attach == "world" and c.motion is not None for c in self.colliders)
         self.links = self._build_links(scene.links)
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
@@ -164,8 +165,9 @@ class Simulation:
         s, c = self.stepper.state, self.stepper.control
         hermite = self.scene.dense.basis == "linear"
         velocities = s.vertex_velocities if self.scene.dense.velocities else None
+        colliders = self.collider_set if self.scene.dense.push_out else None
         points, vel = self.dense.evaluate(s.vertex_positions, velocities, c.head_xform, c.head_velocity,
-                                          hermite=hermite)
+                                          hermite=hermite, colliders=colliders)
         return points.numpy(), (vel.numpy() if vel is not None else None)
 
     @staticmethod
@@ -198,6 +200,11 @@ class Simulation:
                 out.append(Collider.plane(point=tuple(c.translate), normal=tuple(place[:3, 2]), name=c.name, **opts))
             elif c.kind == "ellipsoid":
                 out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, **opts))
+            elif c.kind == "usd":
+                from hairwarp.usd import read_animated_collider
+
+                opts.pop("attach")
+                out.append(read_animated_collider(c.file, c.prim, name=c.name, **opts))
             else:
                 out.append(_mesh_collider(c.file, c.up_axis, c.scale, c.translate, c.rotate_deg, c.name, opts))
         return out
@@ -208,13 +215,20 @@ class Simulation:
         out = []
         for col in self.colliders:
             verts, faces = _display_mesh(col)
-            world = (head_m if col.attach == "head" else np.eye(4)) @ col.local_xform
+            if col.attach == "head":
+                world = head_m @ col.local_xform
+            elif col.motion is not None:
+                world = col.motion.evaluate(t).matrix() @ col.local_xform
+            else:
+                world = col.local_xform
             out.append((col.name, verts, faces, world))
         return out
 
     def _before_step(self, t, control):
         control.set_motion(self.motion.evaluate(t))
         control.set_wind(self.scene.wind_at(t))
+        if self._moving_colliders:
+            self.collider_set.update(t)
 
     def advance_frame(self) -> Fault:
         if self.contacts is not None and not self.contacts.detect_each_step:

@@ -260,7 +260,7 @@ def _check_head(values, given, error):
 def _check_collider(values, given, error):
     kind = values["kind"]
     needs = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "ellipsoid": ("radii",),
-             "mesh": ("file",), "plane": ()}[kind]
+             "mesh": ("file",), "usd": ("file",), "plane": ()}[kind]
     for key in needs:
         if values[key] is None:
             error(key, f'kind = "{kind}" needs {key}')
@@ -307,11 +307,14 @@ _MOTION_KEY = Section(
 _COLLIDER = Section(
     {
         "name": Field("str", REQUIRED, "unique name of the collider (messages, the cache's prim)"),
-        "kind": Field("str", REQUIRED, "shape", choices=("sphere", "capsule", "plane", "ellipsoid", "mesh")),
+        "kind": Field("str", REQUIRED, "shape; usd: a Mesh prim animated in a USD stage (its transforms)",
+                      choices=("sphere", "capsule", "plane", "ellipsoid", "mesh", "usd")),
         "radius": Field("float", None, "sphere, capsule: radius", "m", range="(0, inf)"),
         "half_height": Field("float", None, "capsule: half length of its axis (local z)", "m", range="[0, inf)"),
         "radii": Field("vec3", None, "ellipsoid: semi-axes along local x, y, z", "m", range="(0, inf)"),
-        "file": Field("path", None, "mesh: the mesh file, relative to the scene file", suffixes=_MESH_SUFFIXES),
+        "file": Field("path", None, "mesh, usd: the file, relative to the scene file",
+                      suffixes=_MESH_SUFFIXES + (".usd", ".usda", ".usdc")),
+        "prim": Field("str", None, "usd: path of the Mesh prim (default: the first Mesh in the stage)"),
         "up_axis": Field("str", "Z", "mesh: up axis of the file (converted to Z up)", choices=("Z", "Y")),
         "scale": Field("float", 1.0, "mesh: factor to metres", range="(0, inf)"),
         "translate": Field("vec3", (0.0, 0.0, 0.0), "placement in its parent (the head or the world)", "m"),
@@ -498,6 +501,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "width": Field("vec2", (1.0e-4, 2.0e-5), "dense curve width at the root and at the tip", "m",
                            range="[0, inf)"),
             "velocities": Field("bool", True, "write velocities for motion blur"),
+            "push_out": Field("bool", True, "push interpolated vertices out of the body colliders (interpolated "
+                                            "hair can cut into heads)"),
             "seed": Field("int", 0, "seed of the root sampling and the per-strand variation", range="[0, inf)"),
         },
         doc="dense hair interpolated from the guides and smoothed with Hermite splines (hairwarp.DenseHair)",
