@@ -133,10 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
 def _child(request_json: str) -> int:
     import warp as wp
 
-    from hairwarp.benchmarks.common import RESULT_TAG, child_result
+    from hairwarp.benchmarks.common import GATE, RESULT_TAG, child_result
     from hairwarp.benchmarks.peers import run_request
 
     wp.config.quiet = True
+    GATE.enabled = False  # the parent waited for idle cores before starting this child
     result = child_result(run_request, json.loads(request_json))
     print(RESULT_TAG + json.dumps(result, default=_jsonable), flush=True)
     return 0

@@ -30,6 +30,10 @@ import warp as wp
 
 #: Collider kinds of the map.
 TUNNEL_KINDS = ("sphere", "capsule", "plane", "mesh")
+#: Collision tests compared: the end positions alone (``ColliderSet(swept=False)``), the swept test from
+#: the positions the velocities imply (``Solver.step`` as it calls the projection now), and the swept
+#: test given the step's start (``ColliderSet.project(..., state_in=...)``).
+TUNNEL_MODES = ("point", "swept_estimate", "swept")
 #: Output frame rate the substeps divide [1/s].
 TUNNEL_FPS = 30.0
 #: Substeps per frame (dt = 1 / (30 substeps)).
@@ -139,7 +143,11 @@ class _ShapeProbe:
         if self.kind == k.PLANE:
             return -x[..., 2]
         if self.kind == k.MESH:
-            return -(x @ self.normals.T - self.offsets).max(axis=-1)
+            # The icosphere lies inside the sphere through its vertices: only points within it need the planes.
+            depth = -self.core_distance(x)
+            near = depth > -THROUGH_DEPTH
+            depth[near] = -(x[near] @ self.normals.T - self.offsets).max(axis=-1)
+            return depth
         return -self.core_distance(x)
 
     def core_distance(self, x: np.ndarray) -> np.ndarray:
@@ -151,7 +159,7 @@ class _ShapeProbe:
         return np.linalg.norm(x, axis=-1) - self.radius
 
 
-def _tunnel_run(kind: str, substeps: int, speed: float, swept: bool, per_side: int, device) -> dict:
+def _tunnel_run(kind: str, substeps: int, speed: float, mode: str, per_side: int, device) -> dict:
     from hairwarp.colliders import ColliderSet
     from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
@@ -161,12 +169,17 @@ def _tunnel_run(kind: str, substeps: int, speed: float, swept: bool, per_side: i
     G, S = verts.shape[0], verts.shape[1] - 1
     model = Model.build(verts, StrandParams(drag=0.01), segments=S, device=device)
     collider = _tunnel_collider(kind)
-    colliders = ColliderSet([collider], device, swept=swept)
+    if mode not in TUNNEL_MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(TUNNEL_MODES)}")
+    previous = mode == "swept"
+    colliders = ColliderSet([collider], device, swept=mode != "point")
     pose, t_end = _tunnel_path(kind, speed)
     m, vel = pose(0.0)
     colliders.set_pose(0, m, linear_velocity=vel)
     colliders.bind(model)
-    solver = Solver(model, colliders=colliders, max_rotation_per_step=_MAX_ROTATION)
+    # The solver integrates; the projection runs here as Solver.step runs it, given the step's start
+    # when ``previous`` is set.
+    solver = Solver(model, max_rotation_per_step=_MAX_ROTATION)
     control = model.control()
     states = [model.state(), model.state()]
     probe = _ShapeProbe(collider)
@@ -174,6 +187,7 @@ def _tunnel_run(kind: str, substeps: int, speed: float, swept: bool, per_side: i
     x_prev = states[0].vertex_positions.numpy().reshape(G, S + 1, 3).astype(float)[:, 1:]
     m_prev = m
     through = np.zeros((G, S), dtype=bool)
+    silent = np.zeros((G, S), dtype=bool)
     events = 0
     max_depth = 0.0
     max_core = 0.0
@@ -184,11 +198,13 @@ def _tunnel_run(kind: str, substeps: int, speed: float, swept: bool, per_side: i
         m, vel = pose((n + 1) * dt)
         colliders.set_pose(0, m, linear_velocity=vel)
         solver.step(states[0], states[1], control, dt)
+        colliders.project(model, states[1], control, solver.dt, states[0] if previous else None)
         states.reverse()
         x = states[0].vertex_positions.numpy().reshape(G, S + 1, 3).astype(float)[:, 1:]
         bits = int(states[0].fault.numpy()[0])
         if bits and fault_step is None:
-            # A scene run stops at the end of this frame, with a message that names the step size.
+            # A scene run stops at the end of this frame, with a message that names the step size, and
+            # never writes this step: only vertices through before it reach a cache silently.
             fault_step = n
         if bits & _BLOWUP or not np.isfinite(x).all():
             # The dynamics blew up: vertices that fly about are no test of the collision stage.
@@ -207,76 +223,92 @@ def _tunnel_run(kind: str, substeps: int, speed: float, swept: bool, per_side: i
         max_depth = max(max_depth, float(np.where(was_out, depth, 0.0).max()))
         events += int(hit.sum())
         through |= hit
+        if fault_step is None:
+            silent |= hit
         x_prev, m_prev = x, m
     wall = time.perf_counter() - t0
-    return {"kind": kind, "substeps": substeps, "dt": dt, "speed": speed, "swept": swept, "steps": steps,
-            "step_travel_m": speed * dt, "through_vertices": int(through.sum()), "through_events": events,
+    return {"kind": kind, "substeps": substeps, "dt": dt, "speed": speed, "mode": mode, "steps": steps,
+            "step_travel_m": speed * dt, "through_vertices": int(through.sum()),
+            "silent_through_vertices": int(silent.sum()), "through_events": events,
             "max_depth_m": max_depth, "max_core_fraction": max_core,
             "fault_bits": int(states[0].fault.numpy()[0]), "fault_step": fault_step, "blowup_step": blowup_step,
             "wall_s": wall}
 
 
 def tunnelling_thresholds(runs: list[dict]) -> dict:
-    """First failing speeds: ``{"point" | "swept": {kind: {substeps: {"through", "fault", "blowup"}}}}``,
-    each a speed [m/s] or None: ``through`` = a vertex got through (before any blow-up), ``fault`` = the
-    solver flagged a joint turning more than 1 rad in a step (a scene run stops there with a message),
-    ``blowup`` = the joint state became non-finite."""
+    """First failing speeds: ``{mode: {kind: {substeps: {"silent", "through", "fault", "blowup"}}}}``, each
+    a speed [m/s] or None: ``silent`` = a vertex got through before the solver flagged anything (what a
+    scene run writes to its cache without a word), ``through`` = a vertex got through at any step before a
+    blow-up (the collision test itself, were the fault bound lifted), ``fault`` = the solver flagged a joint
+    turning more than 1 rad in a step (a scene run stops there with a message), ``blowup`` = the joint
+    state became non-finite."""
     out = {}
-    for swept in sorted({r["swept"] for r in runs}):
+    for mode in [m for m in TUNNEL_MODES if any(r["mode"] == m for r in runs)]:
         table = {}
         for kind in [k for k in TUNNEL_KINDS if any(r["kind"] == k for r in runs)]:
             row = {}
             for n in sorted({r["substeps"] for r in runs if r["kind"] == kind}):
-                mine = [r for r in runs if r["kind"] == kind and r["substeps"] == n and r["swept"] == swept]
-                through = [r["speed"] for r in mine if r["through_vertices"] > 0]
-                fault = [r["speed"] for r in mine if r["fault_step"] is not None]
-                blowup = [r["speed"] for r in mine if r["blowup_step"] is not None]
-                row[str(n)] = {"through": min(through) if through else None, "fault": min(fault) if fault else None,
-                               "blowup": min(blowup) if blowup else None}
+                mine = [r for r in runs if r["kind"] == kind and r["substeps"] == n and r["mode"] == mode]
+                first = {}
+                for key, failed in (("silent", lambda r: r["silent_through_vertices"] > 0),
+                                    ("through", lambda r: r["through_vertices"] > 0),
+                                    ("fault", lambda r: r["fault_step"] is not None),
+                                    ("blowup", lambda r: r["blowup_step"] is not None)):
+                    speeds = [r["speed"] for r in mine if failed(r)]
+                    first[key] = min(speeds) if speeds else None
+                row[str(n)] = first
             table[kind] = row
-        out["swept" if swept else "point"] = table
+        out[mode] = table
     return out
 
 
+_MODE_TITLES = {"point": "point test (end positions)", "swept_estimate": "swept test, start from velocities",
+                "swept": "swept test, start given (state_in)"}
+
+
 def chart_tunnelling(result: dict, path) -> Path:
-    """PNG: the first collider speed that lets a vertex through against the substeps, one marker per kind
-    (open and dashed: point test, filled: swept test; on the top line: none up to the top speed), and the
-    first speed at which the solver flags the step (small crosses)."""
+    """PNG, one panel per collision test: against the substeps, the first collider speed that lets a vertex
+    through before the solver flags anything (filled, what reaches a cache silently) and at any step before
+    a blow-up (open, dashed: the collision test alone), one marker per kind (on the top line: none up to
+    the top speed), and the first speed at which the solver flags a joint turning more than 1 rad in a
+    step (crosses: a scene run stops there with a message)."""
     from hairwarp.benchmarks.report import _pyplot
 
     plt = _pyplot()
     path = Path(path)
-    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    modes = [m for m in TUNNEL_MODES if m in result["thresholds"]]
+    fig, axes = plt.subplots(1, len(modes), figsize=(4.2 * len(modes), 4.4), sharey=True, squeeze=False)
     markers = {"sphere": "o", "capsule": "s", "plane": "^", "mesh": "D"}
     colors = {"sphere": "C0", "capsule": "C1", "plane": "C2", "mesh": "C3"}
     top = max(result["speeds"])
     ceiling = top * 1.5
     subs = sorted(result["substeps"])
-    shift = {k: 2.0 ** (0.06 * (i - 1.5)) for i, k in enumerate(TUNNEL_KINDS)}
-    for mode in ("point", "swept"):
-        filled = mode == "swept"
-        for kind, row in result["thresholds"].get(mode, {}).items():
-            xs = [n * shift[kind] for n in subs]
-            ys = [row[str(n)]["through"] or ceiling for n in subs]
-            ax.plot(xs, ys, marker=markers[kind], color=colors[kind], mfc=colors[kind] if filled else "white",
-                    ls="-" if filled else "--", lw=1.0, ms=6, label=f"{kind}: {'swept' if filled else 'point'} test")
-            faults = [(x, row[str(n)]["fault"]) for x, n in zip(xs, subs) if row[str(n)]["fault"] is not None]
-            if faults and filled:
-                ax.scatter(*zip(*faults), marker="x", s=18, color=colors[kind], lw=0.8)
+    shift = {k: 2.0 ** (0.07 * (i - 1.5)) for i, k in enumerate(TUNNEL_KINDS)}
     h = np.array(subs, dtype=float)
-    ax.plot(h, TUNNEL_SIZE * TUNNEL_FPS * h, color="0.5", lw=0.8, ls=":",
-            label=f"collider moves its radius ({TUNNEL_SIZE:g} m) per step")
-    ax.scatter([], [], marker="x", color="0.3", label="solver fault (swept runs): joint > 1 rad per step")
-    ax.axhline(ceiling, color="0.75", lw=0.6)
-    ax.text(subs[0], ceiling * 1.05, f"none up to {top:g} m/s", fontsize=7, color="0.4")
-    ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
-    ax.set_xticks(subs, [str(n) for n in subs])
-    ax.set_ylim(min(result["speeds"]) * 0.7, ceiling * 1.4)
-    ax.set_xlabel(f"substeps per frame at {TUNNEL_FPS:g} fps (dt = 1 / ({TUNNEL_FPS:g} n) s)")
-    ax.set_ylabel("collider speed at which a vertex first gets through [m/s]")
-    ax.set_title("Strand-object tunnelling: 0.1 m thick colliders crossing hanging strands", fontsize=9)
-    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    for ax, mode in zip(axes[0], modes):
+        for kind, row in result["thresholds"][mode].items():
+            xs = [n * shift[kind] for n in subs]
+            ax.plot(xs, [row[str(n)]["silent"] or ceiling for n in subs], marker=markers[kind],
+                    color=colors[kind], lw=1.1, ms=6, label=f"{kind}: through before any fault")
+            ax.plot(xs, [row[str(n)]["through"] or ceiling for n in subs], marker=markers[kind], mfc="white",
+                    color=colors[kind], lw=0.8, ls="--", ms=5, label=f"{kind}: through, fault bound lifted")
+            faults = [(x, row[str(n)]["fault"]) for x, n in zip(xs, subs) if row[str(n)]["fault"] is not None]
+            if faults:
+                ax.scatter(*zip(*faults), marker="x", s=22, color=colors[kind], lw=0.9)
+        ax.plot(h, TUNNEL_SIZE * TUNNEL_FPS * h, color="0.5", lw=0.8, ls=":",
+                label=f"collider moves its radius ({TUNNEL_SIZE:g} m) per step")
+        ax.axhline(ceiling, color="0.75", lw=0.6)
+        ax.text(subs[0], ceiling * 1.07, f"none up to {top:g} m/s", fontsize=7, color="0.4")
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xticks(subs, [str(n) for n in subs])
+        ax.set_ylim(min(result["speeds"]) * 0.7, ceiling * 1.5)
+        ax.set_title(_MODE_TITLES[mode], fontsize=9)
+        ax.set_xlabel(f"substeps per frame at {TUNNEL_FPS:g} fps")
+    axes[0][0].set_ylabel("collider speed [m/s]")
+    axes[0][0].scatter([], [], marker="x", color="0.3", label="solver fault: a joint turns > 1 rad in a step")
+    axes[0][0].legend(fontsize=5.5, loc="upper left", ncol=2)
+    fig.suptitle("Strand-object tunnelling: 0.1 m thick colliders crossing 0.3 m hanging strands", fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -284,7 +316,7 @@ def chart_tunnelling(result: dict, path) -> Path:
 
 
 def bench_tunnelling(quick: bool = False, device=None, out=None, *, kinds=TUNNEL_KINDS, substeps=None,
-                     speeds=None, swept_modes=(False, True)) -> dict:
+                     speeds=None, modes=TUNNEL_MODES) -> dict:
     """Map the collider speed at which each collider kind starts to let strand vertices through.
 
     A field of hanging strands (5 x 5 guides of 0.3 m, 15 segments; 3 x 3 when ``quick``) is crossed at
@@ -300,14 +332,15 @@ def bench_tunnelling(quick: bool = False, device=None, out=None, *, kinds=TUNNEL
         device: Warp device (default: the default device).
         out: folder for ``tunnelling.json`` and ``tunnelling.png``; nothing written when None.
         kinds, substeps, speeds: subsets of the map.
-        swept_modes: run with the swept test off (``False``, the point test alone), on, or both.
+        modes: the collision tests to compare, from :data:`TUNNEL_MODES`.
 
     Returns:
         ``{"device", "fps", "size_m", "strands", "segments", "speeds", "substeps", "runs": [...],
-        "thresholds": see :func:`tunnelling_thresholds`, "files": [...]}``; each
-        run has ``through_vertices`` (distinct vertices that went through before any blow-up),
-        ``through_events``, ``max_depth_m``, ``max_core_fraction``, ``fault_bits``, ``fault_step`` (the
-        first step the solver flagged at 1 rad per step, where a scene run would stop, or None),
+        "thresholds": see :func:`tunnelling_thresholds`, "files": [...]}``; each run has
+        ``through_vertices`` (distinct vertices that went through before any blow-up),
+        ``silent_through_vertices`` (through before the first fault), ``through_events``, ``max_depth_m``,
+        ``max_core_fraction``, ``fault_bits``, ``fault_step`` (the first step the solver flagged at 1 rad
+        per step, where a scene run would stop, or None),
         ``blowup_step`` (non-finite dynamics; the run stops there) and its ``wall_s``.
     """
     device = wp.get_device(device)
@@ -318,11 +351,11 @@ def bench_tunnelling(quick: bool = False, device=None, out=None, *, kinds=TUNNEL
         speeds = TUNNEL_SPEEDS[::2] if quick else TUNNEL_SPEEDS
     runs = []
     t0 = time.perf_counter()
-    for swept in swept_modes:
+    for mode in modes:
         for kind in kinds:
             for n in substeps:
                 for v in speeds:
-                    runs.append(_tunnel_run(kind, int(n), float(v), bool(swept), per_side, device))
+                    runs.append(_tunnel_run(kind, int(n), float(v), mode, per_side, device))
     result = {"device": str(device), "fps": TUNNEL_FPS, "size_m": TUNNEL_SIZE, "strands": per_side * per_side,
               "segments": _FIELD_SEGMENTS, "speeds": [float(v) for v in speeds],
               "substeps": [int(n) for n in substeps], "through_depth_m": THROUGH_DEPTH,
@@ -347,15 +380,19 @@ def ratboy_paths() -> tuple[Path, Path]:
     return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
 
 
-def _median_time(fn, device, repeats: int) -> float:
-    samples = []
-    for _ in range(repeats + 1):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        samples.append(time.perf_counter() - t0)
-    return float(np.median(samples[1:]))
+def _interleaved_medians(calls: dict, device, repeats: int) -> dict:
+    """Median wall time [s] of each call in ``calls`` (name -> function), timed in turn ``repeats`` times
+    after one warm-up round, so that a load change on a shared machine hits every figure alike."""
+    samples = {name: [] for name in calls}
+    for r in range(repeats + 1):
+        for name, fn in calls.items():
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            fn()
+            wp.synchronize_device(device)
+            if r:
+                samples[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(v)) for name, v in samples.items()}
 
 
 def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, body_path=None,
@@ -363,16 +400,17 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
     """Cost per step of the collision stage on the Ratboy body next to the dynamics, in one run.
 
     The ``ratboy_mohawk`` scene with every guide (2,219 x 31 segments; ``quick``: every 5th) runs
-    ``motion_frames`` frames into its turn; from that state one step is timed three ways: the whole
-    step with the body collider, the step of a solver without colliders (the dynamics), and the
-    projection alone (``ColliderSet.project`` on a copy of the integrated state). The rest and perturbed
-    states of :func:`hairwarp.colliders.bench_collision` on the same files come with it.
+    ``motion_frames`` frames into its turn; from that state one step is timed: the whole step as the
+    scene's solver runs it (dynamics, then the body collision), the step of a solver without colliders
+    (the dynamics), and the projection alone (``ColliderSet.project`` on a copy of the integrated state)
+    with the point test, the swept test from velocities, and the swept test given the step's start. The
+    rest and perturbed states of :func:`hairwarp.colliders.bench_collision` on the same files come with it.
 
     Returns:
         ``{"status": "ok", "device", "strands", "segments", "body_triangles", "dt", "in_motion": {"step_s",
-        "dynamics_step_s", "collision_project_s", "collision_share"}, "bench_collision": {...}}``, times in
-        seconds (median of ``repeats`` after a warm-up), or ``{"status": "skipped", "message"}`` when the
-        assets are missing.
+        "dynamics_step_s", "project_s": {"point", "swept_estimate", "swept"}, "collision_per_dynamics",
+        "vertices_moved"}, "bench_collision": {...}}``, times in seconds (median of ``repeats`` after a
+        warm-up), or ``{"status": "skipped", "message"}`` when the assets are missing.
     """
     from hairwarp.colliders import bench_collision
     from hairwarp.runner import Simulation
@@ -406,26 +444,37 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
     dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step))
     dynamics.set_dt(dt)
     full.set_dt(dt)
-    step_s = _median_time(lambda: full.step(s_in, s_out, control, dt), device, repeats)
-    dyn_s = _median_time(lambda: dynamics.step(s_in, s_out, control, dt), device, repeats)
     integrated = model.state()
     dynamics.step(s_in, integrated, control, dt)
     work = model.state()
+    cs = sim.collider_set
 
-    def project():
-        work.assign(integrated)
-        sim.collider_set.project(model, work, control, full.dt)
+    def project(swept, start):
+        def call():
+            cs.swept = swept
+            work.assign(integrated)
+            cs.project(model, work, control, full.dt, start)
+        return call
 
-    copy_s = _median_time(lambda: work.assign(integrated), device, repeats)
-    proj_s = max(_median_time(project, device, repeats) - copy_s, 0.0)
+    times = _interleaved_medians({
+        "step": lambda: full.step(s_in, s_out, control, dt),
+        "dynamics": lambda: dynamics.step(s_in, s_out, control, dt),
+        "copy": lambda: work.assign(integrated),
+        "point": project(False, None),
+        "swept_estimate": project(True, None),
+        "swept": project(True, s_in),
+    }, device, repeats)
+    cs.swept = True
+    step_s, dyn_s = times["step"], times["dynamics"]
+    projection = {k: max(times[k] - times["copy"], 0.0) for k in ("point", "swept_estimate", "swept")}
     moved = int(np.count_nonzero(np.any(work.vertex_positions.numpy() != integrated.vertex_positions.numpy(),
                                         axis=1)))
     rest = bench_collision(device, quick=quick, segments=31, groom_path=groom_path, body_path=body_path,
                            strands=model.strand_count)
     return {"status": "ok", "device": str(device), "strands": model.strand_count, "segments": model.seg_per_strand,
             "body_triangles": rest["body_triangles"], "dt": dt, "time_in_motion_s": motion_frames * sim.frame_dt,
-            "in_motion": {"step_s": step_s, "dynamics_step_s": dyn_s, "collision_project_s": proj_s,
-                          "collision_share": proj_s / step_s if step_s > 0 else None,
+            "in_motion": {"step_s": step_s, "dynamics_step_s": dyn_s, "project_s": projection,
+                          "collision_per_dynamics": {k: v / dyn_s for k, v in projection.items()},
                           "vertices_moved": moved},
             "bench_collision": rest}
 

@@ -68,47 +68,37 @@ def measure_ours(G: int, S: int, device, cfg, integrators, model=None) -> dict:
     return out
 
 
-def retime(model, ours: dict, cfg) -> dict:
-    """Seg-steps per second of each integrator in its faster mode, measured again now (next to a peer)."""
-    out = {}
-    for integrator, row in ours.items():
-        if row.get("best_mode") is None:
-            continue
-        r = time_solver(model, integrator, BENCH_DT, graph=row["best_mode"] == "graph", steps=cfg.block_steps,
-                        blocks=cfg.blocks, warmup=cfg.warmup, budget_s=cfg.ours_budget_s / 2,
-                        graph_block=cfg.graph_block)
-        out[integrator] = r["seg_steps_per_s"]
-    return out
+def peer_rows(G: int, S: int, cfg, log, ours) -> tuple[dict, dict]:
+    """Each peer in a child process, which also times hairwarp (its faster mode) just before and just
+    after the peer's timed blocks: the load of a shared machine drifts, and the geometric mean of those
+    two timings (``bracket``) is hairwarp's figure for that peer's ratio.
 
-
-def peer_rows(G: int, S: int, cfg, log, model, ours) -> tuple[dict, dict]:
-    """Each peer in a child process, bracketed by timings of hairwarp just before and just after it.
-
-    A shared machine's load drifts within a run; the geometric mean of the two timings around a peer
-    is hairwarp's figure for that peer's ratio (``bracket``). Every timing is kept (``samples``: the
-    first measurement, then one before each peer and one after the last).
+    Returns the peers' results and, per integrator, every hairwarp figure at this size (the first
+    measurement, then the brackets) with the bracket of each peer.
     """
     rows = {}
-    samples = {i: [r["seg_steps_per_s"]] for i, r in ours.items() if r.get("seg_steps_per_s")}
+    modes = {i: r["best_mode"] for i, r in ours.items() if r.get("best_mode")}
+    samples = {i: [ours[i]["seg_steps_per_s"]] for i in modes}
+    brackets = {i: {} for i in modes}
     for peer in cfg.dyn_peers:
-        for integrator, value in retime(model, ours, cfg).items():
-            samples[integrator].append(value)
         log(f"  peer {peer} at {G} x {S} ...")
         req = {"kind": "throughput", "peer": peer, "G": G, "S": S, "dt": BENCH_DT, "steps": cfg.block_steps,
-               "blocks": cfg.blocks, "warmup": cfg.warmup, "budget_s": cfg.peer_budget_s}
+               "blocks": cfg.blocks, "warmup": cfg.warmup, "budget_s": cfg.peer_budget_s,
+               "bracket": {"modes": modes, "steps": cfg.block_steps, "blocks": cfg.blocks, "warmup": cfg.warmup,
+                           "budget_s": cfg.ours_budget_s / 2, "graph_block": cfg.graph_block}}
         gate = GATE.wait()
         res = run_child(req, cfg.peer_timeout_s)
         res["gate"] = gate
         rows[peer] = res
+        b = res.get("hairwarp_bracket", {})
+        if "before" in b and "after" in b:
+            for i in modes:
+                samples[i] += [b["before"][i], b["after"][i]]
+                brackets[i][peer] = math.sqrt(b["before"][i] * b["after"][i])
         if res.get("status") == "ok":
             log(f"    {res['step_ms']:.3g} ms/step, {res['seg_steps_per_s']:.3g} seg-steps/s")
         else:
             log(f"    {res.get('status')}: {res.get('message', '')[:200]}")
-    for integrator, value in retime(model, ours, cfg).items():
-        samples[integrator].append(value)
-    brackets = {}
-    for integrator, v in samples.items():
-        brackets[integrator] = {peer: math.sqrt(v[n + 1] * v[n + 2]) for n, peer in enumerate(cfg.dyn_peers)}
     # the C floors reported by two of them, as peers of their own, bracketed as their parent
     pin = rows.get("pinocchio", {})
     if pin.get("status") == "ok":
@@ -158,7 +148,7 @@ def overhead(cfg) -> dict:
         for graph in (False, True):
             r = time_solver(model, integrator, BENCH_DT, graph=graph, steps=200, blocks=3, warmup=3,
                             budget_s=cfg.ours_budget_s, graph_block=cfg.graph_block)
-            row["graph_us" if graph else "launch_us"] = r["step_s"] * 1e6
+            row["graph_us" if graph else "launch_us"] = r["step_s_min"] * 1e6
         row["overhead_us"] = row["launch_us"] - row["graph_us"]
         out[integrator] = row
     return out
@@ -179,7 +169,7 @@ def suite_dynamics(cfg, log=lambda msg: None) -> dict:
         if cuda is not None:
             log(f"dynamics {G} x {S}: hairwarp on {cuda} ...")
             entry["hairwarp"][str(cuda)] = measure_ours(G, S, cuda, cfg, cfg.dyn_integrators)
-        entry["peers"], entry["hairwarp_over_run"] = peer_rows(G, S, cfg, log, model, ours)
+        entry["peers"], entry["hairwarp_over_run"] = peer_rows(G, S, cfg, log, ours)
         entry["ratios"] = ratios(G, S, entry["hairwarp_over_run"], entry["peers"])
         configs.append(entry)
     log("dynamics: profile of one step ...")

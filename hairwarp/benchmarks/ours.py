@@ -135,6 +135,7 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
         solver.step(states[0], states[1], control, dt)
         states.reverse()
     wp.synchronize_device(model.device)
+    GATE.wait()
     acc: dict[str, list] = {}
     originals = {name: getattr(wp, name) for name in ("launch", "copy")}
 
@@ -174,6 +175,7 @@ def aba_only_ms(model: Model, integrator: str, steps: int = 20) -> float:
     solver = Solver(model, integrator)
     state, control = model.state(), model.control()
     implicit = integrator == "implicit_joints"
+    GATE.wait()
     times = []
     for _ in range(steps + 2):
         t0 = time.perf_counter()

@@ -29,6 +29,7 @@ from hairwarp.benchmarks.common import (
     tilt_direction,
     time_blocks,
 )
+from hairwarp.benchmarks.common import time_blocks as _time_blocks
 
 
 def tilt_quat_xyzw(deg: float) -> np.ndarray:
@@ -224,11 +225,48 @@ def _newton(kind: str, strands: int, segments: int, roots, tilt_deg: float, damp
 # throughput on the canonical scene
 
 
+def hairwarp_bracket(req: dict):
+    """A function timing hairwarp on the request's size in this process, or None when not asked.
+
+    ``req["bracket"]``: ``{"modes": {integrator: "launch" | "graph"}, "steps", "blocks", "warmup",
+    "budget_s", "graph_block"}``; the function returns seg-steps per second per integrator.
+    """
+    cfg = req.get("bracket")
+    if not cfg:
+        return None
+    from hairwarp.benchmarks.ours import canonical_model, time_solver
+
+    model = canonical_model(int(req["G"]), int(req["S"]), "cpu")
+
+    def measure() -> dict:
+        return {integrator: time_solver(model, integrator, float(req.get("dt", BENCH_DT)), graph=mode == "graph",
+                                        steps=cfg["steps"], blocks=cfg["blocks"], warmup=cfg["warmup"],
+                                        budget_s=cfg["budget_s"], graph_block=cfg["graph_block"])["seg_steps_per_s"]
+                for integrator, mode in cfg["modes"].items()}
+
+    return measure
+
+
 def throughput(req: dict) -> dict:
-    """Time one peer on G strands x S segments of the canonical scene (the peers' protocol)."""
+    """Time one peer on G strands x S segments of the canonical scene (the peers' protocol).
+
+    With ``req["bracket"]`` hairwarp is timed in the same process just before and just after the
+    peer's timed blocks, so that a ratio compares figures taken seconds apart.
+    """
     peer, G, S = req["peer"], int(req["G"]), int(req["S"])
     dt = float(req.get("dt", BENCH_DT))
     timing = {k: req[k] for k in ("steps", "blocks", "warmup", "budget_s") if k in req}
+    ours = hairwarp_bracket(req)
+    bracket = {}
+
+    def time_blocks(step, sync=lambda: None, **kw):
+        if ours is not None:
+            bracket["before"] = ours()
+        out = _time_blocks(step, sync, **kw)
+        if ours is not None:
+            bracket["after"] = ours()
+        return out
+
     t0 = time.perf_counter()
     extra = {}
     if peer == "pinocchio":
@@ -336,6 +374,8 @@ def throughput(req: dict) -> dict:
         raise ValueError(f"unknown peer {peer!r}")
     res["step_ms"] = res["step_s"] * 1e3
     res["seg_steps_per_s"] = G * S / res["step_s"]
+    if bracket:
+        res["hairwarp_bracket"] = bracket
     return {"peer": peer, "G": G, "S": S, "dt": dt, "setup_s": setup, "finite": bool(finite),
             "tip0": np.asarray(tip, float).tolist(), **res, "extra": extra}
 

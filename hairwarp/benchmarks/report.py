@@ -302,9 +302,9 @@ def md_dynamics(d: dict) -> list[str]:
         out.append(f"| {labels.get(peer, peer)} | " + " | ".join(cells) + " |")
     out += ["", "### Ratios hairwarp / peer and the goals", "",
             "Ratio of segment-steps per second, hairwarp over the peer. The load of this shared machine drifts "
-            "during a run, so hairwarp (its faster mode) is timed again just before and just after each peer; "
-            "the ratio uses the geometric mean of those two timings (in brackets). All timings of hairwarp at "
-            "each size are summarised below the table.", "",
+            "during a run, so the peer's child process also times hairwarp (its faster mode) just before and "
+            "just after the peer's timed blocks; the ratio uses the geometric mean of those two timings (in "
+            "brackets). All timings of hairwarp at each size are summarised below the table.", "",
             "| size | peer | goal | peer seg-steps/s | `semi_implicit` | `implicit_joints` | meets (semi / implicit) |",
             "|---|---|---|---|---|---|---|"]
     for c in d["configs"]:
@@ -339,14 +339,14 @@ def md_dynamics(d: dict) -> list[str]:
     for c in d["configs"]:
         for integ in OURS:
             r = c["hairwarp"]["cpu"].get(integ, {})
-            la, gr = r.get("launch", {}).get("step_ms"), r.get("graph", {}).get("step_ms")
+            la, gr = r.get("launch", {}).get("step_s_min"), r.get("graph", {}).get("step_s_min")
             if la and gr:
                 shares.append(f"{c['G']}×{c['S']} `{integ}` {100 * (la - gr) / la:.0f} %")
     if shares:
-        out += ["Share of a plain step that a captured graph removes (launch overhead): " + ", ".join(shares) + ".",
-                ""]
+        out += ["Share of a plain step that a captured graph removes (launch overhead; fastest blocks, which "
+                "other programs disturb least): " + ", ".join(shares) + ".", ""]
     if ov:
-        out.append("One strand of 20 segments (the step is then all overhead): "
+        out.append("One strand of 20 segments (the step is then all overhead; fastest blocks): "
                    + "; ".join(f"`{k}` {v['launch_us']:.1f} µs per step with launches, {v['graph_us']:.1f} µs "
                                f"replayed from a captured graph, so **{v['overhead_us']:.1f} µs of Python launch "
                                "overhead per step**" for k, v in ov.items()) + ".")
