@@ -371,7 +371,7 @@ class BenchConfig:
     scale_strands: tuple = (32, 128, 512, 2228)
     scale_segments: tuple = (8, 16, 31)
     scale_budget_s: float = 1.0
-    scale_passes: int = 2
+    scale_passes: int = 3
     dense_counts: tuple = (10_000, 100_000)
 
     @classmethod

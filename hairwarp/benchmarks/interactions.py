@@ -1,0 +1,172 @@
+"""Cost of hair-hair interactions (static links and contacts) next to the dynamics step, on the Ratboy mohawk.
+
+:func:`bench_interactions` runs the ``ratboy_mohawk`` scene with links and contacts on into its motion, then times,
+interleaved on the same state, each stage a step pays: the dynamics step alone, the link forces and the link
+breaking, the BVH refit, the vertex-face and segment-segment detection, and the contact forces over the stored
+pairs; and that for each detection margin asked (``0``: detection in every step).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+# Detection margins [m] compared: 0 detects in every step; the others once per frame (the runner's default is
+# the scene's interactions.margin, 4 mm).
+MARGINS = (0.0, 0.001, 0.002, 0.004)
+
+
+def ratboy_groom_paths() -> tuple[Path, Path]:
+    """The shared TressFX Ratboy groom and body beside the source checkout (they may be absent)."""
+    base = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tressfx_ratboy"
+    return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
+
+
+def interleaved_medians(calls: dict, device, repeats: int) -> dict:
+    """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
+    with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""
+    samples = {name: [] for name in calls}
+    for r in range(repeats + 1):
+        for name, fn in calls.items():
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            fn()
+            wp.synchronize_device(device)
+            if r:
+                samples[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(v)) for name, v in samples.items()}
+
+
+def bench_interactions(quick: bool = False, device=None, *, groom_path=None, body_path=None,
+                       motion_frames: int | None = None, repeats: int | None = None, margins=MARGINS,
+                       overrides=()) -> dict:
+    """Cost per step of links, strip refit and contacts (detection and forces apart) next to the dynamics step.
+
+    The ``ratboy_mohawk`` scene with every guide (2,219 x 31 segments; ``quick``: every 5th) and
+    ``links.enabled`` and ``interactions.enabled`` at the scene defaults (plus ``overrides``, ``key=value``
+    strings) runs ``motion_frames`` frames into its turn. From that state each stage is timed (median of
+    ``repeats``, interleaved): ``dynamics`` (a solver without colliders, links or contacts), ``links`` (forces),
+    ``link_break``, and, for every margin in ``margins``, a :class:`hairwarp.interactions.HairContacts` built as
+    the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs), ``vertex_face`` and
+    ``segment_segment`` (detection after the refit), ``forces`` (the pass over the stored pairs). The per-step
+    cost of the interactions is ``links + link_break + forces + (refit + detection) / substeps`` for a margin
+    > 0 (detection once per frame) and ``links + link_break + forces + refit + detection`` for margin 0.
+
+    Returns:
+        ``{"status": "ok", "device", "strands", "segments", "substeps", "dt", "links", "strip_quads",
+        "dynamics_s", "links_s", "link_break_s", "broken_links", "margins": [{"margin", "stored", "active",
+        "refit_s", "vertex_face_s", "segment_segment_s", "forces_s", "per_step_s", "per_dynamics"}], ...}``,
+        times in seconds, or ``{"status": "skipped", "message"}`` when the assets are missing.
+    """
+    from hairwarp.interactions import HairContacts
+    from hairwarp.runner import Simulation
+    from hairwarp.scene import Scene
+    from hairwarp.solver import Solver
+
+    default_groom, default_body = ratboy_groom_paths()
+    groom_path = Path(groom_path or default_groom)
+    body_path = Path(body_path or default_body)
+    missing = [str(p) for p in (groom_path, body_path) if not p.is_file()]
+    if missing:
+        return {"status": "skipped", "message": f"needs the TressFX Ratboy assets: {', '.join(missing)} missing"}
+    device = wp.get_device(device)
+    if motion_frames is None:
+        motion_frames = 4 if quick else 15
+    if repeats is None:
+        repeats = 3 if quick else 9
+    t_start = time.perf_counter()
+    scene = Scene.load(Path(Scene.default_path()).parent / "ratboy_mohawk.toml", [
+        f"groom.file='{groom_path}'", f"head.file='{body_path}'", f"groom.max_strands={450 if quick else 0}",
+        f"sim.device='{device}'", "links.enabled=true", "interactions.enabled=true", *overrides])
+    sim = Simulation(scene, device=device)
+    for _ in range(motion_frames):
+        sim.advance_frame()
+    model, stepper = sim.model, sim.stepper
+    state, control, dt, substeps = stepper.state, stepper.control, stepper.dt, stepper.substeps
+    links, base = sim.links, sim.contacts
+    out_state = model.state()
+    dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step))
+    dynamics.set_dt(dt)
+    n = model.seg_count
+    force = wp.zeros(n, dtype=wp.vec3, device=device)
+    torque = wp.zeros(n, dtype=wp.vec3, device=device)
+    mass = wp.zeros(n, dtype=float, device=device)
+    dt_arr = wp.array([dt], dtype=float, device=device)
+    probe = model.state()  # link breaking marks links: run it on a copy of the links' flags
+    probe.assign(state)
+    broken = links.link_broken
+    broken_before = broken.numpy().copy()
+    total_before = links.link_broken_total.numpy().copy()
+    common = interleaved_medians({
+        "dynamics": lambda: dynamics.step(state, out_state, control, dt),
+        "links": lambda: links.apply(model, state, dt_arr, force, torque, mass),
+        "link_break": lambda: links.break_links(model, probe),
+    }, device, repeats)
+    broken.assign(broken_before)
+    links.link_broken_total.assign(total_before)
+
+    rows = []
+    for margin in margins:
+        contacts = HairContacts.build(
+            model.rest_vertex_positions, base.strips, threshold=base.threshold, stiffness=base.stiffness,
+            damping=base.damping, friction=base.friction, slip_velocity=base.slip_velocity,
+            capacity=base.capacity, alignment_cutoff=base.alignment_cutoff, segment_segment=base.segment_segment,
+            margin=float(margin), detect_each_step=False, skip_neighbour_strips=base.skip_neighbour_strips,
+            device=device)
+        contacts.detect(model, state)
+        stored = contacts.contact_count()
+
+        def vertex_face(c=contacts):
+            c.contact_counter.zero_()
+            c.detect_vertex_face(model, state)
+
+        def segment_segment(c=contacts):
+            c.contact_counter.zero_()
+            c.detect_segment_segment(model, state)
+
+        times = interleaved_medians({
+            "refit": lambda c=contacts: c.refit(model, state),
+            "vertex_face": vertex_face,
+            "segment_segment": segment_segment,
+        }, device, repeats)
+        contacts.detect(model, state)
+        times.update(interleaved_medians({
+            "forces": lambda c=contacts: c.apply(model, state, dt_arr, force, torque, mass),
+        }, device, repeats))
+        active = _active_contacts(contacts, model, state)
+        detection = times["refit"] + times["vertex_face"] + times["segment_segment"]
+        per_step = common["links"] + common["link_break"] + times["forces"]
+        per_step += detection / substeps if margin > 0.0 else detection
+        rows.append({"margin": float(margin), "detect": "frame" if margin > 0.0 else "step", "stored": stored,
+                     "active": active, "overflowed": contacts.overflowed(),
+                     **{f"{k}_s": v for k, v in times.items()}, "detection_s": detection,
+                     "per_step_s": per_step, "per_dynamics": per_step / common["dynamics"]})
+    return {"status": "ok", "device": str(device), "strands": model.strand_count, "segments": model.seg_per_strand,
+            "substeps": substeps, "dt": dt, "time_in_motion_s": motion_frames * sim.frame_dt,
+            "links": links.link_count, "broken_links": links.broken_count(),
+            "strip_quads": base.strips.quad_count if base.strips is not None else 0,
+            "threshold": base.threshold, "scene_margin": base.margin,
+            "dynamics_s": common["dynamics"], "links_s": common["links"], "link_break_s": common["link_break"],
+            "margins": rows, "wall_s": time.perf_counter() - t_start}
+
+
+def _active_contacts(contacts, model, state) -> int:
+    """Stored contacts whose two points are within the threshold now (host read, for the report)."""
+    found = contacts.contact_list()
+    x = state.vertex_positions.numpy().astype(np.float64)
+    S = model.seg_per_strand
+    tris = contacts.strips.indices.numpy().reshape(-1, 3) if contacts.strips is not None else np.zeros((1, 3), int)
+    vf = found["kind"] == 0
+    w = found["w"].astype(np.float64)
+    xa = np.empty((len(w), 3))
+    xb = np.empty((len(w), 3))
+    xa[vf] = x[found["a"][vf]]
+    xb[vf] = np.einsum("ni,nij->nj", w[vf], x[tris[found["b"][vf]]])
+    a, b = found["a"][~vf], found["b"][~vf]
+    va, vb = a + a // S, b + b // S
+    xa[~vf] = x[va] + w[~vf, :1] * (x[va + 1] - x[va])
+    xb[~vf] = x[vb] + w[~vf, 1:2] * (x[vb + 1] - x[vb])
+    return int(np.count_nonzero(np.linalg.norm(xa - xb, axis=1) < contacts.threshold))
