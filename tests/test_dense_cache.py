@@ -25,7 +25,7 @@ DENSE_TOL = 1e-6
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     scene = hairwarp.Scene.default().with_overrides(
-        [f"dense.count={DENSE_COUNT}", f"sim.frames={FRAMES}", "output.preview=false"])
+        [f"dense.count={DENSE_COUNT}", "dense.basis=linear", f"sim.frames={FRAMES}", "output.preview=false"])
     path = tmp_path_factory.mktemp("cache") / "long_hair.usdc"
     result = simulate(scene, path, progress=False)
     return scene, path, result
