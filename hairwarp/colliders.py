@@ -333,10 +333,14 @@ class ColliderSet:
         colliders: the colliders; names must be unique.
         device: Warp device.
         model: if given, ``bind(model)`` is called.
+        swept: also test each vertex's path over the step relative to a sphere or capsule (its previous
+            position estimated from its velocity and the collider's), and push a vertex that entered it
+            out on the side it came in from; False tests the end positions only.
     """
 
-    def __init__(self, colliders, device=None, *, model=None):
+    def __init__(self, colliders, device=None, *, model=None, swept: bool = True):
         self.colliders = list(colliders)
+        self.swept = bool(swept)
         self.device = wp.get_device(device)
         names = [c.name for c in self.colliders]
         duplicate = next((n for n in names if names.count(n) > 1), None)
@@ -389,6 +393,7 @@ class ColliderSet:
         self.collider_far = arr(far, float)
         self.collider_xform = arr(self._xform_host, wp.transform)
         self.collider_velocity = arr(self._velocity_host, wp.spatial_vector)
+        self._no_previous = wp.zeros(1, dtype=wp.vec3, device=self.device)
         self.vert_exempt: wp.array | None = None
         """Per-vertex exemption bits (bit c: vertex inside collider c at rest, not yet seen clear), shape
         (G*(S+1),), int32; allocated by ``bind``."""
@@ -512,7 +517,7 @@ class ColliderSet:
         """Number of vertices still exempt from at least one collider (reads the device)."""
         return 0 if self.vert_exempt is None else int(np.count_nonzero(self.vert_exempt.numpy()))
 
-    def project(self, model, state, control, dt_array):
+    def project(self, model, state, control, dt_array, state_in=None):
         """Push the strands of ``state`` out of the colliders, in place (one launch; none without colliders).
 
         Args:
@@ -521,6 +526,9 @@ class ColliderSet:
                 forward kinematics) and ``fault``; all rewritten in place.
             control: ``head_xform`` and ``head_velocity``.
             dt_array: one-element float32 device array, the step [s].
+            state_in: the state the step started from; its ``vertex_positions`` give the swept test each
+                vertex's path over the step. Without it the start is estimated from the velocities, which
+                fails for vertices that turn through large angles in one step.
         """
         from hairwarp.kernels.body_collision import collide_strands
 
@@ -530,10 +538,11 @@ class ColliderSet:
             raise RuntimeError("ColliderSet.project: call bind(model) with this model first (at setup)")
         wp.launch(collide_strands, dim=model.strand_count, device=self.device, inputs=[
             model.seg_per_strand, model.seg_length, model.strand_root_pos,
-            self.count, self.collider_kind, self.collider_attach, self.collider_local_xform, self.collider_radius,
-            self.collider_half_height, self.collider_thickness, self.collider_friction, self.collider_mesh,
-            self.collider_bound_lo, self.collider_bound_hi, self.collider_far,
+            self.count, int(self.swept), self.collider_kind, self.collider_attach, self.collider_local_xform,
+            self.collider_radius, self.collider_half_height, self.collider_thickness, self.collider_friction,
+            self.collider_mesh, self.collider_bound_lo, self.collider_bound_hi, self.collider_far,
             self.collider_xform, self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
+            int(state_in is not None), self._no_previous if state_in is None else state_in.vertex_positions,
             self.vert_exempt,
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
             state.fault,

@@ -34,6 +34,9 @@ PUSH_ITERATIONS = wp.constant(4)
 # jittered by the layer thickness, 2 mm, at 250 mm/s RMS).
 PUSH_MARGIN = wp.constant(1.0e-5)
 
+# Friction's position correction is skipped below this [m]: float32 rounding of metre-sized coordinates.
+MIN_SHIFT = wp.constant(1.0e-8)
+
 # Collider bits of the per-vertex exemption mask (an int32 per vertex): colliders past this index are
 # never exempt.
 MAX_EXEMPT_COLLIDERS = wp.constant(31)
@@ -194,6 +197,67 @@ def collider_surface(kind: int, radius: float, half_height: float, mesh: wp.uint
 
 
 @wp.func
+def _sphere_entry(a: wp.vec3, d: wp.vec3, center: wp.vec3, radius: float):
+    """Parameter ``t`` in [0, 1] where the segment ``a + t d`` enters the sphere from outside, else 2."""
+    m = a - center
+    c = wp.dot(m, m) - radius * radius
+    b = wp.dot(m, d)
+    dd = wp.dot(d, d)
+    if c <= 0.0 or b >= 0.0 or dd <= 0.0:
+        return 2.0
+    disc = b * b - dd * c
+    if disc < 0.0:
+        return 2.0
+    t = (-b - wp.sqrt(disc)) / dd
+    if t > 1.0:
+        return 2.0
+    return wp.max(t, 0.0)
+
+
+@wp.func
+def segment_entry(kind: int, radius: float, half_height: float, mesh: wp.uint64, a: wp.vec3, b: wp.vec3):
+    """Where the segment from ``a`` (outside) to ``b`` first enters a collider (local frame).
+
+    ``found`` = 1 with ``distance`` = the segment parameter in [0, 1], ``point`` the entry point and
+    ``normal`` the outward normal there; 0 when the segment does not enter (or ``a`` is inside). Sphere
+    and capsule in closed form; a closed mesh by one ray, whose first hit must be a face's front.
+    """
+    d = b - a
+    t = float(2.0)
+    n = wp.vec3(0.0, 0.0, 1.0)
+    if kind == ColliderKind.SPHERE:
+        t = _sphere_entry(a, d, wp.vec3(0.0), radius)
+        if t <= 1.0:
+            n = wp.normalize(a + t * d)
+    elif kind == ColliderKind.CAPSULE:
+        if capsule_surface(a, radius, half_height).distance > 0.0:
+            c = a[0] * a[0] + a[1] * a[1] - radius * radius
+            bb = a[0] * d[0] + a[1] * d[1]
+            dd = d[0] * d[0] + d[1] * d[1]
+            if c > 0.0 and bb < 0.0 and dd > 0.0 and bb * bb - dd * c >= 0.0:
+                tc = (-bb - wp.sqrt(bb * bb - dd * c)) / dd
+                if tc <= 1.0 and wp.abs(a[2] + tc * d[2]) <= half_height:
+                    t = wp.max(tc, 0.0)
+                    n = wp.normalize(wp.vec3(a[0] + t * d[0], a[1] + t * d[1], 0.0))
+            for end in range(2):
+                cap = wp.vec3(0.0, 0.0, half_height * (2.0 * float(end) - 1.0))
+                ts = _sphere_entry(a, d, cap, radius)
+                if ts < t:
+                    t = ts
+                    n = wp.normalize(a + t * d - cap)
+    elif kind == ColliderKind.MESH:
+        length = wp.length(d)
+        if length > TINY_LENGTH:
+            q = wp.mesh_query_ray(mesh, a, d / length, length)
+            if q.result and q.sign > 0.0:
+                t = q.t / length
+                n = wp.normalize(wp.mesh_eval_face_normal(mesh, q.face))
+    if t > 1.0:
+        return _surface_point(0, 2.0, b, n)
+    return _surface_point(1, t, a + t * d, n)
+
+
+@wp.func
 def collider_world_motion(attach_head: int, local_xform: wp.transform, xform: wp.transform,
                           velocity: wp.spatial_vector, head_xform: wp.transform, head_velocity: wp.spatial_vector):
     """World pose and spatial velocity (angular, linear velocity of the collider origin) of a collider.
@@ -306,6 +370,7 @@ def collide_strands(
     seg_length: wp.array(dtype=float),
     strand_root_pos: wp.array(dtype=wp.vec3),
     collider_count: int,
+    swept: int,
     collider_kind: wp.array(dtype=wp.int32),
     collider_attach: wp.array(dtype=wp.int32),
     collider_local_xform: wp.array(dtype=wp.transform),
@@ -323,6 +388,9 @@ def collide_strands(
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
     dt: wp.array(dtype=float),
+    # State in:
+    has_previous: int,
+    previous_positions: wp.array(dtype=wp.vec3),
     # Scratch:
     vert_exempt: wp.array(dtype=wp.int32),
     # Out (read and updated in place):
@@ -380,8 +448,30 @@ def collide_strands(
             if c < MAX_EXEMPT_COLLIDERS:
                 bit = 1 << c
             thickness = collider_thickness[c]
-            if bound >= thickness:
-                # Clear of this collider's contact layer by the bound alone.
+            kind = collider_kind[c]
+            X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
+                                           collider_velocity[c], X_head, V_head)
+            origin = wp.transform_get_translation(X)
+            v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
+            X_inv = wp.transform_inverse(X)
+            x_local = wp.transform_point(X_inv, p)
+            # Swept test: the vertex's path over the step relative to the collider, from its position at
+            # the start of the step (given, or implied by its velocity: upstream pushes moved p and v
+            # together, so this is the position before any push) to where it is now.
+            sweep = int(0)
+            reach = float(0.0)
+            x_before = x_local
+            if swept != 0 and (exempt_new & bit) == 0:
+                sweep = 1
+                start = p - h * (v - v_object)
+                if has_previous != 0:
+                    # The step's own start, against the collider moved back by its velocity.
+                    start = previous_positions[vi]
+                    start = start + h * (wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), start - origin))
+                x_before = wp.transform_point(X_inv, start)
+                reach = wp.length(x_local - x_before)
+            if bound >= thickness + reach:
+                # Clear of this collider's contact layer (and of its reach over the step) by the bound alone.
                 exempt_new = exempt_new & ~bit
                 clearance = wp.min(clearance, bound)
                 continue
@@ -391,27 +481,37 @@ def collide_strands(
             outside_known = int(0)
             if bound > -max_dist:
                 outside_known = 1
-            X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
-                                           collider_velocity[c], X_head, V_head)
-            X_inv = wp.transform_inverse(X)
-            kind = collider_kind[c]
             s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
                                  collider_bound_lo[c], collider_bound_hi[c], collider_far[c],
-                                 wp.transform_point(X_inv, p), max_dist, outside_known)
+                                 x_local, max_dist, outside_known)
             if (exempt_new & bit) != 0:
                 # Inside at rest: left alone until first seen clear of the contact layer.
                 if s.distance >= thickness:
                     exempt_new = exempt_new & ~bit
                 clearance = wp.min(clearance, s.distance)
                 continue
-            if s.found == 0 or s.distance >= thickness:
+            entered = int(0)
+            # A mesh casts its ray only when the path can have met the surface: the vertex is inside,
+            # or it moved further than its distance to the surface.
+            if sweep != 0 and (kind != ColliderKind.MESH or s.distance < 0.0 or reach > s.distance):
+                e = segment_entry(kind, collider_radius[c], collider_half_height[c], collider_mesh[c], x_before,
+                                  x_local)
+                if e.found != 0:
+                    # Resolve on the side the vertex came in from: the push starts from the tangent
+                    # plane at the entry point, not from the nearest surface point (the far side when
+                    # the vertex got past the middle, or none when it got through).
+                    entered = 1
+                    s.point = e.point
+                    s.normal = e.normal
+                    s.distance = wp.min(s.distance, -TINY_LENGTH)
+                    s.found = 1
+            if entered == 0 and (s.found == 0 or s.distance >= thickness):
                 clearance = wp.min(clearance, s.distance)
                 continue
             n_local = s.normal
             if s.distance < 0.0:
                 push_target = wp.min(thickness, PUSH_MARGIN)
                 p_prev_local = wp.transform_point(X_inv, p_prev)
-                x_local = wp.transform_point(X_inv, p)
                 for _it in range(PUSH_ITERATIONS):
                     x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, push_target)
                     s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
@@ -428,11 +528,46 @@ def collide_strands(
                 if moved == 0:
                     first_moved = k
                 moved = 1
-            clearance = wp.min(clearance, s.distance)
+            distance = s.distance
             n = wp.transform_vector(X, n_local)
-            origin = wp.transform_get_translation(X)
             v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
-            v = _contact_velocity(v, v_object, n, collider_friction[c])
+            v_contact = _contact_velocity(v, v_object, n, collider_friction[c])
+            # Friction acts over the whole step: the vertex moved with its old velocity before this stage
+            # ran, so the slip that friction takes off the velocity comes off this step's displacement
+            # too, and a vertex held by static friction stays put instead of creeping by g h^2 sin(slope)
+            # per step. (Doing the same along the normal, lifting a vertex in the layer back by its own
+            # approach, made hair lying on a still head move 1.7x faster on average: measured, left out.)
+            dv = v_contact - v
+            shift = h * (dv - wp.dot(dv, n) * n)
+            shift_length = wp.length(shift)
+            if shift_length > MIN_SHIFT:
+                u = p + shift - p_prev
+                ul = wp.length(u)
+                if ul > TINY_LENGTH:
+                    p = p_prev + (length / ul) * u
+                pushed = 1
+                bound = -UNBOUNDED
+                if moved == 0:
+                    first_moved = k
+                moved = 1
+                # Distances are 1-Lipschitz: only a shift longer than the clearance can end inside.
+                distance = distance - shift_length
+                if distance < 0.0:
+                    x_local = wp.transform_point(X_inv, p)
+                    s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
+                                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local,
+                                         max_dist, 0)
+                    distance = s.distance
+                    if s.found != 0 and s.distance < 0.0:
+                        x_local = _lift_on_sphere(wp.transform_point(X_inv, p_prev), length, x_local, s.point,
+                                                  s.normal, wp.min(thickness, PUSH_MARGIN))
+                        p = wp.transform_point(X, x_local)
+                        distance = 0.0
+                # The object's velocity where the vertex ends up (it turns with a spinning object).
+                v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
+                v_contact = _contact_velocity(v, v_object, n, collider_friction[c])
+            clearance = wp.min(clearance, distance)
+            v = v_contact
             contact = 1
         if pushed != 0 and collider_count > 1:
             # Distances to the colliders queried before the push are stale.
