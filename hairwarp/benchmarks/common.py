@@ -365,8 +365,8 @@ class BenchConfig:
     stab_hair_integrators: tuple = ("semi_implicit", "implicit_joints")
     # timings wait for other programs to leave the cores (QuietGate), within this budget per suite
     quiet_gate: bool = True
-    quiet_budget_s: float = 30.0
-    quiet_max_wait_s: float = 8.0
+    quiet_budget_s: float = 20.0
+    quiet_max_wait_s: float = 5.0
     # scaling
     scale_strands: tuple = (32, 128, 512, 2228)
     scale_segments: tuple = (8, 16, 31)
