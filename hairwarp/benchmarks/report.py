@@ -338,13 +338,13 @@ def md_dynamics(d: dict) -> list[str]:
     shares = []
     for c in d["configs"]:
         for integ in OURS:
-            r = c["hairwarp"]["cpu"].get(integ, {})
-            la, gr = r.get("launch", {}).get("step_s_min"), r.get("graph", {}).get("step_s_min")
-            if la and gr:
-                shares.append(f"{c['G']}×{c['S']} `{integ}` {100 * (la - gr) / la:.0f} %")
+            gr = c["hairwarp"]["cpu"].get(integ, {}).get("graph", {}).get("step_s_min")
+            over = d.get("overhead_1x20", {}).get(integ, {}).get("overhead_us")
+            if gr and over:
+                shares.append(f"{c['G']}×{c['S']} `{integ}` {100 * over / (over + gr * 1e6):.0f} %")
     if shares:
-        out += ["Share of a plain step that a captured graph removes (launch overhead; fastest blocks, which "
-                "other programs disturb least): " + ", ".join(shares) + ".", ""]
+        out += ["The launch overhead of one step (measured on one strand, below) as a share of a plain step "
+                "(that overhead plus the graph's fastest block) at each size: " + ", ".join(shares) + ".", ""]
     if ov:
         out.append("One strand of 20 segments (the step is then all overhead; fastest blocks): "
                    + "; ".join(f"`{k}` {v['launch_us']:.1f} µs per step with launches, {v['graph_us']:.1f} µs "
@@ -676,7 +676,7 @@ def write_report(results: dict, out: Path) -> Path:
             sm = s[name].get("machine", {})
             qg = s[name].get("quiet_gate", {})
             gate = ""
-            if qg.get("enabled"):
+            if qg.get("enabled") and qg.get("timings"):
                 gate = (f" Before each of its {qg['timings']} timings it waited for other programs to leave the "
                         f"cores ({qg['waited_s']} s in all); {qg['timings_under_load']} still started with others "
                         f"using ≥ {qg['threshold_cores']} core (marked †).")
