@@ -18,6 +18,9 @@ wp.set_module_options({"enable_backward": False})
 # round-off, so the damping term, which acts along that direction, is left out.
 LINK_MIN_LENGTH = wp.constant(1.0e-7)
 
+# Largest lever scale of an implicit mass: a spring at the far end of its segment, (L / (L/2))^2.
+MAX_LEVER_SCALE = wp.constant(4.0)
+
 
 @wp.func
 def seg_first_vertex(seg: int, seg_per_strand: int) -> int:
@@ -51,11 +54,17 @@ def lever_scaled_mass(extra_mass: float, arm: wp.vec3, half_length: float) -> fl
     """Implicit mass [kg] to put at a segment's centre of mass for a spring acting at ``arm`` from its origin.
 
     DESIGN §4.1 adds ``h^2 k + h c`` at the spring's point; the solver takes one mass at the centre of mass
-    (L/2 from the origin). Scaled by ``(|arm| / (L/2))^2`` (at least 1), it gives at least the inertia about the
-    segment's joint that the mass at the point would, so springs near a segment's tip are not under-treated by up
-    to a factor of four.
+    (L/2 from the origin). Scaled by ``(|arm| / (L/2))^2``, between 1 and ``MAX_LEVER_SCALE``, it gives at least the
+    inertia about the segment's joint that the mass at a point of the segment would, so springs near a segment's tip
+    are not under-treated by up to a factor of four.
+
+    A link's rest offset reaches beyond its segment (up to the link radius, ~100 segment lengths on a stub strand):
+    that lever is left out of the scale. Its rotational stiffness ``k |r0|^2`` stays a few percent of the joint's own
+    bending stiffness ``EI / l``, which the integrator treats implicitly; scaled by it, the centre of mass would carry
+    up to 10^6 times the segment's mass (the Ratboy mohawk's stub strands), inertia that the head's acceleration
+    then drives like a real mass, and a turning head blows those strands up.
     """
-    return extra_mass * wp.max(1.0, wp.dot(arm, arm) / (half_length * half_length))
+    return extra_mass * wp.clamp(wp.dot(arm, arm) / (half_length * half_length), 1.0, MAX_LEVER_SCALE)
 
 
 @wp.func
@@ -86,6 +95,7 @@ def link_forces(
     link_rest_offset: wp.array(dtype=wp.vec3),
     link_stiffness: float,
     link_damping: float,
+    implicit_springs: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
     vertex_positions: wp.array(dtype=wp.vec3),
@@ -101,7 +111,8 @@ def link_forces(
     """One thread per link: the seed's spring-damper between the link's two attachment points.
 
     Adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b (``seg_force`` [N],
-    ``seg_torque`` [N m] about each segment origin, world) and ``h^2 k_s + h k_d`` [kg] to both ``seg_implicit_mass``.
+    ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``, ``h^2 k_s + h k_d`` [kg]
+    to both ``seg_implicit_mass``.
     """
     link = wp.tid()
     if link_broken[link] != 0:
@@ -130,6 +141,8 @@ def link_forces(
     wp.atomic_add(seg_force, b, -f)
     wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
 
+    if implicit_springs == 0:
+        return
     h = dt[0]
     extra = h * h * link_stiffness + h * link_damping
     wp.atomic_add(seg_implicit_mass, a, lever_scaled_mass(extra, xa - oa, 0.5 * seg_length[a]))

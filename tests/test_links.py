@@ -124,12 +124,13 @@ def _reference(links, verts, rot, vel, omega, skip=None):
     np.add.at(force, b, -f)
     np.add.at(torque, a, torque_a - spin)
     np.add.at(torque, b, np.cross(xb - origin[b], -f))
-    # h^2 k + h c per end, as a mass at the centre of mass with at least the end's inertia about the joint.
+    # h^2 k + h c per end, as a mass at the centre of mass with the inertia about the joint of the end, the lever
+    # counted up to the segment's far end (scale 1 to 4).
     extra = DT * DT * K_S + DT * K_D
     keep = np.ones(links.link_count) if skip is None else (~skip).astype(float)
     mass = np.zeros(G * S)
     for seg, arm in ((a, xa - origin[a]), (b, xb - origin[b])):
-        np.add.at(mass, seg, keep * extra * np.maximum(1.0, np.sum(arm * arm, axis=1) / (0.5 * SEG_LEN) ** 2))
+        np.add.at(mass, seg, keep * extra * np.clip(np.sum(arm * arm, axis=1) / (0.5 * SEG_LEN) ** 2, 1.0, 4.0))
     return force, torque, length, spin, mass
 
 
