@@ -7,6 +7,11 @@ vertices by barycentric weights. Detection writes fixed-capacity contact buffers
 
 Both sides of a contact receive their force at the same world point (the midpoint of the two closest points),
 so every contact is an equal and opposite pair with no net torque.
+
+Each contact carries a gap: the distance of its two elements (two segments, or a vertex and a strip quad) in the
+rest pose. A pair repels only below ``min(threshold, gap)``, so hair that lies closer than the threshold in the
+groom (dense or clumped guides) is not pushed apart at rest, nor when it slides along its neighbours: the groom is
+an equilibrium of the contacts, as it is of the links.
 """
 
 import warp as wp
@@ -24,6 +29,14 @@ CONTACT_OVERFLOW = wp.constant(int(Fault.CONTACT_OVERFLOW))
 _DEGENERATE_EDGE_SQ = wp.constant(1.0e-14)
 # Separation [m] below which the direction between the two closest points is round-off.
 _MIN_SEPARATION = wp.constant(1.0e-9)
+
+# Detection queries the BVHs once per block of consecutive vertices (segments) of a strand, against blocks of
+# consecutive quads of a strip (segments of a strand): neighbours along a strand see nearly the same things, so a
+# block pays one tree traversal where single elements would pay several, and its members are then tested against
+# the found block's members with plain box tests.
+VERTEX_BLOCK = wp.constant(8)
+QUAD_BLOCK = wp.constant(8)
+SEG_BLOCK = wp.constant(4)
 
 
 @wp.func
@@ -96,25 +109,64 @@ def strip_face_direction(
 
 
 @wp.func
-def strip_feature_owned(w: wp.vec3, tri: int, seg_per_strand: int) -> bool:
-    """Whether a vertex-face contact whose closest point has barycentric weights w belongs to triangle ``tri``.
+def quad_feature_owned(second: int, w: wp.vec3, k: int, seg_per_strand: int) -> bool:
+    """Whether the closest point of a strip quad, weights w in its triangle, belongs to this quad's contacts.
 
-    Closest points on a strand (a strip corner or a strand edge) are segment-segment contacts; an inner edge shared
-    by two triangles of a strip belongs to one of them. Otherwise a vertex near a strand would be pushed once per
-    triangle that touches it, up to eight times over.
+    With ``(u, v)`` the point's place on the quad (u across, from strand a to strand b; v along, from level k to
+    k+1): points on either strand (u = 0 or 1) are segment-segment contacts, and the top edge (v = 1) is the next
+    quad's bottom edge, except at the tip. Otherwise a vertex beside a strand would be pushed once per quad along it.
     """
-    if w[0] == 1.0 or w[1] == 1.0 or w[2] == 1.0:
+    u = w[1]
+    v = w[2]
+    if second != 0:
+        # (b_k, b_{k+1}, a_{k+1})
+        u = 1.0 - w[2]
+        v = 1.0 - w[0]
+    if u <= 0.0 or u >= 1.0:
         return False
-    if tri % 2 == 0:
-        # (a_k, b_k, a_{k+1}): a_k a_{k+1} is strand a; it owns the diagonal and the horizontal edge a_k b_k.
-        return w[1] != 0.0
-    # (b_k, b_{k+1}, a_{k+1}): b_k b_{k+1} is strand b, the diagonal b_k a_{k+1} belongs to the first triangle,
-    # and the horizontal edge a_{k+1} b_{k+1} to the next segment's first triangle, except at the tips.
-    if w[2] == 0.0 or w[1] == 0.0:
-        return False
-    if w[0] == 0.0:
-        return (tri % (2 * seg_per_strand)) // 2 == seg_per_strand - 1
-    return True
+    return v < 1.0 or k == seg_per_strand - 1
+
+
+@wp.func
+def closest_point_quad(p: wp.vec3, a0: wp.vec3, b0: wp.vec3, a1: wp.vec3, b1: wp.vec3):
+    """Nearer of the two triangles of quad (a0, b0, a1, b1) to p: (0 or 1, barycentric weights in that triangle,
+    squared distance [m^2]); triangle 0 = (a0, b0, a1), triangle 1 = (b0, b1, a1); a tie goes to triangle 0."""
+    w0 = closest_point_triangle(p, a0, b0, a1)
+    d0 = p - (w0[0] * a0 + w0[1] * b0 + w0[2] * a1)
+    w1 = closest_point_triangle(p, b0, b1, a1)
+    d1 = p - (w1[0] * b0 + w1[1] * b1 + w1[2] * a1)
+    dd0 = wp.dot(d0, d0)
+    dd1 = wp.dot(d1, d1)
+    if dd1 < dd0:
+        return 1, w1, dd1
+    return 0, w0, dd0
+
+
+@wp.func
+def strand_in_ring(strand: int, a: int, b: int, neighbour_start: wp.array(dtype=wp.int32),
+                   neighbours: wp.array(dtype=wp.int32)) -> bool:
+    """Whether strand a or b is ``strand`` or one of its root neighbours (the strips around it)."""
+    if a == strand or b == strand:
+        return True
+    for j in range(neighbour_start[strand], neighbour_start[strand + 1]):
+        n = neighbours[j]
+        if n == a or n == b:
+            return True
+    return False
+
+
+@wp.func
+def box_contains(lower: wp.vec3, upper: wp.vec3, p: wp.vec3) -> bool:
+    """Whether the closed box [lower, upper] holds p."""
+    return (p[0] >= lower[0] and p[1] >= lower[1] and p[2] >= lower[2]
+            and p[0] <= upper[0] and p[1] <= upper[1] and p[2] <= upper[2])
+
+
+@wp.func
+def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> bool:
+    """Whether two closed boxes overlap."""
+    return (lo_a[0] <= hi_b[0] and lo_a[1] <= hi_b[1] and lo_a[2] <= hi_b[2]
+            and lo_b[0] <= hi_a[0] and lo_b[1] <= hi_a[1] and lo_b[2] <= hi_a[2])
 
 
 @wp.func
@@ -123,11 +175,13 @@ def push_contact(
     a: int,
     b: int,
     w: wp.vec3,
+    gap: float,
     contact_capacity: int,
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
     contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
@@ -139,6 +193,7 @@ def push_contact(
         contact_a[slot] = a
         contact_b[slot] = b
         contact_w[slot] = w
+        contact_gap[slot] = gap
     else:
         contact_overflow[0] = 1
         wp.atomic_or(fault, 0, CONTACT_OVERFLOW)
@@ -154,15 +209,32 @@ def segment_bounds(
     # Out:
     seg_lowers: wp.array(dtype=wp.vec3),
     seg_uppers: wp.array(dtype=wp.vec3),
+    block_lowers: wp.array(dtype=wp.vec3),
+    block_uppers: wp.array(dtype=wp.vec3),
 ):
-    """One thread per segment: its world bounding box [m] grown by the contact threshold, for the segment BVH."""
-    seg = wp.tid()
-    v = seg + seg // seg_per_strand
-    x0 = vertex_positions[v]
-    x1 = vertex_positions[v + 1]
+    """One thread per block of ``SEG_BLOCK`` consecutive segments of a strand: each segment's world box [m] grown by
+    the contact reach, and their union, the block's box in the segment-block BVH."""
+    blk = wp.tid()
+    blocks = (seg_per_strand + SEG_BLOCK - 1) // SEG_BLOCK
+    strand = blk // blocks
+    k0 = (blk - strand * blocks) * SEG_BLOCK
+    k1 = wp.min(k0 + SEG_BLOCK, seg_per_strand)
     grow = wp.vec3(contact_threshold)
-    seg_lowers[seg] = wp.min(x0, x1) - grow
-    seg_uppers[seg] = wp.max(x0, x1) + grow
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(k0, k1):
+        seg = strand * seg_per_strand + k
+        v = seg + strand
+        x0 = vertex_positions[v]
+        x1 = vertex_positions[v + 1]
+        seg_lo = wp.min(x0, x1) - grow
+        seg_hi = wp.max(x0, x1) + grow
+        seg_lowers[seg] = seg_lo
+        seg_uppers[seg] = seg_hi
+        lo = wp.min(lo, seg_lo)
+        hi = wp.max(hi, seg_hi)
+    block_lowers[blk] = lo
+    block_uppers[blk] = hi
 
 
 @wp.kernel
@@ -172,70 +244,160 @@ def segment_segment_contacts(
     contact_threshold: float,
     contact_capacity: int,
     contact_alignment_cutoff: float,
-    seg_bvh: wp.uint64,
+    repel_distance: float,
+    rest_gaps: int,
+    seg_block_bvh: wp.uint64,
+    rest_positions: wp.array(dtype=wp.vec3),
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
+    # Scratch:
+    seg_lowers: wp.array(dtype=wp.vec3),
+    seg_uppers: wp.array(dtype=wp.vec3),
     # Out:
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
     contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
 ):
-    """One thread per segment i: every segment j > i of another strand closer than the threshold [m].
+    """One thread per segment block I: every segment pair (i in I, j in a later block of another strand) closer than
+    the threshold [m].
 
-    Queries the BVH of threshold-grown segment boxes with i's own box; appends (i, j, (s, t, 0)) with the
-    closest-point parameters along each segment (0 at the segment origin, 1 at its end). Pairs more nearly
-    parallel than the alignment cutoff (``1 - |T_a . T_b|`` below it) are left out: their repulsion is negligible.
+    One BVH query per block (of ``SEG_BLOCK`` segments) with its box; each block found is tested segment by segment
+    against the reach-grown segment boxes before the exact closest points. Appends (i, j, (s, t, 0)) with the
+    closest-point parameters along each segment (0 at the segment origin, 1 at its end), and as the gap the distance
+    of the two segments in the rest pose (``rest_gaps``) or ``repel_distance``. Pairs more nearly parallel
+    than the alignment cutoff (``1 - |T_a . T_b|`` below it) are left out: their repulsion is negligible.
     """
-    i = wp.tid()
-    strand = i // seg_per_strand
-    vi = i + strand
-    p0 = vertex_positions[vi]
-    p1 = vertex_positions[vi + 1]
-    ta = wp.normalize(p1 - p0)
-    query = wp.bvh_query_aabb(seg_bvh, wp.min(p0, p1), wp.max(p0, p1))
-    j = int(0)
-    while wp.bvh_query_next(query, j):
-        if j <= i or j // seg_per_strand == strand:
+    blk = wp.tid()
+    blocks = (seg_per_strand + SEG_BLOCK - 1) // SEG_BLOCK
+    strand = blk // blocks
+    k0 = (blk - strand * blocks) * SEG_BLOCK
+    k1 = wp.min(k0 + SEG_BLOCK, seg_per_strand)
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(k0, k1 + 1):
+        x = vertex_positions[strand * (seg_per_strand + 1) + k]
+        lo = wp.min(lo, x)
+        hi = wp.max(hi, x)
+    query = wp.bvh_query_aabb(seg_block_bvh, lo, hi)
+    other = int(0)
+    while wp.bvh_query_next(query, other):
+        other_strand = other // blocks
+        if other <= blk or other_strand == strand:
             continue
-        vj = j + j // seg_per_strand
-        q0 = vertex_positions[vj]
-        q1 = vertex_positions[vj + 1]
-        if contact_alignment_cutoff > 0.0:
-            if 1.0 - wp.abs(wp.dot(ta, wp.normalize(q1 - q0))) < contact_alignment_cutoff:
-                continue
-        st = wp.closest_point_edge_edge(p0, p1, q0, q1, _DEGENERATE_EDGE_SQ)
-        if st[2] < contact_threshold:
-            push_contact(
-                CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), contact_capacity,
-                contact_kind, contact_a, contact_b, contact_w, contact_counter, contact_overflow, fault,
-            )
+        m0 = (other - other_strand * blocks) * SEG_BLOCK
+        m1 = wp.min(m0 + SEG_BLOCK, seg_per_strand)
+        for m in range(m0, m1):
+            j = other_strand * seg_per_strand + m
+            j_lo = seg_lowers[j]
+            j_hi = seg_uppers[j]
+            vj = j + other_strand
+            q0 = vertex_positions[vj]
+            q1 = vertex_positions[vj + 1]
+            tb = wp.normalize(q1 - q0)
+            for k in range(k0, k1):
+                i = strand * seg_per_strand + k
+                vi = i + strand
+                p0 = vertex_positions[vi]
+                p1 = vertex_positions[vi + 1]
+                if not boxes_overlap(wp.min(p0, p1), wp.max(p0, p1), j_lo, j_hi):
+                    continue
+                if contact_alignment_cutoff > 0.0:
+                    if 1.0 - wp.abs(wp.dot(wp.normalize(p1 - p0), tb)) < contact_alignment_cutoff:
+                        continue
+                st = wp.closest_point_edge_edge(p0, p1, q0, q1, _DEGENERATE_EDGE_SQ)
+                if st[2] < contact_threshold:
+                    gap = repel_distance
+                    if rest_gaps != 0:
+                        gap = wp.closest_point_edge_edge(rest_positions[vi], rest_positions[vi + 1],
+                                                         rest_positions[vj], rest_positions[vj + 1],
+                                                         _DEGENERATE_EDGE_SQ)[2]
+                    push_contact(
+                        CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), gap, contact_capacity,
+                        contact_kind, contact_a, contact_b, contact_w, contact_gap, contact_counter,
+                        contact_overflow, fault,
+                    )
 
 
 @wp.kernel
 def strip_bounds(
     # Model:
+    seg_per_strand: int,
     contact_threshold: float,
-    strip_indices: wp.array(dtype=wp.int32),
+    strip_max_width: float,
+    strip_pairs: wp.array(dtype=wp.vec2i),
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
     # Out:
-    strip_lowers: wp.array(dtype=wp.vec3),
-    strip_uppers: wp.array(dtype=wp.vec3),
+    quad_lowers: wp.array(dtype=wp.vec3),
+    quad_uppers: wp.array(dtype=wp.vec3),
+    quad_plane: wp.array(dtype=wp.vec4),
+    quad_slab: wp.array(dtype=float),
+    quad_dir: wp.array(dtype=wp.vec3),
+    block_lowers: wp.array(dtype=wp.vec3),
+    block_uppers: wp.array(dtype=wp.vec3),
 ):
-    """One thread per strip quad (two triangles): its world box [m] grown by the threshold, for the strip BVH."""
-    quad = wp.tid()
-    # Triangles 2q = (a_k, b_k, a_{k+1}) and 2q+1 = (b_k, b_{k+1}, a_{k+1}): corners at index slots 0, 1, 2 and 4.
-    p0 = vertex_positions[strip_indices[6 * quad + 0]]
-    p1 = vertex_positions[strip_indices[6 * quad + 1]]
-    p2 = vertex_positions[strip_indices[6 * quad + 2]]
-    p3 = vertex_positions[strip_indices[6 * quad + 4]]
+    """One thread per block of ``QUAD_BLOCK`` consecutive quads of a strip: each quad's world box [m] grown by the
+    reach; its mean plane (unit normal n, offset n.c) and, in ``quad_slab``, the reach plus the corners' largest
+    distance from that plane (a slab holding every point within the reach of the quad); its unit along-strand
+    direction; and the block's box, for the quad-block BVH. A quad wider than ``strip_max_width`` [m] (its strands
+    have parted) gets an empty box: it is no contact surface until they come back together."""
+    blk = wp.tid()
+    blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
+    pair = blk // blocks
+    k0 = (blk - pair * blocks) * QUAD_BLOCK
+    k1 = wp.min(k0 + QUAD_BLOCK, seg_per_strand)
+    ab = strip_pairs[pair]
     grow = wp.vec3(contact_threshold)
-    strip_lowers[quad] = wp.min(wp.min(p0, p1), wp.min(p2, p3)) - grow
-    strip_uppers[quad] = wp.max(wp.max(p0, p1), wp.max(p2, p3)) + grow
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(k0, k1):
+        quad = pair * seg_per_strand + k
+        ia = ab[0] * (seg_per_strand + 1) + k
+        ib = ab[1] * (seg_per_strand + 1) + k
+        a0 = vertex_positions[ia]
+        a1 = vertex_positions[ia + 1]
+        b0 = vertex_positions[ib]
+        b1 = vertex_positions[ib + 1]
+        q_lo = wp.min(wp.min(a0, a1), wp.min(b0, b1)) - grow
+        q_hi = wp.max(wp.max(a0, a1), wp.max(b0, b1)) + grow
+        width_sq = wp.max(wp.length_sq(b0 - a0), wp.length_sq(b1 - a1))
+        if width_sq > strip_max_width * strip_max_width:
+            q_lo = wp.vec3(1.0e30)
+            q_hi = wp.vec3(-1.0e30)
+        quad_lowers[quad] = q_lo
+        quad_uppers[quad] = q_hi
+        lo = wp.min(lo, q_lo)
+        hi = wp.max(hi, q_hi)
+        # Normal of the diagonals; a degenerate quad gets n = 0 and a slab that passes every point.
+        n = wp.normalize(wp.cross(b1 - a0, a1 - b0))
+        c = 0.25 * (a0 + a1 + b0 + b1)
+        off = wp.max(wp.max(wp.abs(wp.dot(a0 - c, n)), wp.abs(wp.dot(a1 - c, n))),
+                     wp.max(wp.abs(wp.dot(b0 - c, n)), wp.abs(wp.dot(b1 - c, n))))
+        quad_plane[quad] = wp.vec4(n[0], n[1], n[2], wp.dot(n, c))
+        quad_dir[quad] = wp.normalize((a1 - a0) + (b1 - b0))
+        quad_slab[quad] = off + contact_threshold
+    block_lowers[blk] = lo
+    block_uppers[blk] = hi
+
+
+@wp.kernel
+def vertex_tangents(
+    # Model:
+    seg_per_strand: int,
+    # State in:
+    vertex_positions: wp.array(dtype=wp.vec3),
+    # Out:
+    tangents: wp.array(dtype=wp.vec3),
+):
+    """One thread per guide vertex: its unit strand tangent (``vertex_tangent``), for the alignment cutoff of
+    vertex-face detection."""
+    vertex = wp.tid()
+    tangents[vertex] = vertex_tangent(vertex, seg_per_strand, vertex_positions)
 
 
 @wp.kernel
@@ -245,60 +407,101 @@ def vertex_face_contacts(
     contact_threshold: float,
     contact_capacity: int,
     contact_alignment_cutoff: float,
-    strip_bvh: wp.uint64,
-    strip_indices: wp.array(dtype=wp.int32),
-    tri_strands: wp.array(dtype=wp.vec2i),
+    repel_distance: float,
+    rest_gaps: int,
+    skip_neighbour_strips: int,
+    quad_block_bvh: wp.uint64,
+    rest_positions: wp.array(dtype=wp.vec3),
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    strand_neighbour_start: wp.array(dtype=wp.int32),
+    strand_neighbours: wp.array(dtype=wp.int32),
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
+    # Scratch:
+    quad_lowers: wp.array(dtype=wp.vec3),
+    quad_uppers: wp.array(dtype=wp.vec3),
+    quad_plane: wp.array(dtype=wp.vec4),
+    quad_slab: wp.array(dtype=float),
+    quad_dir: wp.array(dtype=wp.vec3),
+    vertex_tangents: wp.array(dtype=wp.vec3),
     # Out:
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
     contact_counter: wp.array(dtype=wp.int32),
     contact_overflow: wp.array(dtype=wp.int32),
     fault: wp.array(dtype=wp.int32),
 ):
-    """One thread per guide vertex (roots skipped): every strip triangle of other strands closer than the threshold.
+    """One thread per block of ``VERTEX_BLOCK`` consecutive guide vertices of a strand (roots skipped): every strip
+    quad of other strands closer than the threshold [m] to one of them.
 
-    Queries the BVH of threshold-grown strip quads with the vertex position [m]; appends (vertex, triangle,
-    barycentric weights of the closest point) when that point lies inside the strip (``strip_feature_owned``) and
-    the strand crosses the strip by more than the alignment cutoff.
+    One BVH query per block with its box; strips of the vertex's own strand, and with ``skip_neighbour_strips`` of
+    its root neighbours, are dropped per quad block found; then per quad a box test against the block's box, and per
+    vertex a box test, a slab test against the quad's plane, the alignment cutoff (``vertex_tangents``) and the
+    exact closest point of the quad. Appends (vertex, triangle, barycentric weights) for the nearer of the quad's two
+    triangles when that point belongs to the quad (``quad_feature_owned``), and as the gap the distance of the vertex
+    from the quad in the rest pose (``rest_gaps``) or ``repel_distance``.
     """
-    vertex = wp.tid()
-    strand = vertex // (seg_per_strand + 1)
-    if vertex == strand * (seg_per_strand + 1):
-        return
-    p = vertex_positions[vertex]
-    ta = vertex_tangent(vertex, seg_per_strand, vertex_positions)
-    query = wp.bvh_query_aabb(strip_bvh, p, p)
-    quad = int(0)
-    while wp.bvh_query_next(query, quad):
-        ab = tri_strands[2 * quad]
-        if ab[0] == strand or ab[1] == strand:
+    blk = wp.tid()
+    blocks = (seg_per_strand + VERTEX_BLOCK - 1) // VERTEX_BLOCK
+    strand = blk // blocks
+    base = strand * (seg_per_strand + 1)
+    k0 = 1 + (blk - strand * blocks) * VERTEX_BLOCK
+    k1 = wp.min(k0 + VERTEX_BLOCK, seg_per_strand + 1)
+    lo = vertex_positions[base + k0]
+    hi = lo
+    for k in range(k0 + 1, k1):
+        lo = wp.min(lo, vertex_positions[base + k])
+        hi = wp.max(hi, vertex_positions[base + k])
+    quad_blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
+    query = wp.bvh_query_aabb(quad_block_bvh, lo, hi)
+    found = int(0)
+    while wp.bvh_query_next(query, found):
+        pair = found // quad_blocks
+        ab = strip_pairs[pair]
+        if skip_neighbour_strips != 0:
+            if strand_in_ring(strand, ab[0], ab[1], strand_neighbour_start, strand_neighbours):
+                continue
+        elif ab[0] == strand or ab[1] == strand:
             continue
-        if contact_alignment_cutoff > 0.0:
-            tb = strip_face_direction(2 * quad, seg_per_strand, tri_strands, vertex_positions)
-            if 1.0 - wp.abs(wp.dot(ta, tb)) < contact_alignment_cutoff:
+        j0 = (found - pair * quad_blocks) * QUAD_BLOCK
+        j1 = wp.min(j0 + QUAD_BLOCK, seg_per_strand)
+        for j in range(j0, j1):
+            quad = pair * seg_per_strand + j
+            q_lo = quad_lowers[quad]
+            q_hi = quad_uppers[quad]
+            if not boxes_overlap(lo, hi, q_lo, q_hi):
                 continue
-        for j in range(2):
-            tri = 2 * quad + j
-            a = vertex_positions[strip_indices[3 * tri + 0]]
-            b = vertex_positions[strip_indices[3 * tri + 1]]
-            c = vertex_positions[strip_indices[3 * tri + 2]]
-            # Cheap rejection first: a point farther than the threshold from the triangle's plane is farther from
-            # the triangle (compared squared, scaled by |n|^2, to avoid a square root).
-            n = wp.cross(b - a, c - a)
-            h = wp.dot(p - a, n)
-            if h * h > contact_threshold * contact_threshold * wp.dot(n, n):
-                continue
-            w = closest_point_triangle(p, a, b, c)
-            q = w[0] * a + w[1] * b + w[2] * c
-            if wp.length(p - q) < contact_threshold and strip_feature_owned(w, tri, seg_per_strand):
-                push_contact(
-                    CONTACT_VERTEX_FACE, vertex, tri, w, contact_capacity,
-                    contact_kind, contact_a, contact_b, contact_w, contact_counter, contact_overflow, fault,
-                )
+            for k in range(k0, k1):
+                vertex = base + k
+                p = vertex_positions[vertex]
+                if not box_contains(q_lo, q_hi, p):
+                    continue
+                plane = quad_plane[quad]
+                if wp.abs(p[0] * plane[0] + p[1] * plane[1] + p[2] * plane[2] - plane[3]) > quad_slab[quad]:
+                    continue
+                if contact_alignment_cutoff > 0.0:
+                    if 1.0 - wp.abs(wp.dot(vertex_tangents[vertex], quad_dir[quad])) < contact_alignment_cutoff:
+                        continue
+                ia = ab[0] * (seg_per_strand + 1) + j
+                ib = ab[1] * (seg_per_strand + 1) + j
+                second, w, dist_sq = closest_point_quad(p, vertex_positions[ia], vertex_positions[ib],
+                                                        vertex_positions[ia + 1], vertex_positions[ib + 1])
+                if dist_sq < contact_threshold * contact_threshold and quad_feature_owned(second, w, j,
+                                                                                          seg_per_strand):
+                    gap = repel_distance
+                    if rest_gaps != 0:
+                        rest_second, rest_w, rest_sq = closest_point_quad(
+                            rest_positions[vertex], rest_positions[ia], rest_positions[ib], rest_positions[ia + 1],
+                            rest_positions[ib + 1])
+                        gap = wp.sqrt(rest_sq)
+                    push_contact(
+                        CONTACT_VERTEX_FACE, vertex, 2 * quad + second, w, gap, contact_capacity,
+                        contact_kind, contact_a, contact_b, contact_w, contact_gap, contact_counter,
+                        contact_overflow, fault,
+                    )
 
 
 @wp.func
@@ -308,6 +511,7 @@ def add_wrench(
     point: wp.vec3,
     f: wp.vec3,
     extra_mass: float,
+    seg_length: wp.array(dtype=float),
     vertex_positions: wp.array(dtype=wp.vec3),
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -319,14 +523,15 @@ def add_wrench(
     origin = vertex_positions[v]
     wp.atomic_add(seg_force, seg, f)
     wp.atomic_add(seg_torque, seg, wp.cross(point - origin, f))
-    half = 0.5 * wp.length(vertex_positions[v + 1] - origin)
-    wp.atomic_add(seg_implicit_mass, seg, lever_scaled_mass(extra_mass, point - origin, half))
+    if extra_mass > 0.0:
+        wp.atomic_add(seg_implicit_mass, seg, lever_scaled_mass(extra_mass, point - origin, 0.5 * seg_length[seg]))
 
 
 @wp.func
 def contact_force(
     slot: int,
     seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
     seg_mass: wp.array(dtype=float),
     strip_indices: wp.array(dtype=wp.int32),
     tri_strands: wp.array(dtype=wp.vec2i),
@@ -339,10 +544,12 @@ def contact_force(
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     h: float,
+    implicit_springs: int,
     contact_kind: wp.array(dtype=wp.int32),
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_implicit_mass: wp.array(dtype=float),
@@ -352,26 +559,42 @@ def contact_force(
     ia = contact_a[slot]
     ib = contact_b[slot]
     w = contact_w[slot]
+    reach = wp.min(contact_threshold, contact_gap[slot])
 
-    k = contact_stiffness
+    # Positions first: most stored pairs (detected with a margin) are beyond the threshold and stop here.
     xa = wp.vec3()
     xb = wp.vec3()
+    i0 = int(0)
+    i1 = int(0)
+    i2 = int(0)
+    va0 = int(0)
+    vb0 = int(0)
+    if kind == CONTACT_VERTEX_FACE:
+        i0 = strip_indices[3 * ib + 0]
+        i1 = strip_indices[3 * ib + 1]
+        i2 = strip_indices[3 * ib + 2]
+        xa = vertex_positions[ia]
+        xb = w[0] * vertex_positions[i0] + w[1] * vertex_positions[i1] + w[2] * vertex_positions[i2]
+    else:
+        va0 = ia + ia // seg_per_strand
+        vb0 = ib + ib // seg_per_strand
+        xa = wp.lerp(vertex_positions[va0], vertex_positions[va0 + 1], w[0])
+        xb = wp.lerp(vertex_positions[vb0], vertex_positions[vb0 + 1], w[1])
+    delta = xa - xb
+    dist_sq = wp.dot(delta, delta)
+    if dist_sq >= reach * reach:
+        return
+    dist = wp.sqrt(dist_sq)
+
+    k = contact_stiffness
     va = wp.vec3()
     vb = wp.vec3()
     ta = wp.vec3()
     tb = wp.vec3()
     inv_mass_a = float(0.0)
     inv_mass_b = float(0.0)
-    i0 = int(0)
-    i1 = int(0)
-    i2 = int(0)
     if kind == CONTACT_VERTEX_FACE:
-        i0 = strip_indices[3 * ib + 0]
-        i1 = strip_indices[3 * ib + 1]
-        i2 = strip_indices[3 * ib + 2]
-        xa = vertex_positions[ia]
         va = vertex_velocities[ia]
-        xb = w[0] * vertex_positions[i0] + w[1] * vertex_positions[i1] + w[2] * vertex_positions[i2]
         vb = w[0] * vertex_velocities[i0] + w[1] * vertex_velocities[i1] + w[2] * vertex_velocities[i2]
         ta = vertex_tangent(ia, seg_per_strand, vertex_positions)
         tb = strip_face_direction(ib, seg_per_strand, tri_strands, vertex_positions)
@@ -385,10 +608,6 @@ def contact_force(
             + w[2] / seg_mass[vertex_segment(i2, seg_per_strand)]
         )
     else:
-        va0 = ia + ia // seg_per_strand
-        vb0 = ib + ib // seg_per_strand
-        xa = wp.lerp(vertex_positions[va0], vertex_positions[va0 + 1], w[0])
-        xb = wp.lerp(vertex_positions[vb0], vertex_positions[vb0 + 1], w[1])
         va = wp.lerp(vertex_velocities[va0], vertex_velocities[va0 + 1], w[0])
         vb = wp.lerp(vertex_velocities[vb0], vertex_velocities[vb0 + 1], w[1])
         ta = wp.normalize(vertex_positions[va0 + 1] - vertex_positions[va0])
@@ -396,8 +615,6 @@ def contact_force(
         inv_mass_a = 1.0 / seg_mass[ia]
         inv_mass_b = 1.0 / seg_mass[ib]
 
-    delta = xa - xb
-    dist = wp.length(delta)
     n = wp.vec3()
     if dist > _MIN_SEPARATION:
         n = delta / dist
@@ -414,7 +631,7 @@ def contact_force(
     c_eff = contact_damping * align
     vrel = va - vb
     vn = wp.dot(vrel, n)
-    fn = k_eff * (contact_threshold - dist) - c_eff * vn
+    fn = k_eff * (reach - dist) - c_eff * vn
     if fn <= 0.0:
         return
     f = fn * n
@@ -430,28 +647,33 @@ def contact_force(
         f = f - (mag / vt_len) * vt
 
     point = 0.5 * (xa + xb)
-    extra = h * h * k_eff + h * c_eff
+    extra = float(0.0)
+    if implicit_springs != 0:
+        extra = h * h * k_eff + h * c_eff
     if kind == CONTACT_VERTEX_FACE:
         add_wrench(vertex_segment(ia, seg_per_strand), seg_per_strand, point, f, extra,
-                   vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
         # Each face vertex takes its share at its own position shifted by (point - xb): the shares then sum to
         # -f at the common point, with no net torque.
         shift = point - xb
         add_wrench(vertex_segment(i0, seg_per_strand), seg_per_strand, vertex_positions[i0] + shift, -w[0] * f,
-                   w[0] * extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[0] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
         add_wrench(vertex_segment(i1, seg_per_strand), seg_per_strand, vertex_positions[i1] + shift, -w[1] * f,
-                   w[1] * extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[1] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
         add_wrench(vertex_segment(i2, seg_per_strand), seg_per_strand, vertex_positions[i2] + shift, -w[2] * f,
-                   w[2] * extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[2] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
     else:
-        add_wrench(ia, seg_per_strand, point, f, extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
-        add_wrench(ib, seg_per_strand, point, -f, extra, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+        add_wrench(ia, seg_per_strand, point, f, extra, seg_length, vertex_positions, seg_force, seg_torque,
+                   seg_implicit_mass)
+        add_wrench(ib, seg_per_strand, point, -f, extra, seg_length, vertex_positions, seg_force, seg_torque,
+                   seg_implicit_mass)
 
 
 @wp.kernel
 def contact_forces(
     # Model:
     seg_per_strand: int,
+    seg_length: wp.array(dtype=float),
     seg_mass: wp.array(dtype=float),
     strip_indices: wp.array(dtype=wp.int32),
     tri_strands: wp.array(dtype=wp.vec2i),
@@ -463,6 +685,8 @@ def contact_forces(
     contact_slip_velocity: float,
     contact_capacity: int,
     thread_count: int,
+    contiguous: int,
+    implicit_springs: int,
     # State in:
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
@@ -473,28 +697,41 @@ def contact_forces(
     contact_a: wp.array(dtype=wp.int32),
     contact_b: wp.array(dtype=wp.int32),
     contact_w: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
     contact_counter: wp.array(dtype=wp.int32),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_implicit_mass: wp.array(dtype=float),
 ):
-    """Each of ``thread_count`` threads takes every thread_count-th stored contact: repulsion, normal damping and
-    regularised Coulomb friction.
+    """Each of ``thread_count`` threads takes every thread_count-th stored contact (``contiguous``: a run of
+    consecutive ones): repulsion, normal damping and regularised Coulomb friction.
 
-    Adds +F to side a and -F to side b (shared by barycentric weight among a face's vertices) at the midpoint of the
-    closest points (``seg_force`` [N], ``seg_torque`` [N m] about segment origins, world), and ``h^2 k + h c`` [kg]
-    (lever-scaled) to ``seg_implicit_mass``. Friction is capped so one explicit step cannot reverse the slip.
+    The repulsion acts below ``min(threshold, contact_gap)`` [m]. Adds +F to side a and -F to side b (shared by
+    barycentric weight among a face's vertices) at the midpoint of the closest points (``seg_force`` [N],
+    ``seg_torque`` [N m] about segment origins, world), and, with
+    ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) to ``seg_implicit_mass``. Friction is capped so one
+    explicit step cannot reverse the slip.
     """
-    # A fixed thread count strides over however many contacts this step found (the count is only on the device).
-    slot = wp.tid()
+    # A fixed thread count covers however many contacts this step found (the count is only on the device): on a GPU
+    # thread t takes slots t, t + n, ... (neighbouring threads read neighbouring slots), on a CPU, where the threads
+    # run one after the other, a contiguous run of slots (one pass over the buffer instead of n).
+    t = wp.tid()
     count = wp.min(contact_counter[0], contact_capacity)
     h = dt[0]
-    while slot < count:
+    slot = t
+    stride = thread_count
+    end = count
+    if contiguous != 0:
+        run = (count + thread_count - 1) // thread_count
+        slot = t * run
+        stride = 1
+        end = wp.min(slot + run, count)
+    while slot < end:
         contact_force(
-            slot, seg_per_strand, seg_mass, strip_indices, tri_strands, tri_stiffness_scale, contact_threshold,
-            contact_stiffness, contact_damping, contact_friction, contact_slip_velocity, vertex_positions,
-            vertex_velocities, h, contact_kind, contact_a, contact_b, contact_w, seg_force, seg_torque,
-            seg_implicit_mass,
+            slot, seg_per_strand, seg_length, seg_mass, strip_indices, tri_strands, tri_stiffness_scale,
+            contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
+            vertex_positions, vertex_velocities, h, implicit_springs, contact_kind, contact_a, contact_b, contact_w,
+            contact_gap, seg_force, seg_torque, seg_implicit_mass,
         )
-        slot += thread_count
+        slot += stride

@@ -107,14 +107,15 @@ def _segment_distances(p0, p1, q0, q1):
     return np.where(inside, np.minimum(best, perp), best)
 
 
-@pytest.mark.parametrize("seed, cutoff", [(0, 0.0), (1, 0.0), (2, 0.0), (0, 0.2), (1, 0.2)])
-def test_detection_matches_brute_force(seed, cutoff):
+@pytest.mark.parametrize("seed, cutoff, skip", [(0, 0.0, False), (1, 0.0, False), (2, 0.0, True), (0, 0.2, True),
+                                               (1, 0.2, False), (3, 0.0, True)])
+def test_detection_matches_brute_force(seed, cutoff, skip):
     """All pairs closer than the threshold (and crossing by more than the alignment cutoff) are found, once."""
     verts, _ = _tangled(seed)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000,
-                                  alignment_cutoff=cutoff)
-    # Detect on a moved configuration: the BVH and the mesh are refit, not rebuilt.
+                                  alignment_cutoff=cutoff, skip_neighbour_strips=skip)
+    # Detect on a moved configuration: the BVHs are refit, not rebuilt.
     moved, _ = _tangled(seed + 100)
     model = _model(G, S)
     _apply(contacts, model, _state(moved))
@@ -134,34 +135,52 @@ def test_detection_matches_brute_force(seed, cutoff):
     expected = set(zip(i[(dist < THRESHOLD) & clear].tolist(), j[(dist < THRESHOLD) & clear].tolist(), strict=True))
     ambiguous = set(zip(i[~clear].tolist(), j[~clear].tolist(), strict=True))
     ee = found["kind"] == CONTACT_SEGMENT_SEGMENT
-    got = list(zip(found["a"][ee].tolist(), found["b"][ee].tolist(), strict=True))
+    got = [tuple(sorted(x)) for x in zip(found["a"][ee].tolist(), found["b"][ee].tolist(), strict=True)]
     assert len(got) == len(set(got))  # each pair once
     assert len(expected) > 10
     assert set(got) - ambiguous == expected
 
+    # Vertex-face, per (vertex, quad): the nearer of the quad's two triangles (trimesh), if its closest point lies
+    # off both strands and below the top edge (which is the next quad's), the strip is not the vertex's own (nor,
+    # with skip, one of its root neighbours'), and the quad is no wider than the strips' max_width.
     flat = moved.reshape(-1, 3)
     tris = contacts.strips.indices.numpy().reshape(-1, 3)
-    tri_strands = contacts.strips.tri_strands.numpy()
+    pairs = contacts.strips.pairs
+    neighbours = np.eye(G, dtype=bool)
+    if skip:
+        neighbours[pairs[:, 0], pairs[:, 1]] = neighbours[pairs[:, 1], pairs[:, 0]] = True
     vertices = np.array([v for v in range(G * (S + 1)) if v % (S + 1) != 0])
-    vv, tt = np.meshgrid(vertices, np.arange(len(tris)), indexing="ij")
-    vv, tt = vv.ravel(), tt.ravel()
-    own = (tri_strands[tt, 0] == vv // (S + 1)) | (tri_strands[tt, 1] == vv // (S + 1))
-    vv, tt = vv[~own], tt[~own]
-    closest = trimesh.triangles.closest_point(flat[tris[tt]], flat[vv])
-    dist = np.linalg.norm(closest - flat[vv], axis=1)
-    bary = trimesh.triangles.points_to_barycentric(flat[tris[tt]], closest)
-    owned = _strip_owned(bary, tt, FEATURE_TOL)
-    align = 1.0 - np.abs(np.sum(_vertex_tangents(moved)[vv] * _face_directions(moved, tri_strands)[tt], axis=1))
-    dist = np.where(owned & (align >= cutoff), dist, np.inf)
-    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (owned == _strip_owned(bary, tt, FEATURE_BAND))
+    vv, qq = np.meshgrid(vertices, np.arange(len(tris) // 2), indexing="ij")
+    vv, qq = vv.ravel(), qq.ravel()
+    strand = vv // (S + 1)
+    pa, pb = pairs[qq // S, 0], pairs[qq // S, 1]
+    keep = ~neighbours[strand, pa] & ~neighbours[strand, pb]
+    vv, qq = vv[keep], qq[keep]
+    k = qq % S
+    width = np.maximum(np.linalg.norm(moved[pa[keep], k] - moved[pb[keep], k], axis=1),
+                       np.linalg.norm(moved[pa[keep], k + 1] - moved[pb[keep], k + 1], axis=1))
+    parted = width > contacts.strips.max_width
+    near = [trimesh.triangles.closest_point(flat[tris[2 * qq + s]], flat[vv]) for s in (0, 1)]
+    d = [np.linalg.norm(c - flat[vv], axis=1) for c in near]
+    second = d[1] < d[0]
+    tt = 2 * qq + second
+    dist = np.minimum(d[0], d[1])
+    bary = trimesh.triangles.points_to_barycentric(flat[tris[tt]], np.where(second[:, None], near[1], near[0]))
+    owned = _quad_owned(bary, tt, FEATURE_TOL)
+    align = 1.0 - np.abs(np.sum(_vertex_tangents(moved)[vv] * _face_directions(moved, pairs)[qq], axis=1))
+    dist = np.where(owned & (align >= cutoff) & ~parted, dist, np.inf)
+    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (owned == _quad_owned(bary, tt, FEATURE_BAND))
     clear &= np.abs(align - cutoff) > ALIGN_BAND
+    clear &= np.abs(d[0] - d[1]) > BOUNDARY_BAND  # which triangle is nearer
+    clear &= np.abs(width - contacts.strips.max_width) > BOUNDARY_BAND
+    assert parted.sum() < 0.5 * len(parted)
     expected = set(zip(vv[(dist < THRESHOLD) & clear].tolist(), tt[(dist < THRESHOLD) & clear].tolist(), strict=True))
-    ambiguous = set(zip(vv[~clear].tolist(), tt[~clear].tolist(), strict=True))
+    ambiguous = set(zip(vv[~clear].tolist(), qq[~clear].tolist(), strict=True))
     vf = found["kind"] == CONTACT_VERTEX_FACE
     got = list(zip(found["a"][vf].tolist(), found["b"][vf].tolist(), strict=True))
-    assert len(got) == len(set(got))
+    assert len({(v, t // 2) for v, t in got}) == len(got)  # one contact per vertex and quad
     assert len(expected) > 10
-    assert set(got) - ambiguous == expected
+    assert {(v, t) for v, t in got if (v, t // 2) not in ambiguous} == expected
 
     # The stored barycentric weights give trimesh's closest point.
     w = found["w"][vf].astype(np.float64)
@@ -181,28 +200,26 @@ def _vertex_tangents(verts):
     return t / np.linalg.norm(t, axis=1, keepdims=True)
 
 
-def _face_directions(verts, tri_strands):
-    """The along-strand direction of every strip triangle: the sum of its two strands' segments, normalised."""
-    k = (np.arange(len(tri_strands)) % (2 * S)) // 2
+def _face_directions(verts, pairs):
+    """The along-strand direction of every strip quad ``S p + k``: the sum of its two strands' segments, normalised."""
     d = np.diff(verts, axis=1)
-    t = d[tri_strands[:, 0], k] + d[tri_strands[:, 1], k]
+    t = (d[pairs[:, 0]] + d[pairs[:, 1]]).reshape(-1, 3)
     return t / np.linalg.norm(t, axis=1, keepdims=True)
 
 
-def _strip_owned(w, tri, tol):
-    """Whether a closest point with barycentric weights w lies inside the strip as triangle ``tri`` sees it.
+def _quad_owned(w, tri, tol):
+    """Whether a closest point with barycentric weights w in triangle ``tri`` belongs to the triangle's quad.
 
-    Corners and the strand edges (a_k a_{k+1} in the first triangle of a segment pair, b_k b_{k+1} in the second)
-    are the strands themselves; the diagonal belongs to the first triangle, the horizontal edge between two
-    segment pairs to the upper pair's first triangle. Weights within ``tol`` of 0 or 1 count as 0 or 1.
+    Triangle 2q = (a_k, b_k, a_{k+1}) puts the point at u = w_1 across the quad (0 on strand a, 1 on strand b) and
+    v = w_2 along it; triangle 2q + 1 = (b_k, b_{k+1}, a_{k+1}) at u = 1 - w_2, v = 1 - w_0. Points on a strand
+    (u = 0 or 1) belong to segment-segment contacts, the top edge (v = 1) to the next quad, except at the tip.
+    Weights within ``tol`` of 0 or 1 count as 0 or 1.
     """
-    zero = w < tol
-    corner = np.any(w > 1.0 - tol, axis=1)
     first = tri % 2 == 0
+    u = np.where(first, w[:, 1], 1.0 - w[:, 2])
+    v = np.where(first, w[:, 2], 1.0 - w[:, 0])
     tip = (tri % (2 * S)) // 2 == S - 1
-    owned_first = ~zero[:, 1]
-    owned_second = ~zero[:, 2] & ~zero[:, 1] & (~zero[:, 0] | tip)
-    return ~corner & np.where(first, owned_first, owned_second)
+    return (u > tol) & (u < 1.0 - tol) & ((v < 1.0 - tol) | tip)
 
 
 def _pair(a0, a1, b0, b1):
@@ -220,14 +237,14 @@ def test_repulsion_vanishes_for_parallel_segments(angle):
     vel[0] = [0.1, 0.05, 0.0]
     vel[1] = [-0.1, 0.0, 0.02]
     contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.1, friction=0.5,
-                                  capacity=8, alignment_cutoff=0.0)
+                                  capacity=8, alignment_cutoff=0.0, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel))
     assert contacts.contact_count() == 1
     assert np.abs(force).max() < 1e-6 * 10.0 * THRESHOLD
     assert np.abs(torque).max() < 1e-6 * 10.0 * THRESHOLD * SEG_LEN
     np.testing.assert_allclose(mass, 0.0, atol=1e-12)
     # With the default cutoff such a pair is not even stored.
-    default = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, capacity=8)
+    default = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, capacity=8, rest_gaps=False)
     _apply(default, _model(2, 1), _state(verts, vel))
     assert default.contact_count() == 0
 
@@ -240,7 +257,7 @@ def test_crossing_segments_closed_form():
     verts = _pair(a0, a1, b0, b1)
     vel = np.zeros_like(verts)
     vel[1] = [0.0, -0.05, 0.0]  # b approaches a
-    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4)
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel), dt=h)
     fn = k * (THRESHOLD - delta) + c * 0.05  # n = -y (from b to a); approaching adds damping
     np.testing.assert_allclose(force[0], [0.0, -fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
@@ -260,7 +277,8 @@ def test_crossing_segments_closed_form():
 def _strip_scene():
     """Strands 0 and 1 span a strip in the plane y = 0 (12 mm apart at the roots, 8 mm at the tips, segments
     12 mm long); strand 2 runs along -y and ends 0.8 mm in front of the face (a_1, b_1, a_2), at its incentre,
-    so no other triangle comes within the threshold."""
+    so no other triangle comes within the threshold. As a 1 x 3 grid, strand 2 is a root neighbour of strand 1,
+    so these scenes keep the neighbours' strips (``skip_neighbour_strips=False``)."""
     z = np.array([0.0, -0.012, -0.024])
     s0 = np.stack([np.zeros(3), np.zeros(3), z], axis=1)
     s1 = np.stack([[0.012, 0.010, 0.008], np.zeros(3), z], axis=1)
@@ -276,7 +294,7 @@ def test_stored_pairs_with_margin():
     a0, a1 = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, -SEG_LEN])
     far = _pair(a0, a1, [-0.003, 0.0025, -0.002], [0.003, 0.0025, -0.002])
     contacts = HairContacts.build(far, threshold=THRESHOLD, stiffness=k, capacity=4, margin=0.001,
-                                  detect_each_step=False)
+                                  detect_each_step=False, rest_gaps=False)
     model = _model(2, 1)
     contacts.detect(model, _state(far))
     assert contacts.contact_count() == 1
@@ -295,7 +313,7 @@ def test_vertex_face_closed_form_with_density_scale():
     verts = _strip_scene()
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
-                                  segment_segment=False)
+                                  segment_segment=False, skip_neighbour_strips=False, rest_gaps=False)
     force, torque, _ = _apply(contacts, _model(3, S2), _state(verts))
     found = contacts.contact_list()
     assert list(found["kind"]) == [CONTACT_VERTEX_FACE]
@@ -318,7 +336,8 @@ def test_vertex_beside_a_strand_is_a_segment_contact():
     tip = np.array([-0.0008, 0.0, -0.018])
     verts[2] = [tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip]
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16)
+    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16,
+                                  skip_neighbour_strips=False)
     _apply(contacts, _model(3, 2), _state(verts))
     found = contacts.contact_list()
     assert list(found["kind"]) == [CONTACT_SEGMENT_SEGMENT]
@@ -331,7 +350,7 @@ def test_net_force_and_torque_vanish(seed):
     vel = rng.normal(0.0, 0.3, verts.shape)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
-                                  capacity=20000)
+                                  capacity=20000, rest_gaps=False)
     force, torque, _ = _apply(contacts, _model(G, S), _state(verts, vel))
     assert contacts.contact_count() > 20
     # Any number of force threads striding over the buffer gives the same sums.
@@ -383,7 +402,7 @@ def test_friction_never_reverses_segment_pair(speed, mu):
     vel[0] = speed * slide / np.linalg.norm(slide)
     vel[1] = [0.0, -0.01, 0.0]
     contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, friction=mu,
-                                  slip_velocity=slip, capacity=4)
+                                  slip_velocity=slip, capacity=4, rest_gaps=False)
     force, vel_new = _explicit_step(contacts, verts, vel, _model(2, 1, mass), mass, h, [0, 0, 1, 1])
     n = np.array([0.0, -1.0, 0.0])
     vt = _tangential(vel[0, 0] - vel[1, 0], n)
@@ -411,7 +430,7 @@ def test_friction_never_reverses_vertex_face(speed):
     vel[2] = [speed, 0.0, 0.3 * speed]  # strand 2 slides in the face's plane
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, friction=mu,
-                                  capacity=16, segment_segment=False)
+                                  capacity=16, segment_segment=False, skip_neighbour_strips=False, rest_gaps=False)
     owner = [g * S2 + max(k - 1, 0) for g in range(3) for k in range(S2 + 1)]
     _, vel_new = _explicit_step(contacts, verts, vel, _model(3, S2, mass), mass, h, owner)
     found = contacts.contact_list()
@@ -437,7 +456,7 @@ def test_captured_step_follows_the_state():
     vel = rng.normal(0.0, 0.3, verts.shape)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
-                                  capacity=20000)
+                                  capacity=20000, rest_gaps=False)
     model, state = _model(G, S), _state(verts, vel)
     n = model.seg_count
     force, torque, mass = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float)

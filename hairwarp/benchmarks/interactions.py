@@ -154,7 +154,8 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
 
 
 def _active_contacts(contacts, model, state) -> int:
-    """Stored contacts whose two points are within the threshold now (host read, for the report)."""
+    """Stored contacts that repel now: their two points closer than the threshold and than their rest gap (host
+    read, for the report)."""
     found = contacts.contact_list()
     x = state.vertex_positions.numpy().astype(np.float64)
     S = model.seg_per_strand
@@ -169,4 +170,5 @@ def _active_contacts(contacts, model, state) -> int:
     va, vb = a + a // S, b + b // S
     xa[~vf] = x[va] + w[~vf, :1] * (x[va + 1] - x[va])
     xb[~vf] = x[vb] + w[~vf, 1:2] * (x[vb + 1] - x[vb])
-    return int(np.count_nonzero(np.linalg.norm(xa - xb, axis=1) < contacts.threshold))
+    reach = np.minimum(contacts.threshold, found["gap"])
+    return int(np.count_nonzero(np.linalg.norm(xa - xb, axis=1) < reach))
