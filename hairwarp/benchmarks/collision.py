@@ -277,7 +277,7 @@ def chart_tunnelling(result: dict, path) -> Path:
     plt = _pyplot()
     path = Path(path)
     modes = [m for m in TUNNEL_MODES if m in result["thresholds"]]
-    fig, axes = plt.subplots(1, len(modes), figsize=(4.2 * len(modes), 4.4), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(modes), figsize=(4.2 * len(modes), 5.2), sharey=True, squeeze=False)
     markers = {"sphere": "o", "capsule": "s", "plane": "^", "mesh": "D"}
     colors = {"sphere": "C0", "capsule": "C1", "plane": "C2", "mesh": "C3"}
     top = max(result["speeds"])
@@ -307,9 +307,10 @@ def chart_tunnelling(result: dict, path) -> Path:
         ax.set_xlabel(f"substeps per frame at {TUNNEL_FPS:g} fps")
     axes[0][0].set_ylabel("collider speed [m/s]")
     axes[0][0].scatter([], [], marker="x", color="0.3", label="solver fault: a joint turns > 1 rad in a step")
-    axes[0][0].legend(fontsize=5.5, loc="upper left", ncol=2)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=4, frameon=False)
     fig.suptitle("Strand-object tunnelling: 0.1 m thick colliders crossing 0.3 m hanging strands", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.13, 1.0, 1.0))
     fig.savefig(path)
     plt.close(fig)
     return path
