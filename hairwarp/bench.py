@@ -5,7 +5,8 @@ Usage::
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     python -m hairwarp.bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
 
-SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling`` or ``all`` (the default). A run
+SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling`` or ``all`` (the default), or a suite
+another module provides (``collision``: ``hairwarp.benchmarks.collision.suite_collision``). A run
 writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
 ``benchmarks.md`` into the output folder: ``docs/`` of the source checkout for a full run,
 ``out/bench-quick/`` for ``--quick`` (a smoke run never overwrites the committed report).
@@ -22,6 +23,8 @@ from pathlib import Path
 
 from hairwarp.benchmarks import SUITES
 
+# Suites other modules provide, run only when named: name -> (module, function(config, out, log) -> dict).
+EXTRA_SUITES = {"collision": ("hairwarp.benchmarks.collision", "suite_collision")}
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
 SCHEMA = 1
@@ -103,6 +106,11 @@ def _suite(name, config, out, log) -> dict:
         from hairwarp.benchmarks.scaling import suite_scaling
 
         return suite_scaling(config, log)
+    if name in EXTRA_SUITES:
+        import importlib
+
+        module, function = EXTRA_SUITES[name]
+        return getattr(importlib.import_module(module), function)(config, out, log)
     raise ValueError(f"unknown benchmark suite {name!r}; choose one of {', '.join(SUITES)} or all")
 
 
@@ -121,7 +129,8 @@ def _jsonable(value):
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m hairwarp.bench", description="Benchmarks of the strand solver.")
     parser.add_argument("suite", nargs="?", default="all", metavar="SUITE",
-                        help=f"one of {', '.join(SUITES)}, or all (default)")
+                        help=f"one of {', '.join([*SUITES, *EXTRA_SUITES])}, or all (default: the first "
+                             f"{len(SUITES)})")
     parser.add_argument("--quick", action="store_true", help="small sizes, about a minute (smoke run)")
     parser.add_argument("--device", default=None, metavar="D", help="Warp device; cuda adds a CUDA column")
     parser.add_argument("--out", default=None, metavar="DIR", help="output folder (default: docs/ of the checkout)")
@@ -153,8 +162,9 @@ def main(args=None) -> int:
     from hairwarp.benchmarks.common import BenchConfig
 
     suite = (getattr(args, "suite", None) or "all").lower()
-    if suite != "all" and suite not in SUITES:
-        raise ValueError(f"unknown benchmark suite {suite!r}; choose one of {', '.join(SUITES)} or all")
+    if suite != "all" and suite not in SUITES and suite not in EXTRA_SUITES:
+        names = ", ".join([*SUITES, *EXTRA_SUITES])
+        raise ValueError(f"unknown benchmark suite {suite!r}; choose one of {names} or all")
     suites = list(SUITES) if suite == "all" else [suite]
     device = getattr(args, "device", None) or "cpu"
     quick = bool(getattr(args, "quick", False))

@@ -503,26 +503,61 @@ def md_scaling(sc: dict) -> list[str]:
             "called when it exists):", "", "| stage | hook | status | figures |", "|---|---|---|---|"]
     for st in sc["stages"]:
         fig = _stage_figures(st.get("result")) if st["status"] == "ok" else st.get("message", "")
-        out.append(f"| {st['stage']} | `{st['hook']}` | {st['status']} | {fig} |")
+        status = st["status"] + (" (quick sizes)" if st.get("quick") else "")
+        out.append(f"| {st['stage']} | `{st['hook']}` | {status} | {fig} |")
     return out
 
 
-def _stage_figures(result) -> str:
-    """Times (keys ending in ``_s``, build time left out) of each entry of a hook's ``results``, in ms."""
-    if not isinstance(result, dict) or not isinstance(result.get("results"), list):
+def _times(d: dict, prefix: str = "", depth: int = 0) -> list[str]:
+    """``name value ms`` for the keys ending in ``_s`` of a dict and of the dicts inside it (two levels)."""
+    out = []
+    for k, v in d.items():
+        if k in ("build_s", "setup_s", "wall_s", "time_in_motion_s", "waited_s"):
+            continue
+        if k.endswith("_s") and isinstance(v, (int, float)) and not isinstance(v, bool):
+            out.append(f"{prefix}{k[:-2].replace('_', ' ')} {_g(v * 1e3)} ms")
+        elif isinstance(v, dict) and depth < 2:
+            out += _times(v, f"{prefix}{k.replace('_', ' ')} ", depth + 1)
+    return out
+
+
+def _stage_figures(result, limit: int = 10) -> str:
+    """The times of a hook's result, in ms: top level, then each entry of ``results`` (or ``margins``)."""
+    if not isinstance(result, dict):
         return "–"
-    parts = []
-    for r in result["results"]:
-        label = r.get("state") or (f"{r['count']} dense strands" if "count" in r else "")
-        times = ", ".join(f"{k[:-2].replace('_', ' ')} {_g(v * 1e3)} ms" for k, v in r.items()
-                          if k.endswith("_s") and k != "build_s" and isinstance(v, (int, float)))
-        parts.append(f"{label}: {times}" if label else times)
     head = ""
     if "strands" in result:
         head = f"{result['strands']} guides × {result.get('segments')} segments; "
     elif "guides" in result:
         head = f"{result['guides']} guides × {result.get('segments')} segments; "
-    return head + "; ".join(parts)
+    parts = _times({k: v for k, v in result.items() if k not in ("results", "margins")})
+    for r in result.get("results") or result.get("margins") or []:
+        if not isinstance(r, dict):
+            continue
+        label = r.get("state") or (f"{r['count']} dense strands" if "count" in r else "") or \
+            (f"margin {r['margin']:g} m" if "margin" in r else "")
+        times = ", ".join(_times({k: v for k, v in r.items() if not isinstance(v, list)})[:4])
+        parts.append(f"{label}: {times}" if label else times)
+    if result.get("status") not in (None, "ok"):
+        return f"{result.get('status')}: {result.get('message', '')}"
+    return head + "; ".join(parts[:limit]) if parts else "–"
+
+
+def md_other(name: str, data: dict, out: Path) -> list[str]:
+    """A suite another module provides: its charts (PNG files it lists) and its times, generically."""
+    lines = [f"## Suite `{name}` (`hairwarp bench {name}`)", ""]
+    for sub, value in data.items():
+        if not isinstance(value, dict) or sub in ("machine", "quiet_gate"):
+            continue
+        for f in value.get("files", []):
+            if str(f).endswith(".png") and Path(f).parent.resolve() == Path(out).resolve():
+                lines += [f"![{sub}]({Path(f).name})", ""]
+        figures = _stage_figures(value)
+        lines.append(f"- {sub}: {figures if figures != '–' else 'see benchmarks.json'}")
+    sm = data.get("machine", {})
+    lines += ["", f"*Suite `{name}`: {data.get('wall_s')} s on {sm.get('date')}"
+                  + ("; quick sizes" if data.get("quick") else "") + ".*"]
+    return lines
 
 
 def md_cuda(s: dict) -> list[str]:
@@ -683,6 +718,9 @@ def write_report(results: dict, out: Path) -> Path:
             lines += fn(s[name]) + ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}, load "
                                         f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}."
                                         f"{gate}*", ""]
+    for name in s:
+        if name not in ("dynamics", "accuracy", "stability", "scaling"):
+            lines += md_other(name, s[name], out) + [""]
     lines += md_cuda(s) + [""]
     lines += ["## Reproduce", "", "```", "hairwarp bench                 # all suites, about 15 min on 2 cores; "
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"

@@ -15,14 +15,16 @@ from hairwarp.benchmarks.ours import canonical_model, time_solver
 
 INTEGRATOR = "implicit_joints"
 
-# Other stages: (stage, module, function). A module exposes ``bench_<stage>(..., device=...)`` returning
-# a JSON-able dict; it is called when importable, else the stage is reported "not available".
+# Other stages: (stage, module, function, always quick). A module exposes ``bench_<stage>(quick=...,
+# device=...)`` returning a JSON-able dict; it is called when importable, else the stage is reported "not
+# available". The whole-scene ones run at their quick sizes even in a full run, to keep it under 15 minutes.
 STAGE_HOOKS = (
-    ("dense interpolation + Hermite", "hairwarp.dense", "bench_dense"),
-    ("static links", "hairwarp.interactions", "bench_links"),
-    ("hair-hair contacts", "hairwarp.interactions", "bench_contacts"),
-    ("body collision", "hairwarp.colliders", "bench_collision"),
-    ("USD write", "hairwarp.usd", "bench_usd_write"),
+    ("dense interpolation + Hermite", "hairwarp.dense", "bench_dense", False),
+    ("static links + hair-hair contacts (Ratboy mohawk)", "hairwarp.benchmarks.interactions", "bench_interactions",
+     True),
+    ("body collision (projection)", "hairwarp.colliders", "bench_collision", False),
+    ("body collision in motion (Ratboy)", "hairwarp.benchmarks.collision", "bench_collision_cost", True),
+    ("USD write", "hairwarp.usd", "bench_usd_write", False),
 )
 
 
@@ -54,7 +56,7 @@ def exponents(points: list[dict], key: str = "step_s") -> dict:
             "vs_segments_large_G": fit_exponent([p["S"] for p in big], [p[key] for p in big])}
 
 
-def call_hook(module: str, function: str, cfg, device) -> dict:
+def call_hook(module: str, function: str, cfg, device, always_quick: bool = False) -> dict:
     try:
         fn = getattr(importlib.import_module(module), function)
     except (ImportError, AttributeError):
@@ -64,13 +66,13 @@ def call_hook(module: str, function: str, cfg, device) -> dict:
     if "counts" in params:
         kwargs["counts"] = cfg.dense_counts
     if "quick" in params:
-        kwargs["quick"] = cfg.quick
+        kwargs["quick"] = cfg.quick or always_quick
     t0 = time.perf_counter()
     try:
         out = fn(**kwargs)
     except Exception as exc:  # noqa: BLE001 - another stage's failure is reported, not fatal
         return {"status": "error", "message": f"{type(exc).__name__}: {exc}"[:400]}
-    return {"status": "ok", "result": out, "wall_s": time.perf_counter() - t0}
+    return {"status": "ok", "quick": kwargs.get("quick", False), "result": out, "wall_s": time.perf_counter() - t0}
 
 
 def suite_scaling(cfg, log=lambda msg: None) -> dict:
@@ -99,9 +101,9 @@ def suite_scaling(cfg, log=lambda msg: None) -> dict:
     cpu = per_device["cpu"]["exponents"]
     worst = max(v for v in [*cpu["vs_strands"].values(), *cpu["vs_segments"].values()] if v is not None)
     stages = []
-    for stage, module, function in STAGE_HOOKS:
+    for stage, module, function, always_quick in STAGE_HOOKS:
         log(f"scaling: stage {stage} ...")
-        r = call_hook(module, function, cfg, "cpu")
+        r = call_hook(module, function, cfg, "cpu", always_quick)
         stages.append({"stage": stage, "hook": f"{module}.{function}", **r})
         log(f"  {r['status']}")
     return {"integrator": INTEGRATOR, "dt": BENCH_DT, "devices": per_device, "max_exponent": worst,
