@@ -51,6 +51,7 @@ def tiny_config():
         scale_segments=(4, 8),
         scale_budget_s=0.05,
         dense_counts=(50,),
+        stages=("dense interpolation + Hermite",),
         quiet_gate=False,
     )
 

@@ -373,6 +373,7 @@ class BenchConfig:
     scale_budget_s: float = 1.0
     scale_passes: int = 3
     dense_counts: tuple = (10_000, 100_000)
+    stages: tuple | None = None  # names of the stage hooks to call (None: all of scaling.STAGE_HOOKS)
 
     @classmethod
     def full(cls, device: str = "cpu") -> BenchConfig:

@@ -102,6 +102,8 @@ def suite_scaling(cfg, log=lambda msg: None) -> dict:
     worst = max(v for v in [*cpu["vs_strands"].values(), *cpu["vs_segments"].values()] if v is not None)
     stages = []
     for stage, module, function, always_quick in STAGE_HOOKS:
+        if cfg.stages is not None and stage not in cfg.stages:
+            continue
         log(f"scaling: stage {stage} ...")
         r = call_hook(module, function, cfg, "cpu", always_quick)
         stages.append({"stage": stage, "hook": f"{module}.{function}", **r})
