@@ -263,7 +263,8 @@ def laid_on_sphere(friction):
         arc = np.stack([r * np.cos(el), np.full_like(el, y0), r * np.sin(el)], axis=1)
         polys.append(np.concatenate([[[SPHERE_R + 0.015, y0, 0.0]], arc]))
     model = hw.Model.build(hw.Groom.from_polylines(polys),
-                           hw.StrandParams(bend_stiffness=3e-6, damping=1e-7, drag=0.05), segments=16)
+                           hw.StrandParams(bend_stiffness=3e-6, damping=1e-7, drag=0.05, root_stiffness_scale=0.5),
+                           segments=16)  # a soft root (EI / L0) that lets the strands fall away from the sphere
     sphere = Collider.sphere(SPHERE_R, attach="world", thickness=1e-3, friction=friction)
     colliders = ColliderSet([sphere], "cpu", model=model)
     return model, sphere, hw.Stepper(hw.Solver(model, colliders=colliders), dt=1.0 / 480.0, substeps=16)
