@@ -12,7 +12,8 @@ and, after integration and forward kinematics of ``state_out``::
     links.break_links(model, state_out)
 
 ``dt`` is the solver's one-element float32 device array. ``model`` needs ``seg_per_strand``, ``seg_length`` and
-``seg_mass``; a state needs ``seg_xform``, ``vertex_positions``, ``vertex_velocities`` and ``fault``.
+``seg_mass``; a state needs ``seg_xform``, ``joint_q`` (links read the head's rotation from the root segments),
+``vertex_positions``, ``vertex_velocities`` and ``fault``.
 
 Once per output frame, outside a captured step, a runner reads ``links.broken_count()``,
 ``contacts.contact_count()`` and ``contacts.overflowed()``. Contact detection costs far more than the force pass;
@@ -79,50 +80,6 @@ def closest_points_segments(p0, p1, q0, q1):
     return s, t, dist
 
 
-def _quat_rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors v by the inverse of unit quaternions q (x, y, z, w), row by row."""
-    u = -q[:, :3]
-    w = q[:, 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _quat_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Minimal rotations (x, y, z, w) taking unit vectors a to b, row by row (a half turn for opposite vectors)."""
-    q = np.concatenate([np.cross(a, b), 1.0 + np.einsum("ij,ij->i", a, b)[:, None]], axis=1)
-    opposite = q[:, 3] < 1e-12
-    if opposite.any():
-        perp = np.cross(a[opposite], [1.0, 0.0, 0.0])
-        weak = np.linalg.norm(perp, axis=1) < 1e-6
-        perp[weak] = np.cross(a[opposite][weak], [0.0, 1.0, 0.0])
-        q[opposite] = np.concatenate([perp, np.zeros((len(perp), 1))], axis=1)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton products p q of quaternions (x, y, z, w), row by row."""
-    pv, pw, qv, qw = p[:, :3], p[:, 3:], q[:, :3], q[:, 3:]
-    return np.concatenate([pw * qv + qw * pv + np.cross(pv, qv), pw * qw - np.sum(pv * qv, axis=1, keepdims=True)], 1)
-
-
-def twist_free_rotations(rest_vertices) -> np.ndarray:
-    """World rotations (x, y, z, w), shape (G*S, 4), of twist-free segment frames with body -z along each segment.
-
-    The first segment takes the minimal rotation from world -z, each next one the minimal rotation from its parent
-    (parallel transport): the frames ``hairwarp.Model`` builds for its rest pose with the head at identity.
-    """
-    verts = _check_vertices(rest_vertices)
-    d = np.diff(verts, axis=1)
-    d /= np.linalg.norm(d, axis=2, keepdims=True)
-    G, S = d.shape[:2]
-    q = np.empty((G, S, 4))
-    q[:, 0] = _quat_between(np.broadcast_to([0.0, 0.0, -1.0], (G, 3)), d[:, 0])
-    for k in range(1, S):
-        q[:, k] = _quat_mul(_quat_between(d[:, k - 1], d[:, k]), q[:, k - 1])
-    q = q.reshape(-1, 4)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np.ndarray:
     """Unordered pairs (a < b) such that b is among a's ``neighbours`` nearest segments of other strands within
     ``radius``, or a among b's (exact segment-segment distances).
@@ -179,10 +136,14 @@ class StaticLinks:
         seg_a, seg_b: numpy int32 (L,), the two segments of each link (flat ``g*S + k``); ``seg_a`` is the longer
             (the lower index on a tie) and carries the rest offset.
         frac_a, frac_b: numpy float64 (L,), attachment parameters along each segment (0 = vertex k, 1 = vertex k+1).
-        rest_offset: numpy float64 (L, 3), r0 [m] in segment a's frame.
+        rest_offset: numpy float64 (L, 3), r0 = x_b - x_a at rest [m], head frame.
+        rest_axis: numpy float64 (L, 3), unit axis of segment a at rest, head frame; the offset follows a's axis from
+            it by the least rotation (see ``kernels.links``).
         stiffness: k_s [N/m]. damping: k_d [N s/m]. break_length: |l| [m] beyond which a link breaks for good.
-        implicit_springs: whether the links add ``h^2 k_s + h k_d`` to the solver's implicit mass.
-        link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
+        implicit_springs: whether the links add to the solver's implicit mass (the part of their ``h^2 k_s + h k_d``
+            beyond each segment's mass, see ``kernels.links.add_excess_mass``).
+        seg_spring_mass: float32 (G*S,) on the device, scratch of that sum.
+        link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset, link_rest_axis: the same on the device.
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
     """
@@ -192,7 +153,6 @@ class StaticLinks:
         cls,
         rest_vertices,
         *,
-        rest_rotations=None,
         neighbours: int = 3,
         radius: float,
         stiffness: float,
@@ -208,18 +168,17 @@ class StaticLinks:
         rest offset that makes it exactly slack at rest.
 
         Args:
-            rest_vertices: (G, S+1, 3) world vertex positions of the pose the links hold [m].
-            rest_rotations: world rotations (x, y, z, w) of the segments in that pose, shape (G*S, 4) (or
-                (G*S, 7) transforms, as ``state.seg_xform.numpy()``); default :func:`twist_free_rotations`, the
-                model's own frames when ``rest_vertices`` is its ``rest_vertex_positions``.
+            rest_vertices: (G, S+1, 3) vertex positions of the pose the links hold [m], in the head frame (the
+                model's ``rest_vertex_positions``): rest offsets and axes are kept in that frame.
             neighbours: links made per segment (n of the seed).
             radius: largest segment-segment distance that gets a link [m].
             stiffness: spring stiffness k_s [N/m].
             damping: damping k_d [N s/m].
             break_length: a link breaks for good when |l| exceeds this [m].
-            implicit_springs: add the springs' ``h^2 k_s + h k_d`` to the solver's ``seg_implicit_mass`` (the
-                semi-implicit treatment that keeps stiff links stable at frame-rate steps); False leaves them
-                explicit, for comparison.
+            implicit_springs: add to the solver's ``seg_implicit_mass`` the part of the links' summed
+                ``h^2 k_s + h k_d`` beyond each segment's own mass (the semi-implicit treatment that keeps stiff
+                links stable at frame-rate steps, spent only where the explicit step would not be); False leaves
+                them explicit, for comparison.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -232,13 +191,6 @@ class StaticLinks:
                 raise InteractionError(f"{name} must be >= 0, got {value}")
         if int(neighbours) < 1:
             raise InteractionError(f"neighbours must be >= 1, got {neighbours}")
-        rot = twist_free_rotations(verts) if rest_rotations is None else np.asarray(rest_rotations, np.float64)
-        if rot.ndim == 2 and rot.shape == (G * S, 7):
-            rot = rot[:, 3:7]
-        if rot.shape != (G * S, 4):
-            raise InteractionError(f"rest_rotations: expected shape ({G * S}, 4) or ({G * S}, 7), got {rot.shape}")
-        rot = rot / np.linalg.norm(rot, axis=1, keepdims=True)
-
         p0 = verts[:, :-1].reshape(-1, 3)
         p1 = verts[:, 1:].reshape(-1, 3)
         pairs = _nearest_segment_pairs(p0, p1, np.repeat(np.arange(G), S), int(neighbours), float(radius))
@@ -249,11 +201,14 @@ class StaticLinks:
         swap = length[pairs[:, 1]] > length[pairs[:, 0]]
         a = np.where(swap, pairs[:, 1], pairs[:, 0])
         b = np.where(swap, pairs[:, 0], pairs[:, 1])
+        order = np.lexsort((b, a))  # by segment a: neighbouring threads read neighbouring frames
+        a, b = a[order], b[order]
         fa, fb, _ = closest_points_segments(p0[a], p1[a], p0[b], p1[b])
 
         xa = p0[a] + fa[:, None] * (p1[a] - p0[a])
         xb = p0[b] + fb[:, None] * (p1[b] - p0[b])
-        r0 = _quat_rotate_inverse(rot[a], xb - xa)
+        r0 = xb - xa
+        axis = (p1[a] - p0[a]) / length[a, None]
 
         links = cls()
         links.device = wp.get_device(device)
@@ -266,6 +221,7 @@ class StaticLinks:
         links.frac_a = fa
         links.frac_b = fb
         links.rest_offset = r0
+        links.rest_axis = axis
         links.link_count = len(a)
         n = max(links.link_count, 1)
         dev = links.device
@@ -274,8 +230,10 @@ class StaticLinks:
         links.link_frac_a = wp.array(fa if len(a) else np.zeros(n), dtype=float, device=dev)
         links.link_frac_b = wp.array(fb if len(a) else np.zeros(n), dtype=float, device=dev)
         links.link_rest_offset = wp.array(r0 if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
+        links.link_rest_axis = wp.array(axis if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
         links.link_broken = wp.zeros(n, dtype=wp.int32, device=dev)
         links.link_broken_total = wp.zeros(1, dtype=wp.int32, device=dev)
+        links.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
         return links
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
@@ -287,12 +245,15 @@ class StaticLinks:
             dim=self.link_count,
             inputs=[
                 model.seg_per_strand, model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a,
-                self.link_frac_b, self.link_rest_offset, self.stiffness, self.damping, int(self.implicit_springs),
-                state.seg_xform, state.vertex_positions, state.vertex_velocities, self.link_broken, dt,
+                self.link_frac_b, self.link_rest_offset, self.link_rest_axis, self.stiffness, self.damping,
+                int(self.implicit_springs), state.seg_xform, state.joint_q, state.vertex_positions,
+                state.vertex_velocities, self.link_broken, dt,
             ],
-            outputs=[seg_force, seg_torque, seg_implicit_mass],
+            outputs=[seg_force, seg_torque, self.seg_spring_mass],
             device=self.device,
         )
+        if self.implicit_springs:
+            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device)
 
     def break_links(self, model, state):
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only)."""
@@ -303,7 +264,8 @@ class StaticLinks:
             dim=self.link_count,
             inputs=[
                 model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a, self.link_frac_b,
-                self.link_rest_offset, self.break_length, state.seg_xform,
+                self.link_rest_offset, self.link_rest_axis, self.break_length, model.seg_per_strand, state.seg_xform,
+                state.joint_q,
             ],
             outputs=[self.link_broken, self.link_broken_total],
             device=self.device,
@@ -317,6 +279,11 @@ class StaticLinks:
         """Mend every link (for a new run from the rest pose)."""
         self.link_broken.zero_()
         self.link_broken_total.zero_()
+
+
+def _add_excess_mass(model, seg_spring_mass, seg_implicit_mass, device):
+    wp.launch(link_kernels.add_excess_mass, dim=len(seg_spring_mass), inputs=[model.seg_mass, seg_spring_mass],
+              outputs=[seg_implicit_mass], device=device)
 
 
 class TriangleStrips:
@@ -542,8 +509,9 @@ class HairContacts:
                 and neighbours sliding along each other are not pushed apart. On the Ratboy mohawk 106,000
                 pairs are within 2 mm in the groom itself; pushed apart at k = 20 N/m (up to 100 times a segment's
                 weight) they burst the style and drive the strands into the body.
-            implicit_springs: add each active contact's ``h^2 k + h c`` to the solver's ``seg_implicit_mass`` (the
-                semi-implicit treatment of the repulsion); False leaves it explicit, for comparison.
+            implicit_springs: add to the solver's ``seg_implicit_mass`` the part of the active contacts' summed
+                ``h^2 k + h c`` beyond each segment's own mass (the semi-implicit treatment of the repulsion);
+                False leaves it explicit, for comparison.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -618,6 +586,7 @@ class HairContacts:
         contacts.contact_b = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
         contacts.contact_w = wp.zeros(contacts.capacity, dtype=wp.vec3, device=dev)
         contacts.contact_gap = wp.zeros(contacts.capacity, dtype=float, device=dev)
+        contacts.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
         if contacts.strips is None:
@@ -740,9 +709,11 @@ class HairContacts:
                 self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap,
                 self.contact_counter,
             ],
-            outputs=[seg_force, seg_torque, seg_implicit_mass],
+            outputs=[seg_force, seg_torque, self.seg_spring_mass],
             device=self.device,
         )
+        if self.implicit_springs:
+            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device)
 
     def rebuild(self):
         """Rebuild both BVHs from their current boxes (optional, e.g. once per frame after large motion)."""

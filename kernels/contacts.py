@@ -515,7 +515,7 @@ def add_wrench(
     vertex_positions: wp.array(dtype=wp.vec3),
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_implicit_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
 ):
     """Add force f at a world point to a segment (torque about its origin, vertex k) and its lever-scaled implicit
     mass."""
@@ -524,7 +524,7 @@ def add_wrench(
     wp.atomic_add(seg_force, seg, f)
     wp.atomic_add(seg_torque, seg, wp.cross(point - origin, f))
     if extra_mass > 0.0:
-        wp.atomic_add(seg_implicit_mass, seg, lever_scaled_mass(extra_mass, point - origin, 0.5 * seg_length[seg]))
+        wp.atomic_add(seg_spring_mass, seg, lever_scaled_mass(extra_mass, point - origin, 0.5 * seg_length[seg]))
 
 
 @wp.func
@@ -552,7 +552,7 @@ def contact_force(
     contact_gap: wp.array(dtype=float),
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_implicit_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
 ):
     """Forces of the contact in one buffer slot (see ``contact_forces``)."""
     kind = contact_kind[slot]
@@ -652,21 +652,21 @@ def contact_force(
         extra = h * h * k_eff + h * c_eff
     if kind == CONTACT_VERTEX_FACE:
         add_wrench(vertex_segment(ia, seg_per_strand), seg_per_strand, point, f, extra,
-                   seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
         # Each face vertex takes its share at its own position shifted by (point - xb): the shares then sum to
         # -f at the common point, with no net torque.
         shift = point - xb
         add_wrench(vertex_segment(i0, seg_per_strand), seg_per_strand, vertex_positions[i0] + shift, -w[0] * f,
-                   w[0] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[0] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
         add_wrench(vertex_segment(i1, seg_per_strand), seg_per_strand, vertex_positions[i1] + shift, -w[1] * f,
-                   w[1] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[1] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
         add_wrench(vertex_segment(i2, seg_per_strand), seg_per_strand, vertex_positions[i2] + shift, -w[2] * f,
-                   w[2] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_implicit_mass)
+                   w[2] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
     else:
         add_wrench(ia, seg_per_strand, point, f, extra, seg_length, vertex_positions, seg_force, seg_torque,
-                   seg_implicit_mass)
+                   seg_spring_mass)
         add_wrench(ib, seg_per_strand, point, -f, extra, seg_length, vertex_positions, seg_force, seg_torque,
-                   seg_implicit_mass)
+                   seg_spring_mass)
 
 
 @wp.kernel
@@ -702,7 +702,7 @@ def contact_forces(
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_implicit_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
 ):
     """Each of ``thread_count`` threads takes every thread_count-th stored contact (``contiguous``: a run of
     consecutive ones): repulsion, normal damping and regularised Coulomb friction.
@@ -710,7 +710,8 @@ def contact_forces(
     The repulsion acts below ``min(threshold, contact_gap)`` [m]. Adds +F to side a and -F to side b (shared by
     barycentric weight among a face's vertices) at the midpoint of the closest points (``seg_force`` [N],
     ``seg_torque`` [N m] about segment origins, world), and, with
-    ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) to ``seg_implicit_mass``. Friction is capped so one
+    ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) to ``seg_spring_mass``, which
+    ``kernels.links.add_excess_mass`` turns into the solver's implicit mass. Friction is capped so one
     explicit step cannot reverse the slip.
     """
     # A fixed thread count covers however many contacts this step found (the count is only on the device): on a GPU
@@ -732,6 +733,6 @@ def contact_forces(
             slot, seg_per_strand, seg_length, seg_mass, strip_indices, tri_strands, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
             vertex_positions, vertex_velocities, h, implicit_springs, contact_kind, contact_a, contact_b, contact_w,
-            contact_gap, seg_force, seg_torque, seg_implicit_mass,
+            contact_gap, seg_force, seg_torque, seg_spring_mass,
         )
         slot += stride

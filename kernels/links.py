@@ -1,13 +1,18 @@
 """Static links: breakable zero-rest-length spring-dampers between segments of different strands.
 
 Seed slides, "Static Links": ``f = sum_i [k_s |l_i| - k_d (v_i . l_i) / |l_i|] l_i / |l_i|``. A link joins a
-point fixed in segment ``a`` (its closest point to ``b`` at rest plus the rest offset ``r0``, both in ``a``'s
-frame) to the closest point on segment ``b``; at rest the two coincide, so ``l = x_b - x_a'`` is zero there
-(DESIGN §4.3). The force acts along ``l`` at both ends, so a link carries no net force and no net torque, except
-this: the rest offset is a lever about segment ``a``'s own axis, and that spin torque is left out. A thin
-segment's spin inertia is about (radius / length)^2 of its bending inertia, and the vertex velocities do not show
-spin, so the lever would drive a stiff mode the damping cannot see (with it, linked hair under a turning head
-blows up); without it, the damping term is exactly dissipative.
+point of segment ``a`` (its closest point to ``b`` at rest, plus the rest offset ``r0``) to the closest point on
+segment ``b``; at rest the two coincide, so ``l = x_b - x_a'`` is zero there (DESIGN §4.3).
+
+The rest offset follows segment ``a`` without its twist: ``r0`` and a's rest axis ``d0`` are kept in the head
+frame, and ``x_a' = X_a (0, 0, -f_a L_a) + R_min(R_head d0 -> d_a) R_head r0``, with ``R_min`` the least rotation
+between the two axes. So the offset turns with the head and with every bend of ``a``, but not with a's spin about
+its own axis, which nothing in a link holds (the vertex velocities do not show spin, and a thin segment's spin
+inertia is tiny): carried by a's full frame, a drifting twist swung the offset around the strand and dragged its
+neighbours out sideways after a fast head turn. The link's energy then does not depend on that spin, and the
+torque on ``a`` is the force's moment without its component along a's axis, exactly. The head rotation is the root
+segment's world rotation times its joint's inverse. The force acts along ``l`` at both ends: no net force, and no
+net torque but that spin component.
 """
 
 import warp as wp
@@ -68,19 +73,42 @@ def lever_scaled_mass(extra_mass: float, arm: wp.vec3, half_length: float) -> fl
 
 
 @wp.func
+def min_rotation(a: wp.vec3, b: wp.vec3) -> wp.quat:
+    """The least rotation taking unit vector a to unit vector b (a half turn about an axis normal to a if opposite)."""
+    c = wp.cross(a, b)
+    w = 1.0 + wp.dot(a, b)
+    if w < 1.0e-6:
+        c = wp.cross(a, wp.vec3(1.0, 0.0, 0.0))
+        if wp.length_sq(c) < 1.0e-6:
+            c = wp.cross(a, wp.vec3(0.0, 1.0, 0.0))
+        w = 0.0
+    return wp.normalize(wp.quat(c[0], c[1], c[2], w))
+
+
+@wp.func
 def link_ends(
     a: int,
     b: int,
     frac_a: float,
     frac_b: float,
     rest_offset: wp.vec3,
+    rest_axis: wp.vec3,
+    seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     seg_xform: wp.array(dtype=wp.transform),
+    joint_q: wp.array(dtype=wp.quat),
 ):
-    """World attachment points ``(x_a', x_b)`` of a link: ``x_a' = X_a (0, 0, -f_a L_a) + R_a r0``."""
-    xa = wp.transform_point(seg_xform[a], wp.vec3(0.0, 0.0, -frac_a * seg_length[a]) + rest_offset)
+    """World attachment points ``(x_a', x_b)`` of a link and a's world axis:
+    ``x_a' = X_a (0, 0, -f_a L_a) + R_min(R_head d0 -> d_a) R_head r0``."""
+    root = (a // seg_per_strand) * seg_per_strand
+    head = wp.transform_get_rotation(seg_xform[root]) * wp.quat_inverse(joint_q[root])
+    xf = seg_xform[a]
+    axis = wp.quat_rotate(wp.transform_get_rotation(xf), wp.vec3(0.0, 0.0, -1.0))
+    turn = min_rotation(wp.quat_rotate(head, rest_axis), axis)
+    xa = wp.transform_point(xf, wp.vec3(0.0, 0.0, -frac_a * seg_length[a])) + wp.quat_rotate(
+        turn * head, rest_offset)
     xb = wp.transform_point(seg_xform[b], wp.vec3(0.0, 0.0, -frac_b * seg_length[b]))
-    return xa, xb
+    return xa, xb, axis
 
 
 @wp.kernel
@@ -93,11 +121,13 @@ def link_forces(
     link_frac_a: wp.array(dtype=float),
     link_frac_b: wp.array(dtype=float),
     link_rest_offset: wp.array(dtype=wp.vec3),
+    link_rest_axis: wp.array(dtype=wp.vec3),
     link_stiffness: float,
     link_damping: float,
     implicit_springs: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
+    joint_q: wp.array(dtype=wp.quat),
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
@@ -106,20 +136,21 @@ def link_forces(
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_implicit_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
 ):
     """One thread per link: the seed's spring-damper between the link's two attachment points.
 
     Adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b (``seg_force`` [N],
     ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``, ``h^2 k_s + h k_d`` [kg]
-    to both ``seg_implicit_mass``.
+    (lever-scaled) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into the solver's implicit mass.
     """
     link = wp.tid()
     if link_broken[link] != 0:
         return
     a = link_seg_a[link]
     b = link_seg_b[link]
-    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform)
+    xa, xb, axis_a = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link],
+                               link_rest_axis[link], seg_per_strand, seg_length, seg_xform, joint_q)
     l = xb - xa
     length = wp.length(l)
 
@@ -135,7 +166,6 @@ def link_forces(
     oa = wp.transform_get_translation(seg_xform[a])
     ob = wp.transform_get_translation(seg_xform[b])
     torque_a = wp.cross(xa - oa, f)
-    axis_a = wp.transform_vector(seg_xform[a], wp.vec3(0.0, 0.0, -1.0))
     wp.atomic_add(seg_force, a, f)
     wp.atomic_add(seg_torque, a, torque_a - wp.dot(torque_a, axis_a) * axis_a)
     wp.atomic_add(seg_force, b, -f)
@@ -145,8 +175,32 @@ def link_forces(
         return
     h = dt[0]
     extra = h * h * link_stiffness + h * link_damping
-    wp.atomic_add(seg_implicit_mass, a, lever_scaled_mass(extra, xa - oa, 0.5 * seg_length[a]))
-    wp.atomic_add(seg_implicit_mass, b, lever_scaled_mass(extra, xb - ob, 0.5 * seg_length[b]))
+    wp.atomic_add(seg_spring_mass, a, lever_scaled_mass(extra, xa - oa, 0.5 * seg_length[a]))
+    wp.atomic_add(seg_spring_mass, b, lever_scaled_mass(extra, xb - ob, 0.5 * seg_length[b]))
+
+
+@wp.kernel
+def add_excess_mass(
+    # Model:
+    seg_mass: wp.array(dtype=float),
+    # Scratch:
+    seg_spring_mass: wp.array(dtype=float),
+    # Out:
+    seg_implicit_mass: wp.array(dtype=float),
+):
+    """One thread per segment: add to the solver's implicit mass [kg] the part of the springs' summed
+    ``h^2 k + h c`` beyond the segment's own mass, and clear the sum.
+
+    The semi-implicit mass is inertia without weight, and it resists every acceleration, also the common ones of
+    linked hair falling or swinging together; spent whole, it slowed the hair of a 400-guide head turn about five
+    times. Springs whose ``h^2 k + h c`` stays within the segment's mass are stable explicit (the explicit step
+    holds ``h^2 k / m < 4`` and ``h c / m < 2``); beyond it the added mass keeps the ratio at 1.
+    """
+    seg = wp.tid()
+    excess = seg_spring_mass[seg] - seg_mass[seg]
+    if excess > 0.0:
+        seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess
+    seg_spring_mass[seg] = 0.0
 
 
 @wp.kernel
@@ -158,9 +212,12 @@ def link_break(
     link_frac_a: wp.array(dtype=float),
     link_frac_b: wp.array(dtype=float),
     link_rest_offset: wp.array(dtype=wp.vec3),
+    link_rest_axis: wp.array(dtype=wp.vec3),
     link_break_length: float,
+    seg_per_strand: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
+    joint_q: wp.array(dtype=wp.quat),
     # Out:
     link_broken: wp.array(dtype=wp.int32),
     link_broken_total: wp.array(dtype=wp.int32),
@@ -174,7 +231,8 @@ def link_break(
         return
     a = link_seg_a[link]
     b = link_seg_b[link]
-    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform)
+    xa, xb, axis_a = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link],
+                               link_rest_axis[link], seg_per_strand, seg_length, seg_xform, joint_q)
     if wp.length(xb - xa) > link_break_length:
         link_broken[link] = 1
         wp.atomic_add(link_broken_total, 0, 1)

@@ -31,6 +31,8 @@ SEG_LEN = 0.01
 SPACING = 0.004
 RADIUS = 0.006
 K_S, K_D, DT = 20.0, 0.05, 1.0e-3
+# Light enough that the links' h^2 k + h c exceeds it, so the implicit mass is non-zero.
+SEG_MASS = 1.0e-6
 
 
 def _chain(roots, rot):
@@ -67,10 +69,14 @@ def _velocities(rng, verts, omega, scale):
     return v
 
 
-def _arrays(verts, rot, vel):
+def _arrays(verts, rot, vel, head=None):
+    """A state: segment frames, vertices, velocities, and joints relative to ``head`` (default identity), of which the
+    links read the root joints (the head rotation is the root frame times the root joint's inverse)."""
+    head = Rotation.identity() if head is None else head
     xform = np.concatenate([verts[:, :-1].reshape(-1, 3), rot.as_quat()], axis=1)
     state = SimpleNamespace(
         seg_xform=wp.array(xform, dtype=wp.transform),
+        joint_q=wp.array((head.inv() * rot).as_quat(), dtype=wp.quat),
         vertex_positions=wp.array(verts.reshape(-1, 3), dtype=wp.vec3),
         vertex_velocities=wp.array(vel.reshape(-1, 3), dtype=wp.vec3),
         fault=wp.zeros(1, dtype=wp.int32),
@@ -83,7 +89,7 @@ def _model():
         seg_per_strand=S,
         seg_count=G * S,
         seg_length=wp.array(np.full(G * S, SEG_LEN), dtype=float),
-        seg_mass=wp.array(np.full(G * S, 1.0e-6), dtype=float),
+        seg_mass=wp.array(np.full(G * S, SEG_MASS), dtype=float),
     )
 
 
@@ -95,17 +101,23 @@ def _apply(links, model, state):
     return force.numpy().astype(np.float64), torque.numpy().astype(np.float64), mass.numpy().astype(np.float64)
 
 
-def _reference(links, verts, rot, vel, omega, skip=None):
-    """Float64 seed formula f = [k_s |l| - k_d (v . l)/|l|] l/|l| on a at x_a' and -f on b at x_b, per segment.
+def _reference(links, verts, rot, vel, omega, skip=None, head=None):
+    """Float64 seed formula f = [k_s |l| - k_d (v . l)/|l|] l/|l| on a at x_a' and -f on b at x_b, per segment, with
+    x_a' = X_a (0, 0, -f_a L) + R_min(R_head d0 -> d_a) R_head r0 (the rest offset following a's axis, not its spin).
 
     Returns the per-segment force and torque (the torque on a without its spin about a's axis), the link lengths,
-    the spin torques left out (L, 3), and the lever-scaled implicit mass per segment.
+    the spin torques left out (L, 3), and the implicit mass per segment: the part of the lever-scaled sum of
+    h^2 k + h c beyond the segment's mass.
     """
+    head = Rotation.identity() if head is None else head
     a, b = links.seg_a, links.seg_b
     origin = verts[:, :-1].reshape(-1, 3)
     v_origin = vel[:, :-1].reshape(-1, 3)
     zero = np.zeros(links.link_count)
-    xa = origin[a] + rot[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1) + links.rest_offset)
+    axis = rot[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
+    turn = _min_rotation(head.apply(links.rest_axis), axis)
+    xa = origin[a] + rot[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1)) + (turn * head).apply(
+        links.rest_offset)
     xb = origin[b] + rot[b].apply(np.stack([zero, zero, -links.frac_b * SEG_LEN], 1))
     l_vec = xb - xa
     length = np.linalg.norm(l_vec, axis=1)
@@ -115,7 +127,6 @@ def _reference(links, verts, rot, vel, omega, skip=None):
     f = (K_S * length - K_D * np.sum((va - vb) * n, axis=1))[:, None] * n
     if skip is not None:
         f[skip] = 0.0
-    axis = rot[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
     torque_a = np.cross(xa - origin[a], f)
     spin = np.sum(torque_a * axis, axis=1, keepdims=True) * axis
     force = np.zeros((G * S, 3))
@@ -131,7 +142,7 @@ def _reference(links, verts, rot, vel, omega, skip=None):
     mass = np.zeros(G * S)
     for seg, arm in ((a, xa - origin[a]), (b, xb - origin[b])):
         np.add.at(mass, seg, keep * extra * np.clip(np.sum(arm * arm, axis=1) / (0.5 * SEG_LEN) ** 2, 1.0, 4.0))
-    return force, torque, length, spin, mass
+    return force, torque, length, spin, np.maximum(mass - SEG_MASS, 0.0)
 
 
 def _segment_distances(p0, p1, q0, q1):
@@ -163,8 +174,7 @@ def setup():
     rng = np.random.default_rng(7)
     roots, rot = _groom(rng)
     verts = _chain(roots, rot)
-    links = StaticLinks.build(verts, rest_rotations=rot.as_quat(), neighbours=3, radius=RADIUS,
-                              stiffness=K_S, damping=K_D, break_length=0.004)
+    links = StaticLinks.build(verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=0.004)
     return SimpleNamespace(rng=rng, roots=roots, rot=rot, verts=verts, links=links, model=_model())
 
 
@@ -201,8 +211,8 @@ def test_rest_pose_is_slack(setup):
     assert np.linalg.norm(force, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max()
     assert np.linalg.norm(torque, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max() * 2 * SEG_LEN
     ref_mass = _reference(setup.links, setup.verts, setup.rot, np.zeros_like(setup.verts), np.zeros((G * S, 3)))[4]
-    np.testing.assert_allclose(mass, ref_mass, rtol=1e-5)
-    assert np.all(mass >= counts * (DT * DT * K_S + DT * K_D) * (1 - 1e-6))
+    np.testing.assert_allclose(mass, ref_mass, rtol=1e-5, atol=1e-12)
+    assert np.all(mass >= counts * (DT * DT * K_S + DT * K_D) * (1 - 1e-6) - SEG_MASS)
 
 
 def _min_rotation(a, b):
@@ -213,22 +223,18 @@ def _min_rotation(a, b):
     return Rotation.from_rotvec(axis / np.maximum(sin, 1e-300) * angle[:, None])
 
 
-def test_default_frames_are_parallel_transport(setup):
-    """Without rest_rotations the builder assumes twist-free frames (parallel transport from world -z, as the
-    model builds them): links on such chains are slack at rest."""
+def test_head_motion_and_twist_leave_links_slack(setup):
+    """A rigid motion of the whole groom with the head, and any spin of segments about their own axes, stretch no
+    link: the rest offsets turn with the head and with each bend, not with a segment's twist."""
     rng = np.random.default_rng(9)
-    d = np.array([0.0, 0.0, -1.0]) + rng.normal(0.0, 0.3, (G, S, 3))
-    d /= np.linalg.norm(d, axis=2, keepdims=True)
-    frames = [_min_rotation(np.tile([0.0, 0.0, -1.0], (G, 1)), d[:, 0])]
-    for k in range(1, S):
-        frames.append(_min_rotation(d[:, k - 1], d[:, k]) * frames[-1])
-    rot = Rotation.from_quat(np.stack([f.as_quat() for f in frames], axis=1).reshape(-1, 4))
-    verts = _chain(setup.roots, rot)
-    links = StaticLinks.build(verts, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=0.004)
-    force, _, _ = _apply(links, setup.model, _arrays(verts, rot, np.zeros_like(verts)))
-    counts = np.bincount(np.concatenate([links.seg_a, links.seg_b]), minlength=G * S)
-    assert links.link_count > G * S
+    head = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3))
+    twist = Rotation.from_rotvec(np.array([0.0, 0.0, 1.0]) * rng.uniform(-np.pi, np.pi, (G * S, 1)))
+    rot = head * setup.rot * twist  # twist about each segment's own axis (body z)
+    verts = _chain(head.apply(setup.roots) + [0.01, -0.02, 0.03], rot)
+    force, torque, _ = _apply(setup.links, setup.model, _arrays(verts, rot, np.zeros_like(verts), head))
+    counts = np.bincount(np.concatenate([setup.links.seg_a, setup.links.seg_b]), minlength=G * S)
     assert np.linalg.norm(force, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max()
+    assert np.linalg.norm(torque, axis=1).max() <= K_S * REST_LENGTH_TOL * counts.max() * 2 * RADIUS
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -242,10 +248,10 @@ def test_forces_match_seed_formula_and_conserve_momentum(setup, seed):
     verts = _chain(rigid.apply(setup.roots) + shift, rot)
     omega = _perpendicular_omega(rng, verts, 5.0)
     vel = _velocities(rng, verts, omega, 0.2)
-    state = _arrays(verts, rot, vel)
+    state = _arrays(verts, rot, vel, rigid)
     force, torque, _ = _apply(setup.links, setup.model, state)
 
-    ref_force, ref_torque, length, spin, _ = _reference(setup.links, verts, rot, vel, omega)
+    ref_force, ref_torque, length, spin, _ = _reference(setup.links, verts, rot, vel, omega, head=rigid)
     assert length.max() > 1e-4  # the perturbation stretched the links
     scale = np.abs(ref_force).max()
     np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * scale)
@@ -269,7 +275,7 @@ def test_damping_dissipates(setup):
     verts = _chain(setup.roots, rot)
     omega = _perpendicular_omega(rng, verts, 5.0)
     vel = _velocities(rng, verts, omega, 0.2)
-    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=RADIUS, stiffness=0.0,
+    links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=0.0,
                               damping=K_D, break_length=1.0)
     force, torque, _ = _apply(links, setup.model, _arrays(verts, rot, vel))
     # Power of the wrenches on rigid segments: F . v_origin + tau . w.
@@ -279,7 +285,7 @@ def test_damping_dissipates(setup):
 
 def test_breaking_follows_numpy_and_is_permanent(setup):
     rng = np.random.default_rng(11)
-    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=RADIUS, stiffness=K_S,
+    links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=K_S,
                               damping=K_D, break_length=0.004)
     bend = Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
     rot = setup.rot * bend
@@ -312,7 +318,7 @@ def test_breaking_follows_numpy_and_is_permanent(setup):
 
 def test_captured_step_follows_the_state(setup):
     """Links captured in a graph once, replayed on a moved state, give the forces and breaks of a direct call."""
-    links = StaticLinks.build(setup.verts, rest_rotations=setup.rot.as_quat(), radius=RADIUS, stiffness=K_S,
+    links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=K_S,
                               damping=K_D, break_length=0.004)
     model = setup.model
     state = _arrays(setup.verts, setup.rot, np.zeros_like(setup.verts))
@@ -331,7 +337,7 @@ def test_captured_step_follows_the_state(setup):
     rot = setup.rot * Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
     verts = _chain(setup.roots, rot)
     moved = _arrays(verts, rot, np.zeros_like(verts))
-    for name in ("seg_xform", "vertex_positions", "vertex_velocities"):
+    for name in ("seg_xform", "joint_q", "vertex_positions", "vertex_velocities"):
         wp.copy(getattr(state, name), getattr(moved, name))
     wp.capture_launch(capture.graph)
     ref_force, _, length, _, _ = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)))
@@ -347,8 +353,5 @@ def test_bad_input_is_named():
         StaticLinks.build(np.zeros((3, 4)), radius=1.0, stiffness=1.0, damping=0.0, break_length=1.0)
     verts = np.zeros((2, 3, 3))
     verts[:, :, 2] = -np.arange(3)[None]
-    with pytest.raises(InteractionError, match="rest_rotations"):
-        StaticLinks.build(verts, rest_rotations=np.zeros((3, 4)), radius=1.0, stiffness=1.0, damping=0.0,
-                          break_length=1.0)
     with pytest.raises(InteractionError, match="radius"):
         StaticLinks.build(verts, radius=0.0, stiffness=1.0, damping=0.0, break_length=1.0)

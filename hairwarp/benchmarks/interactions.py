@@ -172,3 +172,41 @@ def _active_contacts(contacts, model, state) -> int:
     xb[~vf] = x[vb] + w[~vf, 1:2] * (x[vb + 1] - x[vb])
     reach = np.minimum(contacts.threshold, found["gap"])
     return int(np.count_nonzero(np.linalg.norm(xa - xb, axis=1) < reach))
+
+
+def render_comparison(scene_path, out_png, *, frame: int, view="three_quarter_back", overrides=(), device=None,
+                      size_px=(1600, 800)) -> dict:
+    """The same frame of a scene with its links and contacts and without them, side by side (dense hair if the scene
+    has it, else the guides), with the head. Returns ``{"png", "frame", "time_s", "volume_m3": [with, without],
+    "seconds": [with, without]}``, volume being that of the convex hull of the guide vertices."""
+    from scipy.spatial import ConvexHull
+
+    from hairwarp.preview import render_frames
+    from hairwarp.runner import Simulation, _merged_world_mesh
+    from hairwarp.scene import Scene
+
+    panels, meshes, volumes, seconds = [], [], [], []
+    for on in (True, False):
+        flag = "true" if on else "false"
+        scene = Scene.load(scene_path, [*overrides, f"links.enabled={flag}", f"interactions.enabled={flag}"])
+        sim = Simulation(scene, device=device)
+        t0 = time.perf_counter()
+        for _ in range(frame):
+            sim.advance_frame()
+        seconds.append(time.perf_counter() - t0)
+        points, _ = sim.guide_curves()
+        volumes.append(float(ConvexHull(points).volume))
+        if sim.dense is not None:
+            state, control = sim.stepper.state, sim.stepper.control
+            hair, _ = sim.dense.evaluate(state.vertex_positions, None, control.head_xform, control.head_velocity,
+                                         hermite=True)
+            panels.append({"hair": (hair.numpy(), sim.dense.curve_vertex_counts(True))})
+        else:
+            G, S = sim.model.strand_count, sim.model.seg_per_strand
+            panels.append({"guides": (points, np.full(G, S + 1, np.int32))})
+        meshes.append(_merged_world_mesh(sim.collider_meshes(frame * sim.frame_dt)))
+    t = frame * sim.frame_dt
+    titles = [f"links and contacts: hull {volumes[0] * 1e3:.2f} L", f"without: hull {volumes[1] * 1e3:.2f} L"]
+    render_frames(panels, out_png, titles=[f"{s}   (t = {t:.2f} s)" for s in titles], meshes=meshes, view=view,
+                  size_px=size_px)
+    return {"png": str(out_png), "frame": frame, "time_s": t, "volume_m3": volumes, "seconds": seconds}
