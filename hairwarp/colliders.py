@@ -173,7 +173,8 @@ class Collider:
         friction: Coulomb friction: a vertex in contact may change its slip relative to the object by at
             most ``mu`` times the approach speed it lost, ``mu = friction / (1 - friction)`` (0.5 gives
             mu = 1), so friction does not depend on the step size; 0 = frictionless, 1 = the seed's full
-            velocity match (the vertex takes the object's velocity).
+            velocity match (the vertex takes the object's velocity). Where static friction holds, the
+            slip is also taken off the step's displacement, so a resting vertex does not creep.
     """
 
     name: str
