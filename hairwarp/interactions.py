@@ -11,9 +11,9 @@ and, after integration and forward kinematics of ``state_out``::
 
     links.break_links(model, state_out)
 
-``dt`` is the solver's one-element float32 device array. ``model`` needs ``seg_per_strand``, ``seg_length`` and
-``seg_mass``; a state needs ``seg_xform``, ``joint_q`` (links read the head's rotation from the root segments),
-``vertex_positions``, ``vertex_velocities`` and ``fault``.
+``dt`` is the solver's one-element float32 device array. ``model`` needs ``seg_per_strand``, ``seg_length``,
+``seg_mass`` and (links) ``joint_stiffness``; a state needs ``seg_xform``, ``joint_q`` (links read the head's
+rotation from the root segments), ``vertex_positions``, ``vertex_velocities`` and ``fault``.
 
 Once per output frame, outside a captured step, a runner reads ``links.broken_count()``,
 ``contacts.contact_count()`` and ``contacts.overflowed()``. Contact detection costs far more than the force pass;
@@ -244,7 +244,8 @@ class StaticLinks:
             link_kernels.link_forces,
             dim=self.link_count,
             inputs=[
-                model.seg_per_strand, model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a,
+                model.seg_per_strand, model.seg_length, model.joint_stiffness, self.link_seg_a, self.link_seg_b,
+                self.link_frac_a,
                 self.link_frac_b, self.link_rest_offset, self.link_rest_axis, self.stiffness, self.damping,
                 int(self.implicit_springs), state.seg_xform, state.joint_q, state.vertex_positions,
                 state.vertex_velocities, self.link_broken, dt,

@@ -63,11 +63,7 @@ def lever_scaled_mass(extra_mass: float, arm: wp.vec3, half_length: float) -> fl
     inertia about the segment's joint that the mass at a point of the segment would, so springs near a segment's tip
     are not under-treated by up to a factor of four.
 
-    A link's rest offset reaches beyond its segment (up to the link radius, ~100 segment lengths on a stub strand):
-    that lever is left out of the scale. Its rotational stiffness ``k |r0|^2`` stays a few percent of the joint's own
-    bending stiffness ``EI / l``, which the integrator treats implicitly; scaled by it, the centre of mass would carry
-    up to 10^6 times the segment's mass (the Ratboy mohawk's stub strands), inertia that the head's acceleration
-    then drives like a real mass, and a turning head blows those strands up.
+    Contact points lie on their segments; a link's rest offset can reach far beyond (``link_lever_mass``).
     """
     return extra_mass * wp.clamp(wp.dot(arm, arm) / (half_length * half_length), 1.0, MAX_LEVER_SCALE)
 
@@ -83,6 +79,22 @@ def min_rotation(a: wp.vec3, b: wp.vec3) -> wp.quat:
             c = wp.cross(a, wp.vec3(0.0, 1.0, 0.0))
         w = 0.0
     return wp.normalize(wp.quat(c[0], c[1], c[2], w))
+
+
+@wp.func
+def link_lever_mass(extra_mass: float, stiffness: float, arm: wp.vec3, half_length: float, joint_bend: float) -> float:
+    """Implicit mass [kg] at a segment's centre of mass for a link acting at ``arm`` from the segment's origin.
+
+    The rest offset can reach far beyond the segment; the link then adds ``k |arm|^2`` of rotational stiffness to the
+    segment's joint. Where that stays within the joint's own bending stiffness ``joint_bend`` [N m/rad] (treated
+    implicitly by the integrator; stub strands with 45 um segments have ~10^3 times a link's), the lever is counted
+    only up to the segment's far end (``lever_scaled_mass``); beyond it, fully, so stiff links on long segments get
+    the inertia about the joint they need.
+    """
+    scale = wp.max(1.0, wp.dot(arm, arm) / (half_length * half_length))
+    if stiffness * wp.dot(arm, arm) <= joint_bend:
+        scale = wp.min(scale, MAX_LEVER_SCALE)
+    return extra_mass * scale
 
 
 @wp.func
@@ -116,6 +128,7 @@ def link_forces(
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
+    joint_stiffness: wp.array(dtype=wp.vec3),
     link_seg_a: wp.array(dtype=wp.int32),
     link_seg_b: wp.array(dtype=wp.int32),
     link_frac_a: wp.array(dtype=float),
@@ -142,7 +155,8 @@ def link_forces(
 
     Adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b (``seg_force`` [N],
     ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``, ``h^2 k_s + h k_d`` [kg]
-    (lever-scaled) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into the solver's implicit mass.
+    (``link_lever_mass``) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into the solver's implicit
+    mass.
     """
     link = wp.tid()
     if link_broken[link] != 0:
@@ -175,8 +189,10 @@ def link_forces(
         return
     h = dt[0]
     extra = h * h * link_stiffness + h * link_damping
-    wp.atomic_add(seg_spring_mass, a, lever_scaled_mass(extra, xa - oa, 0.5 * seg_length[a]))
-    wp.atomic_add(seg_spring_mass, b, lever_scaled_mass(extra, xb - ob, 0.5 * seg_length[b]))
+    wp.atomic_add(seg_spring_mass, a, link_lever_mass(extra, link_stiffness, xa - oa, 0.5 * seg_length[a],
+                                                      joint_stiffness[a][0]))
+    wp.atomic_add(seg_spring_mass, b, link_lever_mass(extra, link_stiffness, xb - ob, 0.5 * seg_length[b],
+                                                      joint_stiffness[b][0]))
 
 
 @wp.kernel

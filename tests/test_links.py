@@ -33,6 +33,9 @@ RADIUS = 0.006
 K_S, K_D, DT = 20.0, 0.05, 1.0e-3
 # Light enough that the links' h^2 k + h c exceeds it, so the implicit mass is non-zero.
 SEG_MASS = 1.0e-6
+# Joint bending stiffness [N m/rad]: between K_S |arm|^2 of the shortest and of the longest links, so the implicit
+# mass is lever-scaled in full for some and up to the segment's end for others.
+JOINT_BEND = 2.2e-3
 
 
 def _chain(roots, rot):
@@ -90,6 +93,7 @@ def _model():
         seg_count=G * S,
         seg_length=wp.array(np.full(G * S, SEG_LEN), dtype=float),
         seg_mass=wp.array(np.full(G * S, SEG_MASS), dtype=float),
+        joint_stiffness=wp.array(np.tile([JOINT_BEND, JOINT_BEND, JOINT_BEND], (G * S, 1)), dtype=wp.vec3),
     )
 
 
@@ -135,13 +139,16 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     np.add.at(force, b, -f)
     np.add.at(torque, a, torque_a - spin)
     np.add.at(torque, b, np.cross(xb - origin[b], -f))
-    # h^2 k + h c per end, as a mass at the centre of mass with the inertia about the joint of the end, the lever
-    # counted up to the segment's far end (scale 1 to 4).
+    # h^2 k + h c per end, as a mass at the centre of mass with the inertia about the joint of the end; where the
+    # link's k |arm|^2 stays within the joint's bending stiffness, the lever counts only up to the segment's end.
     extra = DT * DT * K_S + DT * K_D
     keep = np.ones(links.link_count) if skip is None else (~skip).astype(float)
     mass = np.zeros(G * S)
     for seg, arm in ((a, xa - origin[a]), (b, xb - origin[b])):
-        np.add.at(mass, seg, keep * extra * np.clip(np.sum(arm * arm, axis=1) / (0.5 * SEG_LEN) ** 2, 1.0, 4.0))
+        arm2 = np.sum(arm * arm, axis=1)
+        scale = np.maximum(arm2 / (0.5 * SEG_LEN) ** 2, 1.0)
+        scale = np.where(K_S * arm2 <= JOINT_BEND, np.minimum(scale, 4.0), scale)
+        np.add.at(mass, seg, keep * extra * scale)
     return force, torque, length, spin, np.maximum(mass - SEG_MASS, 0.0)
 
 

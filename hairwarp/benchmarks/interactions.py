@@ -210,3 +210,72 @@ def render_comparison(scene_path, out_png, *, frame: int, view="three_quarter_ba
     render_frames(panels, out_png, titles=[f"{s}   (t = {t:.2f} s)" for s in titles], meshes=meshes, view=view,
                   size_px=size_px)
     return {"png": str(out_png), "frame": frame, "time_s": t, "volume_m3": volumes, "seconds": seconds}
+
+
+# Stiffnesses [N/m] of the stability sweep (links or contacts alone), at h = 1/240 s.
+STABILITY_STIFFNESS = (1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0, 30000.0)
+# A joint spinning faster than this [rad/s] (80 % of the fault bound at h = 1/240 s) counts as blown up.
+BLOW_UP_SPEED = 200.0
+
+
+def _stability_scene(kind: str, stiffness: float, quick: bool, overrides=()):
+    from hairwarp.scene import Scene
+
+    base = [f"groom.count={60 if quick else 150}", "sim.segments=12", "sim.substeps=8", "dense.count=0",
+            "head.motion.kind=turn", "head.motion.amplitude_deg=60", "head.motion.period=0.8",
+            "head.motion.start=0.0", "head.motion.ramp=0.1", *overrides]
+    if kind == "links":
+        base += ["links.enabled=true", f"links.stiffness={stiffness}", "links.damping=0.002", "links.radius=0.02",
+                 "links.break_length=1.0"]
+    elif kind == "contacts":
+        base += ["interactions.enabled=true", f"interactions.stiffness={stiffness}", "interactions.damping=0.002",
+                 "interactions.threshold=0.003", "interactions.detect='step'", "interactions.capacity=200000"]
+    else:
+        raise ValueError(f"kind must be 'links' or 'contacts', got {kind!r}")
+    return Scene.load(Scene.default_path(), base)
+
+
+def run_until_fault(kind: str, stiffness: float, *, implicit: bool, quick: bool = False, device=None,
+                    overrides=()) -> float | None:
+    """Run a head turn (60 degrees, 0.8 s period; 60 guides of 12 segments, ``quick``, else 150) with only links or
+    only contacts (``kind``) of ``stiffness`` [N/m] at h = 1/240 s, with or without their implicit mass; return the
+    time [s] at which it blew up (a fault, a non-finite state or a joint faster than ``BLOW_UP_SPEED``), or None if it
+    ran ``0.5 s`` (``quick``) or 1.5 s stably. ``overrides``: more scene ``key=value`` strings."""
+    from hairwarp.runner import Simulation
+    from hairwarp.solver import SimulationFault
+
+    sim = Simulation(_stability_scene(kind, stiffness, quick, overrides), device=device)
+    for part in (sim.links, sim.contacts):
+        if part is not None:
+            part.implicit_springs = bool(implicit)
+    for frame in range(1, (15 if quick else 45) + 1):
+        try:
+            sim.advance_frame()
+        except SimulationFault:
+            return frame * sim.frame_dt
+        qd = sim.state.joint_qd.numpy()
+        if not np.all(np.isfinite(qd)) or np.abs(qd).max() > BLOW_UP_SPEED:
+            return frame * sim.frame_dt
+    return None
+
+
+def bench_spring_stability(quick: bool = False, device=None, stiffness=STABILITY_STIFFNESS) -> dict:
+    """The largest stable link and contact stiffness at h = 1/240 s with the semi-implicit mass and without it.
+
+    Returns ``{"dt", "rows": [{"kind", "implicit", "stiffness": [...], "blow_up_s": [... or None],
+    "largest_stable"}]}``; a sweep stops at its first blow-up.
+    """
+    rows = []
+    for kind in ("links", "contacts"):
+        for implicit in (True, False):
+            tried, blown = [], []
+            for k in stiffness:
+                t = run_until_fault(kind, k, implicit=implicit, quick=quick, device=device)
+                tried.append(float(k))
+                blown.append(t)
+                if t is not None:
+                    break
+            stable = [k for k, t in zip(tried, blown, strict=True) if t is None]
+            rows.append({"kind": kind, "implicit": implicit, "stiffness": tried, "blow_up_s": blown,
+                         "largest_stable": max(stable) if stable else None})
+    return {"dt": 1.0 / 240.0, "rows": rows}

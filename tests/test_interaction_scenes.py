@@ -1,0 +1,180 @@
+"""Hair-hair interactions in whole runs: style recovery by links, link breaking, no crossing, stability.
+
+Each run is checked against something computed apart from the kernels: the pose before a gust, link stretches
+recomputed in float64 numpy from the vertices each step, brute-force segment distances each step, and the same
+run without the feature.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.spatial.transform import Rotation
+
+import hairwarp as hw
+from hairwarp.benchmarks.interactions import run_until_fault
+from hairwarp.interactions import HairContacts, StaticLinks, closest_points_segments
+from hairwarp.runner import Simulation
+from hairwarp.scene import Scene
+
+LONG_HAIR = Path(__file__).resolve().parents[1] / "scenes" / "long_hair.toml"
+
+# Style recovery: 120 guides of 0.35 m, a 0.6 s side gust of 10 m/s, then 2.2 s calm. With links the mean distance of
+# the vertices from the pose before the gust falls to about 5 mm (without them about 14 mm: hair blown over the head
+# stays where it landed); the bound leaves room for float32 and platform differences of a chaotic motion.
+RECOVERY_MEAN_TOL = 0.008
+# Without links the mean distance stays at least this many times the linked run's.
+RECOVERY_RATIO = 2.0
+# Link stretch |l| within this of the break length [m] may fall either side in float32 (coordinates ~1.6 m).
+BREAK_BAND = 2.0e-5
+# No crossing: the strands never come closer than this fraction of the contact threshold (they stop at about 0.6).
+MIN_GAP_FRACTION = 0.2
+
+_GUST = ["groom.count=120", "sim.segments=12", "head.motion.kind=still", "dense.count=0", "sim.frames=90",
+         "links.stiffness=1.0", "links.damping=0.002", "links.radius=0.02", "links.break_length=0.1",
+         "wind.velocity=[10.0, 0.0, 2.0]", "wind.start=0.2", "wind.end=0.8"]
+
+
+def _gust_run(links: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Guide vertices just before the gust, at its end, and 2.2 s after it."""
+    sim = Simulation(Scene.load(LONG_HAIR, [*_GUST, f"links.enabled={'true' if links else 'false'}"]))
+    poses = {}
+    for frame in range(1, 91):
+        sim.advance_frame()
+        if frame in (6, 24, 90):
+            poses[frame] = sim.guide_curves()[0].astype(np.float64)
+    return poses[6], poses[24], poses[90]
+
+
+def test_links_bring_the_style_back_after_a_gust():
+    """A gust blows the hair over; with links it comes back to within RECOVERY_MEAN_TOL of the pose before the gust,
+    without them it stays at least RECOVERY_RATIO times farther."""
+    before, blown, after = _gust_run(links=True)
+    before_free, blown_free, after_free = _gust_run(links=False)
+    for b, x in ((before, blown), (before_free, blown_free)):
+        assert np.linalg.norm(x - b, axis=1).mean() > 0.015  # the gust moved the hair in both runs
+    linked = np.linalg.norm(after - before, axis=1).mean()
+    free = np.linalg.norm(after_free - before_free, axis=1).mean()
+    assert linked < RECOVERY_MEAN_TOL
+    assert free > RECOVERY_RATIO * linked
+
+
+def _min_rotation(a, b):
+    axis = np.cross(a, b)
+    sin = np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.arctan2(sin[:, 0], np.sum(a * b, axis=1))
+    return Rotation.from_rotvec(axis / np.maximum(sin, 1e-300) * angle[:, None])
+
+
+def _link_lengths(links, x, head_q):
+    """|l| of every link from the vertex positions (G, S+1, 3) and the head rotation, float64 numpy: x_b on b's
+    axis, x_a' on a's axis plus the rest offset carried from the head frame along a's axis by the least rotation."""
+    p0 = x[:, :-1].reshape(-1, 3)
+    p1 = x[:, 1:].reshape(-1, 3)
+    a, b = links.seg_a, links.seg_b
+    xa = p0[a] + links.frac_a[:, None] * (p1[a] - p0[a])
+    xb = p0[b] + links.frac_b[:, None] * (p1[b] - p0[b])
+    d = (p1[a] - p0[a]) / np.linalg.norm(p1[a] - p0[a], axis=1, keepdims=True)
+    head = Rotation.from_quat(head_q)
+    offset = _min_rotation(head.apply(links.rest_axis), d).apply(head.apply(links.rest_offset))
+    return np.linalg.norm(xb - xa - offset, axis=1)
+
+
+def test_violent_shake_breaks_links_as_numpy_counts():
+    """A fast head shake breaks links; the broken set is exactly the links whose stretch, recomputed in numpy from
+    the vertices after every step, ever exceeded the break length (up to BREAK_BAND)."""
+    scene = Scene.load(LONG_HAIR, [
+        "groom.count=60", "sim.segments=10", "dense.count=0", "head.motion.kind=shake", "head.motion.amplitude_deg=60",
+        "head.motion.period=0.4", "head.motion.start=0.0", "head.motion.ramp=0.05", "links.enabled=true",
+        "links.stiffness=1.0", "links.damping=0.002", "links.radius=0.02", "links.break_length=0.02"])
+    sim = Simulation(scene)
+    links, stepper = sim.links, sim.stepper
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    ever = np.zeros(links.link_count, bool)
+    near = np.zeros(links.link_count, bool)
+    for _ in range(6 * stepper.substeps):  # 0.2 s
+        sim._before_step(stepper.time + stepper.dt, stepper.control)
+        stepper.step()
+        x = stepper.state.vertex_positions.numpy().astype(np.float64).reshape(G, S + 1, 3)
+        length = _link_lengths(links, x, stepper.control.head_xform.numpy()[0, 3:7].astype(np.float64))
+        ever |= length > links.break_length
+        near |= np.abs(length - links.break_length) < BREAK_BAND
+    broken = links.link_broken.numpy()[: links.link_count].astype(bool)
+    assert 10 < ever.sum() < links.link_count // 2
+    np.testing.assert_array_equal(broken[~near], ever[~near])
+    assert links.broken_count() == broken.sum()
+
+
+def _crossing_pair():
+    """Strand B (7 cm) runs along -x at z = 0; strand A (15 cm) along +y, 6 mm above B where they cross. Both are
+    straight at rest; under gravity A droops about 9 mm at the crossing, B about 1 mm."""
+    b = np.linspace([0.05, 0.0, 0.0], [-0.02, 0.0, 0.0], 8)
+    a = np.linspace([0.0, -0.05, 0.006], [0.0, 0.10, 0.006], 16)
+    return hw.Groom.from_polylines([a, b])
+
+
+def _segment_gaps(x, S):
+    """Least distance between the segments of strand 0 and strand 1, and the side (sign of the separation along
+    d_a x d_b at that pair) of strand 0, brute force over all pairs (float64)."""
+    p = x[: S + 1]
+    q = x[S + 1:]
+    i, j = np.meshgrid(np.arange(S), np.arange(S), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    s, t, dist = closest_points_segments(p[i], p[i + 1], q[j], q[j + 1])
+    k = int(np.argmin(dist))
+    da, db = p[i[k] + 1] - p[i[k]], q[j[k] + 1] - q[j[k]]
+    sep = (p[i[k]] + s[k] * da) - (q[j[k]] + t[k] * db)
+    return dist[k], np.sign(np.dot(sep, np.cross(da, db)))
+
+
+@pytest.mark.parametrize("contacts_on", [True, False])
+def test_strand_dropped_on_another_does_not_cross(contacts_on):
+    """A strand sags onto the one below it: with segment-segment contacts it comes to rest on it, the brute-force
+    distance staying above MIN_GAP_FRACTION of the threshold at every step; without contacts it falls through."""
+    groom = _crossing_pair()
+    S = 12
+    model = hw.Model.build(groom, hw.StrandParams(drag=0.01), segments=S)
+    threshold = 0.002
+    contacts = HairContacts.build(model.rest_vertex_positions, threshold=threshold, stiffness=20.0, damping=0.01,
+                                  friction=0.3, capacity=256) if contacts_on else None
+    solver = hw.Solver(model, contacts=contacts)
+    control = model.control()
+    s0, s1 = model.state(), model.state()
+    solver.forward_kinematics(s0, control)
+    gaps, sides = [], []
+    for _ in range(240):  # 1 s at 240 Hz
+        solver.step(s0, s1, control, 1.0 / 240.0)
+        s0, s1 = s1, s0
+        gap, side = _segment_gaps(s0.vertex_positions.numpy().astype(np.float64), S)
+        gaps.append(gap)
+        sides.append(side)
+    solver.check(s0, frame=1)
+    if contacts_on:
+        assert min(gaps) > MIN_GAP_FRACTION * threshold
+        assert min(gaps) < threshold  # they did touch
+        assert len(set(sides)) == 1  # A stayed on its side of B
+    else:
+        assert len(set(sides)) == 2  # A fell through B
+
+
+# Stiffnesses [N/m] between the largest stable explicit and implicit ones of the quick stability scene at
+# h = 1/240 s (links: 7 / 15 N/m, contacts: 100 / 300 N/m; docs/interactions.md has the sweep).
+BETWEEN_LIMITS = {"links": 12.0, "contacts": 250.0}
+
+
+@pytest.mark.parametrize("kind", ["links", "contacts"])
+def test_implicit_springs_stabilise_stiffer_interactions(kind):
+    """At h = 1/240 s a spring stiffness that blows the explicit run up stays stable with the implicit mass."""
+    stiff = BETWEEN_LIMITS[kind]
+    assert run_until_fault(kind, stiff, implicit=True, quick=True) is None
+    assert run_until_fault(kind, stiff, implicit=False, quick=True) is not None
+
+
+def test_static_links_builder_is_deterministic():
+    """Two builds of the same groom give the same links in the same order (the kernels' sums then repeat)."""
+    verts = np.stack([np.linspace([x, 0.0, 0.0], [x, 0.0, -0.1], 9) for x in (0.0, 0.003, 0.006)])
+    one = StaticLinks.build(verts, radius=0.01, stiffness=1.0, damping=0.0, break_length=1.0, device=wp.get_device())
+    two = StaticLinks.build(verts, radius=0.01, stiffness=1.0, damping=0.0, break_length=1.0, device=wp.get_device())
+    np.testing.assert_array_equal(one.seg_a, two.seg_a)
+    np.testing.assert_array_equal(one.seg_b, two.seg_b)
