@@ -143,7 +143,10 @@ class StaticLinks:
         implicit_springs: whether the links add to the solver's implicit mass (the part of their ``h^2 k_s + h k_d``
             beyond each segment's mass, see ``kernels.links.add_excess_mass``).
         seg_spring_mass: float32 (G*S,) on the device, scratch of that sum.
-        link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset, link_rest_axis: the same on the device.
+        link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
+        seg_rest_axis: vec3 (G*S,) on the device, every segment's rest axis; seg_transport: quat (G*S,), scratch
+            of the rotations carrying rest offsets to the segments' twist-free frames
+            (``kernels.links.segment_transport``).
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
     """
@@ -234,20 +237,29 @@ class StaticLinks:
         links.link_broken = wp.zeros(n, dtype=wp.int32, device=dev)
         links.link_broken_total = wp.zeros(1, dtype=wp.int32, device=dev)
         links.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
+        rest_axis = (p1 - p0) / length[:, None]
+        links.seg_rest_axis = wp.array(rest_axis, dtype=wp.vec3, device=dev)
+        links.seg_transport = wp.zeros(G * S, dtype=wp.quat, device=dev)
         return links
+
+    def _transport(self, model, state):
+        wp.launch(link_kernels.segment_transport, dim=len(self.seg_transport),
+                  inputs=[model.seg_per_strand, self.seg_rest_axis, state.seg_xform, state.joint_q],
+                  outputs=[self.seg_transport], device=self.device)
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
         """Accumulate the link forces of ``state`` into the solver's per-segment arrays (launch only)."""
         if self.link_count == 0:
             return
+        self._transport(model, state)
         wp.launch(
             link_kernels.link_forces,
             dim=self.link_count,
             inputs=[
                 model.seg_per_strand, model.seg_length, model.joint_stiffness, self.link_seg_a, self.link_seg_b,
                 self.link_frac_a,
-                self.link_frac_b, self.link_rest_offset, self.link_rest_axis, self.stiffness, self.damping,
-                int(self.implicit_springs), state.seg_xform, state.joint_q, state.vertex_positions,
+                self.link_frac_b, self.link_rest_offset, self.stiffness, self.damping,
+                int(self.implicit_springs), state.seg_xform, self.seg_transport, state.vertex_positions,
                 state.vertex_velocities, self.link_broken, dt,
             ],
             outputs=[seg_force, seg_torque, self.seg_spring_mass],
@@ -260,13 +272,13 @@ class StaticLinks:
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only)."""
         if self.link_count == 0:
             return
+        self._transport(model, state)
         wp.launch(
             link_kernels.link_break,
             dim=self.link_count,
             inputs=[
                 model.seg_length, self.link_seg_a, self.link_seg_b, self.link_frac_a, self.link_frac_b,
-                self.link_rest_offset, self.link_rest_axis, self.break_length, model.seg_per_strand, state.seg_xform,
-                state.joint_q,
+                self.link_rest_offset, self.break_length, state.seg_xform, self.seg_transport,
             ],
             outputs=[self.link_broken, self.link_broken_total],
             device=self.device,

@@ -97,6 +97,27 @@ def link_lever_mass(extra_mass: float, stiffness: float, arm: wp.vec3, half_leng
     return extra_mass * scale
 
 
+@wp.kernel
+def segment_transport(
+    # Model:
+    seg_per_strand: int,
+    seg_rest_axis: wp.array(dtype=wp.vec3),
+    # State in:
+    seg_xform: wp.array(dtype=wp.transform),
+    joint_q: wp.array(dtype=wp.quat),
+    # Out:
+    seg_transport: wp.array(dtype=wp.quat),
+):
+    """One thread per segment: the rotation ``R_min(R_head d0 -> d) R_head`` that carries a rest offset from the head
+    frame to the segment's twist-free frame (``d0`` its rest axis, ``d`` its world axis; the head rotation is the root
+    segment's world rotation times its joint's inverse)."""
+    seg = wp.tid()
+    root = (seg // seg_per_strand) * seg_per_strand
+    head = wp.transform_get_rotation(seg_xform[root]) * wp.quat_inverse(joint_q[root])
+    axis = wp.quat_rotate(wp.transform_get_rotation(seg_xform[seg]), wp.vec3(0.0, 0.0, -1.0))
+    seg_transport[seg] = min_rotation(wp.quat_rotate(head, seg_rest_axis[seg]), axis) * head
+
+
 @wp.func
 def link_ends(
     a: int,
@@ -104,23 +125,16 @@ def link_ends(
     frac_a: float,
     frac_b: float,
     rest_offset: wp.vec3,
-    rest_axis: wp.vec3,
-    seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     seg_xform: wp.array(dtype=wp.transform),
-    joint_q: wp.array(dtype=wp.quat),
+    seg_transport: wp.array(dtype=wp.quat),
 ):
-    """World attachment points ``(x_a', x_b)`` of a link and a's world axis:
-    ``x_a' = X_a (0, 0, -f_a L_a) + R_min(R_head d0 -> d_a) R_head r0``."""
-    root = (a // seg_per_strand) * seg_per_strand
-    head = wp.transform_get_rotation(seg_xform[root]) * wp.quat_inverse(joint_q[root])
-    xf = seg_xform[a]
-    axis = wp.quat_rotate(wp.transform_get_rotation(xf), wp.vec3(0.0, 0.0, -1.0))
-    turn = min_rotation(wp.quat_rotate(head, rest_axis), axis)
-    xa = wp.transform_point(xf, wp.vec3(0.0, 0.0, -frac_a * seg_length[a])) + wp.quat_rotate(
-        turn * head, rest_offset)
+    """World attachment points ``(x_a', x_b)`` of a link: ``x_a' = X_a (0, 0, -f_a L_a) + T_a r0``, with ``T_a`` from
+    ``segment_transport``."""
+    xa = wp.transform_point(seg_xform[a], wp.vec3(0.0, 0.0, -frac_a * seg_length[a])) + wp.quat_rotate(
+        seg_transport[a], rest_offset)
     xb = wp.transform_point(seg_xform[b], wp.vec3(0.0, 0.0, -frac_b * seg_length[b]))
-    return xa, xb, axis
+    return xa, xb
 
 
 @wp.kernel
@@ -134,13 +148,12 @@ def link_forces(
     link_frac_a: wp.array(dtype=float),
     link_frac_b: wp.array(dtype=float),
     link_rest_offset: wp.array(dtype=wp.vec3),
-    link_rest_axis: wp.array(dtype=wp.vec3),
     link_stiffness: float,
     link_damping: float,
     implicit_springs: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
-    joint_q: wp.array(dtype=wp.quat),
+    seg_transport: wp.array(dtype=wp.quat),
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
@@ -163,8 +176,8 @@ def link_forces(
         return
     a = link_seg_a[link]
     b = link_seg_b[link]
-    xa, xb, axis_a = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link],
-                               link_rest_axis[link], seg_per_strand, seg_length, seg_xform, joint_q)
+    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform,
+                       seg_transport)
     l = xb - xa
     length = wp.length(l)
 
@@ -180,6 +193,7 @@ def link_forces(
     oa = wp.transform_get_translation(seg_xform[a])
     ob = wp.transform_get_translation(seg_xform[b])
     torque_a = wp.cross(xa - oa, f)
+    axis_a = wp.transform_vector(seg_xform[a], wp.vec3(0.0, 0.0, -1.0))
     wp.atomic_add(seg_force, a, f)
     wp.atomic_add(seg_torque, a, torque_a - wp.dot(torque_a, axis_a) * axis_a)
     wp.atomic_add(seg_force, b, -f)
@@ -228,12 +242,10 @@ def link_break(
     link_frac_a: wp.array(dtype=float),
     link_frac_b: wp.array(dtype=float),
     link_rest_offset: wp.array(dtype=wp.vec3),
-    link_rest_axis: wp.array(dtype=wp.vec3),
     link_break_length: float,
-    seg_per_strand: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
-    joint_q: wp.array(dtype=wp.quat),
+    seg_transport: wp.array(dtype=wp.quat),
     # Out:
     link_broken: wp.array(dtype=wp.int32),
     link_broken_total: wp.array(dtype=wp.int32),
@@ -247,8 +259,8 @@ def link_break(
         return
     a = link_seg_a[link]
     b = link_seg_b[link]
-    xa, xb, axis_a = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link],
-                               link_rest_axis[link], seg_per_strand, seg_length, seg_xform, joint_q)
+    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform,
+                       seg_transport)
     if wp.length(xb - xa) > link_break_length:
         link_broken[link] = 1
         wp.atomic_add(link_broken_total, 0, 1)

@@ -50,7 +50,8 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     strings) runs ``motion_frames`` frames into its turn. From that state each stage is timed (median of
     ``repeats``, interleaved): ``dynamics`` (a solver without colliders, links or contacts), ``links`` (forces),
     ``link_break``, and, for every margin in ``margins``, a :class:`hairwarp.interactions.HairContacts` built as
-    the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs), ``vertex_face`` and
+    the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs refit, or rebuilt for a
+    margin > 0 as a detection between steps does), ``vertex_face`` and
     ``segment_segment`` (detection after the refit), ``forces`` (the pass over the stored pairs). The per-step
     cost of the interactions is ``links + link_break + forces + (refit + detection) / substeps`` for a margin
     > 0 (detection once per frame) and ``links + link_break + forces + refit + detection`` for margin 0.
@@ -127,8 +128,9 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
             c.contact_counter.zero_()
             c.detect_segment_segment(model, state)
 
+        # Detection between steps (margin > 0) rebuilds the BVHs, inside the step (margin 0) refits them.
         times = interleaved_medians({
-            "refit": lambda c=contacts: c.refit(model, state),
+            "refit": lambda c=contacts, m=margin: c.refit(model, state, rebuild=m > 0.0),
             "vertex_face": vertex_face,
             "segment_segment": segment_segment,
         }, device, repeats)
