@@ -279,7 +279,7 @@ def _check_scene(values, given, error):
     if mot["pivot"] is None and head["center"] is not None and head["radii"] is not None:
         c, r = head["center"], head["radii"]
         mot["pivot"] = (c[0], c[1], c[2] - r[2])
-    if head["shape"] != "none" and (head["center"] is None or head["radii"] is None):
+    if head["shape"] in ("ellipsoid", "sphere") and (head["center"] is None or head["radii"] is None):
         error("head", f"shape = \"{head['shape']}\" needs center and radii when the groom comes from a file")
     times = [k["time"] for k in mot["keys"]]
     if mot["kind"] == "keyframes" and times and None not in times and all(a < b for a, b in zip(times, times[1:])):

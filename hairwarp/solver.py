@@ -121,7 +121,7 @@ class Solver:
         # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
         self._integrate(state_in, state_out, control)
         if self.colliders is not None:
-            self.colliders.project(self.model, state_out, control, self.dt)
+            self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
         if self.links is not None:
             self.links.break_links(self.model, state_out)
 
