@@ -477,7 +477,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "segment_segment": Field("bool", True, "segment against segment of different strands"),
             "detect": Field("str", "frame", "find contact pairs every step, or once per frame with a margin",
                             choices=("step", "frame")),
-            "margin": Field("float", 0.004, "detect = frame: pairs within threshold + margin are kept for the frame",
+            "margin": Field("float", 0.001, "detect = frame: pairs within threshold + margin are kept for the frame",
                             "m", range="[0, inf)"),
             "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
         },
