@@ -372,6 +372,7 @@ class BenchConfig:
     scale_segments: tuple = (8, 16, 31)
     scale_budget_s: float = 1.0
     scale_passes: int = 3
+    scale_blocks: int = 7
     dense_counts: tuple = (10_000, 100_000)
     stages: tuple | None = None  # names of the stage hooks to call (None: all of scaling.STAGE_HOOKS)
 
@@ -412,6 +413,7 @@ class BenchConfig:
             scale_segments=(8, 16),
             scale_budget_s=0.2,
             scale_passes=1,
+            scale_blocks=3,
             dense_counts=(1000,),
             quiet_budget_s=5.0,
             quiet_max_wait_s=2.0,
