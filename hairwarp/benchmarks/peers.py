@@ -496,7 +496,7 @@ def trajectory(req: dict) -> dict:
 # MuJoCo stability with joint springs
 
 
-def mujoco_stable(integrator: str, segments: int, stiffness: float, joint_damping: float, dt: float,
+def mujoco_stable(integrator: str, segments: int, stiffness, joint_damping: float, dt: float,
                   duration: float, tilt_deg: float = 60.0) -> dict:
     """One run of the stability test on MuJoCo: released from ``tilt_deg`` with ball-joint springs.
 
@@ -505,8 +505,8 @@ def mujoco_stable(integrator: str, segments: int, stiffness: float, joint_dampin
     """
     import mujoco
 
-    L = STRAND_LENGTH / segments
-    K = [stiffness / L] * segments  # EI / joint length (all segments equal)
+    # joint stiffness [N m/rad] per joint, as hairwarp's model sets it (a number: EI / L at every joint)
+    K = list(stiffness) if np.ndim(stiffness) else [stiffness / (STRAND_LENGTH / segments)] * segments
     m = mujoco.MjModel.from_xml_string(mujoco_chain_xml(segments, integrator=integrator, dt=dt, damping=joint_damping,
                                                         stiffness=K))
     d = mujoco.MjData(m)
@@ -546,8 +546,10 @@ def stability_mujoco(req: dict) -> dict:
         for ei in req["stiffness"]:
             why = {}
 
-            def probe(idx, items, ei=ei, integrator=integrator, why=why):
-                r = mujoco_stable(integrator, int(req["S"]), ei, float(req["joint_damping"]), grid[idx],
+            joint_k = req.get("joint_stiffness", {}).get(f"{ei:g}", ei)
+
+            def probe(idx, items, integrator=integrator, why=why, joint_k=joint_k):
+                r = mujoco_stable(integrator, int(req["S"]), joint_k, float(req["joint_damping"]), grid[idx],
                                   float(req["duration"]))
                 why[idx] = r.get("why")
                 return {0: r["stable"]}

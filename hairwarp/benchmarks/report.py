@@ -426,8 +426,9 @@ def md_stability(s: dict) -> list[str]:
            f"on a {t['grid_points']}-point log grid from {t['dt_min']:g} s to 1/24 s. Twist stiffness = EI, joint "
            f"damping {t['joint_damping_N_m_s']:g} N m s/rad (the canonical scene's) unless marked *hair damping* "
            f"(StrandParams default {t['hair_damping_N_m2_s']:g} N m² s, i.e. {t['hair_joint_damping_N_m_s']:.3g} "
-           "N m s/rad per joint at 20 segments). MuJoCo: the same chain with `stiffness` = EI/L on its ball "
-           "joints (spring reference qpos0, the hanging shape) and the same damping.", "",
+           "N m s/rad per joint at 20 segments). MuJoCo: the same chain with `stiffness` on its ball joints "
+           "equal to hairwarp's joint stiffness (root joint included; spring reference qpos0, the hanging "
+           "shape) and the same damping.", "",
            "| EI [N m²] | " + " | ".join(f"`{k}`" for k in s["vs_stiffness"])
            + "".join(f" | MuJoCo `{k}`" for k in s.get("mujoco", {}).get("results", {})) + " |",
            "|---|" + "---|" * (len(s["vs_stiffness"]) + len(s.get("mujoco", {}).get("results", {})))]

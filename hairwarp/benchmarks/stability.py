@@ -237,9 +237,13 @@ def suite_stability(cfg, log=lambda msg: None) -> dict:
                              for ei, it in zip(cfg.stab_stiffness, r["items"])) + f" ({r['wall_s']:.1f} s)")
     res["vs_stiffness"] = rows
     log("stability vs EI: MuJoCo ...")
+    # MuJoCo's ball joints get the joint stiffness hairwarp's model gives each joint (root included)
+    mj_model = stability_model(20, cfg.stab_mujoco_stiffness, cfg.stab_joint_damping)
+    bend = mj_model.joint_stiffness.numpy().reshape(len(cfg.stab_mujoco_stiffness), 20, 3)[:, :, 0]
+    joint_k = {f"{ei:g}": bend[n].astype(float).tolist() for n, ei in enumerate(cfg.stab_mujoco_stiffness)}
     mj = run_child({"kind": "stability_mujoco", "integrators": list(cfg.stab_mujoco),
-                    "stiffness": list(cfg.stab_mujoco_stiffness), "grid": grid.tolist(), "S": 20,
-                    "joint_damping": cfg.stab_joint_damping, "duration": cfg.stab_duration},
+                    "stiffness": list(cfg.stab_mujoco_stiffness), "joint_stiffness": joint_k, "grid": grid.tolist(),
+                    "S": 20, "joint_damping": cfg.stab_joint_damping, "duration": cfg.stab_duration},
                    max(cfg.peer_timeout_s, 600.0))
     res["mujoco"] = mj
     if mj.get("status") != "ok":
