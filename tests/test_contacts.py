@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
+from _reference import segment_distances
 from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import HairContacts, InteractionError, TriangleStrips
@@ -83,30 +84,6 @@ def _apply(contacts, model, state, dt=1.0e-3):
     return force.numpy().astype(np.float64), torque.numpy().astype(np.float64), mass.numpy().astype(np.float64)
 
 
-def _segment_distances(p0, p1, q0, q1):
-    """Brute-force distance of segment pairs (N, 3): the least of the four endpoint-to-segment distances and, where
-    it falls inside both segments, the length of the two lines' common perpendicular."""
-
-    def point_segment(x, s0, s1):
-        d = s1 - s0
-        t = np.clip(np.sum((x - s0) * d, axis=1) / np.sum(d * d, axis=1), 0.0, 1.0)
-        return np.linalg.norm(x - (s0 + t[:, None] * d), axis=1)
-
-    best = np.minimum.reduce([point_segment(p0, q0, q1), point_segment(p1, q0, q1), point_segment(q0, p0, p1),
-                              point_segment(q1, p0, p1)])
-    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
-    a, b, e = np.sum(d1 * d1, 1), np.sum(d1 * d2, 1), np.sum(d2 * d2, 1)
-    c, f = np.sum(d1 * r, 1), np.sum(d2 * r, 1)
-    det = b * b - a * e
-    ok = np.abs(det) > 1e-12 * a * e
-    det = np.where(ok, det, 1.0)
-    s = (c * e - b * f) / det
-    t = (b * c - a * f) / det
-    inside = ok & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
-    perp = np.linalg.norm((p0 + s[:, None] * d1) - (q0 + t[:, None] * d2), axis=1)
-    return np.where(inside, np.minimum(best, perp), best)
-
-
 @pytest.mark.parametrize("seed, cutoff, skip", [(0, 0.0, False), (1, 0.0, False), (2, 0.0, True), (0, 0.2, True),
                                                (1, 0.2, False), (3, 0.0, True)])
 def test_detection_matches_brute_force(seed, cutoff, skip):
@@ -127,7 +104,7 @@ def test_detection_matches_brute_force(seed, cutoff, skip):
     i, j = np.triu_indices(G * S, k=1)
     other = i // S != j // S
     i, j = i[other], j[other]
-    dist = _segment_distances(p0[i], p1[i], p0[j], p1[j])
+    dist = segment_distances(p0[i], p1[i], p0[j], p1[j])
     unit = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
     align = 1.0 - np.abs(np.sum(unit[i] * unit[j], axis=1))
     dist = np.where(align >= cutoff, dist, np.inf)
