@@ -5,8 +5,8 @@ Usage::
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     python -m hairwarp.bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
 
-SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling`` or ``all`` (the default), or a suite
-another module provides (``collision``: ``hairwarp.benchmarks.collision.suite_collision``). A run
+SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling``, ``budget`` or ``all`` (the default), or a
+suite run only when named: ``collision``, ``interactions`` or ``dense`` (``EXTRA_SUITES``). A run
 writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
 ``benchmarks.md`` into the output folder: ``docs/`` of the source checkout for a full run,
 ``out/bench-quick/`` for ``--quick`` (a smoke run never overwrites the committed report).
@@ -24,7 +24,11 @@ from pathlib import Path
 from hairwarp.benchmarks import SUITES
 
 # Suites other modules provide, run only when named: name -> (module, function(config, out, log) -> dict).
-EXTRA_SUITES = {"collision": ("hairwarp.benchmarks.collision", "suite_collision")}
+EXTRA_SUITES = {
+    "collision": ("hairwarp.benchmarks.collision", "suite_collision"),
+    "interactions": ("hairwarp.benchmarks.interactions", "suite_interactions"),
+    "dense": ("hairwarp.benchmarks.dense", "suite_dense"),
+}
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
 SCHEMA = 1
@@ -106,6 +110,10 @@ def _suite(name, config, out, log) -> dict:
         from hairwarp.benchmarks.scaling import suite_scaling
 
         return suite_scaling(config, log)
+    if name == "budget":
+        from hairwarp.benchmarks.budget import suite_budget
+
+        return suite_budget(config, out, log)
     if name in EXTRA_SUITES:
         import importlib
 
