@@ -146,7 +146,9 @@ class StaticLinks:
         link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
         seg_rest_axis: vec3 (G*S,) on the device, every segment's rest axis; seg_transport: quat (G*S,), scratch
             of the rotations carrying rest offsets to the segments' twist-free frames
-            (``kernels.links.segment_transport``).
+            (``kernels.links.segment_transport``, for :meth:`break_links`).
+        seg_link_start: int32 (G*S+1,) on the device: the links of segment a (as their side a) are
+            ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``.
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
     """
@@ -240,6 +242,9 @@ class StaticLinks:
         rest_axis = (p1 - p0) / length[:, None]
         links.seg_rest_axis = wp.array(rest_axis, dtype=wp.vec3, device=dev)
         links.seg_transport = wp.zeros(G * S, dtype=wp.quat, device=dev)
+        # Links by segment a (sorted so above): segment a's links are seg_link_start[a] .. seg_link_start[a + 1] - 1.
+        links.seg_link_start = wp.array(np.searchsorted(a, np.arange(G * S + 1)).astype(np.int32), dtype=wp.int32,
+                                        device=dev)
         return links
 
     def _transport(self, model, state):
@@ -248,28 +253,33 @@ class StaticLinks:
                   outputs=[self.seg_transport], device=self.device)
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
-        """Accumulate the link forces of ``state`` into the solver's per-segment arrays (launch only)."""
+        """Break the links of ``state`` stretched past ``break_length``, and accumulate the forces of the others into
+        the solver's per-segment arrays (launch only).
+
+        Breaking and forces share one pass over the links: a link breaks at the start of the step in which it
+        would act stretched past its break length (as :meth:`break_links` applied to the previous step's end would
+        have found it) and acts no more.
+        """
         if self.link_count == 0:
             return
-        self._transport(model, state)
         wp.launch(
             link_kernels.link_forces,
-            dim=self.link_count,
+            dim=len(self.seg_transport),
             inputs=[
-                model.seg_per_strand, model.seg_length, model.joint_stiffness, self.link_seg_a, self.link_seg_b,
-                self.link_frac_a,
-                self.link_frac_b, self.link_rest_offset, self.stiffness, self.damping,
-                int(self.implicit_springs), state.seg_xform, self.seg_transport, state.vertex_positions,
-                state.vertex_velocities, self.link_broken, dt,
+                model.seg_per_strand, model.seg_length, model.joint_stiffness, self.seg_rest_axis,
+                self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
+                self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
+                state.joint_q, state.vertex_positions, state.vertex_velocities, dt,
             ],
-            outputs=[seg_force, seg_torque, self.seg_spring_mass],
+            outputs=[seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total],
             device=self.device,
         )
         if self.implicit_springs:
             _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device)
 
     def break_links(self, model, state):
-        """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only)."""
+        """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only): the test that
+        :meth:`apply` makes in its pass, for a state no force is computed at."""
         if self.link_count == 0:
             return
         self._transport(model, state)

@@ -122,8 +122,6 @@ class Solver:
         self._integrate(state_in, state_out, control)
         if self.colliders is not None:
             self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
-        if self.links is not None:
-            self.links.break_links(self.model, state_out)
 
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""

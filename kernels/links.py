@@ -143,70 +143,103 @@ def link_forces(
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     joint_stiffness: wp.array(dtype=wp.vec3),
-    link_seg_a: wp.array(dtype=wp.int32),
+    seg_rest_axis: wp.array(dtype=wp.vec3),
+    seg_link_start: wp.array(dtype=wp.int32),
     link_seg_b: wp.array(dtype=wp.int32),
     link_frac_a: wp.array(dtype=float),
     link_frac_b: wp.array(dtype=float),
     link_rest_offset: wp.array(dtype=wp.vec3),
     link_stiffness: float,
     link_damping: float,
+    link_break_length: float,
     implicit_springs: int,
     # State in:
     seg_xform: wp.array(dtype=wp.transform),
-    seg_transport: wp.array(dtype=wp.quat),
+    joint_q: wp.array(dtype=wp.quat),
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
-    link_broken: wp.array(dtype=wp.int32),
     # Control:
     dt: wp.array(dtype=float),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_spring_mass: wp.array(dtype=float),
+    link_broken: wp.array(dtype=wp.int32),
+    link_broken_total: wp.array(dtype=wp.int32),
 ):
-    """One thread per link: the seed's spring-damper between the link's two attachment points.
+    """One thread per segment a: the seed's spring-dampers of the links that hang their rest offset on a (links
+    ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
 
-    Adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b (``seg_force`` [N],
-    ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``, ``h^2 k_s + h k_d`` [kg]
-    (``link_lever_mass``) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into the solver's implicit
-    mass.
+    A link stretched past ``link_break_length`` [m] breaks here for good, before it acts (``link_broken[link] = 1``,
+    counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links.
+    Otherwise it adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b
+    (``seg_force`` [N], ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``,
+    ``h^2 k_s + h k_d`` [kg] (``link_lever_mass``) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into
+    the solver's implicit mass. The thread computes a's frame, its twist-free transport (``segment_transport``) and
+    its velocity field once for all its links, and adds a's sums once.
     """
-    link = wp.tid()
-    if link_broken[link] != 0:
+    a = wp.tid()
+    first = seg_link_start[a]
+    last = seg_link_start[a + 1]
+    if first == last:
         return
-    a = link_seg_a[link]
-    b = link_seg_b[link]
-    xa, xb = link_ends(a, b, link_frac_a[link], link_frac_b[link], link_rest_offset[link], seg_length, seg_xform,
-                       seg_transport)
-    l = xb - xa
-    length = wp.length(l)
-
-    # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
-    f = link_stiffness * l
-    if length > LINK_MIN_LENGTH:
-        n = l / length
-        va = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa)
-        vb = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
-        # v = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
-        f = f - link_damping * wp.dot(va - vb, n) * n
-
-    oa = wp.transform_get_translation(seg_xform[a])
-    ob = wp.transform_get_translation(seg_xform[b])
-    torque_a = wp.cross(xa - oa, f)
-    axis_a = wp.transform_vector(seg_xform[a], wp.vec3(0.0, 0.0, -1.0))
-    wp.atomic_add(seg_force, a, f)
-    wp.atomic_add(seg_torque, a, torque_a - wp.dot(torque_a, axis_a) * axis_a)
-    wp.atomic_add(seg_force, b, -f)
-    wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
-
-    if implicit_springs == 0:
-        return
+    xf_a = seg_xform[a]
+    rot_a = wp.transform_get_rotation(xf_a)
+    oa = wp.transform_get_translation(xf_a)
+    axis_a = wp.quat_rotate(rot_a, wp.vec3(0.0, 0.0, -1.0))
+    root = (a // seg_per_strand) * seg_per_strand
+    head = wp.transform_get_rotation(seg_xform[root]) * wp.quat_inverse(joint_q[root])
+    transport = min_rotation(wp.quat_rotate(head, seg_rest_axis[a]), axis_a) * head
+    length_a = seg_length[a]
+    # a's rigid velocity field from its two vertices (seg_point_velocity, hoisted out of the loop)
+    va_vertex = seg_first_vertex(a, seg_per_strand)
+    x0 = vertex_positions[va_vertex]
+    d = vertex_positions[va_vertex + 1] - x0
+    v0 = vertex_velocities[va_vertex]
+    w_a = wp.cross(d, vertex_velocities[va_vertex + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
     h = dt[0]
     extra = h * h * link_stiffness + h * link_damping
-    wp.atomic_add(seg_spring_mass, a, link_lever_mass(extra, link_stiffness, xa - oa, 0.5 * seg_length[a],
-                                                      joint_stiffness[a][0]))
-    wp.atomic_add(seg_spring_mass, b, link_lever_mass(extra, link_stiffness, xb - ob, 0.5 * seg_length[b],
-                                                      joint_stiffness[b][0]))
+    force_a = wp.vec3()
+    torque_a = wp.vec3()
+    mass_a = float(0.0)
+    for link in range(first, last):
+        if link_broken[link] != 0:
+            continue
+        b = link_seg_b[link]
+        xf_b = seg_xform[b]
+        xa = wp.transform_point(xf_a, wp.vec3(0.0, 0.0, -link_frac_a[link] * length_a)) + wp.quat_rotate(
+            transport, link_rest_offset[link])
+        xb = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -link_frac_b[link] * seg_length[b]))
+        l = xb - xa
+        length = wp.length(l)
+        if length > link_break_length:
+            link_broken[link] = 1
+            wp.atomic_add(link_broken_total, 0, 1)
+            continue
+
+        # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
+        f = link_stiffness * l
+        if length > LINK_MIN_LENGTH:
+            n = l / length
+            va = v0 + wp.cross(w_a, xa - x0)
+            vb = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+            # v = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
+            f = f - link_damping * wp.dot(va - vb, n) * n
+
+        ob = wp.transform_get_translation(xf_b)
+        tau = wp.cross(xa - oa, f)
+        force_a += f
+        torque_a += tau - wp.dot(tau, axis_a) * axis_a
+        wp.atomic_add(seg_force, b, -f)
+        wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
+        if implicit_springs != 0:
+            mass_a += link_lever_mass(extra, link_stiffness, xa - oa, 0.5 * length_a, joint_stiffness[a][0])
+            wp.atomic_add(seg_spring_mass, b, link_lever_mass(extra, link_stiffness, xb - ob, 0.5 * seg_length[b],
+                                                              joint_stiffness[b][0]))
+    wp.atomic_add(seg_force, a, force_a)
+    wp.atomic_add(seg_torque, a, torque_a)
+    if implicit_springs != 0:
+        wp.atomic_add(seg_spring_mass, a, mass_a)
 
 
 @wp.kernel

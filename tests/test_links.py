@@ -158,7 +158,8 @@ def setup():
     rng = np.random.default_rng(7)
     roots, rot = _groom(rng)
     verts = _chain(roots, rot)
-    links = StaticLinks.build(verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=0.004)
+    # Shared by the tests, these links never break (apply breaks links as it goes); breaking tests build their own.
+    links = StaticLinks.build(verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=1.0)
     return SimpleNamespace(rng=rng, roots=roots, rot=rot, verts=verts, links=links, model=_model())
 
 
@@ -267,7 +268,9 @@ def test_damping_dissipates(setup):
     assert power < 0.0
 
 
-def test_breaking_follows_numpy_and_is_permanent(setup):
+@pytest.mark.parametrize("via", ["break_links", "apply"])
+def test_breaking_follows_numpy_and_is_permanent(setup, via):
+    """Links past the break length break, in ``break_links`` and in the force pass of ``apply`` alike."""
     rng = np.random.default_rng(11)
     links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=K_S,
                               damping=K_D, break_length=0.004)
@@ -281,7 +284,10 @@ def test_breaking_follows_numpy_and_is_permanent(setup):
     assert 0 < expected.sum() < links.link_count
 
     state = _arrays(verts, rot, zero)
-    links.break_links(setup.model, state)
+    if via == "break_links":
+        links.break_links(setup.model, state)
+    else:
+        _apply(links, setup.model, state)
     broken = links.link_broken.numpy()[: links.link_count].astype(bool)
     np.testing.assert_array_equal(broken[clear], expected[clear])
     assert links.broken_count() == broken.sum()
@@ -309,13 +315,11 @@ def test_captured_step_follows_the_state(setup):
     force, torque, mass = wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=float)
     dt = wp.array([DT], dtype=float)
     links.apply(model, state, dt, force, torque, mass)
-    links.break_links(model, state)
     with wp.ScopedCapture(device=force.device) as capture:
         force.zero_()
         torque.zero_()
         mass.zero_()
         links.apply(model, state, dt, force, torque, mass)
-        links.break_links(model, state)
     assert links.broken_count() == 0
     rng = np.random.default_rng(5)
     rot = setup.rot * Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
@@ -324,10 +328,11 @@ def test_captured_step_follows_the_state(setup):
     for name in ("seg_xform", "joint_q", "vertex_positions", "vertex_velocities"):
         wp.copy(getattr(state, name), getattr(moved, name))
     wp.capture_launch(capture.graph)
-    ref_force, _, length, _, _ = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)))
+    broken = links.link_broken.numpy()[: links.link_count].astype(bool)
+    ref_force, _, length, _, _ = _reference(links, verts, rot, np.zeros_like(verts), np.zeros((G * S, 3)),
+                                            skip=broken)
     np.testing.assert_allclose(force.numpy(), ref_force, atol=FORCE_RTOL * np.abs(ref_force).max())
     clear = np.abs(length - links.break_length) > BREAK_BAND
-    broken = links.link_broken.numpy()[: links.link_count].astype(bool)
     np.testing.assert_array_equal(broken[clear], (length > links.break_length)[clear])
     assert links.broken_count() == broken.sum() > 0
 

@@ -48,17 +48,17 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     The ``ratboy_mohawk`` scene with every guide (2,219 x 31 segments; ``quick``: every 5th) and
     ``links.enabled`` and ``interactions.enabled`` at the scene defaults (plus ``overrides``, ``key=value``
     strings) runs ``motion_frames`` frames into its turn. From that state each stage is timed (median of
-    ``repeats``, interleaved): ``dynamics`` (a solver without colliders, links or contacts), ``links`` (forces),
-    ``link_break``, and, for every margin in ``margins``, a :class:`hairwarp.interactions.HairContacts` built as
+    ``repeats``, interleaved): ``dynamics`` (a solver without colliders, links or contacts), ``links`` (breaking
+    and forces, one pass), and, for every margin in ``margins``, a :class:`hairwarp.interactions.HairContacts` built as
     the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs refit, or rebuilt for a
     margin > 0 as a detection between steps does), ``vertex_face`` and
     ``segment_segment`` (detection after the refit), ``forces`` (the pass over the stored pairs). The per-step
-    cost of the interactions is ``links + link_break + forces + (refit + detection) / substeps`` for a margin
-    > 0 (detection once per frame) and ``links + link_break + forces + refit + detection`` for margin 0.
+    cost of the interactions is ``links + forces + (refit + detection) / substeps`` for a margin > 0 (detection
+    once per frame) and ``links + forces + refit + detection`` for margin 0.
 
     Returns:
         ``{"status": "ok", "device", "strands", "segments", "substeps", "dt", "links", "strip_quads",
-        "dynamics_s", "links_s", "link_break_s", "broken_links", "margins": [{"margin", "stored", "active",
+        "dynamics_s", "links_s", "broken_links", "margins": [{"margin", "stored", "active",
         "refit_s", "vertex_face_s", "segment_segment_s", "forces_s", "per_step_s", "per_dynamics"}], ...}``,
         times in seconds, or ``{"status": "skipped", "message"}`` when the assets are missing.
     """
@@ -96,15 +96,12 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     torque = wp.zeros(n, dtype=wp.vec3, device=device)
     mass = wp.zeros(n, dtype=float, device=device)
     dt_arr = wp.array([dt], dtype=float, device=device)
-    probe = model.state()  # link breaking marks links: run it on a copy of the links' flags
-    probe.assign(state)
-    broken = links.link_broken
+    broken = links.link_broken  # applying the links may break some: their flags are put back after the timing
     broken_before = broken.numpy().copy()
     total_before = links.link_broken_total.numpy().copy()
     common = interleaved_medians({
         "dynamics": lambda: dynamics.step(state, out_state, control, dt),
         "links": lambda: links.apply(model, state, dt_arr, force, torque, mass),
-        "link_break": lambda: links.break_links(model, probe),
     }, device, repeats)
     broken.assign(broken_before)
     links.link_broken_total.assign(total_before)
@@ -140,7 +137,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         }, device, repeats))
         active = _active_contacts(contacts, model, state)
         detection = times["refit"] + times["vertex_face"] + times["segment_segment"]
-        per_step = common["links"] + common["link_break"] + times["forces"]
+        per_step = common["links"] + times["forces"]
         per_step += detection / substeps if margin > 0.0 else detection
         rows.append({"margin": float(margin), "detect": "frame" if margin > 0.0 else "step", "stored": stored,
                      "active": active, "overflowed": contacts.overflowed(),
@@ -151,7 +148,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
             "links": links.link_count, "broken_links": links.broken_count(),
             "strip_quads": base.strips.quad_count if base.strips is not None else 0,
             "threshold": base.threshold, "scene_margin": base.margin,
-            "dynamics_s": common["dynamics"], "links_s": common["links"], "link_break_s": common["link_break"],
+            "dynamics_s": common["dynamics"], "links_s": common["links"],
             "margins": rows, "wall_s": time.perf_counter() - t_start}
 
 
