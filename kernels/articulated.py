@@ -20,9 +20,12 @@ from hairwarp.kernels.spatial import (
     quat_exp,
     quat_log,
     rotate_blocks,
+    rotate_symmetric,
+    scale_rows,
     segment_inertia_blocks,
     skew_z_left,
     skew_z_right,
+    transpose_scale_columns,
 )
 from hairwarp.kernels.types import Fault
 
@@ -187,10 +190,12 @@ def aba_backward_pass(
         theta = quat_log(wp.quat_inverse(chains.joint_rest_q[i]) * q)
         tau = -wp.cw_mul(K, theta) - wp.cw_mul(Cd, w)
         D = A
+        armature = wp.vec3()
         if implicit != 0:
             # springs and dampers at the end of the step: (M + hC + h^2 K) qdd = -K theta - (C + hK) w - bias
             tau = tau - dt * wp.cw_mul(K, w)
-            D = A + wp.diag(dt * Cd + dt * dt * K)
+            armature = dt * Cd + dt * dt * K
+            D = A + wp.diag(armature)
         Dinv = wp.inverse(D)
         u = tau - n
         DA = Dinv * A
@@ -209,9 +214,11 @@ def aba_backward_pass(
             r = wp.vec3(0.0, 0.0, z)
             Ca = C - wp.transpose(B) * DB
             if implicit != 0:
-                # I^a = I^A - U D^-1 U^T keeps all three blocks when D carries armature
-                Aa = A - A * DA
-                Ba = B - A * DB
+                # I^a = I^A - U D^-1 U^T keeps all three blocks when D = A + diag(d) carries armature d. With A and
+                # D symmetric, A - A D^-1 A = (D^-1 A)^T diag(d) and B - A D^-1 B = diag(d) D^-1 B: scalings of the
+                # stored products instead of 3x3 products, and no cancellation when d is small against A.
+                Aa = transpose_scale_columns(DA, armature)
+                Ba = scale_rows(DB, armature)
                 na = n + Aa * c_ang + Ba * c_lin + A * Du
                 fa = f + wp.transpose(Ba) * c_ang + Ca * c_lin + wp.transpose(B) * Du
                 Aa, Ba, Ca = rotate_blocks(R, Aa, Ba, Ca)
@@ -221,7 +228,7 @@ def aba_backward_pass(
                 # so only the translational block travels to the parent
                 na = tau
                 fa = f + Ca * c_lin + wp.transpose(B) * Du
-                Ca = R * Ca * wp.transpose(R)
+                Ca = rotate_symmetric(R, Ca)
                 cB = skew_z_left(Ca, z)
                 cA = -skew_z_right(cB, z)
             na = R * na

@@ -125,7 +125,35 @@ def inertia_shift_z(A: wp.mat33, B: wp.mat33, C: wp.mat33, z: float):
 
 
 @wp.func
+def scale_rows(M: wp.mat33, d: wp.vec3):
+    """``diag(d) M``."""
+    return wp.mat33(d[0] * M[0, 0], d[0] * M[0, 1], d[0] * M[0, 2],
+                    d[1] * M[1, 0], d[1] * M[1, 1], d[1] * M[1, 2],
+                    d[2] * M[2, 0], d[2] * M[2, 1], d[2] * M[2, 2])
+
+
+@wp.func
+def transpose_scale_columns(M: wp.mat33, d: wp.vec3):
+    """``M^T diag(d)``."""
+    return wp.mat33(M[0, 0] * d[0], M[1, 0] * d[1], M[2, 0] * d[2],
+                    M[0, 1] * d[0], M[1, 1] * d[1], M[2, 1] * d[2],
+                    M[0, 2] * d[0], M[1, 2] * d[1], M[2, 2] * d[2])
+
+
+@wp.func
+def rotate_symmetric(R: wp.mat33, M: wp.mat33):
+    """``R M R^T`` for a symmetric M: the upper triangle from ``(R M) R^T``, mirrored (45 products, not 54)."""
+    RM = R * M
+    xx = wp.dot(RM[0], R[0])
+    xy = wp.dot(RM[0], R[1])
+    xz = wp.dot(RM[0], R[2])
+    yy = wp.dot(RM[1], R[1])
+    yz = wp.dot(RM[1], R[2])
+    zz = wp.dot(RM[2], R[2])
+    return wp.mat33(xx, xy, xz, xy, yy, yz, xz, yz, zz)
+
+
+@wp.func
 def rotate_blocks(R: wp.mat33, A: wp.mat33, B: wp.mat33, C: wp.mat33):
-    """Rotate the three inertia blocks into the frame ``R`` maps into: X -> R X R^T."""
-    Rt = wp.transpose(R)
-    return R * A * Rt, R * B * Rt, R * C * Rt
+    """Rotate the three inertia blocks into the frame ``R`` maps into: X -> R X R^T (A and C symmetric)."""
+    return rotate_symmetric(R, A), R * B * wp.transpose(R), rotate_symmetric(R, C)
