@@ -369,8 +369,9 @@ class BenchConfig:
     quiet_max_wait_s: float = 5.0
     # scaling
     scale_strands: tuple = (32, 128, 512, 2228)
-    scale_segments: tuple = (8, 16, 31)
-    scale_budget_s: float = 1.0
+    # five segment counts: a fit through three noisy points (10-15 % between blocks here) swung by 0.1 or more
+    scale_segments: tuple = (8, 12, 16, 24, 31)
+    scale_budget_s: float = 0.7
     scale_passes: int = 3
     scale_blocks: int = 7
     dense_counts: tuple = (10_000, 100_000)
