@@ -614,12 +614,10 @@ class HairContacts:
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
         if contacts.strips is None:
             # The force kernel takes strip arrays even when only segments collide.
-            contacts._indices = wp.zeros(3, dtype=wp.int32, device=dev)
-            contacts._tri_strands = wp.zeros(1, dtype=wp.vec2i, device=dev)
+            contacts._strip_pairs = wp.zeros(1, dtype=wp.vec2i, device=dev)
             contacts._tri_scale = wp.zeros(1, dtype=float, device=dev)
         else:
-            contacts._indices = contacts.strips.indices
-            contacts._tri_strands = contacts.strips.tri_strands
+            contacts._strip_pairs = contacts.strips.strip_pairs
             contacts._tri_scale = contacts.strips.tri_stiffness_scale
         return contacts
 
@@ -724,7 +722,7 @@ class HairContacts:
             contact_kernels.contact_forces,
             dim=self.force_threads,
             inputs=[
-                model.seg_per_strand, model.seg_length, model.seg_mass, self._indices, self._tri_strands,
+                model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
                 self._tri_scale,
                 self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.capacity,
                 self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,

@@ -96,12 +96,30 @@ def vertex_tangent(vertex: int, seg_per_strand: int, vertex_positions: wp.array(
 
 
 @wp.func
+def strip_triangle(tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i)):
+    """Vertex indices ``g*(S+1) + k`` of strip triangle ``tri`` (``2q = (a_k, b_k, a_{k+1})``, ``2q + 1 = (b_k,
+    b_{k+1}, a_{k+1})`` of quad q = pair P, level k), from its strip's pair: a small table where the triangle list
+    is six times the size and read at random."""
+    quad = tri // 2
+    pair = quad // seg_per_strand
+    k = quad - pair * seg_per_strand
+    ab = strip_pairs[pair]
+    ia = ab[0] * (seg_per_strand + 1) + k
+    ib = ab[1] * (seg_per_strand + 1) + k
+    if tri % 2 == 0:
+        return ia, ib, ia + 1
+    return ib, ib + 1, ia + 1
+
+
+@wp.func
 def strip_face_direction(
-    tri: int, seg_per_strand: int, tri_strands: wp.array(dtype=wp.vec2i), vertex_positions: wp.array(dtype=wp.vec3)
+    tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), vertex_positions: wp.array(dtype=wp.vec3)
 ) -> wp.vec3:
     """Unit "vertical" (along-strand) direction of a strip triangle: the mean of its two strands' segments."""
-    k = (tri % (2 * seg_per_strand)) // 2
-    ab = tri_strands[tri]
+    quad = tri // 2
+    pair = quad // seg_per_strand
+    k = quad - pair * seg_per_strand
+    ab = strip_pairs[pair]
     ia = ab[0] * (seg_per_strand + 1) + k
     ib = ab[1] * (seg_per_strand + 1) + k
     d = (vertex_positions[ia + 1] - vertex_positions[ia]) + (vertex_positions[ib + 1] - vertex_positions[ib])
@@ -533,8 +551,7 @@ def contact_force(
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     seg_mass: wp.array(dtype=float),
-    strip_indices: wp.array(dtype=wp.int32),
-    tri_strands: wp.array(dtype=wp.vec2i),
+    strip_pairs: wp.array(dtype=wp.vec2i),
     tri_stiffness_scale: wp.array(dtype=float),
     contact_threshold: float,
     contact_stiffness: float,
@@ -570,9 +587,7 @@ def contact_force(
     va0 = int(0)
     vb0 = int(0)
     if kind == CONTACT_VERTEX_FACE:
-        i0 = strip_indices[3 * ib + 0]
-        i1 = strip_indices[3 * ib + 1]
-        i2 = strip_indices[3 * ib + 2]
+        i0, i1, i2 = strip_triangle(ib, seg_per_strand, strip_pairs)
         xa = vertex_positions[ia]
         xb = w[0] * vertex_positions[i0] + w[1] * vertex_positions[i1] + w[2] * vertex_positions[i2]
     else:
@@ -597,7 +612,7 @@ def contact_force(
         va = vertex_velocities[ia]
         vb = w[0] * vertex_velocities[i0] + w[1] * vertex_velocities[i1] + w[2] * vertex_velocities[i2]
         ta = vertex_tangent(ia, seg_per_strand, vertex_positions)
-        tb = strip_face_direction(ib, seg_per_strand, tri_strands, vertex_positions)
+        tb = strip_face_direction(ib, seg_per_strand, strip_pairs, vertex_positions)
         k = contact_stiffness * tri_stiffness_scale[ib]
         inv_mass_a = 1.0 / seg_mass[vertex_segment(ia, seg_per_strand)]
         # sum w_i / m_i bounds the face point's response sum w_i^2 / m_i from above, also when two of the
@@ -675,8 +690,7 @@ def contact_forces(
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     seg_mass: wp.array(dtype=float),
-    strip_indices: wp.array(dtype=wp.int32),
-    tri_strands: wp.array(dtype=wp.vec2i),
+    strip_pairs: wp.array(dtype=wp.vec2i),
     tri_stiffness_scale: wp.array(dtype=float),
     contact_threshold: float,
     contact_stiffness: float,
@@ -730,7 +744,7 @@ def contact_forces(
         end = wp.min(slot + run, count)
     while slot < end:
         contact_force(
-            slot, seg_per_strand, seg_length, seg_mass, strip_indices, tri_strands, tri_stiffness_scale,
+            slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
             vertex_positions, vertex_velocities, h, implicit_springs, contact_kind, contact_a, contact_b, contact_w,
             contact_gap, seg_force, seg_torque, seg_spring_mass,
