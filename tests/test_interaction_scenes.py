@@ -179,3 +179,30 @@ def test_static_links_builder_is_deterministic():
     two = StaticLinks.build(verts, radius=0.01, stiffness=1.0, damping=0.0, break_length=1.0, device=wp.get_device())
     np.testing.assert_array_equal(one.seg_a, two.seg_a)
     np.testing.assert_array_equal(one.seg_b, two.seg_b)
+
+
+def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
+    """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented, the goal
+    verdict follows from it, and the report section renders every row."""
+    from conftest import require_ratboy
+
+    require_ratboy("Ratboy_mohawk.tfx")
+    require_ratboy("Ratboy_body.tfxmesh")
+    from hairwarp.benchmarks.common import BenchConfig
+    from hairwarp.benchmarks.interactions import GOAL_PER_DYNAMICS, md_interactions, suite_interactions
+
+    data = suite_interactions(BenchConfig.quick_preset(), Path("/nonexistent"))
+    cost = data["cost"]["scene_guides"]
+    assert cost["status"] == "ok" and cost["strands"] == 444
+    for row in cost["margins"]:
+        detection = row["refit_s"] + row["vertex_face_s"] + row["segment_segment_s"]
+        per_step_detection = detection / cost["substeps"] if row["margin"] > 0 else detection
+        expected = cost["links_s"] + row["forces_s"] + per_step_detection
+        assert row["per_step_s"] == pytest.approx(expected, rel=1e-12)
+        assert row["per_dynamics"] == pytest.approx(expected / cost["dynamics_s"], rel=1e-12)
+        assert row["stored"] >= row["active"] > 0
+    goal = data["goal"]["scene_guides"]
+    assert goal["meets"] == (goal["per_dynamics"] <= GOAL_PER_DYNAMICS)
+    text = "\n".join(md_interactions(data))
+    assert text.count("| 444 |") == len(cost["margins"])
+    assert "Largest stable stiffness" in text
