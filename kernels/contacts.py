@@ -96,16 +96,19 @@ def vertex_tangent(vertex: int, seg_per_strand: int, vertex_positions: wp.array(
 
 
 @wp.func
-def strip_triangle(tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i)):
-    """Vertex indices ``g*(S+1) + k`` of strip triangle ``tri`` (``2q = (a_k, b_k, a_{k+1})``, ``2q + 1 = (b_k,
-    b_{k+1}, a_{k+1})`` of quad q = pair P, level k), from its strip's pair: a small table where the triangle list
-    is six times the size and read at random."""
-    quad = tri // 2
+def strip_quad_origins(quad: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i)):
+    """Vertices ``a_k`` and ``b_k`` (indices ``g*(S+1) + k``) of strip quad ``quad`` = pair P, level k, from the strip's
+    pair: a small table, where the triangle list is six times the size and read at random."""
     pair = quad // seg_per_strand
     k = quad - pair * seg_per_strand
     ab = strip_pairs[pair]
-    ia = ab[0] * (seg_per_strand + 1) + k
-    ib = ab[1] * (seg_per_strand + 1) + k
+    return ab[0] * (seg_per_strand + 1) + k, ab[1] * (seg_per_strand + 1) + k
+
+
+@wp.func
+def strip_triangle(tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i)):
+    """Vertex indices of strip triangle ``tri``: ``2q = (a_k, b_k, a_{k+1})``, ``2q + 1 = (b_k, b_{k+1}, a_{k+1})``."""
+    ia, ib = strip_quad_origins(tri // 2, seg_per_strand, strip_pairs)
     if tri % 2 == 0:
         return ia, ib, ia + 1
     return ib, ib + 1, ia + 1
@@ -116,12 +119,7 @@ def strip_face_direction(
     tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), vertex_positions: wp.array(dtype=wp.vec3)
 ) -> wp.vec3:
     """Unit "vertical" (along-strand) direction of a strip triangle: the mean of its two strands' segments."""
-    quad = tri // 2
-    pair = quad // seg_per_strand
-    k = quad - pair * seg_per_strand
-    ab = strip_pairs[pair]
-    ia = ab[0] * (seg_per_strand + 1) + k
-    ib = ab[1] * (seg_per_strand + 1) + k
+    ia, ib = strip_quad_origins(tri // 2, seg_per_strand, strip_pairs)
     d = (vertex_positions[ia + 1] - vertex_positions[ia]) + (vertex_positions[ib + 1] - vertex_positions[ib])
     return wp.normalize(d)
 
