@@ -342,6 +342,8 @@ class BenchConfig:
         "mujoco_euler": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5, 2e-5),
         "mujoco_implicitfast": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),
         "mujoco_rk4": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),
+        # MuJoCo 4's discrete step map: joint springs and damping implicit, as in implicit_joints
+        "mujoco_discrete": (1e-3, 5e-4, 2e-4, 1e-4, 5e-5),
         "newton_featherstone_tile": (1e-3, 5e-4, 2.5e-4),
         "newton_vbd": (1e-3, 5e-4, 2.5e-4),
     })
@@ -351,7 +353,7 @@ class BenchConfig:
     # stability
     stab_stiffness: tuple = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
     stab_integrators: tuple = ("semi_implicit", "implicit_joints", "rk4")
-    stab_mujoco: tuple = ("Euler", "implicitfast")
+    stab_mujoco: tuple = ("Euler", "implicitfast", "discrete")
     stab_mujoco_stiffness: tuple = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
     stab_duration: float = 2.0
     stab_grid_bits: int = 6
@@ -396,12 +398,13 @@ class BenchConfig:
             acc_ref_dt=1e-4,
             acc_duration=0.5,
             acc_dts=(1e-3, 1e-4),
-            acc_peer_dts={"pinocchio_euler": (1e-3, 1e-4), "mujoco_euler": (1e-3,), "mujoco_rk4": (1e-3,)},
+            acc_peer_dts={"pinocchio_euler": (1e-3, 1e-4), "mujoco_euler": (1e-3,), "mujoco_rk4": (1e-3,),
+                          "mujoco_discrete": (1e-3,)},
             acc_cost_strands=20,
             conv_segments=(5, 10, 20),
             stab_stiffness=(1e-5, 1e-3, 1e-1),
             stab_integrators=("semi_implicit", "implicit_joints"),
-            stab_mujoco=("implicitfast",),
+            stab_mujoco=("implicitfast", "discrete"),
             stab_mujoco_stiffness=(1e-5, 1e-1),
             stab_duration=0.5,
             stab_grid_bits=3,

@@ -465,7 +465,8 @@ def trajectory(req: dict) -> dict:
         if peer == "pinocchio_euler":
             tips, cost = _tips_pinocchio(dt, duration, S)
         elif peer.startswith("mujoco_"):
-            integrator = {"mujoco_euler": "Euler", "mujoco_implicitfast": "implicitfast", "mujoco_rk4": "RK4"}[peer]
+            integrator = {"mujoco_euler": "Euler", "mujoco_implicitfast": "implicitfast", "mujoco_rk4": "RK4",
+                          "mujoco_discrete": "discrete"}[peer]
             tips, cost = _tips_mujoco(dt, duration, S, integrator)
         elif peer in ("newton_featherstone_tile", "newton_vbd"):
             _, step_fn, tip_fn, _ = _newton(peer, 1, S, np.zeros((1, 3)), 80.0, 0.0)
