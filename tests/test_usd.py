@@ -514,3 +514,178 @@ def test_bench_usd_write_reports_phases():
     (row,) = result["results"]
     assert row["points"] == 450 and row["write_s"] > 0 and row["convert_s"] > 0 and row["save_s"] > 0
     assert row["bytes_per_frame"] >= 24 * 450  # float32 points and velocities
+
+
+# --- the background writer -------------------------------------------------------------------------------------
+
+
+def _all_samples(path):
+    """Every authored attribute of a stage: path -> (time samples, default value, value at each sample)."""
+    stage = Usd.Stage.Open(str(path))
+    out = {"range": (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetTimeCodesPerSecond())}
+    for prim in stage.Traverse():
+        for attr in prim.GetAuthoredAttributes():
+            times = attr.GetTimeSamples()
+            out[str(attr.GetPath())] = (times, attr.Get(), [attr.Get(t) for t in times])
+    return out
+
+
+def _assert_same_stage(a, b):
+    sa, sb = _all_samples(a), _all_samples(b)
+    assert sa.keys() == sb.keys()
+    for key in sa:
+        va, vb = sa[key], sb[key]
+        if key == "range":
+            assert va == vb
+            continue
+        assert va[0] == vb[0], key
+        for x, y in zip([va[1], *va[2]], [vb[1], *vb[2]], strict=True):
+            if isinstance(x, Vt.Vec3fArray | Vt.FloatArray | Vt.IntArray):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=key)  # exact, no tolerance
+            else:
+                assert x == y, key
+
+
+def _child_gone(cache):
+    """The writer process has exited and was reaped; multiprocessing knows of no child either."""
+    import multiprocessing
+
+    return cache._proc.poll() is not None and multiprocessing.active_children() == []
+
+
+def test_vec3f_direct_copy_reads_back_exactly():
+    from hairwarp.usd import _direct_copy_works, _vec3f
+
+    assert _direct_copy_works()  # else the writer falls back to FromNumpy, and this test would not test the copy
+    rng = np.random.default_rng(3)
+    for a in (rng.normal(size=(1001, 3)).astype(np.float32), rng.normal(size=(50, 6))[:, ::2],
+              np.array([[np.float32(1e-38), -0.0, 3.4e38]], dtype=np.float32)):
+        out = _vec3f(a)
+        expected = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))
+        assert len(out) == len(expected)
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(expected))
+    # Two arrays made in turn do not share storage.
+    first, second = _vec3f(np.ones((4, 3))), _vec3f(np.zeros((4, 3)))
+    assert np.asarray(first).sum() == 12.0 and np.asarray(second).sum() == 0.0
+
+
+@pytest.mark.parametrize("suffix", [".usdc", ".usda"])
+def test_background_writer_writes_the_inline_stage(tmp_path, suffix):
+    from hairwarp.usd import BackgroundCacheWriter
+
+    inline, background = tmp_path / f"inline{suffix}", tmp_path / f"background{suffix}"
+    _write_small_cache(inline)
+    with pytest.MonkeyPatch.context() as m:  # the same frames through the background writer
+        m.setitem(globals(), "CacheWriter", BackgroundCacheWriter)
+        _write_small_cache(background)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([inline.name, background.name])
+    _assert_same_stage(inline, background)
+    # The static topology is there too (compared above as default values): spot-check one against the input.
+    stage = Usd.Stage.Open(str(background))
+    assert list(UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides")).GetCurveVertexCountsAttr().Get()) \
+        == [5, 5, 5]
+
+
+def test_background_writer_y_up_animated_mesh_and_timings(tmp_path):
+    from hairwarp.usd import BackgroundCacheWriter
+
+    pts, faces = _tetra()
+    paths = {}
+    for cls in (CacheWriter, BackgroundCacheWriter):
+        path = paths[cls] = tmp_path / f"{cls.__name__}.usdc"
+        with cls(path, fps=FPS, up_axis="Y", meters_per_unit=0.01) as cache:
+            cache.add_curves("c", np.full(2, 4), basis="catmullRom")
+            cache.add_mesh("blob", pts, faces, animated_points=True)
+            for f in range(3):
+                cache.write_frame(f, {"c": (_strands(2, 4, f), np.ones((8, 3)) * f)}, xforms={"blob": _xform(f)},
+                                  mesh_points={"blob": pts * (1.0 + 0.1 * f)})
+    _assert_same_stage(paths[CacheWriter], paths[BackgroundCacheWriter])
+    assert set(cache.timings) == {"check", "copy", "wait", "convert", "set", "save"}
+    assert cache.frames_saved == 3 and cache.timings["save"] > 0.0 and cache.timings["copy"] > 0.0
+    assert _child_gone(cache)
+
+
+def test_background_invalid_frame_raises_in_the_caller_and_keeps_earlier_frames(tmp_path):
+    from hairwarp.usd import BackgroundCacheWriter
+
+    path = tmp_path / "bad.usdc"
+    with BackgroundCacheWriter(path, fps=24) as cache:
+        cache.add_curves("c", np.full(2, 4))
+        for f in range(2):
+            cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
+        nan = _strands(2, 4, 2)
+        nan[3, 2] = np.nan
+        with pytest.raises(UsdFileError, match=r"bad\.usdc: frame 2: curves 'c' points: contains NaN"):
+            cache.write_frame(2, {"c": (nan, None)})
+        with pytest.raises(UsdFileError, match=r"bad\.usdc: frame 2: .*\(8, 3\)"):
+            cache.write_frame(2, {"c": (np.zeros((7, 3)), None)})
+        with pytest.raises(UsdFileError, match="already used"):
+            cache.add_curves("c", [4])
+        cache.write_frame(3, {"c": (_strands(2, 4, 3), None)})
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points")
+    assert attr.GetTimeSamples() == [0.0, 1.0, 3.0]
+    np.testing.assert_array_equal(np.asarray(attr.Get(3)), _strands(2, 4, 3).astype(np.float32))
+    assert _child_gone(cache)
+
+
+def test_background_exception_inside_with_keeps_frames_and_ends_the_process(tmp_path):
+    from hairwarp.usd import BackgroundCacheWriter
+
+    path = tmp_path / "crash.usdc"
+    with pytest.raises(RuntimeError, match="solver blew up"):
+        with BackgroundCacheWriter(path, fps=24) as cache:
+            cache.add_curves("guides", np.full(2, 4))
+            for f in range(5):
+                if f == 3:
+                    raise RuntimeError("solver blew up")
+                cache.write_frame(f, {"guides": (_strands(2, 4, f), None)})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["crash.usdc"]
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [0.0, 1.0, 2.0]
+    assert _child_gone(cache) and cache.close() == path
+
+
+def test_background_failure_in_the_process_names_the_file(tmp_path):
+    import shutil
+
+    from hairwarp.usd import BackgroundCacheWriter
+
+    folder = tmp_path / "shot"
+    path = folder / "hair.usdc"
+    cache = BackgroundCacheWriter(path, fps=24)
+    cache.add_curves("c", np.full(2, 4))
+    cache.write_frame(0, {"c": (_strands(2, 4, 0), None)})
+    cache.flush()
+    shutil.rmtree(folder)  # the temporary file and its folder go: the next save fails in the writer process
+    cache.write_frame(1, {"c": (_strands(2, 4, 1), None)})
+    with pytest.raises(UsdFileError, match=r"shot/hair\.usdc: the background writer failed at frame 1"):
+        for f in range(2, 50):  # raised by a later write_frame once the failure is reported
+            cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
+            cache.flush()
+    cache.close()  # already raised: the close does not raise it again, and ends the process
+    assert _child_gone(cache)
+
+
+def test_background_process_killed_is_reported(tmp_path):
+    import os
+    import signal
+
+    from hairwarp.usd import BackgroundCacheWriter
+
+    path = tmp_path / "killed.usdc"
+    cache = BackgroundCacheWriter(path, fps=24)
+    cache.add_curves("c", np.full(2, 4))
+    cache.write_frame(0, {"c": (_strands(2, 4, 0), None)})
+    cache.flush()
+    os.kill(cache._proc.pid, signal.SIGKILL)
+    cache._proc.wait()
+    with pytest.raises(UsdFileError, match=r"killed\.usdc: the background writer process ended unexpectedly .*keeps"):
+        cache.write_frame(1, {"c": (_strands(2, 4, 1), None)})
+        cache.close()
+    cache._abandon()
+    # The temporary file holds the frame saved before the kill.
+    (partial,) = tmp_path.glob(".killed.usdc.*.partial.usdc")
+    stage = Usd.Stage.Open(str(partial))
+    assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0]
