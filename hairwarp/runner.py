@@ -257,6 +257,20 @@ class Simulation:
         return self.motion.evaluate(t).matrix()
 
 
+def _cache_writer(scene, out_path, notes: list):
+    """The writer ``output.writer`` asks for: a :class:`hairwarp.usd.BackgroundCacheWriter` (the simulation goes on
+    while a second process converts and saves each frame) or the inline :class:`hairwarp.usd.CacheWriter`; the
+    inline one, with a note, where the background writer cannot run."""
+    from hairwarp.usd import BackgroundCacheWriter, CacheWriter, background_supported
+
+    options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}"}
+    if scene.output.writer == "background":
+        if background_supported():
+            return BackgroundCacheWriter(out_path, **options)
+        notes.append("output.writer = background needs a POSIX system; the cache was written inline")
+    return CacheWriter(out_path, **options)
+
+
 def _mesh_collider(path, up_axis, scale, translate, rotate_deg, name, options):
     from hairwarp.colliders import Collider
     from hairwarp.motion import euler_xyz_deg_to_quat, quat_to_matrix
@@ -359,8 +373,6 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         SimulationFault: the run left its bounds; the message names the frame, the stage and the
             parameter to change, and the cache keeps every frame written before it.
     """
-    from hairwarp.usd import CacheWriter
-
     t_start = time.perf_counter()
     out_path = Path(out_path)
     frames = int(scene.sim.frames if frames is None else frames)
@@ -376,7 +388,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     overflow_noted = False
 
     dense = sim.dense
-    with CacheWriter(out_path, fps=float(scene.sim.fps), comment=f"scene: {scene.name}") as cache:
+    with _cache_writer(scene, out_path, notes) as cache:
         if dense is not None:
             hermite = scene.dense.basis == "linear"
             cache_counts = dense.curve_vertex_counts(hermite)
