@@ -208,3 +208,121 @@ def test_energy_meter_matches_pinocchio():
     qv, vv = qf.reshape(-1), qd.astype(np.float32).astype(float).reshape(-1)
     expected = pin.computeKineticEnergy(pm, data, qv, vv) + pin.computePotentialEnergy(pm, data, qv)
     assert ours == pytest.approx(expected, rel=ENERGY_RTOL)
+
+
+# ---------------------------------------------------------------------------------------------
+# budget suite: its metrics against numpy by hand, its picks recomputed from its own rows
+
+
+def test_budget_tip_error_against_brute_force():
+    from hairwarp.benchmarks.budget import tip_rms_error
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(5, 7, 3)), rng.normal(size=(5, 7, 3))
+    total = sum(float(np.sum((a[f, g] - b[f, g]) ** 2)) for f in range(5) for g in range(7))
+    assert tip_rms_error(a, b) == pytest.approx(math.sqrt(total / 35), rel=1e-12)
+    # one tip of four off by 3-4-5 mm in one frame of two: sqrt(0.005^2 / 8)
+    c = np.zeros((2, 4, 3))
+    d = c.copy()
+    d[1, 2] = (0.003, 0.004, 0.0)
+    assert tip_rms_error(c, d) == pytest.approx(0.005 / math.sqrt(8), rel=1e-12)
+    assert tip_rms_error(c, c) == 0.0
+    with pytest.raises(ValueError):
+        tip_rms_error(c, d[:, :3])
+
+
+def test_budget_coverage_mask_and_iou_against_hand_counts():
+    from hairwarp.benchmarks.budget import Grid, coverage_mask, silhouette_iou
+
+    # screen x = world x, screen y = world z; 4 mm pixels from the origin
+    grid = Grid(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), (0.0, 0.0), 0.004, (10, 12))
+    # a horizontal curve through pixel row 0, columns 0-9, and a vertical one in column 5, rows 5-7; the jump
+    # from the first curve's end to the second's start is no segment
+    points = np.array([[0.0005, 0.3, 0.0005], [0.0395, -0.2, 0.0005],
+                       [0.0205, 0.0, 0.0205], [0.0205, 0.0, 0.0305]])
+    mask = coverage_mask(points, np.array([2, 2]), grid)
+    expected = np.zeros((10, 12), dtype=bool)
+    expected[0, 0:10] = True
+    expected[5:8, 5] = True
+    np.testing.assert_array_equal(mask, expected)
+    # a point off the grid lands on the border pixel
+    off = coverage_mask(np.array([[1.0, 0.0, -1.0]]), np.array([1]), grid)
+    assert off[0, 11] and off.sum() == 1
+
+    rng = np.random.default_rng(5)
+    a, b = rng.random((9, 11)) < 0.4, rng.random((9, 11)) < 0.4
+    inter = sum(1 for i in range(9) for j in range(11) if a[i, j] and b[i, j])
+    union = sum(1 for i in range(9) for j in range(11) if a[i, j] or b[i, j])
+    assert silhouette_iou(a, b) == pytest.approx(inter / union, rel=1e-12)
+    assert silhouette_iou(a, a) == 1.0
+    assert silhouette_iou(np.zeros((3, 3), bool), np.zeros((3, 3), bool)) == 1.0
+    shifted = np.roll(expected, 1, axis=0)  # the curves one pixel up share only column 5's rows 6-7
+    assert silhouette_iou(expected, shifted) == pytest.approx(2 / (13 + 13 - 2), rel=1e-12)
+
+
+def test_budget_cheapest_within_bound_picks_from_rows():
+    from hairwarp.benchmarks.budget import IOU_BOUND, TIP_BOUND_M, applicable, cheapest_within
+
+    rows = [
+        {"label": "ref", "status": "ok", "cost_s": 0.10, "tip_rms_m": 0.0, "iou": 1.0},
+        {"label": "cheap but off", "status": "ok", "cost_s": 0.01, "tip_rms_m": 2 * TIP_BOUND_M, "iou": 0.99},
+        {"label": "cheap, bad look", "status": "ok", "cost_s": 0.02, "tip_rms_m": 0.0, "iou": IOU_BOUND - 0.01},
+        {"label": "unstable", "status": "unstable", "cost_s": 0.005, "tip_rms_m": None, "iou": None},
+        {"label": "fits", "status": "ok", "cost_s": 0.05, "tip_rms_m": TIP_BOUND_M, "iou": IOU_BOUND},
+        {"label": "fits, dearer", "status": "ok", "cost_s": 0.07, "tip_rms_m": 0.0, "iou": 1.0},
+    ]
+    assert cheapest_within(rows) == "fits"
+    assert not applicable({"overrides": ['head.shape="mesh"', 'head.file="/tmp/x.ply"']})
+    assert applicable({"overrides": ["sim.segments=12"]})
+    assert cheapest_within(rows[:4]) == "ref"
+    assert cheapest_within(rows[1:4]) is None
+
+
+@pytest.fixture(scope="module")
+def budget_tiny():
+    from pathlib import Path
+
+    from hairwarp.benchmarks.budget import Choice, Plan, bench_scene
+
+    path = Path(__file__).resolve().parents[1] / "scenes" / "tiny.toml"
+    plan = Plan("tiny", path, ["sim.segments=12", "sim.substeps=16"], 0.2, [
+        Choice("segments", "sim.segments", [("12", []), ("4", ["sim.segments=4"]), ("8", ["sim.segments=8"])], "8"),
+        Choice("substeps", "sim.substeps", [("16", []), ("2", ["sim.substeps=2"]), ("8", ["sim.substeps=8"])], "8"),
+        Choice("dense", "dense.count", [("200", ["dense.count=200"]), ("800", ["dense.count=800"])], "800",
+               dense=True),
+    ], base=["dense.count=800"], quick=True)
+    return bench_scene(plan)
+
+
+def test_budget_tiny_scene_picks_the_cheapest_within_bound(budget_tiny):
+    from hairwarp.benchmarks.budget import IOU_BOUND, MIN_SAVING, TIP_BOUND_M, md_budget, within
+
+    s = budget_tiny
+    assert s["status"] == "ok" and s["strands"] == 8 and s["frames"] == 6
+    for ch in s["choices"]:
+        ok = [r for r in ch["rows"] if r["status"] == "ok" and (r["tip_rms_m"] is None or r["tip_rms_m"] <= TIP_BOUND_M)
+              and (r["iou"] is None or r["iou"] >= IOU_BOUND)]
+        expected = min(ok, key=lambda r: r["cost_s"])["label"] if ok else None
+        assert ch["cheapest"] == expected, ch["name"]
+        assert [r["label"] for r in ch["rows"] if r["cheapest_within_bound"]] == ([expected] if expected else [])
+        for r in ch["rows"]:
+            assert r["cost_s"] > 0
+            if not ch["dense"] and not r.get("reference") and r["status"] == "ok":
+                assert r["tip_rms_m"] > 0  # another model moves the tips: the metric can fail
+    dense = next(ch for ch in s["choices"] if ch["dense"])
+    assert [r["iou"] for r in dense["rows"]][1] == 1.0 and dense["rows"][0]["iou"] < 1.0
+    # the combined run takes each choice's pick, or the shipped option when the pick saves too little
+    picked = []
+    for ch in s["choices"]:
+        pick = next((r for r in ch["rows"] if r["cheapest_within_bound"]), None)
+        shipped = next(r for r in ch["rows"] if r["shipped"])
+        if pick and within(shipped) and (pick["cost_s"] > (1 - MIN_SAVING) * shipped["cost_s"]
+                                         or any(".file=" in o for o in pick["overrides"])):
+            pick = shipped
+        if pick and not ch["dense"]:
+            picked += pick["overrides"]
+        if pick:
+            assert s["combined"]["picks"][ch["key"]] == pick["label"]
+    assert s["combined"]["overrides"] == picked
+    text = "\n".join(md_budget({"scenes": [s], "skipped": [{"name": "x", "reason": "absent"}]}))
+    assert "### `tiny`" in text and "`x` skipped: absent" in text
