@@ -757,6 +757,9 @@ class BackgroundCacheWriter(CacheWriter):
         import socket
         import subprocess
 
+        self.path.parent.mkdir(parents=True, exist_ok=True)  # as the inline writer: raised here, at once
+        if not os.access(self.path.parent, os.W_OK | os.X_OK):
+            raise UsdFileError(f"{self.path}: its folder is not writable")
         ours, theirs = socket.socketpair()
         try:
             self._ring_fd = _anonymous_memory()
@@ -773,14 +776,9 @@ class BackgroundCacheWriter(CacheWriter):
             theirs.close()
         self._conn = multiprocessing.connection.Connection(ours.detach())
         _LIVE_WRITERS.add(self)
-        try:
-            tmp = self._request(("open", {"path": str(self.path), "fps": self.fps, "start_frame": self.start_frame,
-                                          "meters_per_unit": self.meters_per_unit, "up_axis": self.up_axis,
-                                          "comment": comment}))
-        except BaseException:
-            self._abandon()
-            raise
-        self._tmp_path = Path(tmp)
+        # Not waited for: the process loads usd-core (about half a second) while the caller goes on.
+        self._post(("open", {"path": str(self.path), "fps": self.fps, "start_frame": self.start_frame,
+                             "meters_per_unit": self.meters_per_unit, "up_axis": self.up_axis, "comment": comment}))
 
     def _died(self) -> UsdFileError:
         code = self._proc.poll() if self._proc is not None else None
@@ -808,9 +806,11 @@ class BackgroundCacheWriter(CacheWriter):
             self.frames_saved += 1
             for key, seconds in message[2].items():
                 self.timings[key] += seconds
+        elif kind == "opened":
+            self._tmp_path = Path(message[1])
         elif kind == "failed":
             if self._failure is None:
-                self._failure = f"{self.path}: the background writer failed at frame {message[1]}: {message[2]}"
+                self._failure = f"{self.path}: the background writer failed at {message[1]}: {message[2]}"
         else:
             return message
         return None
@@ -823,6 +823,13 @@ class BackgroundCacheWriter(CacheWriter):
                 if reply is not None:
                     raise UsdFileError(f"{self.path}: unexpected reply of the background writer: {reply!r}")
         except (EOFError, OSError):
+            raise self._died() from None
+
+    def _post(self, message) -> None:
+        """Send a request that has no reply (a failure comes back as a ``failed`` message)."""
+        try:
+            self._conn.send(message)
+        except OSError:
             raise self._died() from None
 
     def _request(self, message):
@@ -848,11 +855,13 @@ class BackgroundCacheWriter(CacheWriter):
 
     def _author_curves(self, spec: dict) -> None:
         self._drain()
-        self._request(("add_curves", spec))
+        self._raise_failure()
+        self._post(("add_curves", spec))
 
     def _author_mesh(self, spec: dict) -> None:
         self._drain()
-        self._request(("add_mesh", spec))
+        self._raise_failure()
+        self._post(("add_mesh", spec))
 
     def write_frame(self, frame: int, curves: dict, xforms: dict | None = None, mesh_points: dict | None = None):
         """Check the frame here, queue it for the writer process, return (see :meth:`CacheWriter.write_frame`).
@@ -914,7 +923,7 @@ class BackgroundCacheWriter(CacheWriter):
         self._views = [{key: np.frombuffer(self._ring, np.float32, 3 * n, s * slot_bytes + off).reshape(n, 3)
                         for key, (off, n) in layout.items()} for s in range(self._slot_count)]
         self._layout = layout
-        self._request(("ring", slot_bytes, self._slot_count, layout))
+        self._post(("ring", slot_bytes, self._slot_count, layout))
         self._free = list(range(self._slot_count))[::-1]
 
     def flush(self) -> None:
@@ -996,11 +1005,12 @@ class BackgroundCacheWriter(CacheWriter):
 def _background_main(conn_fd: int, ring_fd: int) -> None:
     """The writer process of :class:`BackgroundCacheWriter`: serves its requests until ``close`` or a closed pipe.
 
-    Requests: ``("open", kwargs)``, ``("add_curves", spec)``, ``("add_mesh", spec)``, ``("ring", slot_bytes, slots,
-    layout)``, ``("frame", slot, frame, curves, xforms, meshes)``, ``("close",)``. Replies ``("ok", value)`` or
-    ``("error", message)`` to all but frames; a frame sends ``("released", slot)`` once its arrays are copied into
-    ``Vt`` arrays, then ``("saved", frame, timings)`` or ``("failed", frame, message)``. After a failed frame the
-    later frames are released unwritten, and ``close`` still saves what the stage holds.
+    Requests: ``("open", kwargs)`` (answered ``("opened", temporary path)``), ``("add_curves", spec)``,
+    ``("add_mesh", spec)``, ``("ring", slot_bytes, slots, layout)``, ``("frame", slot, frame, curves, xforms,
+    meshes)``, ``("close",)`` (answered ``("ok", path)`` or ``("error", message)``). A frame sends ``("released",
+    slot)`` once its arrays are copied into ``Vt`` arrays, then ``("saved", frame, timings)``. A request that fails
+    sends ``("failed", what, message)``; the later requests are then skipped (frames released unwritten), and
+    ``close`` still saves what the stage holds.
     """
     import mmap
     import multiprocessing.connection
@@ -1043,13 +1053,20 @@ def _background_main(conn_fd: int, ring_fd: int) -> None:
                 except Exception as exc:  # reported to the caller, which raises it naming the file
                     failed = True
                     release()
-                    conn.send(("failed", frame, _error_text(exc)))
+                    conn.send(("failed", f"frame {frame}", _error_text(exc)))
+                continue
+            if kind == "close":
+                try:
+                    conn.send(("ok", str(writer.close()) if writer is not None else None))
+                except Exception as exc:
+                    conn.send(("error", _error_text(exc)))
+                break
+            if failed:
                 continue
             try:
-                value = None
                 if kind == "open":
                     writer = CacheWriter(**message[1])
-                    value = str(writer._tmp_path)
+                    conn.send(("opened", str(writer._tmp_path)))
                 elif kind == "add_curves":
                     writer._author_curves(message[1])
                 elif kind == "add_mesh":
@@ -1059,15 +1076,13 @@ def _background_main(conn_fd: int, ring_fd: int) -> None:
                     ring = mmap.mmap(ring_fd, slot_bytes * slots)
                     views = [{key: np.frombuffer(ring, np.float32, 3 * n, s * slot_bytes + off).reshape(n, 3)
                               for key, (off, n) in layout.items()} for s in range(slots)]
-                elif kind == "close":
-                    value = str(writer.close())
                 else:
                     raise ValueError(f"unknown request {kind!r}")
-                conn.send(("ok", value))
             except Exception as exc:
-                conn.send(("error", _error_text(exc)))
-            if kind == "close":
-                break
+                failed = True
+                what = {"open": "opening the file", "add_curves": "adding curves", "add_mesh": "adding a mesh",
+                        "ring": "mapping the shared frames"}.get(kind, kind)
+                conn.send(("failed", what, _error_text(exc)))
     finally:
         views = []
         if ring is not None:
