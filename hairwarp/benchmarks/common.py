@@ -355,6 +355,10 @@ class BenchConfig:
     stab_integrators: tuple = ("semi_implicit", "implicit_joints", "rk4")
     stab_mujoco: tuple = ("Euler", "implicitfast", "discrete")
     stab_mujoco_stiffness: tuple = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
+    # Newton's VBD rods cost ~1 ms a step from Python: three stiffnesses, steps no smaller than stab_newton_min_dt
+    stab_newton_stiffness: tuple = (1e-5, 1e-3, 1e-1)
+    stab_newton_min_dt: float = 1.0e-4
+    stab_newton_duration: float = 0.5
     stab_duration: float = 2.0
     stab_grid_bits: int = 6
     stab_segments: tuple = (5, 10, 20, 40, 80)
@@ -406,6 +410,7 @@ class BenchConfig:
             stab_integrators=("semi_implicit", "implicit_joints"),
             stab_mujoco=("implicitfast", "discrete"),
             stab_mujoco_stiffness=(1e-5, 1e-1),
+            stab_newton_stiffness=(1e-3,),
             stab_duration=0.5,
             stab_grid_bits=3,
             stab_segments=(5, 20),

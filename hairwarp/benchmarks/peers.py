@@ -18,6 +18,7 @@ import numpy as np
 
 from hairwarp.benchmarks.common import (
     BENCH_DT,
+    DENSITY,
     GRAVITY,
     JOINT_DAMPING,
     RADIUS,
@@ -566,6 +567,116 @@ def stability_mujoco(req: dict) -> dict:
     return {"results": out}
 
 
+# ---------------------------------------------------------------------------------------------
+# Newton VBD rod stability with bending springs
+
+
+def newton_vbd_stable(segments: int, joint_stiffness: float, joint_damping: float, dt: float, duration: float,
+                      tilt_deg: float = 60.0, iterations: int = 10) -> dict:
+    """One run of the stability test on Newton's VBD rods: the strand hangs straight down at rest (``add_rod`` with
+    ``bend_stiffness`` = ``twist_stiffness`` = the joint stiffness [N m/rad] of every joint between segments) and is
+    released turned ``tilt_deg`` about its root. Newton 1.8 applies ball-joint stiffness in SolverMuJoCo only, so the
+    root joint here is a free pivot (hairwarp and MuJoCo give it a spring).
+
+    Stable, as for MuJoCo: finite, no segment turning more than 1 rad in a step, and the total energy (kinetic,
+    gravity, the joints' springs) never above its initial value by more than 10 % of (E0 - E_rest); checked every
+    2 ms.
+    """
+    import newton
+    import warp as wp
+    from scipy.spatial.transform import Rotation
+
+    wp.config.quiet = True
+    L, m = STRAND_LENGTH / segments, segment_mass(segments)
+    inertia = segment_inertia(segments)
+    builder = newton.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    cfg = newton.ModelBuilder.ShapeConfig(density=DENSITY, has_shape_collision=False, has_particle_collision=False)
+    verts = straight_strands(np.zeros((1, 3)), segments, np.array([0.0, 0.0, -1.0]))
+    rod = newton.Rod([wp.vec3(*p) for p in verts[0]], radius=RADIUS)
+    bodies, joints = builder.add_rod(rod=rod, cfg=cfg, stretch_stiffness=1.0e5, stretch_damping=0.0,
+                                     bend_stiffness=joint_stiffness, bend_damping=joint_damping,
+                                     twist_stiffness=joint_stiffness, twist_damping=joint_damping,
+                                     wrap_in_articulation=False)
+    for b in bodies:
+        builder.body_mass[b] = m
+        builder.body_inv_mass[b] = 1.0 / m
+        builder.body_inertia[b] = wp.mat33(*np.diag(inertia).reshape(-1).tolist())
+        builder.body_inv_inertia[b] = wp.mat33(*np.diag(1.0 / inertia).reshape(-1).tolist())
+        builder.body_com[b] = wp.vec3(0.0, 0.0, 0.0)
+    root = builder.add_joint_ball(parent=-1, child=bodies[0], parent_xform=wp.transform_identity(),
+                                  child_xform=wp.transform(wp.vec3(0.0, 0.0, -L / 2), wp.quat_identity()),
+                                  armature=0.0, friction=0.0, damping=joint_damping)
+    builder.add_articulation([*joints, root])
+    builder.color()
+    model = builder.finalize(device="cpu")
+    solver = newton.solvers.SolverVBD(model, iterations=iterations)
+    states = [model.state(), model.state()]
+    control = model.control()
+    rest = states[0].body_q.numpy().astype(np.float64)
+
+    def energy(q, qd) -> float:
+        rot = Rotation.from_quat(q[:, 3:])
+        w = qd[:, 3:]
+        w_body = rot.inv().apply(w)
+        kinetic = 0.5 * m * np.sum(qd[:, :3] ** 2) + 0.5 * np.sum(w_body ** 2 * inertia)
+        bend = (rot[:-1].inv() * rot[1:]).magnitude() if segments > 1 else np.zeros(0)
+        return float(kinetic + m * GRAVITY * q[:, 2].sum() + 0.5 * joint_stiffness * np.sum(bend ** 2))
+
+    e_rest = energy(rest, np.zeros((segments, 6)))
+    turn = Rotation.from_rotvec([0.0, math.radians(tilt_deg), 0.0])
+    q = rest.copy()
+    q[:, :3] = turn.apply(rest[:, :3])
+    q[:, 3:] = (turn * Rotation.from_quat(rest[:, 3:])).as_quat()
+    for s in states:
+        s.body_q.assign(q.astype(np.float32))
+    e0 = energy(q, np.zeros((segments, 6)))
+    bound = e0 + 0.1 * (e0 - e_rest)
+    steps = int(math.ceil(duration / dt))
+    chunk = max(1, int(round(2e-3 / dt)))
+    done = 0
+    while done < steps:
+        for _ in range(min(chunk, steps - done)):
+            states[0].clear_forces()
+            solver.step(states[0], states[1], control, None, dt)
+            states[0], states[1] = states[1], states[0]
+            done += 1
+        q = states[0].body_q.numpy().astype(np.float64)
+        qd = states[0].body_qd.numpy().astype(np.float64)
+        if not (np.isfinite(q).all() and np.isfinite(qd).all()):
+            return {"stable": False, "why": "non-finite", "t": done * dt}
+        if np.linalg.norm(qd[:, 3:], axis=1).max() * dt > 1.0:
+            return {"stable": False, "why": "segment > 1 rad per step", "t": done * dt}
+        if energy(q, qd) > bound:
+            return {"stable": False, "why": "energy gain", "t": done * dt}
+    return {"stable": True}
+
+
+def stability_newton(req: dict) -> dict:
+    """Largest stable dt per bend stiffness EI for Newton's VBD rods (joint stiffness EI / L between segments), by
+    bisection on the shared log grid."""
+    from hairwarp.benchmarks.stability import bisect_grid
+
+    grid = [float(x) for x in req["grid"]]
+    S = int(req["S"])
+    rows = []
+    for ei in req["stiffness"]:
+        why = {}
+
+        def probe(idx, items, ei=ei, why=why):
+            r = newton_vbd_stable(S, float(ei) / (STRAND_LENGTH / S), float(req["joint_damping"]), grid[idx],
+                                  float(req["duration"]))
+            why[idx] = r.get("why")
+            return {0: r["stable"]}
+
+        t0 = time.perf_counter()
+        (idx,), tested = bisect_grid(len(grid), 1, probe)
+        above = 0 if idx is None else idx + 1
+        rows.append({"bend_stiffness": ei, "max_stable_dt": None if idx is None else grid[idx],
+                     "grid_index": idx, "at_top": idx == len(grid) - 1, "fails_above_because": why.get(above),
+                     "probes": len(tested), "wall_s": time.perf_counter() - t0})
+    return {"results": {"newton_vbd": rows}, "grid_used": grid, "duration_s": float(req["duration"])}
+
+
 def run_request(req: dict) -> dict:
     kind = req["kind"]
     if kind == "throughput":
@@ -576,4 +687,6 @@ def run_request(req: dict) -> dict:
         return reference(req)
     if kind == "stability_mujoco":
         return stability_mujoco(req)
+    if kind == "stability_newton":
+        return stability_newton(req)
     raise ValueError(f"unknown request kind {kind!r}")

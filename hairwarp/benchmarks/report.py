@@ -171,6 +171,11 @@ def chart_stability(s: dict, path: Path):
             ax.plot([r["bend_stiffness"] for r in rows], [r["max_stable_dt"] or 5e-6 for r in rows],
                     "s--" if n == 0 else "x:", mfc="none", ms=9 if n == 0 else 6, color="k" if n == 0 else "0.45",
                     label=f"MuJoCo {integ} (ball-joint stiffness)")
+    nt = s.get("newton", {})
+    if nt.get("status") == "ok":
+        for rows in nt["results"].values():
+            ax.plot([r["bend_stiffness"] for r in rows], [r["max_stable_dt"] or 5e-6 for r in rows], "D-.",
+                    mfc="none", color="tab:purple", label="Newton VBD rods (root: free pivot)")
     ax.set_xlabel("bend stiffness EI [N m²]")
     ax.set_title("20 segments, released from 60 deg")
     ax = axes[1]
@@ -417,6 +422,23 @@ def md_accuracy(a: dict) -> list[str]:
     return out
 
 
+def _peer_stability(s: dict) -> dict:
+    """Peer columns of the stiffness map: label -> rows."""
+    cols = {f"MuJoCo `{k}`": v for k, v in s.get("mujoco", {}).get("results", {}).items()}
+    for rows in s.get("newton", {}).get("results", {}).values():
+        cols["Newton VBD rods"] = rows
+    return cols
+
+
+def _newton_note(s: dict) -> str:
+    nt = s.get("newton", {})
+    rows = next(iter(nt.get("results", {}).values()), [])
+    if not rows:
+        return "not run"
+    return (f"{len(rows)} stiffnesses, steps from 1/24 s down to {min(nt.get('grid_used', [1e-4])):g} s, "
+            f"{nt.get('duration_s', s['test']['duration_s']):g} s runs (a step costs ~1 ms from Python)")
+
+
 def md_stability(s: dict) -> list[str]:
     t = s["test"]
     out = ["## 3. Stability (`hairwarp bench stability`)", "", f"![stability]({CHARTS['stability']})", "",
@@ -429,11 +451,14 @@ def md_stability(s: dict) -> list[str]:
            f"(StrandParams default {t['hair_damping_N_m2_s']:g} N m² s, i.e. {t['hair_joint_damping_N_m_s']:.3g} "
            "N m s/rad per joint at 20 segments). MuJoCo: the same chain with `stiffness` on its ball joints "
            "equal to hairwarp's joint stiffness (root joint included; spring reference qpos0, the hanging "
-           "shape) and the same damping.", "",
+           "shape) and the same damping. Newton VBD rods (`add_rod`, 10 iterations): bend and twist stiffness "
+           "EI / L between segments; Newton 1.8 applies ball-joint springs in SolverMuJoCo only, so the root is a "
+           "free pivot, and SolverFeatherstone, which applies none, has no place on this map; "
+           f"{_newton_note(s)}.", "",
            "| EI [N m²] | " + " | ".join(f"`{k}`" for k in s["vs_stiffness"])
-           + "".join(f" | MuJoCo `{k}`" for k in s.get("mujoco", {}).get("results", {})) + " |",
-           "|---|" + "---|" * (len(s["vs_stiffness"]) + len(s.get("mujoco", {}).get("results", {})))]
-    mj = {k: {r["bend_stiffness"]: r for r in v} for k, v in s.get("mujoco", {}).get("results", {}).items()}
+           + "".join(f" | {k}" for k in _peer_stability(s)) + " |",
+           "|---|" + "---|" * (len(s["vs_stiffness"]) + len(_peer_stability(s)))]
+    mj = {k: {r["bend_stiffness"]: r for r in v} for k, v in _peer_stability(s).items()}
     eis = [r["bend_stiffness"] for r in next(iter(s["vs_stiffness"].values()))]
     for n, ei in enumerate(eis):
         cells = []
@@ -446,8 +471,9 @@ def md_stability(s: dict) -> list[str]:
             cells.append("not run" if r is None else _dt(r["max_stable_dt"]) + ("+" if r["at_top"] else "")
                          + (f" ({r['fails_above_because']})" if r.get("fails_above_because") else ""))
         out.append(f"| {ei:g} | " + " | ".join(cells) + " |")
-    if s.get("mujoco", {}).get("status") not in (None, "ok"):
-        out.append(f"\nMuJoCo: {s['mujoco'].get('status')} — {s['mujoco'].get('message')}")
+    for peer in ("mujoco", "newton"):
+        if s.get(peer, {}).get("status") not in (None, "ok"):
+            out.append(f"\n{peer}: {s[peer].get('status')} — {s[peer].get('message')}")
     f = s["findings"]
     out += ["", "`+`: stable at the largest step tried (1/24 s); in brackets, why the next grid step fails.", "",
             f"- `implicit_joints` is stable at 1/240 s or larger where `semi_implicit` is not, for EI = "

@@ -252,6 +252,18 @@ def suite_stability(cfg, log=lambda msg: None) -> dict:
         for integrator, rws in mj["results"].items():
             log(f"  {integrator}: " + ", ".join(f"{r['bend_stiffness']:g}: {_fmt_dt(r['max_stable_dt'])}"
                                                 for r in rws))
+    log("stability vs EI: Newton VBD rods ...")
+    nt = run_child({"kind": "stability_newton", "stiffness": list(cfg.stab_newton_stiffness),
+                    "grid": [float(g) for g in grid if g >= cfg.stab_newton_min_dt], "min_dt": cfg.stab_newton_min_dt,
+                    "S": 20, "joint_damping": cfg.stab_joint_damping,
+                    "duration": min(cfg.stab_duration, cfg.stab_newton_duration)},
+                   max(cfg.peer_timeout_s, 600.0))
+    res["newton"] = nt
+    if nt.get("status") != "ok":
+        log(f"  {nt.get('status')}: {nt.get('message', '')[:200]}")
+    else:
+        for name, rws in nt["results"].items():
+            log(f"  {name}: " + ", ".join(f"{r['bend_stiffness']:g}: {_fmt_dt(r['max_stable_dt'])}" for r in rws))
     seg_rows = {}
     for integrator in cfg.stab_integrators[:2]:
         log(f"stability vs segments: {integrator} ...")
