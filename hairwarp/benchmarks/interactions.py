@@ -336,9 +336,11 @@ def md_interactions(data: dict) -> list[str]:
                   f"`scenes/fast_turn.toml` at t = {p['time_s']:.2f} s; convex hull of the guides "
                   f"{p['volume_m3'][0] * 1e3:.2f} L with links and contacts, {p['volume_m3'][1] * 1e3:.2f} L "
                   "without.", ""]
-    lines += ["Cost per step on the Ratboy mohawk in motion (31 segments, 16 substeps, detection once per frame "
-              "within the margin; margin 0: detection in every step), each stage timed on the same state, "
-              "interleaved, medians; `per step` = links + contact forces + (refit + detection) / substeps.", "",
+    first = next((c for c in data.get("cost", {}).values() if c.get("status") == "ok"), {})
+    lines += [f"Cost per step on the Ratboy mohawk scene in motion ({first.get('segments')} segments, "
+              f"{first.get('substeps')} substeps; detection once per frame within the margin, margin 0: detection in "
+              "every step), each stage timed on the same state, interleaved, medians; `per step` = links + contact "
+              "forces + (refit + detection) / substeps.", "",
               "| guides | margin | stored / active pairs | links ms | refit ms | vertex-face ms | segment-segment ms "
               "| forces ms | per step ms | dynamics ms | × dynamics |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cost in data.get("cost", {}).values():

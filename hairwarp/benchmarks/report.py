@@ -588,6 +588,19 @@ def md_other(name: str, data: dict, out: Path) -> list[str]:
     return lines
 
 
+# Suites run by name whose modules render their own report section: name -> (module, function(data) -> lines).
+EXTRA_SECTIONS = {"interactions": ("hairwarp.benchmarks.interactions", "md_interactions"),
+                  "dense": ("hairwarp.benchmarks.dense", "md_dense")}
+
+
+def _extra_section(name: str):
+    """The section renderer a suite's module provides, or None (then ``md_other`` lists its figures)."""
+    import importlib
+
+    module, function = EXTRA_SECTIONS.get(name, (None, None))
+    return getattr(importlib.import_module(module), function, None) if module else None
+
+
 def md_cuda(s: dict) -> list[str]:
     """The CUDA column: figures when a suite ran on a CUDA device, else why they are absent."""
     out = ["## 6. CUDA", ""]
@@ -755,8 +768,10 @@ def write_report(results: dict, out: Path) -> Path:
                                         f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}."
                                         f"{gate}*", ""]
     for name in s:
-        if name not in ("dynamics", "accuracy", "stability", "scaling", "budget"):
-            lines += md_other(name, s[name], out) + [""]
+        if name in ("dynamics", "accuracy", "stability", "scaling", "budget"):
+            continue
+        section = _extra_section(name)
+        lines += (section(s[name]) if section else md_other(name, s[name], out)) + [""]
     lines += md_cuda(s) + [""]
     lines += ["## Reproduce", "", "```", "hairwarp bench                 # all suites, about 15 min on 2 cores; "
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"
