@@ -8,9 +8,9 @@ dense strand count. Each variant gets
 
 - a cost: CPU seconds per simulated frame, the median of its frame times after ``WARMUP_FRAMES`` (kernel
   loading excluded; the dense hair is not in it), timed as the CPU time of the thread that runs Warp's CPU
-  kernels, so other programs on the machine's cores do not add to it; or for ``dense.count`` the seconds per
-  output frame of the dense hair (interpolation, push-out, Hermite samples or Catmull-Rom vertices as the
-  scene writes them, and the copy to the host);
+  kernels, so other programs on the machine's cores do not add to it (on CUDA: wall time to a sync); or for
+  ``dense.count`` the seconds per output frame of the dense hair (interpolation, push-out, Hermite samples
+  or Catmull-Rom vertices as the scene writes them, and the copy to the host);
 - a tip error: RMS over frames and guides of the guide tips' distance to the reference's [m]
   (:func:`tip_rms_error`; every segment count has tips, so any two runs of one groom compare);
 - a look: the silhouette of the dense hair from the preview's ``three_quarter`` camera, rasterised into
@@ -232,6 +232,8 @@ def run_scene(scene, frames: int, *, look_frames=(), look_counts=(), grid: Grid 
         "looks" {count: [mask or screen points]}, "dense_s" {count: [s]}, "frames_done", "strands",
         "segments"}``.
     """
+    import warp as wp
+
     from hairwarp.runner import Simulation
     from hairwarp.solver import SimulationFault
 
@@ -246,24 +248,33 @@ def run_scene(scene, frames: int, *, look_frames=(), look_counts=(), grid: Grid 
     out["strands"], out["segments"] = G, S
     dense = {n: _dense_for(sim, n) for n in sorted(set(look_counts) | set(dense_timing))}
     hermite_out = sim.scene.dense.basis == "linear"
+    # On the CPU, the CPU time of this thread, where Warp's CPU kernels run: other programs on the cores, and
+    # idle BLAS threads spinning after the look's numpy work, do not add to it. On a GPU, wall time to a sync.
+    device_ = sim.model.device
+    clock = time.perf_counter if device_.is_cuda else time.thread_time
+
+    def sync():
+        if device_.is_cuda:
+            wp.synchronize_device(device_)
+
     for frame in range(1, frames + 1):
-        # CPU time of this thread, where Warp's CPU kernels run: other programs on the cores, and idle
-        # BLAS threads spinning after the look's numpy work, do not add to it
-        t0 = time.thread_time()
+        sync()
+        t0 = clock()
         try:
             sim.advance_frame()
+            sync()
         except SimulationFault as fault:
             out.update(status="unstable", message=str(fault)[:400], fault_frame=frame)
             break
-        out["frame_s"].append(time.thread_time() - t0)
+        out["frame_s"].append(clock() - t0)
         out["frames_done"] = frame
         out["tips"].append(sim.state.vertex_positions.numpy().reshape(G, S + 1, 3)[:, -1].copy())
         if frame in look_frames:
             for n, d in dense.items():
                 if n in out["dense_s"]:
-                    t0 = time.thread_time()
-                    _dense_points(sim, d, hermite_out)
-                    out["dense_s"][n].append(time.thread_time() - t0)
+                    t0 = clock()
+                    _dense_points(sim, d, hermite_out)  # ends in a copy to the host: synchronous
+                    out["dense_s"][n].append(clock() - t0)
                 if n in out["looks"]:
                     pts, counts = _dense_points(sim, d, True)
                     if grid is None:
@@ -723,11 +734,12 @@ def md_budget(data: dict) -> list[str]:
            f"![budget]({CHART})", "",
            "Each shipped scene is run at a reference setting (more segments and substeps than it ships, its "
            "colliders and interactions as designed), then with ONE modelling choice changed at a time. Cost: CPU "
-           f"ms per simulated frame (CPU time of the simulating thread, median of the frames after the first "
-           f"{b.get('warmup_frames', WARMUP_FRAMES)}; for `dense.count` the output cost per frame: interpolation, "
-           "push-out, curve points, copy to the host). Tip error: RMS over frames and guides of the guide tips' "
-           "distance to the reference's. Look: intersection over union of the dense hair's coverage masks "
-           f"({_g_mm(b.get('pixel_m'))} mm pixels, the preview's `{b.get('view', VIEW)}` camera, "
+           "ms per simulated frame (CPU time of the simulating thread; on CUDA wall time to a sync; median of the "
+           f"frames after the first {b.get('warmup_frames', WARMUP_FRAMES)}; for `dense.count` the output cost "
+           "per frame: interpolation, push-out, curve points, copy to the host). Tip error: RMS over frames and "
+           "guides of the guide tips' distance to the reference's. Look: intersection over union of the dense "
+           f"hair's coverage masks ({_g_mm(b.get('pixel_m'))} mm pixels, the preview's `{b.get('view', VIEW)}` "
+           "camera, "
            f"{b.get('look_frames', LOOK_FRAMES)} frames) against the reference's.", "",
            f"**Bounds: tip error ≤ {_g_mm(b.get('tip_rms_m'))} mm RMS and IoU ≥ {b.get('iou', IOU_BOUND):g}.** A "
            "guide tip within 1 cm of the reference's stays among its own wisp's dense strands (guides are about "
