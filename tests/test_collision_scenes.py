@@ -217,8 +217,8 @@ def test_shoulders_scene_every_step():
 
 
 def test_mohawk_scene_every_step():
-    """The Ratboy mohawk on its body mesh, cut to 20 guides and the first 0.5 s of the turn (8 substeps:
-    the shake that needs 16 comes later)."""
+    """The Ratboy mohawk on its body mesh, cut to 20 guides and the first 0.5 s of the turn, at the scene's 8
+    substeps."""
     from conftest import require_ratboy
 
     require_ratboy("Ratboy_mohawk.tfx")

@@ -657,6 +657,16 @@ def summary_lines(results: dict, suites=None) -> list[str]:
         sc = s["scaling"]
         lines.append(f"scaling: largest fitted exponent {_g(sc['max_exponent'])} (goal <= 1.1: "
                      f"{'meets' if sc['meets'] else 'NOT MET'})")
+    if "budget" in names and "budget" in s:
+        from hairwarp.benchmarks.budget import summary_budget
+
+        lines.append(summary_budget(s["budget"]).removeprefix("- "))
+    if "interactions" in names and "interactions" in s:
+        for g in s["interactions"].get("goal", {}).values():
+            if g is not None:
+                lines.append(f"interactions: {g['strands']} guides, all stages {_g(g['per_dynamics'])}x the dynamics "
+                             f"step (goal <= {s['interactions']['goal_per_dynamics']:g}x: "
+                             f"{'meets' if g['meets'] else 'NOT MET'})")
     return lines
 
 
