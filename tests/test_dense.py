@@ -571,3 +571,29 @@ def test_bench_dense_frame_reports_every_stage(monkeypatch):
     assert 24 * row["points"] <= linear["bytes_per_frame"] <= 1.5 * 24 * row["points"] + 2e5
     assert linear["convert_s"] > 0 and linear["save_s"] > 0
     assert row["write_cheaper_than_simulate"] == (row["write_s"] < result["simulate_frame_s"])
+
+
+def test_suite_dense_quick_through_hairwarp_bench(tmp_path, monkeypatch):
+    """``hairwarp bench dense --quick``: both parts run, every pipeline figure is consistent with the frame times it
+    is made of, and the files written read back as the same results."""
+    import json
+
+    from hairwarp.bench import run_suites
+    from hairwarp.benchmarks import common
+    from hairwarp.benchmarks.dense import md_dense
+
+    monkeypatch.setattr(common.GATE, "enabled", False)
+    results = run_suites(["dense"], common.BenchConfig(quick=True, device=DEVICE), tmp_path, log=lambda m: None)
+    data = results["suites"]["dense"]
+    assert json.loads((tmp_path / "benchmarks.json").read_text())["suites"]["dense"]["verdicts"] == data["verdicts"]
+    pipe = data["pipeline"]
+    assert [(r["count"], r["basis"]) for r in pipe["results"]] == [(1000, "catmullRom"), (1000, "linear")]
+    for r in pipe["results"]:
+        bg, inline = r["background"], r["inline"]
+        assert r["background_write_s"] == bg["frame_s"] - r["output_frame_s"]
+        assert r["writer_own_s"] == pytest.approx(bg["convert_s"] + bg["set_s"] + bg["save_s"])
+        assert r["write_cheaper_than_simulate"] == (r["background_write_s"] < pipe["simulate_frame_s"])
+        # Same frames, same file: the two writers store the same bytes per frame.
+        assert bg["bytes_per_frame"] == inline["bytes_per_frame"] >= 24 * r["points"]
+    assert data["stages"]["results"][0]["count"] == 1000
+    assert any("| 1,000 | linear |" in line for line in md_dense(data))

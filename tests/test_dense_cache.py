@@ -2,6 +2,8 @@
 usd-core. Independent checks: pxr's own reading of every attribute, raw sizes of float32 arrays, the compliance
 checker, and the dense curves recomputed from the guides read back from the file."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import warp as wp
@@ -94,3 +96,16 @@ def test_dense_curves_are_the_guides_read_back_interpolated(cache):
         matches.append(np.allclose(p.numpy(), cached_p, rtol=0, atol=DENSE_TOL)
                        and np.allclose(v.numpy(), cached_v, rtol=0, atol=DENSE_TOL))
     assert any(matches)
+
+
+def test_inline_and_background_writers_write_the_same_run(tmp_path):
+    """``output.writer``: the tiny scene simulated twice on the CPU (deterministic), once per writer; usd-core reads
+    back the same samples, exactly."""
+    from test_usd import _assert_same_stage
+
+    paths = {}
+    for writer in ("inline", "background"):
+        scene = hairwarp.Scene.load(Path(__file__).parents[1] / "scenes" / "tiny.toml").with_overrides(
+            ["sim.frames=3", "output.preview=false", f"output.writer={writer}", "dense.count=200"])
+        paths[writer] = simulate(scene, tmp_path / f"{writer}.usdc", progress=False).cache_path
+    _assert_same_stage(paths["inline"], paths["background"])

@@ -4,8 +4,11 @@
 frame, the ellipsoid head) and times, per output frame and separately: the simulation of the guides, then for each
 dense strand count the interpolation of positions and velocities, their Hermite densification, the optional push-out
 from the head, the copy to the host, and :meth:`hairwarp.usd.CacheWriter.write_frame` of the dense curves with
-velocities into a temporary file, split by the writer into checks, ``Vt`` conversion, authoring and crate saves. The
-goal is a frame that costs less to write than to simulate.
+velocities into a temporary file, split by the writer into checks, ``Vt`` conversion, authoring and crate saves.
+:func:`bench_dense_pipeline` times whole frames (simulate, output, write) with no writer, the inline writer and the
+background writer (:class:`hairwarp.usd.BackgroundCacheWriter`), which is the honest figure once the writing runs
+beside the simulation. The goal is a frame that costs less to write than to simulate. :func:`suite_dense` is
+``hairwarp bench dense``; :func:`md_dense` renders its report section.
 """
 
 from __future__ import annotations
@@ -174,3 +177,173 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
         "meets": bool(all(r["write_cheaper_than_simulate"] for r in results)),
         "results": results,
     }
+
+
+def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: int, push_out: bool) -> dict:
+    """Simulate ``frames`` frames, evaluate the dense hair after each and hand it to ``writer`` ("none", "inline" or
+    "background"); the wall time per frame of the whole loop, until every frame is saved.
+
+    The writer is opened and given one untimed frame first, and closed after the clock stops: the background
+    writer's process starts in about a second and the close renames the file, once per cache (``close_s``).
+    """
+    import warp as wp
+
+    from hairwarp.usd import BackgroundCacheWriter, CacheWriter
+
+    hermite = basis == "linear"
+    fps = float(sim.scene.sim.fps)
+    colliders = sim.collider_set if push_out else None
+
+    def output():
+        s, c = sim.stepper.state, sim.stepper.control
+        p, v = hair.evaluate(s.vertex_positions, s.vertex_velocities, c.head_xform, c.head_velocity, hermite=hermite,
+                             colliders=colliders)
+        return p.numpy(), v.numpy()
+
+    cache = None
+    path = folder / f"pipeline_{basis}_{writer}.usdc"
+    if writer != "none":
+        cls = BackgroundCacheWriter if writer == "background" else CacheWriter
+        cache = cls(path, fps=fps)
+        cache.add_curves("hair", hair.curve_vertex_counts(hermite), widths=tuple(sim.scene.dense.width), basis=basis)
+        cache.write_frame(0, {"hair": output()})
+        if writer == "background":
+            cache.flush()  # the untimed frame is saved before the clock starts
+        before = dict(cache.timings)
+    wp.synchronize_device(sim.model.device)
+    blocked = 0.0
+    t_start = time.perf_counter()
+    for f in range(1, frames + 1):
+        sim.advance_frame()
+        points, velocities = output()
+        if cache is not None:
+            t0 = time.perf_counter()
+            cache.write_frame(f, {"hair": (points, velocities)})
+            blocked += time.perf_counter() - t0
+    if writer == "background":
+        cache.flush()  # every frame saved: the clock stops when the inline writer's would
+    t_end = time.perf_counter()
+    row = {"writer": writer, "frames": frames, "frame_s": (t_end - t_start) / frames, "blocked_s": blocked / frames}
+    if cache is not None:
+        t_close = time.perf_counter()
+        cache.close()
+        row["close_s"] = time.perf_counter() - t_close
+        row.update({f"{k}_s": (cache.timings[k] - before[k]) / frames for k in before})
+        row["writer_own_s"] = (sum(cache.timings[k] - before[k] for k in ("convert", "set", "save")) / frames)
+        row["bytes_per_frame"] = path.stat().st_size / (frames + 1)
+        path.unlink()
+    return row
+
+
+def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"), quick: bool = False, device=None,
+                         *, frames: int | None = None, rounds: int | None = None, push_out: bool = True) -> dict:
+    """End-to-end frames of the default scene with dense output: simulate, interpolate (Hermite for linear curves,
+    push-out from the head), copy to the host, write, with no writer, the inline writer and the background writer.
+
+    Every (count, basis, writer) runs ``rounds`` blocks of ``frames`` frames, interleaved, and keeps its fastest
+    block (other programs share the cores). ``write_s`` of a writer is its frame time less the frame time with no
+    writer: what writing adds to a frame. With the background writer the caller is blocked only for the checks, the
+    copy into shared memory and any wait for a free slot (``blocked_s``, the close included); the writer process
+    spends ``writer_own_s`` a frame on its second core, and the frame costs about max(simulate and output,
+    writer) rather than their sum.
+
+    Returns:
+        ``{"device", "guides", "segments", "substeps", "simulate_frame_s", "frames", "rounds", "results":
+        [{"count", "basis", "points", "output_frame_s", "inline": {...}, "background": {...}, "inline_write_s",
+        "background_write_s", "blocked_s", "writer_own_s", "write_cheaper_than_simulate",
+        "blocked_cheaper_than_simulate", "writer_cheaper_than_simulate"}, ...]}``, seconds per frame; the writer
+        dicts hold ``frame_s``, ``blocked_s``, the writer's phases (``check_s`` ... ``save_s``), ``writer_own_s``
+        and ``bytes_per_frame``.
+    """
+    import warp as wp
+
+    from hairwarp.benchmarks.common import GATE
+    from hairwarp.dense import DenseHair
+    from hairwarp.runner import Simulation
+    from hairwarp.scene import Scene
+
+    device = wp.get_device(device)
+    frames = int(frames or (2 if quick else 4))
+    rounds = int(rounds or (1 if quick else 2))
+    scene = Scene.default()
+    sim = Simulation(scene, device=device)
+    model = sim.model
+    for _ in range(SETTLE_FRAMES):
+        sim.advance_frame()
+    gate = GATE.wait()
+    simulate_s = _median_time(sim.advance_frame, lambda: wp.synchronize_device(device), 3 if quick else 5)
+    cfg = scene.dense
+    results = []
+    with tempfile.TemporaryDirectory(prefix="hairwarp-bench-pipeline-") as tmp:
+        folder = Path(tmp)
+        for n in counts:
+            hair = DenseHair.build(
+                model.rest_vertex_positions, model.root_uv, count=int(n), grid_shape=model.grid_shape,
+                root_normal=model.root_normal, seed=int(cfg.seed), length_variation=float(cfg.length_variation),
+                tip_spread=float(cfg.tip_spread), clumping=float(cfg.clumping),
+                samples_per_segment=int(cfg.samples_per_segment), device=device)
+            for basis in bases:
+                best: dict[str, dict] = {}
+                for _ in range(rounds):
+                    for writer in ("none", "background", "inline"):
+                        row = _pipeline_block(sim, hair, folder, basis, writer, frames, push_out)
+                        if writer not in best or row["frame_s"] < best[writer]["frame_s"]:
+                            best[writer] = row
+                base = best["none"]["frame_s"]
+                bg, inline = best["background"], best["inline"]
+                points = int(hair.curve_vertex_counts(basis == "linear").sum())
+                results.append({
+                    "count": int(n), "basis": basis, "points": points, "load": GATE.wait(),
+                    "output_frame_s": base, "inline": inline, "background": bg,
+                    "inline_write_s": inline["frame_s"] - base, "background_write_s": bg["frame_s"] - base,
+                    "blocked_s": bg["blocked_s"], "writer_own_s": bg["writer_own_s"],
+                    "write_cheaper_than_simulate": bool(bg["frame_s"] - base < simulate_s),
+                    "blocked_cheaper_than_simulate": bool(bg["blocked_s"] < simulate_s),
+                    "writer_cheaper_than_simulate": bool(bg["writer_own_s"] < simulate_s),
+                })
+            del hair
+    return {"device": str(device), "guides": model.strand_count, "segments": model.seg_per_strand,
+            "substeps": int(scene.sim.substeps), "simulate_frame_s": simulate_s, "frames": frames, "rounds": rounds,
+            "load": gate, "results": results}
+
+
+def suite_dense(config, out, log=lambda message: None) -> dict:
+    """The ``dense`` suite of ``hairwarp bench``: the cost of one output frame stage by stage
+    (:func:`bench_dense_frame`) and the end-to-end frame with each writer (:func:`bench_dense_pipeline`), for
+    10,000 and 100,000 dense strands (quick: 1,000), against one simulated frame of the default scene.
+    ``config``: a :class:`hairwarp.benchmarks.common.BenchConfig`."""
+    quick, device = bool(config.quick), config.device
+    counts = (1_000,) if quick else (10_000, 100_000)
+    log(f"dense: one output frame stage by stage, {', '.join(f'{n:,}' for n in counts)} strands")
+    stages = bench_dense_frame(counts=counts, quick=quick, device=device)
+    log("dense: end-to-end frames with no writer, the background writer and the inline writer")
+    pipeline = bench_dense_pipeline(counts=counts, quick=quick, device=device)
+    verdicts = [{k: r[k] for k in ("count", "basis", "write_cheaper_than_simulate", "writer_cheaper_than_simulate")}
+                for r in pipeline["results"]]
+    return {"goal": "writing an output frame costs less than simulating it", "quick": quick, "stages": stages,
+            "pipeline": pipeline, "verdicts": verdicts}
+
+
+def md_dense(data: dict) -> list[str]:
+    """A report section for :func:`suite_dense`'s results."""
+    pipe = data["pipeline"]
+    sim_ms = 1e3 * pipe["simulate_frame_s"]
+    lines = ["## Dense output: writing a frame against simulating it (`hairwarp bench dense`)", "",
+             f"One simulated frame of the default scene ({pipe['guides']} guides x {pipe['segments']} segments, "
+             f"{pipe['substeps']} substeps): **{sim_ms:.1f} ms** on {pipe['device']}. Per output frame, fastest of "
+             f"{pipe['rounds']} blocks of {pipe['frames']} frames; *write* = frame time with the writer less the "
+             "frame time without one (noise can make it negative); *blocked* = time the simulating thread spends in "
+             "the background writer's `write_frame`; *writer process* = extents, convert, set and save in its "
+             "process. Write < simulate: inline / background.", "",
+             "| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | "
+             "background: write [ms] | blocked [ms] | writer process [ms] | write < simulate? |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---|"]
+    for r in pipe["results"]:
+        bg = r["background"]
+        lines.append(
+            f"| {r['count']:,} | {r['basis']} | {bg['bytes_per_frame'] / 1e6:.1f} | {1e3 * r['output_frame_s']:.0f} | "
+            f"{1e3 * r['inline_write_s']:.0f} | {1e3 * r['background_write_s']:.0f} | {1e3 * r['blocked_s']:.0f} | "
+            f"{1e3 * r['writer_own_s']:.0f} | {'yes' if r['inline_write_s'] < pipe['simulate_frame_s'] else 'no'} / "
+            f"{'yes' if r['write_cheaper_than_simulate'] else 'no'} |")
+    lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s.*"]
+    return lines
