@@ -258,9 +258,9 @@ class Simulation:
 
 
 def _cache_writer(scene, out_path, notes: list):
-    """The writer ``output.writer`` asks for: a :class:`hairwarp.usd.BackgroundCacheWriter` (the simulation goes on
-    while a second process converts and saves each frame) or the inline :class:`hairwarp.usd.CacheWriter`; the
-    inline one, with a note, where the background writer cannot run."""
+    """The writer ``output.writer`` asks for: the inline :class:`hairwarp.usd.CacheWriter` or a
+    :class:`hairwarp.usd.BackgroundCacheWriter` (the simulation goes on while a second process converts and saves
+    each frame); the inline one, with a note, where the background writer cannot run."""
     from hairwarp.usd import BackgroundCacheWriter, CacheWriter, background_supported
 
     options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}"}

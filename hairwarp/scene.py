@@ -514,9 +514,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                  range="[0, inf)"),
             "preview": Field("bool", True, "render a preview image next to the cache"),
             "preview_frames": Field("int", 4, "frames shown in the preview (at most sim.frames are)", range="[1, inf)"),
-            "writer": Field("str", "background", "who writes the cache: a second process while the simulation goes on "
-                                                 "(background), or the simulating thread (inline)",
-                            choices=("background", "inline")),
+            "writer": Field("str", "inline", "who writes the cache: the simulating thread (inline), or a second "
+                                             "process while the simulation goes on (background; needs a free core)",
+                            choices=("inline", "background")),
         },
         doc="what a run writes",
     ),

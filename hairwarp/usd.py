@@ -29,11 +29,11 @@ and to the crate's write in ``Sdf.Layer.Save``, bound by the disk (0.3-1.4 GB/s 
 :attr:`CacheWriter.timings` adds them up per phase. Saving every few frames instead of every frame was measured too,
 and is slower for large frames (the unsaved samples pile up in memory), so it is not offered.
 
-Background writing. :class:`BackgroundCacheWriter` (``output.writer = "background"``, the default of
-``hairwarp run``) checks each frame in the caller, copies it into shared memory and returns; a second process
-converts, authors and saves it on another core, so a frame costs about the larger of simulating it and writing it
-instead of their sum. Same file, same guarantees (every frame of a binary layer saved as it comes); measured by
-:func:`hairwarp.benchmarks.dense.bench_dense_pipeline`.
+Background writing. :class:`BackgroundCacheWriter` (``output.writer = "background"`` in a scene) checks each frame
+in the caller, copies it into shared memory and returns; a second process converts, authors and saves it, so with a
+core to spare a frame costs about the larger of simulating it and writing it instead of their sum. Same file, same
+guarantees (every frame of a binary layer saved as it comes). Without a free core it only adds the copy and a second
+usd-core, which is why it is not the default; :func:`hairwarp.benchmarks.dense.bench_dense_pipeline` measures both.
 
 ``pxr`` is imported inside the functions that need it, so ``import hairwarp`` does not load USD.
 """

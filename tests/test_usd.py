@@ -689,3 +689,24 @@ def test_background_process_killed_is_reported(tmp_path):
     (partial,) = tmp_path.glob(".killed.usdc.*.partial.usdc")
     stage = Usd.Stage.Open(str(partial))
     assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0]
+
+
+def test_background_writer_dropped_without_close_ends_its_process(tmp_path):
+    """A writer that is never closed (lost reference, or the interpreter exiting: the same hook runs at exit) ends
+    its process and leaves the frames saved in the temporary file, as the inline writer does."""
+    import gc
+
+    from hairwarp.usd import BackgroundCacheWriter
+
+    cache = BackgroundCacheWriter(tmp_path / "dropped.usdc", fps=24)
+    cache.add_curves("c", np.full(2, 4))
+    for f in range(2):
+        cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
+    cache.flush()
+    proc = cache._proc
+    del cache
+    gc.collect()
+    assert proc.poll() is not None
+    (partial,) = tmp_path.glob(".dropped.usdc.*.partial.usdc")
+    stage = Usd.Stage.Open(str(partial))
+    assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0, 1.0]
