@@ -537,32 +537,38 @@ def mujoco_stable(integrator: str, segments: int, stiffness, joint_damping: floa
     return {"stable": True}
 
 
-def stability_mujoco(req: dict) -> dict:
-    """Largest stable dt per stiffness for MuJoCo integrators, by bisection on the shared log grid."""
+def largest_stable_dt(grid, run) -> dict:
+    """Largest stable step on ``grid`` (ascending [s]) by bisection, ``run(dt) -> {"stable", "why"}`` being one
+    stability run: the row the stability map stores for one stiffness."""
     from hairwarp.benchmarks.stability import bisect_grid
 
+    why = {}
+
+    def probe(idx, items):
+        r = run(grid[idx])
+        why[idx] = r.get("why")
+        return {0: r["stable"]}
+
+    t0 = time.perf_counter()
+    (idx,), tested = bisect_grid(len(grid), 1, probe)
+    above = 0 if idx is None else idx + 1
+    return {"max_stable_dt": None if idx is None else grid[idx], "grid_index": idx, "at_top": idx == len(grid) - 1,
+            "fails_above_because": why.get(above), "probes": len(tested), "wall_s": time.perf_counter() - t0}
+
+
+def stability_mujoco(req: dict) -> dict:
+    """Largest stable dt per stiffness for MuJoCo integrators, by bisection on the shared log grid."""
     grid = [float(x) for x in req["grid"]]
     out = {}
     for integrator in req["integrators"]:
         rows = []
         for ei in req["stiffness"]:
-            why = {}
-
             joint_k = req.get("joint_stiffness", {}).get(f"{ei:g}", ei)
+            def run(dt, integrator=integrator, joint_k=joint_k):
+                return mujoco_stable(integrator, int(req["S"]), joint_k, float(req["joint_damping"]), dt,
+                                     float(req["duration"]))
 
-            def probe(idx, items, integrator=integrator, why=why, joint_k=joint_k):
-                r = mujoco_stable(integrator, int(req["S"]), joint_k, float(req["joint_damping"]), grid[idx],
-                                  float(req["duration"]))
-                why[idx] = r.get("why")
-                return {0: r["stable"]}
-
-            t0 = time.perf_counter()
-            (idx,), tested = bisect_grid(len(grid), 1, probe)
-            above = 0 if idx is None else idx + 1
-            rows.append({"bend_stiffness": ei, "max_stable_dt": None if idx is None else grid[idx],
-                         "grid_index": idx, "at_top": idx == len(grid) - 1,
-                         "fails_above_because": why.get(above), "probes": len(tested),
-                         "wall_s": time.perf_counter() - t0})
+            rows.append({"bend_stiffness": ei, **largest_stable_dt(grid, run)})
         out[integrator] = rows
     return {"results": out}
 
@@ -654,26 +660,11 @@ def newton_vbd_stable(segments: int, joint_stiffness: float, joint_damping: floa
 def stability_newton(req: dict) -> dict:
     """Largest stable dt per bend stiffness EI for Newton's VBD rods (joint stiffness EI / L between segments), by
     bisection on the shared log grid."""
-    from hairwarp.benchmarks.stability import bisect_grid
-
     grid = [float(x) for x in req["grid"]]
     S = int(req["S"])
-    rows = []
-    for ei in req["stiffness"]:
-        why = {}
-
-        def probe(idx, items, ei=ei, why=why):
-            r = newton_vbd_stable(S, float(ei) / (STRAND_LENGTH / S), float(req["joint_damping"]), grid[idx],
-                                  float(req["duration"]))
-            why[idx] = r.get("why")
-            return {0: r["stable"]}
-
-        t0 = time.perf_counter()
-        (idx,), tested = bisect_grid(len(grid), 1, probe)
-        above = 0 if idx is None else idx + 1
-        rows.append({"bend_stiffness": ei, "max_stable_dt": None if idx is None else grid[idx],
-                     "grid_index": idx, "at_top": idx == len(grid) - 1, "fails_above_because": why.get(above),
-                     "probes": len(tested), "wall_s": time.perf_counter() - t0})
+    rows = [{"bend_stiffness": ei, **largest_stable_dt(grid, lambda dt, ei=ei: newton_vbd_stable(
+        S, float(ei) / (STRAND_LENGTH / S), float(req["joint_damping"]), dt, float(req["duration"])))}
+            for ei in req["stiffness"]]
     return {"results": {"newton_vbd": rows}, "grid_used": grid, "duration_s": float(req["duration"])}
 
 

@@ -44,6 +44,15 @@ def dt_grid(bits: int) -> np.ndarray:
     return DT_MIN * (DT_MAX / DT_MIN) ** (np.arange(n + 1) / n)
 
 
+def _log_peer(log, result: dict) -> None:
+    """One line per method of a peer's stability map (or its failure)."""
+    if result.get("status") != "ok":
+        log(f"  {result.get('status')}: {result.get('message', '')[:200]}")
+        return
+    for name, rows in result["results"].items():
+        log(f"  {name}: " + ", ".join(f"{r['bend_stiffness']:g}: {_fmt_dt(r['max_stable_dt'])}" for r in rows))
+
+
 def bisect_grid(n_grid: int, n_items: int, probe):
     """Largest grid index at which each item is stable, assuming stability is monotone in dt.
 
@@ -246,12 +255,7 @@ def suite_stability(cfg, log=lambda msg: None) -> dict:
                     "S": 20, "joint_damping": cfg.stab_joint_damping, "duration": cfg.stab_duration},
                    max(cfg.peer_timeout_s, 600.0))
     res["mujoco"] = mj
-    if mj.get("status") != "ok":
-        log(f"  {mj.get('status')}: {mj.get('message', '')[:200]}")
-    else:
-        for integrator, rws in mj["results"].items():
-            log(f"  {integrator}: " + ", ".join(f"{r['bend_stiffness']:g}: {_fmt_dt(r['max_stable_dt'])}"
-                                                for r in rws))
+    _log_peer(log, mj)
     log("stability vs EI: Newton VBD rods ...")
     nt = run_child({"kind": "stability_newton", "stiffness": list(cfg.stab_newton_stiffness),
                     "grid": [float(g) for g in grid if g >= cfg.stab_newton_min_dt], "min_dt": cfg.stab_newton_min_dt,
@@ -259,11 +263,7 @@ def suite_stability(cfg, log=lambda msg: None) -> dict:
                     "duration": min(cfg.stab_duration, cfg.stab_newton_duration)},
                    max(cfg.peer_timeout_s, 600.0))
     res["newton"] = nt
-    if nt.get("status") != "ok":
-        log(f"  {nt.get('status')}: {nt.get('message', '')[:200]}")
-    else:
-        for name, rws in nt["results"].items():
-            log(f"  {name}: " + ", ".join(f"{r['bend_stiffness']:g}: {_fmt_dt(r['max_stable_dt'])}" for r in rws))
+    _log_peer(log, nt)
     seg_rows = {}
     for integrator in cfg.stab_integrators[:2]:
         log(f"stability vs segments: {integrator} ...")
