@@ -23,6 +23,17 @@ import numpy as np
 SETTLE_FRAMES = 4
 
 
+def _scene_dense(model, cfg, count: int, device):
+    """``count`` dense strands on ``model``'s guides with the scene's ``[dense]`` settings ``cfg``."""
+    from hairwarp.dense import DenseHair
+
+    return DenseHair.build(
+        model.rest_vertex_positions, model.root_uv, count=count, grid_shape=model.grid_shape,
+        root_normal=model.root_normal, seed=int(cfg.seed), length_variation=float(cfg.length_variation),
+        tip_spread=float(cfg.tip_spread), clumping=float(cfg.clumping),
+        samples_per_segment=int(cfg.samples_per_segment), device=device)
+
+
 def _median_time(fn, sync, repeats: int) -> float:
     """Median wall time of ``fn()`` over ``repeats`` calls after one untimed call, synchronised on both ends."""
     fn()
@@ -93,7 +104,6 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
     import warp as wp
 
     from hairwarp.benchmarks.common import GATE
-    from hairwarp.dense import DenseHair
     from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
@@ -118,11 +128,7 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
     with tempfile.TemporaryDirectory(prefix="hairwarp-bench-dense-") as tmp:
         folder = Path(tmp)
         for n in counts:
-            hair = DenseHair.build(
-                model.rest_vertex_positions, model.root_uv, count=int(n), grid_shape=model.grid_shape,
-                root_normal=model.root_normal, seed=int(cfg.seed), length_variation=float(cfg.length_variation),
-                tip_spread=float(cfg.tip_spread), clumping=float(cfg.clumping),
-                samples_per_segment=int(cfg.samples_per_segment), device=device)
+            hair = _scene_dense(model, cfg, int(n), device)
             row = {"count": int(n), "points_per_curve": hair.points_per_curve,
                    "points": int(hair.curve_points.shape[0]), "load": GATE.wait()}
             row["interpolate_s"] = _median_time(lambda h=hair: h.evaluate(x, v, hx, hv, hermite=False), sync, repeats)
@@ -258,7 +264,6 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
     import warp as wp
 
     from hairwarp.benchmarks.common import GATE
-    from hairwarp.dense import DenseHair
     from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
@@ -277,11 +282,7 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
     with tempfile.TemporaryDirectory(prefix="hairwarp-bench-pipeline-") as tmp:
         folder = Path(tmp)
         for n in counts:
-            hair = DenseHair.build(
-                model.rest_vertex_positions, model.root_uv, count=int(n), grid_shape=model.grid_shape,
-                root_normal=model.root_normal, seed=int(cfg.seed), length_variation=float(cfg.length_variation),
-                tip_spread=float(cfg.tip_spread), clumping=float(cfg.clumping),
-                samples_per_segment=int(cfg.samples_per_segment), device=device)
+            hair = _scene_dense(model, cfg, int(n), device)
             for basis in bases:
                 best: dict[str, dict] = {}
                 for _ in range(rounds):
