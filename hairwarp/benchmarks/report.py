@@ -504,6 +504,22 @@ def md_stability(s: dict) -> list[str]:
     return out
 
 
+def _working_set_note(sc: dict) -> list[str]:
+    """Why the largest grid points may cost more per segment: the step's arrays against the last-level cache."""
+    ws = sc.get("working_set")
+    if not ws:
+        return []
+    ex = sc["devices"]["cpu"]["exponents"]["vs_segments"]
+    small = [v for k, v in ex.items() if int(k) < ws["G"] and v is not None]
+    cache = f"this machine's {ws['l3_bytes'] / 2**20:.0f} MiB last-level cache (shared by its cores)" \
+        if ws.get("l3_bytes") else "the last-level cache"
+    return ["", f"A step at {ws['G']} × {ws['S']} works on {ws['bytes'] / 2**20:.1f} MiB of arrays "
+                f"({ws['bytes_per_segment']:.0f} bytes a segment: the model, the solver's workspace, two states), "
+                f"against {cache}: the cost per segment rises as the working set nears the cache's size (other "
+                f"programs use it too), not with the algorithm, which does the same work per segment at every size"
+                + (f"; below {ws['G']} strands the largest exponent against S is {_g(max(small))}." if small else ".")]
+
+
 def md_scaling(sc: dict) -> list[str]:
     ex = sc["devices"]["cpu"]["exponents"]
     pts = sc["devices"]["cpu"]["points"]
@@ -527,6 +543,7 @@ def md_scaling(sc: dict) -> list[str]:
                + "; vs segments "
                + ", ".join(f"{_g(v)}" for v in sc["devices"]["cpu"]["exponents_median"]["vs_segments"].values())
                + "." if "exponents_median" in sc["devices"]["cpu"] else ""),
+            *_working_set_note(sc),
             "", "Other stages (hooks: a module exposes `bench_<stage>(..., device=...)` returning a dict; it is "
             "called when it exists):", "", "| stage | hook | status | figures |", "|---|---|---|---|"]
     for st in sc["stages"]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -76,6 +77,41 @@ def call_hook(module: str, function: str, cfg, device, always_quick: bool = Fals
     return {"status": "ok", "quick": kwargs.get("quick", False), "result": out, "wall_s": time.perf_counter() - t0}
 
 
+def _array_bytes(obj, seen: set) -> int:
+    """Bytes of the Warp arrays an object (or a Warp struct) holds, each array counted once."""
+    import warp as wp
+
+    total = 0
+    values = obj.__dict__.values() if hasattr(obj, "__dict__") else []
+    for v in values:
+        if isinstance(v, wp.array):
+            if id(v) not in seen:
+                seen.add(id(v))
+                total += int(v.capacity)
+        elif hasattr(v, "_cls") or type(v).__name__.startswith(("StrandChains", "SegmentLoads", "AbaScratch")):
+            total += _array_bytes(v, seen)
+    return total
+
+
+def working_set(G: int, S: int) -> dict:
+    """What one step of the scaling test touches: the model's, the solver's and two states' arrays [bytes], per
+    segment and in all, and the machine's last-level cache as the kernel reports it (None where unknown)."""
+    from hairwarp.benchmarks.ours import canonical_model
+    from hairwarp.solver import Solver
+
+    model = canonical_model(G, S, "cpu")
+    solver = Solver(model, INTEGRATOR)
+    seen: set = set()
+    total = sum(_array_bytes(o, seen) for o in (model, solver, model.state(), model.state(), model.control()))
+    l3 = None
+    try:
+        size = Path("/sys/devices/system/cpu/cpu0/cache/index3/size").read_text().strip()
+        l3 = int(size.rstrip("KMG")) * {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}[size[-1]]
+    except (OSError, ValueError, KeyError, IndexError):
+        pass
+    return {"G": G, "S": S, "bytes": total, "bytes_per_segment": total / (G * S), "l3_bytes": l3}
+
+
 def suite_scaling(cfg, log=lambda msg: None) -> dict:
     devices = ["cpu"]
     cuda, cuda_reason = cuda_device(cfg.device)
@@ -112,6 +148,7 @@ def suite_scaling(cfg, log=lambda msg: None) -> dict:
     return {"integrator": INTEGRATOR, "dt": BENCH_DT, "devices": per_device, "max_exponent": worst,
             "exponent_goal": 1.1, "meets": bool(worst <= 1.1),
             "largest": {"G": max(cfg.scale_strands), "S": max(cfg.scale_segments)},
+            "working_set": working_set(max(cfg.scale_strands), max(cfg.scale_segments)),
             "stages": stages, "cuda": {"device": str(cuda) if cuda is not None else None, "reason": cuda_reason},
             "note": "cost = seconds per step, the faster of plain launches and a captured graph; exponents are "
                     "fitted to the fastest timed block of each point (other programs only ever slow a block "
