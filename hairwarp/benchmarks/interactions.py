@@ -321,7 +321,8 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
     if not quick:
         log("interactions: with and without, side by side")
         scene_path = Path(Scene.default_path()).parent / "fast_turn.toml"
-        picture = render_comparison(scene_path, Path(out) / "interactions.png", frame=20, device=device)
+        # t = 2 s: the head turned 90 degrees in 0.4 s and back, and has been still for 1 s
+        picture = render_comparison(scene_path, Path(out) / "interactions.png", frame=60, device=device)
     goal = {label: _goal_row(cost, margin) for label, cost in costs.items()}
     return {"goal_per_dynamics": GOAL_PER_DYNAMICS, "scene_margin": margin, "cost": costs, "goal": goal,
             "stability": stability, "picture": picture, "files": [picture["png"]] if picture else []}

@@ -515,9 +515,11 @@ def _working_set_note(sc: dict) -> list[str]:
         if ws.get("l3_bytes") else "the last-level cache"
     return ["", f"A step at {ws['G']} × {ws['S']} works on {ws['bytes'] / 2**20:.1f} MiB of arrays "
                 f"({ws['bytes_per_segment']:.0f} bytes a segment: the model, the solver's workspace, two states), "
-                f"against {cache}: the cost per segment rises as the working set nears the cache's size (other "
-                f"programs use it too), not with the algorithm, which does the same work per segment at every size"
-                + (f"; below {ws['G']} strands the largest exponent against S is {_g(max(small))}." if small else ".")]
+                f"near {cache}, which other programs use too. The work per segment is the same at every size; "
+                f"where the largest points cost more per segment, it is the cache, and their exponent against S "
+                f"moves between runs by more than the goal's margin"
+                + (f"; below {ws['G']} strands the largest exponent against S is {_g(max(small))} in this run."
+                   if small else ".")]
 
 
 def md_scaling(sc: dict) -> list[str]:
