@@ -146,6 +146,19 @@ def newton_featherstone_model(strands: int, segments: int, roots: np.ndarray, ti
     return builder.finalize(device="cpu")
 
 
+def _cylinder_bodies(builder, bodies, segments: int) -> None:
+    """Give Newton rod bodies the mass, inertia and centred mass of the peers' solid cylinder segments."""
+    import warp as wp
+
+    m, inertia = segment_mass(segments), segment_inertia(segments)
+    for b in bodies:
+        builder.body_mass[b] = m
+        builder.body_inv_mass[b] = 1.0 / m
+        builder.body_inertia[b] = wp.mat33(*np.diag(inertia).reshape(-1).tolist())
+        builder.body_inv_inertia[b] = wp.mat33(*np.diag(1.0 / inertia).reshape(-1).tolist())
+        builder.body_com[b] = wp.vec3(0.0, 0.0, 0.0)
+
+
 def newton_rod_model(strands: int, segments: int, roots: np.ndarray, tilt_deg: float, damping: float,
                      stretch_ke: float = 1.0e5):
     """Newton rods (``add_rod``, VBD joints) with the cylinder mass properties; no collisions.
@@ -156,8 +169,7 @@ def newton_rod_model(strands: int, segments: int, roots: np.ndarray, tilt_deg: f
     import newton
     import warp as wp
 
-    L, m = STRAND_LENGTH / segments, segment_mass(segments)
-    inertia = segment_inertia(segments)
+    L = STRAND_LENGTH / segments
     builder = newton.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
     cfg = newton.ModelBuilder.ShapeConfig(density=1300.0, has_shape_collision=False, has_particle_collision=False)
     verts = straight_strands(roots, segments, tilt_direction(tilt_deg))
@@ -167,12 +179,7 @@ def newton_rod_model(strands: int, segments: int, roots: np.ndarray, tilt_deg: f
         bodies, joints = builder.add_rod(rod=rod, cfg=cfg, stretch_stiffness=stretch_ke, stretch_damping=0.0,
                                          bend_stiffness=0.0, bend_damping=damping, twist_stiffness=0.0,
                                          twist_damping=damping, wrap_in_articulation=False)
-        for b in bodies:
-            builder.body_mass[b] = m
-            builder.body_inv_mass[b] = 1.0 / m
-            builder.body_inertia[b] = wp.mat33(*np.diag(inertia).reshape(-1).tolist())
-            builder.body_inv_inertia[b] = wp.mat33(*np.diag(1.0 / inertia).reshape(-1).tolist())
-            builder.body_com[b] = wp.vec3(0.0, 0.0, 0.0)
+        _cylinder_bodies(builder, bodies, segments)
         root_joint = builder.add_joint_ball(parent=-1, child=bodies[0],
                                             parent_xform=wp.transform(wp.vec3(*roots[g]), wp.quat_identity()),
                                             child_xform=wp.transform(wp.vec3(0.0, 0.0, -L / 2), wp.quat_identity()),
@@ -603,12 +610,7 @@ def newton_vbd_stable(segments: int, joint_stiffness: float, joint_damping: floa
                                      bend_stiffness=joint_stiffness, bend_damping=joint_damping,
                                      twist_stiffness=joint_stiffness, twist_damping=joint_damping,
                                      wrap_in_articulation=False)
-    for b in bodies:
-        builder.body_mass[b] = m
-        builder.body_inv_mass[b] = 1.0 / m
-        builder.body_inertia[b] = wp.mat33(*np.diag(inertia).reshape(-1).tolist())
-        builder.body_inv_inertia[b] = wp.mat33(*np.diag(1.0 / inertia).reshape(-1).tolist())
-        builder.body_com[b] = wp.vec3(0.0, 0.0, 0.0)
+    _cylinder_bodies(builder, bodies, segments)
     root = builder.add_joint_ball(parent=-1, child=bodies[0], parent_xform=wp.transform_identity(),
                                   child_xform=wp.transform(wp.vec3(0.0, 0.0, -L / 2), wp.quat_identity()),
                                   armature=0.0, friction=0.0, damping=joint_damping)
