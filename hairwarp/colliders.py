@@ -181,6 +181,7 @@ class Collider:
     kind: ColliderKind
     radius: float = 0.0
     half_height: float = 0.0
+    radii: Any = None
     mesh: Any = None
     local_xform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     attach: str = "head"
@@ -210,6 +211,11 @@ class Collider:
             raise ColliderError(f"{what}: radius must be > 0, got {self.radius}")
         if self.kind == ColliderKind.MESH:
             self._check_mesh(what)
+        if self.kind == ColliderKind.ELLIPSOID:
+            r = np.asarray(self.radii if self.radii is not None else (), dtype=float)
+            if r.shape != (3,) or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
+                raise ColliderError(f"{what}: radii must be three numbers > 0, got {self.radii!r}")
+            self.radii = r
 
     def _check_mesh(self, what: str):
         import trimesh
@@ -304,14 +310,20 @@ class Collider:
         return cls.from_trimesh(mesh, name=path.stem if name is None else name, **options)
 
     @classmethod
-    def ellipsoid(cls, center=(0.0, 0.0, 0.0), radii=(0.09, 0.1, 0.115), subdivisions: int = 3, *,
+    def ellipsoid(cls, center=(0.0, 0.0, 0.0), radii=(0.09, 0.1, 0.115), subdivisions: int | None = None, *,
                   name: str = "head", **options) -> Collider:
-        """A closed mesh ellipsoid (a scaled icosphere), e.g. a generated head; ``radii`` [m] along x, y, z."""
+        """An ellipsoid, e.g. a generated head; ``radii`` [m] along x, y, z.
+
+        Analytic by default (exact closest points by a few Newton steps, a closed-form swept test); with
+        ``subdivisions`` a closed mesh instead, the icosphere of that many subdivisions scaled to ``radii``.
+        """
         import trimesh
 
         r = np.asarray(radii, dtype=float)
         if r.shape != (3,) or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
             raise ColliderError(f"collider {name!r}: radii must be three numbers > 0, got {radii!r}")
+        if subdivisions is None:
+            return cls(name=name, kind=ColliderKind.ELLIPSOID, radii=r, local_xform=_translation(center), **options)
         sphere = trimesh.creation.icosphere(subdivisions=int(subdivisions))
         mesh = trimesh.Trimesh(vertices=sphere.vertices * r, faces=sphere.faces, process=False)
         return cls.from_trimesh(mesh, local_xform=_translation(center), name=name, **options)
@@ -323,7 +335,8 @@ class ColliderSet:
     Device arrays (one entry per collider, built once): ``collider_kind``, ``collider_attach`` (1 = head),
     ``collider_local_xform``, ``collider_radius``, ``collider_half_height``, ``collider_thickness``,
     ``collider_friction``, ``collider_mesh`` (``wp.Mesh`` ids, 0 for primitives), ``collider_bound_lo`` and
-    ``collider_bound_hi`` (mesh bounds, local frame), ``collider_far`` (unbounded query distance [m]);
+    ``collider_bound_hi`` (mesh bounds, local frame; an ellipsoid's -radii and radii), ``collider_far``
+    (unbounded query distance [m]);
     per step ``collider_xform`` (world pose) and ``collider_velocity`` (world angular, linear velocity of
     the collider origin), rewritten in place by ``set_pose`` and ``update``. The projection reads a
     head-attached collider's pose from ``Control.head_xform`` and ``head_velocity`` on the device, so a
@@ -374,6 +387,9 @@ class ColliderSet:
                 bound_hi[i] = points.max(axis=0)
                 # Farther than any inside point can be from the surface, so the unbounded query is exact.
                 far[i] = 10.0 * float(np.linalg.norm(bound_hi[i] - bound_lo[i])) + 10.0
+            elif col.kind == ColliderKind.ELLIPSOID:
+                bound_lo[i] = -col.radii  # the kernels read an ellipsoid's semi-axes from its bounds
+                bound_hi[i] = col.radii
             self.meshes.append(mesh)
 
         def arr(values, dtype):

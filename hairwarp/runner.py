@@ -295,6 +295,9 @@ def _display_mesh(col) -> tuple[np.ndarray, np.ndarray]:
         mesh = trimesh.creation.icosphere(subdivisions=3, radius=col.radius)
     elif col.kind == ColliderKind.CAPSULE:
         mesh = trimesh.creation.capsule(height=2.0 * col.half_height, radius=col.radius, count=[16, 16])
+    elif col.kind == ColliderKind.ELLIPSOID:
+        sphere = trimesh.creation.icosphere(subdivisions=4)
+        mesh = trimesh.Trimesh(vertices=sphere.vertices * col.radii, faces=sphere.faces, process=False)
     else:
         mesh = trimesh.creation.box(extents=(1.0, 1.0, 1e-3))  # a 1 m square of the plane z = 0
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)

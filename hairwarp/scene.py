@@ -403,8 +403,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
     ),
     "head": Section(
         {
-            "shape": Field("str", "ellipsoid", "collision shape of the head: an ellipsoid mesh, an analytic sphere, "
-                                              "a mesh file, or none", choices=("ellipsoid", "sphere", "mesh", "none")),
+            "shape": Field("str", "ellipsoid", "collision shape of the head: an analytic ellipsoid or sphere, a "
+                                              "mesh file, or none", choices=("ellipsoid", "sphere", "mesh", "none")),
             "center": Field("vec3", None, "centre of the head shape, world; default: the scalp centre", "m"),
             "radii": Field("vec3", None, "semi-axes of the head shape; default: the scalp radii", "m",
                            range="(0, inf)"),

@@ -116,6 +116,76 @@ def sphere_surface(x: wp.vec3, radius: float):
     return _surface_point(1, r - radius, radius * n, n)
 
 
+# Safeguarded Newton steps of the ellipsoid's closest point: quadratic convergence from a bracket; 32 steps halve the
+# bracket at least 32 times where Newton would leave it.
+ELLIPSOID_ITERATIONS = wp.constant(32)
+
+
+@wp.func
+def _ellipsoid_secular(t: float, ay: wp.vec3, a2: wp.vec3):
+    """F(t) = sum (a_i y_i / (t + a_i^2))^2 - 1 and dF/dt."""
+    r = wp.vec3(ay[0] / (t + a2[0]), ay[1] / (t + a2[1]), ay[2] / (t + a2[2]))
+    f = wp.dot(r, r) - 1.0
+    df = -2.0 * (r[0] * r[0] / (t + a2[0]) + r[1] * r[1] / (t + a2[1]) + r[2] * r[2] / (t + a2[2]))
+    return f, df
+
+
+@wp.func
+def ellipsoid_surface(x: wp.vec3, radii: wp.vec3):
+    """Closest point on the ellipsoid of semi-axes ``radii`` centred at the origin: signed distance (negative
+    inside), point, outward normal.
+
+    The closest point to y = |x| (componentwise) is z_i = a_i^2 y_i / (t + a_i^2), with t the root of
+    F(t) = sum (a_i y_i / (t + a_i^2))^2 - 1, which decreases for t > -min a_i^2 (Eberly, *Distance from a point to
+    an ellipse, an ellipsoid, or a hyperellipsoid*): t > 0 outside, t < 0 inside. Newton steps inside a shrinking
+    bracket, bisection where a step would leave it; the point is then scaled onto the surface, which also places
+    the rare inside point of a symmetry plane (no root) on it.
+    """
+    y = wp.vec3(wp.abs(x[0]), wp.abs(x[1]), wp.abs(x[2]))
+    a2 = wp.cw_mul(radii, radii)
+    ay = wp.cw_mul(radii, y)
+    q = wp.vec3(y[0] / radii[0], y[1] / radii[1], y[2] / radii[2])
+    outside = wp.dot(q, q) >= 1.0
+    lo = float(0.0)
+    hi = float(0.0)
+    if outside:
+        hi = wp.length(ay)
+    else:
+        lo = -wp.min(wp.min(a2[0], a2[1]), a2[2]) * (1.0 - 1.0e-6)
+    t = float(0.0)
+    if not outside:
+        t = 0.5 * lo
+    for _ in range(ELLIPSOID_ITERATIONS):
+        f, df = _ellipsoid_secular(t, ay, a2)
+        if f > 0.0:
+            lo = t
+        else:
+            hi = t
+        if wp.abs(f) <= 1.0e-7 or hi - lo <= 1.0e-12:
+            break
+        step = t - f / df
+        if df < 0.0 and step > lo and step < hi:
+            t = step
+        else:
+            t = 0.5 * (lo + hi)
+    z = wp.vec3(a2[0] * y[0] / (t + a2[0]), a2[1] * y[1] / (t + a2[1]), a2[2] * y[2] / (t + a2[2]))
+    g = wp.vec3(z[0] / radii[0], z[1] / radii[1], z[2] / radii[2])
+    gl = wp.length(g)
+    if gl > TINY_LENGTH:
+        z = z / gl
+    p = wp.vec3(wp.sign(x[0]) * z[0], wp.sign(x[1]) * z[1], wp.sign(x[2]) * z[2])
+    n = wp.vec3(p[0] / a2[0], p[1] / a2[1], p[2] / a2[2])
+    nl = wp.length(n)
+    if nl > TINY_LENGTH:
+        n = n / nl
+    else:
+        n = wp.vec3(0.0, 0.0, 1.0)
+    d = wp.length(x - p)
+    if not outside:
+        d = -d
+    return _surface_point(1, d, p, n)
+
+
 @wp.func
 def capsule_surface(x: wp.vec3, radius: float, half_height: float):
     """Closest point on a capsule: ``radius`` around the z segment ``[-half_height, half_height]``."""
@@ -193,6 +263,8 @@ def collider_surface(kind: int, radius: float, half_height: float, mesh: wp.uint
         return capsule_surface(x, radius, half_height)
     if kind == ColliderKind.PLANE:
         return plane_surface(x)
+    if kind == ColliderKind.ELLIPSOID:
+        return ellipsoid_surface(x, bound_hi)
     return mesh_surface(mesh, x, bound_lo, bound_hi, max_dist, far, outside_known)
 
 
@@ -215,12 +287,14 @@ def _sphere_entry(a: wp.vec3, d: wp.vec3, center: wp.vec3, radius: float):
 
 
 @wp.func
-def segment_entry(kind: int, radius: float, half_height: float, mesh: wp.uint64, a: wp.vec3, b: wp.vec3):
+def segment_entry(kind: int, radius: float, half_height: float, mesh: wp.uint64, radii: wp.vec3, a: wp.vec3,
+                  b: wp.vec3):
     """Where the segment from ``a`` (outside) to ``b`` first enters a collider (local frame).
 
     ``found`` = 1 with ``distance`` = the segment parameter in [0, 1], ``point`` the entry point and
-    ``normal`` the outward normal there; 0 when the segment does not enter (or ``a`` is inside). Sphere
-    and capsule in closed form; a closed mesh by one ray, whose first hit must be a face's front.
+    ``normal`` the outward normal there; 0 when the segment does not enter (or ``a`` is inside). Sphere,
+    capsule and ellipsoid (``radii``: a unit sphere after scaling, which keeps the segment's parameter) in closed
+    form; a closed mesh by one ray, whose first hit must be a face's front.
     """
     d = b - a
     t = float(2.0)
@@ -245,6 +319,12 @@ def segment_entry(kind: int, radius: float, half_height: float, mesh: wp.uint64,
                 if ts < t:
                     t = ts
                     n = wp.normalize(a + t * d - cap)
+    elif kind == ColliderKind.ELLIPSOID:
+        inv = wp.vec3(1.0 / radii[0], 1.0 / radii[1], 1.0 / radii[2])
+        t = _sphere_entry(wp.cw_mul(a, inv), wp.cw_mul(d, inv), wp.vec3(0.0), 1.0)
+        if t <= 1.0:
+            e = a + t * d
+            n = wp.normalize(wp.cw_mul(e, wp.cw_mul(inv, inv)))
     elif kind == ColliderKind.MESH:
         length = wp.length(d)
         if length > TINY_LENGTH:
@@ -496,8 +576,8 @@ def collide_strands(
             # A mesh casts its ray only when the path can have met the surface: the vertex is inside,
             # or it moved further than its distance to the surface.
             if sweep != 0 and (kind != ColliderKind.MESH or s.distance < 0.0 or reach > s.distance):
-                e = segment_entry(kind, collider_radius[c], collider_half_height[c], collider_mesh[c], x_before,
-                                  x_local)
+                e = segment_entry(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
+                                  collider_bound_hi[c], x_before, x_local)
                 if e.found != 0:
                     # Resolve on the side the vertex came in from: the push starts from the tangent
                     # plane at the entry point, not from the nearest surface point (the far side when

@@ -53,9 +53,11 @@ class ColliderKind(enum.IntEnum):
         CAPSULE: segment from ``-half_height`` to ``+half_height`` along local z, ``radius``.
         PLANE: local z = 0, normal +z; the half-space z < 0 is inside.
         MESH: a closed triangle mesh in a ``wp.Mesh``.
+        ELLIPSOID: centre at the collider origin, semi-axes ``radii`` along local x, y, z (the collider's bounds).
     """
 
     SPHERE = 0
     CAPSULE = 1
     PLANE = 2
     MESH = 3
+    ELLIPSOID = 4

@@ -177,3 +177,25 @@ def segment_distances(p0, p1, q0, q1):
     inside = ok & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
     perp = np.linalg.norm((p0 + s[:, None] * d1) - (q0 + t[:, None] * d2), axis=1)
     return np.where(inside, np.minimum(best, perp), best)
+
+
+def ellipsoid_closest(points, radii):
+    """Float64 closest points on the ellipsoid of semi-axes ``radii`` centred at the origin, and signed distances
+    (negative inside), by bisection on the root t of sum (a_i y_i / (t + a_i^2))^2 = 1 (y = |p|): 200 halvings of
+    a bracket that holds it, [0, |a y|] outside and (-min a_i^2, 0) inside. Independent of the kernel's Newton
+    steps."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(radii, dtype=np.float64)
+    y, a2 = np.abs(p), r * r
+    ay = r * y
+    outside = np.sum((y / r) ** 2, axis=1) >= 1.0
+    lo = np.where(outside, 0.0, -a2.min() * (1.0 - 1e-15))
+    hi = np.where(outside, np.linalg.norm(ay, axis=1), 0.0)
+    for _ in range(200):
+        t = 0.5 * (lo + hi)
+        f = np.sum((ay / (t[:, None] + a2)) ** 2, axis=1) - 1.0
+        lo, hi = np.where(f > 0.0, t, lo), np.where(f > 0.0, hi, t)
+    z = a2 * y / ((0.5 * (lo + hi))[:, None] + a2)
+    closest = np.sign(p) * z
+    d = np.linalg.norm(p - closest, axis=1)
+    return closest, np.where(outside, d, -d)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
+from _reference import ellipsoid_closest
 from scipy.spatial.transform import Rotation
 
 import hairwarp as hw
@@ -129,6 +130,8 @@ def collider_signed(collider, points, head):
         return mesh_signed(collider.mesh, local)
     if collider.kind == ColliderKind.SPHERE:
         return np.linalg.norm(local, axis=1) - collider.radius
+    if collider.kind == ColliderKind.ELLIPSOID:
+        return ellipsoid_closest(local, collider.radii)[1]
     if collider.kind == ColliderKind.CAPSULE:
         axis = np.zeros_like(local)
         axis[:, 2] = np.clip(local[:, 2], -collider.half_height, collider.half_height)

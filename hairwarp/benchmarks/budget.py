@@ -2,8 +2,8 @@
 
 For each shipped scene a REFERENCE run at the most faithful settings (more segments and substeps than the
 scene ships, its colliders and interactions as designed) is compared with variants that change ONE
-modelling choice at a time: ``sim.segments``, ``sim.substeps``, the head collider (the analytic sphere
-against triangle meshes of the ellipsoid), a capsule as a mesh, static links and contacts off, and the
+modelling choice at a time: ``sim.segments``, ``sim.substeps``, the head collider (the analytic ellipsoid
+against triangle meshes of it and the analytic sphere), a capsule as a mesh, static links and contacts off, and the
 dense strand count. Each variant gets
 
 - a cost: CPU seconds per simulated frame, the median of its frame times after ``WARMUP_FRAMES`` (kernel
@@ -40,7 +40,7 @@ import numpy as np
 # A guide tip within 1 cm of the reference's stays among its own wisp's dense strands: guides are about 1 cm
 # apart on the generated scalps, the dense hair between them is interpolated, and its tips scatter by
 # dense.tip_spread = 5 mm besides. A tighter bound would judge the reference's own spread: equally faithful
-# settings (the head as a 1280- or a 5120-triangle ellipsoid; 20 or 24 segments) differ by 5-7 mm.
+# settings (the head as a 1280- or a 5120-triangle ellipsoid mesh; 20 or 24 segments) differed by 5-7 mm.
 TIP_BOUND_M = 1.0e-2
 # 95 % of the silhouette's pixels shared: a difference of one pixel (4 mm) along an outline of a few
 # hundred pixels is some 1-3 % of the area of a head of hair, so 5 % is a visible but small change.
@@ -336,11 +336,15 @@ def _vec(v) -> str:
     return "[" + ", ".join(f"{float(x):.9g}" for x in v) + "]"
 
 
-def _head_options(scene, folder: Path, subdivisions=(2, 4)) -> list:
-    """The head as the analytic sphere of its x semi-axis, and as icospheres scaled to its radii."""
+HEAD_SHIPPED = "analytic ellipsoid (shipped)"
+
+
+def _head_options(scene, folder: Path, subdivisions=(2, 3, 4)) -> list:
+    """The head as the analytic ellipsoid it ships, as icospheres scaled to its radii, and as the analytic sphere of
+    its x semi-axis."""
     head = scene.head
     r = tuple(head.radii)
-    opts = [("ellipsoid mesh, 1280 triangles (shipped)", [])]
+    opts = [(HEAD_SHIPPED, [])]
     for sub in subdivisions:
         path, faces = _ellipsoid_mesh_file(folder, r, sub)
         opts.append((f"ellipsoid mesh, {faces} triangles",
@@ -398,8 +402,8 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
         out.append(Plan("long_hair", path, ref24, 0.4 if quick else 1.3, [
             segments(sh["segments"], 24, (8,) if quick else (8, 12, 16, 20, 31)),
             substeps(sh["substeps"], 16, (4,) if quick else (2, 4, 8)),
-            *([] if quick else [Choice("head collider", "head.shape", _head_options(sc, folder, (2, 4)),
-                                       "ellipsoid mesh, 1280 triangles (shipped)")]),
+            *([] if quick else [Choice("head collider", "head.shape", _head_options(sc, folder, (2, 3, 4)),
+                                       HEAD_SHIPPED)]),
             dense(sh["dense"], (1000,) if quick else (1000, 3000, 10000)),
         ], base=["groom.count=60"] if quick else [],
             notes=["1.3 s: still, then the turn to the side and most of the way back"]
@@ -412,8 +416,7 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
         choices = [substeps(sh["substeps"], 16, () if quick else (2, 4, 8))]
         if not quick:
             choices.insert(0, segments(sh["segments"], 24, (8, 12, 16, 20)))
-            choices.append(Choice("head collider", "head.shape", _head_options(sc, folder, (2,)),
-                                  "ellipsoid mesh, 1280 triangles (shipped)"))
+            choices.append(Choice("head collider", "head.shape", _head_options(sc, folder, (3,)), HEAD_SHIPPED))
         choices.append(Choice("shoulder collider", "colliders[0].kind", [
             ("analytic capsule (shipped)", []),
             (f"capsule mesh, {cap_faces} triangles", ['colliders[0].kind="mesh"', f'colliders[0].file="{cap_path}"']),
