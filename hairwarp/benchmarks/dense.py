@@ -23,6 +23,23 @@ import numpy as np
 SETTLE_FRAMES = 4
 
 
+def _settled_default_scene(device, repeats: int):
+    """The default scene ``SETTLE_FRAMES`` frames in, and the median wall time of one more simulated frame:
+    ``(scene, simulation, quiet-gate record, seconds)``."""
+    import warp as wp
+
+    from hairwarp.benchmarks.common import GATE
+    from hairwarp.runner import Simulation
+    from hairwarp.scene import Scene
+
+    scene = Scene.default()
+    sim = Simulation(scene, device=device)
+    for _ in range(SETTLE_FRAMES):
+        sim.advance_frame()
+    gate = GATE.wait()
+    return scene, sim, gate, _median_time(sim.advance_frame, lambda: wp.synchronize_device(device), repeats)
+
+
 def _scene_dense(model, cfg, count: int, device):
     """``count`` dense strands on ``model``'s guides with the scene's ``[dense]`` settings ``cfg``."""
     from hairwarp.dense import DenseHair
@@ -104,8 +121,6 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
     import warp as wp
 
     from hairwarp.benchmarks.common import GATE
-    from hairwarp.runner import Simulation
-    from hairwarp.scene import Scene
 
     device = wp.get_device(device)
     repeats = int(repeats or (2 if quick else 5))
@@ -113,13 +128,8 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
     def sync():
         wp.synchronize_device(device)
 
-    scene = Scene.default()
-    sim = Simulation(scene, device=device)
+    scene, sim, gate, simulate_s = _settled_default_scene(device, repeats)
     model = sim.model
-    for _ in range(SETTLE_FRAMES):
-        sim.advance_frame()
-    gate = GATE.wait()
-    simulate_s = _median_time(sim.advance_frame, sync, repeats)
     cfg = scene.dense
     fps = float(scene.sim.fps)
     x, v = sim.state.vertex_positions, sim.state.vertex_velocities
@@ -264,19 +274,12 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
     import warp as wp
 
     from hairwarp.benchmarks.common import GATE
-    from hairwarp.runner import Simulation
-    from hairwarp.scene import Scene
 
     device = wp.get_device(device)
     frames = int(frames or (2 if quick else 4))
     rounds = int(rounds or (1 if quick else 2))
-    scene = Scene.default()
-    sim = Simulation(scene, device=device)
+    scene, sim, gate, simulate_s = _settled_default_scene(device, 3 if quick else 5)
     model = sim.model
-    for _ in range(SETTLE_FRAMES):
-        sim.advance_frame()
-    gate = GATE.wait()
-    simulate_s = _median_time(sim.advance_frame, lambda: wp.synchronize_device(device), 3 if quick else 5)
     cfg = scene.dense
     results = []
     with tempfile.TemporaryDirectory(prefix="hairwarp-bench-pipeline-") as tmp:
