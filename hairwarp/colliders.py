@@ -332,12 +332,9 @@ class Collider:
 class ColliderSet:
     """Colliders on the device and the per-step strand projection.
 
-    Device arrays (one entry per collider, built once): ``collider_kind``, ``collider_attach`` (1 = head),
-    ``collider_local_xform``, ``collider_radius``, ``collider_half_height``, ``collider_thickness``,
-    ``collider_friction``, ``collider_mesh`` (``wp.Mesh`` ids, 0 for primitives), ``collider_bound_lo`` and
-    ``collider_bound_hi`` (mesh bounds, local frame; an ellipsoid's -radii and radii), ``collider_far``
-    (unbounded query distance [m]);
-    per step ``collider_xform`` (world pose) and ``collider_velocity`` (world angular, linear velocity of
+    Device arrays: ``shapes``, a ``hairwarp.kernels.body_collision.ColliderShapes`` of one entry per collider
+    (kind, attachment, local pose, sizes, contact layer, friction, mesh id and bounds), built once; per step
+    ``collider_xform`` (world pose) and ``collider_velocity`` (world angular, linear velocity of
     the collider origin), rewritten in place by ``set_pose`` and ``update``. The projection reads a
     head-attached collider's pose from ``Control.head_xform`` and ``head_velocity`` on the device, so a
     captured step follows the head without host updates; for such colliders the two per-step arrays only
@@ -395,19 +392,27 @@ class ColliderSet:
         def arr(values, dtype):
             return wp.array(values, dtype=dtype, device=self.device)
 
-        self.collider_kind = arr(np.array([int(c.kind) for c in self.colliders], dtype=np.int32), wp.int32)
-        self.collider_attach = arr(np.array([c.attach == "head" for c in self.colliders], dtype=np.int32), wp.int32)
-        self.collider_local_xform = arr(
+        from hairwarp.kernels.body_collision import ColliderShapes
+
+        def per_collider(key):
+            return np.array([getattr(c, key) for c in self.colliders], dtype=np.float32)
+
+        shapes = ColliderShapes()
+        shapes.count = count
+        shapes.kind = arr(np.array([int(c.kind) for c in self.colliders], dtype=np.int32), wp.int32)
+        shapes.attach = arr(np.array([c.attach == "head" for c in self.colliders], dtype=np.int32), wp.int32)
+        shapes.local_xform = arr(
             np.array([matrix_to_transform(c.local_xform) for c in self.colliders], dtype=np.float32).reshape(count, 7),
             wp.transform)
-        self.collider_radius = arr(np.array([c.radius for c in self.colliders], dtype=np.float32), float)
-        self.collider_half_height = arr(np.array([c.half_height for c in self.colliders], dtype=np.float32), float)
-        self.collider_thickness = arr(np.array([c.thickness for c in self.colliders], dtype=np.float32), float)
-        self.collider_friction = arr(np.array([c.friction for c in self.colliders], dtype=np.float32), float)
-        self.collider_mesh = arr(mesh_ids, wp.uint64)
-        self.collider_bound_lo = arr(bound_lo, wp.vec3)
-        self.collider_bound_hi = arr(bound_hi, wp.vec3)
-        self.collider_far = arr(far, float)
+        shapes.radius = arr(per_collider("radius"), float)
+        shapes.half_height = arr(per_collider("half_height"), float)
+        shapes.thickness = arr(per_collider("thickness"), float)
+        shapes.friction = arr(per_collider("friction"), float)
+        shapes.mesh = arr(mesh_ids, wp.uint64)
+        shapes.bound_lo = arr(bound_lo, wp.vec3)
+        shapes.bound_hi = arr(bound_hi, wp.vec3)
+        shapes.far = arr(far, float)
+        self.shapes = shapes
         self.collider_xform = arr(self._xform_host, wp.transform)
         self.collider_velocity = arr(self._velocity_host, wp.spatial_vector)
         self._no_previous = wp.zeros(1, dtype=wp.vec3, device=self.device)
@@ -502,9 +507,7 @@ class ColliderSet:
         nrm = wp.empty((n, self.count), dtype=wp.vec3, device=self.device)
         if n and self.count:
             wp.launch(collider_distances, dim=(n, self.count), device=self.device, inputs=[
-                self.collider_kind, self.collider_attach, self.collider_local_xform, self.collider_radius,
-                self.collider_half_height, self.collider_mesh, self.collider_bound_lo, self.collider_bound_hi,
-                self.collider_far, self.collider_xform, self.collider_velocity,
+                self.shapes, self.collider_xform, self.collider_velocity,
                 wp.array(matrix_to_transform(head)[None].astype(np.float32), dtype=wp.transform, device=self.device),
                 wp.zeros(1, dtype=wp.spatial_vector, device=self.device),
                 wp.array(pts, dtype=wp.vec3, device=self.device),
@@ -555,10 +558,8 @@ class ColliderSet:
             raise RuntimeError("ColliderSet.project: call bind(model) with this model first (at setup)")
         wp.launch(collide_strands, dim=model.strand_count, device=self.device, inputs=[
             model.seg_per_strand, model.seg_length, model.strand_root_pos,
-            self.count, int(self.swept), self.collider_kind, self.collider_attach, self.collider_local_xform,
-            self.collider_radius, self.collider_half_height, self.collider_thickness, self.collider_friction,
-            self.collider_mesh, self.collider_bound_lo, self.collider_bound_hi, self.collider_far,
-            self.collider_xform, self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
+            int(self.swept), self.shapes, self.collider_xform, self.collider_velocity, control.head_xform,
+            control.head_velocity, dt_array,
             int(state_in is not None), self._no_previous if state_in is None else state_in.vertex_positions,
             self.vert_exempt,
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,

@@ -404,18 +404,49 @@ def _contact_velocity(v: wp.vec3, v_object: wp.vec3, n: wp.vec3, friction: float
     return out + (1.0 - budget / slip) * tangential
 
 
+@wp.struct
+class ColliderShapes:
+    """The colliders' fixed description, one entry per collider (``hairwarp.ColliderSet`` builds it): ``count``;
+    ``kind`` (``ColliderKind``), ``attach`` (1 = head), ``local_xform``, ``radius``, ``half_height``,
+    ``thickness`` [m] of the contact layer, ``friction``, ``mesh`` (``wp.Mesh`` id, 0 for primitives),
+    ``bound_lo`` and ``bound_hi`` (mesh bounds in the local frame; an ellipsoid's -radii and radii) and ``far``
+    (the unbounded query distance of a mesh [m])."""
+
+    count: int
+    kind: wp.array(dtype=wp.int32)
+    attach: wp.array(dtype=wp.int32)
+    local_xform: wp.array(dtype=wp.transform)
+    radius: wp.array(dtype=float)
+    half_height: wp.array(dtype=float)
+    thickness: wp.array(dtype=float)
+    friction: wp.array(dtype=float)
+    mesh: wp.array(dtype=wp.uint64)
+    bound_lo: wp.array(dtype=wp.vec3)
+    bound_hi: wp.array(dtype=wp.vec3)
+    far: wp.array(dtype=float)
+
+
+@wp.func
+def shape_surface(shapes: ColliderShapes, c: int, x: wp.vec3, max_dist: float, outside_known: int):
+    """``collider_surface`` of collider ``c`` at the local point ``x``."""
+    return collider_surface(shapes.kind[c], shapes.radius[c], shapes.half_height[c], shapes.mesh[c],
+                            shapes.bound_lo[c], shapes.bound_hi[c], shapes.far[c], x, max_dist, outside_known)
+
+
+@wp.func
+def shape_motion(shapes: ColliderShapes, c: int, collider_xform: wp.array(dtype=wp.transform),
+                 collider_velocity: wp.array(dtype=wp.spatial_vector), X_head: wp.transform,
+                 V_head: wp.spatial_vector):
+    """``collider_world_motion`` of collider ``c``: its world pose and velocity now."""
+    X, vel = collider_world_motion(shapes.attach[c], shapes.local_xform[c], collider_xform[c],
+                                   collider_velocity[c], X_head, V_head)
+    return X, vel
+
+
 @wp.kernel
 def collider_distances(
     # Model:
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_attach: wp.array(dtype=wp.int32),
-    collider_local_xform: wp.array(dtype=wp.transform),
-    collider_radius: wp.array(dtype=float),
-    collider_half_height: wp.array(dtype=float),
-    collider_mesh: wp.array(dtype=wp.uint64),
-    collider_bound_lo: wp.array(dtype=wp.vec3),
-    collider_bound_hi: wp.array(dtype=wp.vec3),
-    collider_far: wp.array(dtype=float),
+    shapes: ColliderShapes,
     # Control:
     collider_xform: wp.array(dtype=wp.transform),
     collider_velocity: wp.array(dtype=wp.spatial_vector),
@@ -431,14 +462,12 @@ def collider_distances(
     """One thread per (point, collider): exact signed distance [m], closest point [m] and outward normal.
 
     World frame in and out. Used at setup (which rest vertices start inside) and by diagnostics; the
-    mesh query is unbounded here (``collider_far``), so every entry is exact.
+    mesh query is unbounded here (``shapes.far``), so every entry is exact.
     """
     p, c = wp.tid()
-    X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
-                                   collider_velocity[c], head_xform[0], head_velocity[0])
+    X, vel = shape_motion(shapes, c, collider_xform, collider_velocity, head_xform[0], head_velocity[0])
     x_local = wp.transform_point(wp.transform_inverse(X), points[p])
-    s = collider_surface(collider_kind[c], collider_radius[c], collider_half_height[c], collider_mesh[c],
-                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local, collider_far[c], 0)
+    s = shape_surface(shapes, c, x_local, shapes.far[c], 0)
     distance_out[p, c] = s.distance
     closest_out[p, c] = wp.transform_point(X, s.point)
     normal_out[p, c] = wp.transform_vector(X, s.normal)
@@ -450,19 +479,8 @@ def collide_strands(
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
     strand_root_pos: wp.array(dtype=wp.vec3),
-    collider_count: int,
     swept: int,
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_attach: wp.array(dtype=wp.int32),
-    collider_local_xform: wp.array(dtype=wp.transform),
-    collider_radius: wp.array(dtype=float),
-    collider_half_height: wp.array(dtype=float),
-    collider_thickness: wp.array(dtype=float),
-    collider_friction: wp.array(dtype=float),
-    collider_mesh: wp.array(dtype=wp.uint64),
-    collider_bound_lo: wp.array(dtype=wp.vec3),
-    collider_bound_hi: wp.array(dtype=wp.vec3),
-    collider_far: wp.array(dtype=float),
+    shapes: ColliderShapes,
     # Control:
     collider_xform: wp.array(dtype=wp.transform),
     collider_velocity: wp.array(dtype=wp.spatial_vector),
@@ -525,14 +543,13 @@ def collide_strands(
         pushed = int(0)
         exempt = vert_exempt[vi]
         exempt_new = exempt
-        for c in range(collider_count):
+        for c in range(shapes.count):
             bit = int(0)
             if c < MAX_EXEMPT_COLLIDERS:
                 bit = 1 << c
-            thickness = collider_thickness[c]
-            kind = collider_kind[c]
-            X, vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
-                                           collider_velocity[c], X_head, V_head)
+            thickness = shapes.thickness[c]
+            kind = shapes.kind[c]
+            X, vel = shape_motion(shapes, c, collider_xform, collider_velocity, X_head, V_head)
             origin = wp.transform_get_translation(X)
             v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
             X_inv = wp.transform_inverse(X)
@@ -563,9 +580,7 @@ def collide_strands(
             outside_known = int(0)
             if bound > -max_dist:
                 outside_known = 1
-            s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                 collider_bound_lo[c], collider_bound_hi[c], collider_far[c],
-                                 x_local, max_dist, outside_known)
+            s = shape_surface(shapes, c, x_local, max_dist, outside_known)
             if (exempt_new & bit) != 0:
                 # Inside at rest: left alone until first seen clear of the contact layer.
                 if s.distance >= thickness:
@@ -577,8 +592,8 @@ def collide_strands(
             # A mesh casts its ray only when the path can have met the surface: the vertex is inside,
             # or it moved further than its distance to the surface.
             if sweep != 0 and (kind != ColliderKind.MESH or s.distance < 0.0 or reach > s.distance):
-                e = segment_entry(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                  collider_bound_hi[c], x_before, x_local)
+                e = segment_entry(kind, shapes.radius[c], shapes.half_height[c], shapes.mesh[c], shapes.bound_hi[c],
+                                  x_before, x_local)
                 if e.found != 0:
                     # Resolve on the side the vertex came in from: the push starts from the tangent
                     # plane at the entry point, not from the nearest surface point (the far side when
@@ -597,9 +612,7 @@ def collide_strands(
                 p_prev_local = wp.transform_point(X_inv, p_prev)
                 for _it in range(PUSH_ITERATIONS):
                     x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, push_target)
-                    s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local,
-                                         max_dist, 0)
+                    s = shape_surface(shapes, c, x_local, max_dist, 0)
                     if s.found != 0:
                         n_local = s.normal
                     if s.found == 0 or s.distance >= 0.0:
@@ -614,7 +627,7 @@ def collide_strands(
             distance = s.distance
             n = wp.transform_vector(X, n_local)
             v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
-            v_contact = _contact_velocity(v, v_object, n, collider_friction[c])
+            v_contact = _contact_velocity(v, v_object, n, shapes.friction[c])
             # Static friction acts over the time the vertex spent in contact during the step: it moved
             # with its old velocity before this stage ran, so the slip that friction stops comes off that
             # part of this step's displacement too. A vertex held by static friction then stays put
@@ -628,7 +641,7 @@ def collide_strands(
             in_contact = float(1.0)
             if approach > thickness - queried:
                 in_contact = (thickness - wp.min(queried, thickness)) / approach
-            v_own = _contact_velocity(v_start, v_object, n, collider_friction[c])
+            v_own = _contact_velocity(v_start, v_object, n, shapes.friction[c])
             dv = v_own - v_start
             shift = (h * in_contact) * (dv - wp.dot(dv, n) * n)
             slip = v_own - v_object
@@ -651,9 +664,7 @@ def collide_strands(
                 distance = distance - shift_length
                 if distance < 0.0:
                     x_local = wp.transform_point(X_inv, p)
-                    s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                         collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local,
-                                         max_dist, 0)
+                    s = shape_surface(shapes, c, x_local, max_dist, 0)
                     distance = s.distance
                     if s.found != 0 and s.distance < 0.0:
                         x_local = _lift_on_sphere(wp.transform_point(X_inv, p_prev), length, x_local, s.point,
@@ -662,11 +673,11 @@ def collide_strands(
                         distance = 0.0
                 # The object's velocity where the vertex ends up (it turns with a spinning object).
                 v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
-                v_contact = _contact_velocity(v, v_object, n, collider_friction[c])
+                v_contact = _contact_velocity(v, v_object, n, shapes.friction[c])
             clearance = wp.min(clearance, distance)
             v = v_contact
             contact = 1
-        if pushed != 0 and collider_count > 1:
+        if pushed != 0 and shapes.count > 1:
             # Distances to the colliders queried before the push are stale.
             clearance = -UNBOUNDED
         if exempt_new != exempt:

@@ -22,9 +22,10 @@ from hairwarp.kernels.body_collision import (
     PUSH_ITERATIONS,
     TINY_LENGTH,
     UNBOUNDED,
+    ColliderShapes,
     _lift_on_sphere,
-    collider_surface,
-    collider_world_motion,
+    shape_motion,
+    shape_surface,
 )
 
 wp.set_module_options({"enable_backward": False})
@@ -157,17 +158,7 @@ def hermite_samples(
 def dense_push_out(
     # Model:
     seg_per_strand: int,
-    collider_count: int,
-    collider_kind: wp.array(dtype=wp.int32),
-    collider_attach: wp.array(dtype=wp.int32),
-    collider_local_xform: wp.array(dtype=wp.transform),
-    collider_radius: wp.array(dtype=float),
-    collider_half_height: wp.array(dtype=float),
-    collider_thickness: wp.array(dtype=float),
-    collider_mesh: wp.array(dtype=wp.uint64),
-    collider_bound_lo: wp.array(dtype=wp.vec3),
-    collider_bound_hi: wp.array(dtype=wp.vec3),
-    collider_far: wp.array(dtype=float),
+    shapes: ColliderShapes,
     # Control:
     collider_xform: wp.array(dtype=wp.transform),
     collider_velocity: wp.array(dtype=wp.spatial_vector),
@@ -216,8 +207,8 @@ def dense_push_out(
         bound = clearance - length - LIPSCHITZ_SLOP
         clearance = float(UNBOUNDED)
         pushed = int(0)
-        for c in range(collider_count):
-            thickness = collider_thickness[c]
+        for c in range(shapes.count):
+            thickness = shapes.thickness[c]
             if bound >= thickness:
                 clearance = wp.min(clearance, bound)
                 continue
@@ -225,23 +216,17 @@ def dense_push_out(
             outside_known = int(0)
             if bound > -max_dist:
                 outside_known = 1
-            X, _vel = collider_world_motion(collider_attach[c], collider_local_xform[c], collider_xform[c],
-                                            collider_velocity[c], X_head, V_head)
+            X, _vel = shape_motion(shapes, c, collider_xform, collider_velocity, X_head, V_head)
             X_inv = wp.transform_inverse(X)
-            kind = collider_kind[c]
             x_local = wp.transform_point(X_inv, p)
-            s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                 collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local, max_dist,
-                                 outside_known)
+            s = shape_surface(shapes, c, x_local, max_dist, outside_known)
             if s.found == 0 or s.distance >= thickness:
                 clearance = wp.min(clearance, s.distance)
                 continue
             p_prev_local = wp.transform_point(X_inv, p_prev)
             for _it in range(PUSH_ITERATIONS):
                 x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, thickness)
-                s = collider_surface(kind, collider_radius[c], collider_half_height[c], collider_mesh[c],
-                                     collider_bound_lo[c], collider_bound_hi[c], collider_far[c], x_local, max_dist,
-                                     0)
+                s = shape_surface(shapes, c, x_local, max_dist, 0)
                 if s.found == 0 or s.distance >= thickness - LAYER_TOLERANCE:
                     break
             if s.found != 0 and s.distance < thickness - LAYER_TOLERANCE:
@@ -257,7 +242,7 @@ def dense_push_out(
             # The bound held where the vertex was; the colliders after this one start from none.
             bound = -UNBOUNDED
             clearance = wp.min(clearance, s.distance)
-        if pushed != 0 and collider_count > 1:
+        if pushed != 0 and shapes.count > 1:
             # Distances to the colliders queried before the push are stale.
             clearance = -UNBOUNDED
         if moved != 0:
