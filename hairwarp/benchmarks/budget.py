@@ -463,9 +463,9 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
 def scene_skip_reason(plan: Plan) -> str | None:
     """Why a plan cannot run here (the Ratboy assets are shared data beside the checkout), or None."""
     if plan.name == "ratboy_mohawk":
-        from hairwarp.benchmarks.interactions import ratboy_groom_paths
+        from hairwarp.benchmarks.common import ratboy_paths
 
-        missing = [str(p) for p in ratboy_groom_paths() if not p.exists()]
+        missing = [str(p) for p in ratboy_paths() if not p.exists()]
         if missing:
             return "needs the shared TressFX Ratboy assets: missing " + ", ".join(missing)
     return None

@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_paths
+
 # ---------------------------------------------------------------------------------------------
 # tunnelling map
 
@@ -375,27 +377,6 @@ def bench_tunnelling(quick: bool = False, device=None, out=None, *, kinds=TUNNEL
 # cost on the Ratboy body
 
 
-def ratboy_paths() -> tuple[Path, Path]:
-    """The shared TressFX Ratboy groom and body beside the source checkout (they may be absent)."""
-    base = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tressfx_ratboy"
-    return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
-
-
-def _interleaved_medians(calls: dict, device, repeats: int) -> dict:
-    """Median wall time [s] of each call in ``calls`` (name -> function), timed in turn ``repeats`` times
-    after one warm-up round, so that a load change on a shared machine hits every figure alike."""
-    samples = {name: [] for name in calls}
-    for r in range(repeats + 1):
-        for name, fn in calls.items():
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            fn()
-            wp.synchronize_device(device)
-            if r:
-                samples[name].append(time.perf_counter() - t0)
-    return {name: float(np.median(v)) for name, v in samples.items()}
-
-
 def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, body_path=None,
                          motion_frames: int | None = None, repeats: int | None = None) -> dict:
     """Cost per step of the collision stage on the Ratboy body next to the dynamics, in one run.
@@ -457,7 +438,7 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
             cs.project(model, work, control, full.dt, start)
         return call
 
-    times = _interleaved_medians({
+    times = interleaved_medians({
         "step": lambda: full.step(s_in, s_out, control, dt),
         "dynamics": lambda: dynamics.step(s_in, s_out, control, dt),
         "copy": lambda: work.assign(integrated),

@@ -427,3 +427,29 @@ class BenchConfig:
             quiet_budget_s=5.0,
             quiet_max_wait_s=2.0,
         )
+
+
+def ratboy_paths():
+    """The shared TressFX Ratboy groom and body beside the source checkout, as ``(groom, body)`` paths (they may be
+    absent)."""
+    from pathlib import Path
+
+    base = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tressfx_ratboy"
+    return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
+
+
+def interleaved_medians(calls: dict, device, repeats: int) -> dict:
+    """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
+    with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""
+    import warp as wp
+
+    samples = {name: [] for name in calls}
+    for r in range(repeats + 1):
+        for name, fn in calls.items():
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            fn()
+            wp.synchronize_device(device)
+            if r:
+                samples[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(v)) for name, v in samples.items()}

@@ -14,30 +14,11 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_paths
+
 # Detection margins [m] compared: 0 detects in every step; the others once per frame (the runner's default is
 # the scene's interactions.margin, 4 mm).
 MARGINS = (0.0, 0.001, 0.002, 0.004)
-
-
-def ratboy_groom_paths() -> tuple[Path, Path]:
-    """The shared TressFX Ratboy groom and body beside the source checkout (they may be absent)."""
-    base = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tressfx_ratboy"
-    return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
-
-
-def interleaved_medians(calls: dict, device, repeats: int) -> dict:
-    """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
-    with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""
-    samples = {name: [] for name in calls}
-    for r in range(repeats + 1):
-        for name, fn in calls.items():
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            fn()
-            wp.synchronize_device(device)
-            if r:
-                samples[name].append(time.perf_counter() - t0)
-    return {name: float(np.median(v)) for name, v in samples.items()}
 
 
 def bench_interactions(quick: bool = False, device=None, *, groom_path=None, body_path=None,
@@ -67,7 +48,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     from hairwarp.scene import Scene
     from hairwarp.solver import Solver
 
-    default_groom, default_body = ratboy_groom_paths()
+    default_groom, default_body = ratboy_paths()
     groom_path = Path(groom_path or default_groom)
     body_path = Path(body_path or default_body)
     missing = [str(p) for p in (groom_path, body_path) if not p.is_file()]
