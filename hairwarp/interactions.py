@@ -328,7 +328,6 @@ class TriangleStrips:
             them). On the Ratboy mohawk this drops 5 % of the quads at rest, the most stretched, whose boxes hold
             20 % of what a vertex meets; once the hair falls, 9 % holding 60 %.
         indices: int32 (3 * 2SP,) on the device, the triangles.
-        tri_strands: vec2i (2SP,) on the device, the strands (a, b) of each triangle.
         tri_stiffness_scale: float32 (2SP,) on the device, s0 / s clamped to [1/4, 4], the density factor of the
             vertex-face stiffness.
         strip_pairs: vec2i (P,) on the device, ``pairs``.
@@ -383,7 +382,6 @@ class TriangleStrips:
             strips.width_ref = 0.0
             strips.max_width = 0.0
             strips.indices = wp.zeros(3, dtype=wp.int32, device=strips.device)
-            strips.tri_strands = wp.zeros(1, dtype=wp.vec2i, device=strips.device)
             strips.tri_stiffness_scale = wp.zeros(1, dtype=float, device=strips.device)
             strips.strip_pairs = wp.zeros(1, dtype=wp.vec2i, device=strips.device)
             return strips
@@ -407,9 +405,7 @@ class TriangleStrips:
         strips.max_width = _MAX_DENSITY_SCALE * strips.width_ref
         scale = strips.width_ref / np.maximum(width, strips.width_ref / _MAX_DENSITY_SCALE)
         scale = np.maximum(scale, 1.0 / _MAX_DENSITY_SCALE)
-        tri_strands = np.repeat(pairs, 2 * S, axis=0)
         strips.indices = wp.array(tri.reshape(-1).astype(np.int32), dtype=wp.int32, device=strips.device)
-        strips.tri_strands = wp.array(tri_strands, dtype=wp.vec2i, device=strips.device)
         strips.tri_stiffness_scale = wp.array(scale, dtype=float, device=strips.device)
         return strips
 
