@@ -198,6 +198,7 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
         detection = row["refit_s"] + row["vertex_face_s"] + row["segment_segment_s"]
         per_step_detection = detection / cost["substeps"] if row["margin"] > 0 else detection
         expected = cost["links_s"] + row["forces_s"] + per_step_detection
+        # the same sums of the same float64 figures: equal up to the order of additions
         assert row["per_step_s"] == pytest.approx(expected, rel=1e-12)
         assert row["per_dynamics"] == pytest.approx(expected / cost["dynamics_s"], rel=1e-12)
         assert row["stored"] >= row["active"] > 0
