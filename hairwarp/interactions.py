@@ -473,6 +473,7 @@ class HairContacts:
         rest_positions: vec3 (G*(S+1),), ``rest_vertices`` on the device.
         contact_counter: int32 (1,), contacts found in the last step (may exceed the capacity).
         contact_overflow: int32 (1,), 1 once a step found more contacts than the capacity (sticky).
+        buffer: the ``kernels.contacts.ContactBuffer`` of these arrays, as the kernels take them.
     """
 
     @classmethod
@@ -608,6 +609,12 @@ class HairContacts:
         contacts.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
+        buf = contact_kernels.ContactBuffer()
+        buf.capacity = contacts.capacity
+        buf.kind, buf.a, buf.b = contacts.contact_kind, contacts.contact_a, contacts.contact_b
+        buf.w, buf.gap = contacts.contact_w, contacts.contact_gap
+        buf.counter, buf.overflow = contacts.contact_counter, contacts.contact_overflow
+        contacts.buffer = buf
         if contacts.strips is None:
             # The force kernel takes strip arrays even when only segments collide.
             contacts._strip_pairs = wp.zeros(1, dtype=wp.vec2i, device=dev)
@@ -666,10 +673,6 @@ class HairContacts:
         self.detect_vertex_face(model, state)
         self.detect_segment_segment(model, state)
 
-    def _buffers(self, state):
-        return [self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap,
-                self.contact_counter, self.contact_overflow, state.fault]
-
     def detect_vertex_face(self, model, state):
         """Append the vertex-face contacts of ``state`` to the buffers (launch only; BVH refit by :meth:`refit`)."""
         if self.strips is None:
@@ -682,13 +685,13 @@ class HairContacts:
         wp.launch(
             contact_kernels.vertex_face_contacts,
             dim=self.strand_count * -(-S // contact_kernels.VERTEX_BLOCK),
-            inputs=[S, self.threshold + self.margin, self.capacity, self.alignment_cutoff, self.threshold,
+            inputs=[S, self.threshold + self.margin, self.alignment_cutoff, self.threshold,
                     int(self.rest_gaps), int(self.skip_neighbour_strips), self.strip_bvh.id, self.rest_positions,
                     strips.strip_pairs,
                     strips.strand_neighbour_start, strips.strand_neighbours, state.vertex_positions,
                     self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
                     self.vertex_tangents],
-            outputs=self._buffers(state),
+            outputs=[self.buffer, state.fault],
             device=self.device,
         )
 
@@ -700,10 +703,10 @@ class HairContacts:
         wp.launch(
             contact_kernels.segment_segment_contacts,
             dim=len(self.seg_block_lowers),
-            inputs=[model.seg_per_strand, self.threshold + self.margin, self.capacity, self.alignment_cutoff,
+            inputs=[model.seg_per_strand, self.threshold + self.margin, self.alignment_cutoff,
                     self.threshold, int(self.rest_gaps), self.seg_bvh.id, self.rest_positions, state.vertex_positions,
                     self.seg_lowers, self.seg_uppers],
-            outputs=self._buffers(state),
+            outputs=[self.buffer, state.fault],
             device=self.device,
         )
 
@@ -720,11 +723,9 @@ class HairContacts:
             inputs=[
                 model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
                 self._tri_scale,
-                self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.capacity,
+                self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity,
                 self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
-                state.vertex_velocities, dt,
-                self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap,
-                self.contact_counter,
+                state.vertex_velocities, dt, self.buffer,
             ],
             outputs=[seg_force, seg_torque, self.seg_spring_mass],
             device=self.device,

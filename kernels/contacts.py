@@ -185,33 +185,36 @@ def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) ->
             and lo_b[0] <= hi_a[0] and lo_b[1] <= hi_a[1] and lo_b[2] <= hi_a[2])
 
 
+@wp.struct
+class ContactBuffer:
+    """Stored contact pairs, fixed capacity: per slot the ``kind`` (``CONTACT_VERTEX_FACE`` or
+    ``CONTACT_SEGMENT_SEGMENT``), the sides ``a`` and ``b`` (vertex and strip triangle, or two segments), the weights
+    ``w`` (barycentric in the triangle, or the two segment parameters), the rest ``gap`` [m]; ``counter[0]`` pairs
+    found (more than ``capacity`` when some were dropped) and the sticky ``overflow[0]`` flag."""
+
+    capacity: int
+    kind: wp.array(dtype=wp.int32)
+    a: wp.array(dtype=wp.int32)
+    b: wp.array(dtype=wp.int32)
+    w: wp.array(dtype=wp.vec3)
+    gap: wp.array(dtype=float)
+    counter: wp.array(dtype=wp.int32)
+    overflow: wp.array(dtype=wp.int32)
+
+
 @wp.func
-def push_contact(
-    kind: int,
-    a: int,
-    b: int,
-    w: wp.vec3,
-    gap: float,
-    contact_capacity: int,
-    contact_kind: wp.array(dtype=wp.int32),
-    contact_a: wp.array(dtype=wp.int32),
-    contact_b: wp.array(dtype=wp.int32),
-    contact_w: wp.array(dtype=wp.vec3),
-    contact_gap: wp.array(dtype=float),
-    contact_counter: wp.array(dtype=wp.int32),
-    contact_overflow: wp.array(dtype=wp.int32),
-    fault: wp.array(dtype=wp.int32),
-):
+def push_contact(buf: ContactBuffer, kind: int, a: int, b: int, w: wp.vec3, gap: float,
+                 fault: wp.array(dtype=wp.int32)):
     """Append one contact; past the capacity, count it, drop it and raise the overflow flags."""
-    slot = wp.atomic_add(contact_counter, 0, 1)
-    if slot < contact_capacity:
-        contact_kind[slot] = kind
-        contact_a[slot] = a
-        contact_b[slot] = b
-        contact_w[slot] = w
-        contact_gap[slot] = gap
+    slot = wp.atomic_add(buf.counter, 0, 1)
+    if slot < buf.capacity:
+        buf.kind[slot] = kind
+        buf.a[slot] = a
+        buf.b[slot] = b
+        buf.w[slot] = w
+        buf.gap[slot] = gap
     else:
-        contact_overflow[0] = 1
+        buf.overflow[0] = 1
         wp.atomic_or(fault, 0, CONTACT_OVERFLOW)
 
 
@@ -258,7 +261,6 @@ def segment_segment_contacts(
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
-    contact_capacity: int,
     contact_alignment_cutoff: float,
     repel_distance: float,
     rest_gaps: int,
@@ -270,13 +272,7 @@ def segment_segment_contacts(
     seg_lowers: wp.array(dtype=wp.vec3),
     seg_uppers: wp.array(dtype=wp.vec3),
     # Out:
-    contact_kind: wp.array(dtype=wp.int32),
-    contact_a: wp.array(dtype=wp.int32),
-    contact_b: wp.array(dtype=wp.int32),
-    contact_w: wp.array(dtype=wp.vec3),
-    contact_gap: wp.array(dtype=float),
-    contact_counter: wp.array(dtype=wp.int32),
-    contact_overflow: wp.array(dtype=wp.int32),
+    contacts: ContactBuffer,
     fault: wp.array(dtype=wp.int32),
 ):
     """One thread per segment block I: every segment pair (i in I, j in a later block of another strand) closer than
@@ -332,11 +328,7 @@ def segment_segment_contacts(
                         gap = wp.closest_point_edge_edge(rest_positions[vi], rest_positions[vi + 1],
                                                          rest_positions[vj], rest_positions[vj + 1],
                                                          _DEGENERATE_EDGE_SQ)[2]
-                    push_contact(
-                        CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), gap, contact_capacity,
-                        contact_kind, contact_a, contact_b, contact_w, contact_gap, contact_counter,
-                        contact_overflow, fault,
-                    )
+                    push_contact(contacts, CONTACT_SEGMENT_SEGMENT, i, j, wp.vec3(st[0], st[1], 0.0), gap, fault)
 
 
 @wp.kernel
@@ -421,7 +413,6 @@ def vertex_face_contacts(
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
-    contact_capacity: int,
     contact_alignment_cutoff: float,
     repel_distance: float,
     rest_gaps: int,
@@ -441,13 +432,7 @@ def vertex_face_contacts(
     quad_dir: wp.array(dtype=wp.vec3),
     vertex_tangents: wp.array(dtype=wp.vec3),
     # Out:
-    contact_kind: wp.array(dtype=wp.int32),
-    contact_a: wp.array(dtype=wp.int32),
-    contact_b: wp.array(dtype=wp.int32),
-    contact_w: wp.array(dtype=wp.vec3),
-    contact_gap: wp.array(dtype=float),
-    contact_counter: wp.array(dtype=wp.int32),
-    contact_overflow: wp.array(dtype=wp.int32),
+    contacts: ContactBuffer,
     fault: wp.array(dtype=wp.int32),
 ):
     """One thread per block of ``VERTEX_BLOCK`` consecutive guide vertices of a strand (roots skipped): every strip
@@ -513,11 +498,7 @@ def vertex_face_contacts(
                             rest_positions[vertex], rest_positions[ia], rest_positions[ib], rest_positions[ia + 1],
                             rest_positions[ib + 1])
                         gap = wp.sqrt(rest_sq)
-                    push_contact(
-                        CONTACT_VERTEX_FACE, vertex, 2 * quad + second, w, gap, contact_capacity,
-                        contact_kind, contact_a, contact_b, contact_w, contact_gap, contact_counter,
-                        contact_overflow, fault,
-                    )
+                    push_contact(contacts, CONTACT_VERTEX_FACE, vertex, 2 * quad + second, w, gap, fault)
 
 
 @wp.func
@@ -560,21 +541,17 @@ def contact_force(
     vertex_velocities: wp.array(dtype=wp.vec3),
     h: float,
     implicit_springs: int,
-    contact_kind: wp.array(dtype=wp.int32),
-    contact_a: wp.array(dtype=wp.int32),
-    contact_b: wp.array(dtype=wp.int32),
-    contact_w: wp.array(dtype=wp.vec3),
-    contact_gap: wp.array(dtype=float),
+    contacts: ContactBuffer,
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_spring_mass: wp.array(dtype=float),
 ):
     """Forces of the contact in one buffer slot (see ``contact_forces``)."""
-    kind = contact_kind[slot]
-    ia = contact_a[slot]
-    ib = contact_b[slot]
-    w = contact_w[slot]
-    reach = wp.min(contact_threshold, contact_gap[slot])
+    kind = contacts.kind[slot]
+    ia = contacts.a[slot]
+    ib = contacts.b[slot]
+    w = contacts.w[slot]
+    reach = wp.min(contact_threshold, contacts.gap[slot])
 
     # Positions first: most stored pairs (detected with a margin) are beyond the threshold and stop here.
     xa = wp.vec3()
@@ -695,7 +672,6 @@ def contact_forces(
     contact_damping: float,
     contact_friction: float,
     contact_slip_velocity: float,
-    contact_capacity: int,
     thread_count: int,
     contiguous: int,
     implicit_springs: int,
@@ -705,12 +681,7 @@ def contact_forces(
     # Control:
     dt: wp.array(dtype=float),
     # Scratch:
-    contact_kind: wp.array(dtype=wp.int32),
-    contact_a: wp.array(dtype=wp.int32),
-    contact_b: wp.array(dtype=wp.int32),
-    contact_w: wp.array(dtype=wp.vec3),
-    contact_gap: wp.array(dtype=float),
-    contact_counter: wp.array(dtype=wp.int32),
+    contacts: ContactBuffer,
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -719,7 +690,7 @@ def contact_forces(
     """Each of ``thread_count`` threads takes every thread_count-th stored contact (``contiguous``: a run of
     consecutive ones): repulsion, normal damping and regularised Coulomb friction.
 
-    The repulsion acts below ``min(threshold, contact_gap)`` [m]. Adds +F to side a and -F to side b (shared by
+    The repulsion acts below ``min(threshold, gap)`` [m]. Adds +F to side a and -F to side b (shared by
     barycentric weight among a face's vertices) at the midpoint of the closest points (``seg_force`` [N],
     ``seg_torque`` [N m] about segment origins, world), and, with
     ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) to ``seg_spring_mass``, which
@@ -730,7 +701,7 @@ def contact_forces(
     # thread t takes slots t, t + n, ... (neighbouring threads read neighbouring slots), on a CPU, where the threads
     # run one after the other, a contiguous run of slots (one pass over the buffer instead of n).
     t = wp.tid()
-    count = wp.min(contact_counter[0], contact_capacity)
+    count = wp.min(contacts.counter[0], contacts.capacity)
     h = dt[0]
     slot = t
     stride = thread_count
@@ -744,7 +715,6 @@ def contact_forces(
         contact_force(
             slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
-            vertex_positions, vertex_velocities, h, implicit_springs, contact_kind, contact_a, contact_b, contact_w,
-            contact_gap, seg_force, seg_torque, seg_spring_mass,
+            vertex_positions, vertex_velocities, h, implicit_springs, contacts, seg_force, seg_torque, seg_spring_mass,
         )
         slot += stride
