@@ -438,6 +438,21 @@ def ratboy_paths():
     return base / "Ratboy_mohawk.tfx", base / "Ratboy_body.tfxmesh"
 
 
+def ratboy_assets(groom_path=None, body_path=None):
+    """``(groom, body, None)`` paths of the Ratboy assets (the given ones, else ``ratboy_paths``), or
+    ``(groom, body, skipped)`` with the ``{"status": "skipped", "message"}`` a benchmark returns when one is
+    missing."""
+    from pathlib import Path
+
+    default_groom, default_body = ratboy_paths()
+    groom, body = Path(groom_path or default_groom), Path(body_path or default_body)
+    missing = [str(p) for p in (groom, body) if not p.is_file()]
+    if missing:
+        return groom, body, {"status": "skipped",
+                             "message": f"needs the TressFX Ratboy assets: {', '.join(missing)} missing"}
+    return groom, body, None
+
+
 def interleaved_medians(calls: dict, device, repeats: int) -> dict:
     """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
     with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""

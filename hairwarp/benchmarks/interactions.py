@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from hairwarp.benchmarks.common import interleaved_medians, ratboy_paths
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets
 
 # Detection margins [m] compared: 0 detects in every step; the others once per frame (the runner's default is
 # the scene's interactions.margin, 4 mm).
@@ -48,12 +48,9 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     from hairwarp.scene import Scene
     from hairwarp.solver import Solver
 
-    default_groom, default_body = ratboy_paths()
-    groom_path = Path(groom_path or default_groom)
-    body_path = Path(body_path or default_body)
-    missing = [str(p) for p in (groom_path, body_path) if not p.is_file()]
-    if missing:
-        return {"status": "skipped", "message": f"needs the TressFX Ratboy assets: {', '.join(missing)} missing"}
+    groom_path, body_path, skipped = ratboy_assets(groom_path, body_path)
+    if skipped:
+        return skipped
     device = wp.get_device(device)
     if motion_frames is None:
         motion_frames = 4 if quick else 15
