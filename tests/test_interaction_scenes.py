@@ -207,3 +207,30 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
     text = "\n".join(md_interactions(data))
     assert text.count("| 444 |") == len(cost["margins"])
     assert "Largest stable stiffness" in text
+
+
+@pytest.mark.parametrize("name", ["long_hair", "ratboy_mohawk"])
+def test_shipped_scenes_run_with_links_and_contacts(name):
+    """The default scene and the Ratboy mohawk ship with static links and hair contacts on: into the turn (0.6 s),
+    nearly every guide is linked (a few at the edge of the mohawk have no neighbour within the link radius), contacts
+    are found within the buffer, at most 2 % of the links break (the turn breaks a few of the mohawk's) and nothing
+    faults."""
+    path = LONG_HAIR.parent / f"{name}.toml"
+    if name == "ratboy_mohawk":
+        from conftest import require_ratboy
+
+        require_ratboy("Ratboy_mohawk.tfx")
+        require_ratboy("Ratboy_body.tfxmesh")
+    scene = Scene.load(path, ["dense.count=0", "output.preview=false"])
+    assert scene.links.enabled and scene.interactions.enabled
+    sim = Simulation(scene)
+    assert sim.links is not None and sim.contacts is not None and sim.contacts.strips is not None
+    S = sim.model.seg_per_strand
+    linked = np.union1d(sim.links.seg_a // S, sim.links.seg_b // S)
+    assert len(linked) >= 0.95 * sim.model.strand_count
+    found = []
+    for _ in range(18):
+        sim.advance_frame()
+        found.append(sim.frame_stats()["contacts"])
+    assert min(found) > 0 and not sim.contacts.overflowed()
+    assert sim.frame_stats()["broken_links"] <= 0.02 * sim.links.link_count
