@@ -311,6 +311,22 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
             "load": gate, "results": results}
 
 
+def disk_write_rate(folder=None, total_bytes: int = 512 << 20, chunk_bytes: int = 8 << 20) -> float:
+    """Sustained write rate [B/s] of the disk under ``folder`` (default: the temporary folder): ``total_bytes``
+    written in chunks and flushed to the disk (``fsync``), as a long cache run writes once the page cache is full."""
+    import os
+
+    chunk = np.random.default_rng(0).integers(0, 255, chunk_bytes, dtype=np.uint8).tobytes()
+    with tempfile.NamedTemporaryFile(dir=folder, suffix=".bin") as f:
+        t0 = time.perf_counter()
+        for _ in range(max(1, total_bytes // chunk_bytes)):
+            f.write(chunk)
+        f.flush()
+        os.fsync(f.fileno())
+        elapsed = time.perf_counter() - t0
+    return max(1, total_bytes // chunk_bytes) * chunk_bytes / elapsed
+
+
 def suite_dense(config, out, log=lambda message: None) -> dict:
     """The ``dense`` suite of ``hairwarp bench``: the cost of one output frame stage by stage
     (:func:`bench_dense_frame`) and the end-to-end frame with each writer (:func:`bench_dense_pipeline`), for
@@ -324,8 +340,10 @@ def suite_dense(config, out, log=lambda message: None) -> dict:
     pipeline = bench_dense_pipeline(counts=counts, quick=quick, device=device)
     verdicts = [{k: r[k] for k in ("count", "basis", "write_cheaper_than_simulate", "writer_cheaper_than_simulate")}
                 for r in pipeline["results"]]
+    log("dense: the disk's sustained write rate")
+    disk = disk_write_rate(total_bytes=(64 if quick else 512) << 20)
     return {"goal": "writing an output frame costs less than simulating it", "quick": quick, "stages": stages,
-            "pipeline": pipeline, "verdicts": verdicts}
+            "pipeline": pipeline, "verdicts": verdicts, "disk_write_rate": disk}
 
 
 def md_dense(data: dict) -> list[str]:
@@ -338,16 +356,23 @@ def md_dense(data: dict) -> list[str]:
              f"{pipe['rounds']} blocks of {pipe['frames']} frames; *write* = frame time with the writer less the "
              "frame time without one (noise can make it negative); *blocked* = time the simulating thread spends in "
              "the background writer's `write_frame`; *writer process* = extents, convert, set and save in its "
-             "process. Write < simulate: inline / background.", "",
-             "| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | "
-             "background: write [ms] | blocked [ms] | writer process [ms] | write < simulate? |",
-             "|---:|---|---:|---:|---:|---:|---:|---:|---|"]
+             "process. Write < simulate: inline / background.", ""]
+    disk = data.get("disk_write_rate")
+    if disk:
+        lines += [f"The disk takes {disk / 1e6:.0f} MB/s sustained (written and flushed with `fsync`): the pace of a "
+                  "cache longer than the page cache holds. *Disk floor* = a frame's bytes at that pace, what no "
+                  "writer can go below for such a run.", ""]
+    lines += ["| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | "
+              "background: write [ms] | blocked [ms] | writer process [ms] | disk floor [ms] | write < simulate? |",
+              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in pipe["results"]:
         bg = r["background"]
+        floor = f"{1e3 * bg['bytes_per_frame'] / disk:.0f}" if disk else "–"
         lines.append(
             f"| {r['count']:,} | {r['basis']} | {bg['bytes_per_frame'] / 1e6:.1f} | {1e3 * r['output_frame_s']:.0f} | "
             f"{1e3 * r['inline_write_s']:.0f} | {1e3 * r['background_write_s']:.0f} | {1e3 * r['blocked_s']:.0f} | "
-            f"{1e3 * r['writer_own_s']:.0f} | {'yes' if r['inline_write_s'] < pipe['simulate_frame_s'] else 'no'} / "
+            f"{1e3 * r['writer_own_s']:.0f} | {floor} | "
+            f"{'yes' if r['inline_write_s'] < pipe['simulate_frame_s'] else 'no'} / "
             f"{'yes' if r['write_cheaper_than_simulate'] else 'no'} |")
     lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s.*"]
     return lines
