@@ -395,6 +395,12 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
         return Choice("dense", "dense.count", [(f"{n}", [f"dense.count={n}"]) for n in sorted({*options, shipped})],
                       f"{shipped}", dense=True)
 
+    def interactions():
+        return [Choice("links", "links.enabled", [("on (shipped)", []), ("off", ["links.enabled=false"])],
+                       "on (shipped)"),
+                Choice("contacts", "interactions.enabled", [("on (shipped)", []),
+                                                            ("off", ["interactions.enabled=false"])], "on (shipped)")]
+
     out = []
     if want is None or "long_hair" in want:
         path = ROOT / "scenes" / "long_hair.toml"
@@ -403,7 +409,7 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
             segments(sh["segments"], 24, (8,) if quick else (8, 12, 16, 20, 31)),
             substeps(sh["substeps"], 16, (4,) if quick else (2, 4, 8)),
             *([] if quick else [Choice("head collider", "head.shape", _head_options(sc, folder, (2, 3, 4)),
-                                       HEAD_SHIPPED)]),
+                                       HEAD_SHIPPED), *interactions()]),
             dense(sh["dense"], (1000,) if quick else (1000, 3000, 10000)),
         ], base=["groom.count=60"] if quick else [],
             notes=["1.3 s: still, then the turn to the side and most of the way back"]
@@ -432,10 +438,7 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
         out.append(Plan("fast_turn", path, ref24, 0.4 if quick else 0.7, [
             *([] if quick else [segments(sh["segments"], 24, (12, 20))]),
             substeps(sh["substeps"], 16, () if quick else (4, 8)),
-            Choice("links", "links.enabled", [("on (shipped)", []), ("off", ["links.enabled=false"])],
-                   "on (shipped)"),
-            Choice("contacts", "interactions.enabled", [("on (shipped)", []),
-                                                        ("off", ["interactions.enabled=false"])], "on (shipped)"),
+            *interactions(),
             *([] if quick else [dense(sh["dense"], (1000, 3000, 10000))]),
         ], base=["groom.count=60"] if quick else [],
             notes=["the head collider is long_hair's (the same ellipsoid): that choice is measured there",
@@ -448,6 +451,7 @@ def plans(quick: bool, folder: Path, names=None) -> list[Plan]:
         out.append(Plan("ratboy_mohawk", path, ["sim.segments=31", "sim.substeps=32"], 0.5 if quick else 2.3, [
             *([] if quick else [segments(sh["segments"], 31, (16, 24))]),
             substeps(sh["substeps"], 32, () if quick else (8, 16)),
+            *([] if quick else interactions()),
         ], base=[f"groom.max_strands={cut}"], notes=[
             f"every n-th guide, at most {cut} of 2,219 (groom.max_strands; the scene ships 450): the cost per "
             "frame scales with the guide count, the errors are per guide",
