@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets, ratboy_mohawk_scene
 
 # ---------------------------------------------------------------------------------------------
 # tunnelling map
@@ -396,7 +396,6 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
     """
     from hairwarp.colliders import bench_collision
     from hairwarp.runner import Simulation
-    from hairwarp.scene import Scene
     from hairwarp.solver import Solver
 
     groom_path, body_path, skipped = ratboy_assets(groom_path, body_path)
@@ -407,9 +406,10 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
         motion_frames = 5 if quick else 20
     if repeats is None:
         repeats = 5 if quick else 20
-    scene = Scene.load(Path(Scene.default_path()).parent / "ratboy_mohawk.toml", [
-        f"groom.file='{groom_path}'", f"head.file='{body_path}'", f"groom.max_strands={450 if quick else 0}",
-        f"sim.device='{device}'"])
+    # The body collision against the dynamics alone: the scene's links and contacts stay off (their cost is the
+    # interactions suite's).
+    scene = ratboy_mohawk_scene(groom_path, body_path, device, 450 if quick else 0,
+                                ["links.enabled=false", "interactions.enabled=false"])
     sim = Simulation(scene, device=device)
     for _ in range(motion_frames):
         sim.advance_frame()

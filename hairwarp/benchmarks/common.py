@@ -453,6 +453,18 @@ def ratboy_assets(groom_path=None, body_path=None):
     return groom, body, None
 
 
+def ratboy_mohawk_scene(groom_path, body_path, device, max_strands: int, overrides=()):
+    """The shipped ``ratboy_mohawk`` scene on the asset files of :func:`ratboy_assets`, on ``device``, with
+    ``groom.max_strands`` (0: every guide) and more ``key=value`` overrides."""
+    from pathlib import Path
+
+    from hairwarp.scene import Scene
+
+    return Scene.load(Path(Scene.default_path()).parent / "ratboy_mohawk.toml", [
+        f"groom.file='{groom_path}'", f"head.file='{body_path}'", f"groom.max_strands={int(max_strands)}",
+        f"sim.device='{device}'", *overrides])
+
+
 def interleaved_medians(calls: dict, device, repeats: int) -> dict:
     """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
     with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""

@@ -13,6 +13,7 @@ beside the simulation. The goal is a frame that costs less to write than to simu
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -314,8 +315,6 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
 def disk_write_rate(folder=None, total_bytes: int = 512 << 20, chunk_bytes: int = 8 << 20) -> float:
     """Sustained write rate [B/s] of the disk under ``folder`` (default: the temporary folder): ``total_bytes``
     written in chunks and flushed to the disk (``fsync``), as a long cache run writes once the page cache is full."""
-    import os
-
     chunk = np.random.default_rng(0).integers(0, 255, chunk_bytes, dtype=np.uint8).tobytes()
     with tempfile.NamedTemporaryFile(dir=folder, suffix=".bin") as f:
         t0 = time.perf_counter()

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets, ratboy_mohawk_scene
 
 # Detection margins [m] compared: 0 detects in every step; the others once per frame (the runner's default is
 # the scene's interactions.margin, 4 mm).
@@ -45,7 +45,6 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     """
     from hairwarp.interactions import HairContacts
     from hairwarp.runner import Simulation
-    from hairwarp.scene import Scene
     from hairwarp.solver import Solver
 
     groom_path, body_path, skipped = ratboy_assets(groom_path, body_path)
@@ -57,9 +56,8 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     if repeats is None:
         repeats = 3 if quick else 9
     t_start = time.perf_counter()
-    scene = Scene.load(Path(Scene.default_path()).parent / "ratboy_mohawk.toml", [
-        f"groom.file='{groom_path}'", f"head.file='{body_path}'", f"groom.max_strands={450 if quick else 0}",
-        f"sim.device='{device}'", "links.enabled=true", "interactions.enabled=true", *overrides])
+    scene = ratboy_mohawk_scene(groom_path, body_path, device, 450 if quick else 0,
+                                ["links.enabled=true", "interactions.enabled=true", *overrides])
     sim = Simulation(scene, device=device)
     for _ in range(motion_frames):
         sim.advance_frame()
