@@ -247,6 +247,29 @@ def _init_warp() -> None:
     wp.init()
 
 
+def _ignore_interrupts() -> None:
+    """A local worker leaves Ctrl-C to the process that started it: the terminal sends SIGINT to the whole process
+    group, and the client cancels the tasks and closes the cluster in order (no traceback from every worker)."""
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the worker's main thread: nothing to change there
+        pass
+
+
+def _local_worker_plugin():
+    """A Dask worker plugin (every worker of the local cluster, restarted ones too): Ctrl-C ignored, Warp quiet."""
+    from distributed import WorkerPlugin
+
+    class LocalWorker(WorkerPlugin):
+        def setup(self, worker):
+            _ignore_interrupts()
+            _init_warp()
+
+    return LocalWorker()
+
+
 def _worker_address() -> str | None:
     try:
         from distributed import get_worker
@@ -503,6 +526,7 @@ class _Cluster:
                 self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                             dashboard_address=":0", silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
+            self.client.register_plugin(_local_worker_plugin(), name="hairwarp-local-worker")
         self.client.run(_init_warp)  # before the progress line, so Warp's start-up messages do not cut through it
         services = self.client.scheduler_info().get("services", {})
         # Without bokeh a scheduler still serves a page at the dashboard's address, saying to install it.
