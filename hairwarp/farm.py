@@ -522,9 +522,11 @@ class _Cluster:
         else:
             self.cores = local_cores()
             self.workers = int(workers) if workers else max(1, min(self.cores, tasks))
+            # Dask's own log is kept to critical messages: every task's outcome is in its record, and a shutdown
+            # after Ctrl-C would otherwise print the workers' failed heartbeats to the terminal.
             with dask.config.set({"distributed.scheduler.allowed-failures": WORKER_LOSS_RETRIES}):
                 self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                            dashboard_address=":0", silence_logs=logging.ERROR)
+                                            dashboard_address=":0", silence_logs=logging.CRITICAL)
             self.client = Client(self.cluster)
             self.client.register_plugin(_local_worker_plugin(), name="hairwarp-local-worker")
         self.client.run(_init_warp)  # before the progress line, so Warp's start-up messages do not cut through it
