@@ -296,3 +296,33 @@ def test_ctrl_c_cancels_closes_the_cluster_and_exits_130(tmp_path):
     assert not [line for line in ps.splitlines() if "spawn_main" in line and not line.startswith("Z")], ps
     complete = [t for t in os.listdir(out) if (out / t / farm.MARKER).exists()]
     assert not complete, (complete, text)  # the interrupted runs are partial: a rerun redoes them
+
+
+def test_help_lists_wedge_and_batch(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "wedge" in text and "batch" in text
+    with pytest.raises(SystemExit):
+        main(["wedge", "--help"])
+    text = capsys.readouterr().out
+    assert "--scheduler" in text and "--zip" in text and "--workers" in text
+
+
+def test_threads_per_run_fills_the_cores_without_oversubscribing():
+    assert farm.threads_per_run(16, 4) == 4 and farm.threads_per_run(2, 2) == 1 and farm.threads_per_run(2, 3) == 1
+    assert farm.local_cores() == len(os.sched_getaffinity(0))
+
+
+def test_engine_overhead_from_task_timestamps():
+    from hairwarp.benchmarks.wedge import _overheads
+
+    def rec(name, worker, submit, start, end, received):
+        return {"name": name, "worker": worker, "timing": {"t_submit": submit, "t_start": start, "t_end": end,
+                                                           "t_received": received, "simulate_s": end - start - 0.1}}
+
+    rows = {r["name"]: r for r in _overheads([rec("a", "w1", 0.0, 0.5, 3.0, 3.02), rec("b", "w1", 0.0, 3.05, 5.0, 5.5),
+                                              rec("c", "w2", 1.0, 1.25, 2.0, 2.01)])}
+    assert rows["a"]["scheduling_s"] == pytest.approx(0.5) and rows["a"]["transfer_s"] == pytest.approx(0.02)
+    assert rows["b"]["scheduling_s"] == pytest.approx(0.05) and rows["b"]["transfer_s"] == pytest.approx(0.5)
+    assert rows["c"]["scheduling_s"] == pytest.approx(0.25) and rows["b"]["task_s"] == pytest.approx(1.95)
