@@ -61,7 +61,7 @@ WORKER_LOSS_RETRIES = 2
 """``distributed.scheduler.allowed-failures`` of a local cluster: reruns of a task whose worker died."""
 SHEET_FRAMES = 4
 """Columns of the contact sheet: evenly spaced frames, the first and the last included."""
-POLL_S = 0.25
+POLL_S = 0.5
 """How often the progress line is refreshed [s]."""
 INSTALL_HINT = 'pip install "dask[distributed]>=2024.1"'
 """What to run when Dask is missing."""
