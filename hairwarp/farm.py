@@ -531,11 +531,18 @@ class _Cluster:
             self.client.register_plugin(_local_worker_plugin(), name="hairwarp-local-worker")
         self.client.run(_init_warp)  # before the progress line, so Warp's start-up messages do not cut through it
         services = self.client.scheduler_info().get("services", {})
-        # Without bokeh a scheduler still serves a page at the dashboard's address, saying to install it.
-        if "dashboard" in services and (not self.local or importlib.util.find_spec("bokeh") is not None):
+        if "dashboard" in services and self._scheduler_has_bokeh():
             log(f"dashboard  {self.client.dashboard_link}")
         else:
             log("dashboard  unavailable (Dask's dashboard needs bokeh: pip install bokeh)")
+
+    def _scheduler_has_bokeh(self) -> bool:
+        """Without bokeh a scheduler still serves a page at the dashboard's address, saying to install it; ask the
+        scheduler's process (a lambda, sent by value: a remote scheduler need not have hairwarp)."""
+        try:
+            return bool(self.client.run_on_scheduler(lambda: importlib.util.find_spec("bokeh") is not None))
+        except Exception:  # noqa: BLE001 - an old or restricted scheduler: show the address and let it say
+            return True
 
     def close(self):
         for closer in (self.client, self.cluster):
