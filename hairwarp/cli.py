@@ -231,6 +231,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
 def _override(text: str) -> str:
     if "=" not in text or not text.split("=", 1)[0].strip():
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE such as sim.frames=10, got {text!r}")
@@ -259,7 +269,7 @@ def _farm_options(p) -> None:
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames of every run (sim.frames)")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
                    help="override a scene key in every run (repeatable)")
-    p.add_argument("--retries", type=int, default=2, metavar="N",
+    p.add_argument("--retries", type=_non_negative_int, default=2, metavar="N",
                    help="reruns of a run after an error other than a simulation fault (default 2)")
     p.add_argument("--no-sheet", action="store_true", help="do not draw the contact sheet")
 
