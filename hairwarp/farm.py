@@ -63,6 +63,13 @@ SHEET_FRAMES = 4
 """Columns of the contact sheet: evenly spaced frames, the first and the last included."""
 POLL_S = 0.5
 """How often the progress line is refreshed [s]."""
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.scheduler.allowed-failures": WORKER_LOSS_RETRIES,
+    # Each worker has one core and no spare one: its statistical profiler (a thread sampling the task's stack every
+    # 10 ms, for the dashboard's profile page) is left off; it cost under 1 % of a task here, but it is all waste.
+    "distributed.worker.profile.enabled": False,
+}
+"""Dask settings of the local cluster (a remote scheduler and its workers keep their own)."""
 INSTALL_HINT = 'pip install "dask[distributed]>=2024.1"'
 """What to run when Dask is missing."""
 
@@ -524,7 +531,7 @@ class _Cluster:
             self.workers = int(workers) if workers else max(1, min(self.cores, tasks))
             # Dask's own log is kept to critical messages: every task's outcome is in its record, and a shutdown
             # after Ctrl-C would otherwise print the workers' failed heartbeats to the terminal.
-            with dask.config.set({"distributed.scheduler.allowed-failures": WORKER_LOSS_RETRIES}):
+            with dask.config.set(LOCAL_CLUSTER_CONFIG):
                 self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                             dashboard_address=":0", silence_logs=logging.CRITICAL)
             self.client = Client(self.cluster)
