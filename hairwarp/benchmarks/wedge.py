@@ -214,7 +214,7 @@ def md_wedge(data: dict) -> list[str]:
                      f"| {', '.join(f'{x:g}' for x in load) if load else '–'} |")
     lines += ["", "Bold: the fastest run of each worker count, which the speed-up and the chart use. *Other programs*: "
               "the machine's busy CPU time during the run less this process's and its workers', per second of wall "
-              "time."]
+              "time. The load average (over 1, 5 and 15 minutes) still holds this suite's own earlier runs."]
     one, two = runs[0], runs[-1]
     ideal = two["cluster_s"] + (one["wall_s"] - one["cluster_s"]) / 2
     share = two["engine_s_mean"] / two["task_s_mean"] if two["task_s_mean"] else float("nan")
