@@ -69,7 +69,7 @@ def _cmd_info(args) -> int:
     elif suffix in _GROOM_SUFFIXES:
         print(_groom_summary(path))
     elif suffix in _USD_SUFFIXES:
-        from hairwarp.usd import describe
+        from hairwarp.io.usd_inspect import describe
 
         text = describe(path)
         print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))

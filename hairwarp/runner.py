@@ -201,7 +201,7 @@ class Simulation:
             elif c.kind == "ellipsoid":
                 out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, **opts))
             elif c.kind == "usd":
-                from hairwarp.usd import read_animated_collider
+                from hairwarp.io.usd_anim import read_animated_collider
 
                 opts.pop("attach")
                 out.append(read_animated_collider(c.file, c.prim, name=c.name, **opts))
