@@ -151,8 +151,11 @@ class CacheFolder:
         if not self._locked:
             return
         self._locked = False
-        self.lock.unlink(missing_ok=True)
-        if self.dir.exists() and not self.root.exists():
+        try:
+            self.lock.unlink(missing_ok=True)
+        except OSError:  # the folder went (removed, or replaced by a file): nothing is left to release
+            return
+        if self.dir.is_dir() and not self.root.exists():
             shutil.rmtree(self.dir, ignore_errors=True)
 
     # --- what an earlier run left ------------------------------------------------------------------------------
@@ -215,7 +218,10 @@ class CacheFolder:
 
     def check_space(self, folder: Path, needed: int, what: str) -> None:
         """Raise :class:`CacheWriteError` unless ``needed`` bytes are free where ``what`` is to be written."""
-        free = free_bytes(folder)
+        try:
+            free = free_bytes(folder)
+        except OSError as exc:
+            raise CacheWriteError(f"cannot write {what} in {folder}: {_os_error_text(exc)}") from None
         if free < needed:
             raise CacheWriteError(f"no space left on {folder} for {what}: it needs about {_human_bytes(needed)}, "
                                   f"{_human_bytes(free)} are free")
