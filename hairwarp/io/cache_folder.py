@@ -239,10 +239,10 @@ class CacheFolder:
         try:
             ok = layer.Export(str(tmp))
         except Tf.ErrorException as exc:
-            tmp.unlink(missing_ok=True)
+            _discard(tmp)
             raise CacheWriteError(f"writing {what} to {dest} failed: {usd_error_text(exc)}") from None
         if not ok:
-            tmp.unlink(missing_ok=True)
+            _discard(tmp)
             raise CacheWriteError(f"writing {what} to {dest} failed")
         self._commit(tmp, dest, what)
 
@@ -252,7 +252,7 @@ class CacheFolder:
             os.replace(tmp, dest)
             fsync_path(dest.parent)
         except OSError as exc:
-            tmp.unlink(missing_ok=True)
+            _discard(tmp)
             raise CacheWriteError(f"writing {what} to {dest} failed: {_os_error_text(exc)}") from None
 
     def write_checkpoint(self, frame: int, arrays: dict[str, np.ndarray]) -> None:
@@ -263,7 +263,7 @@ class CacheFolder:
         try:
             np.savez(tmp, **arrays)
         except OSError as exc:
-            tmp.unlink(missing_ok=True)
+            _discard(tmp)
             raise CacheWriteError(f"writing the state after frame {frame} to {dest} failed: "
                                   f"{_os_error_text(exc)}") from None
         self._commit(tmp, dest, f"the state after frame {frame}")
@@ -303,6 +303,14 @@ class CacheFolder:
                                   f"{_os_error_text(exc)}") from None
         self._locked = False
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def _discard(path: Path) -> None:
+    """Remove a temporary file if it is there (its folder may be gone too)."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def _frame_of(entry: Path) -> int | None:
