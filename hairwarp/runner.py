@@ -392,11 +392,11 @@ def _preflight(scene, out_path: Path, frames: int, device) -> None:
     the path: the cache's suffix and folder, the device, and memory for the arrays the scene asks for."""
     from hairwarp.io.usd_common import USD_SUFFIXES, _human_bytes
 
+    if out_path.is_dir():
+        raise ValueError(f"{out_path}: is a folder; name the cache file, e.g. {out_path / (scene.name + '.usdc')}")
     if out_path.suffix.lower() not in USD_SUFFIXES:
         raise ValueError(f"{out_path}: a cache must end in one of {', '.join(USD_SUFFIXES)}, not "
                          f"{out_path.suffix or 'no suffix'!r}")
-    if out_path.is_dir():
-        raise ValueError(f"{out_path}: is a folder; name the cache file, e.g. {out_path / (scene.name + '.usdc')}")
     name = str(device or scene.sim.device)
     if name.startswith("cuda") and not wp.is_cuda_available():
         raise ValueError(f"sim.device = {name!r}: Warp finds no CUDA device on this machine; use \"cpu\"")
@@ -506,6 +506,7 @@ class _Progress:
         self.stream = stream or sys.stderr
         self.start = time.perf_counter()
         self.base = 0
+        self._clock = False
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._last_decile = -1
 
@@ -523,8 +524,8 @@ class _Progress:
         if not self.enabled:
             return
         now = time.perf_counter()
-        if done <= self.base + 1:  # the clock starts once the first simulated frame is out: its kernels are loaded
-            self.start, self.base = now, done
+        if not self._clock and done > self.base:  # the clock starts once the first simulated frame is out
+            self.start, self.base, self._clock = now, done, True
         elapsed = now - self.start
         line = f"frame {done}/{self.total}"
         if done > self.base and elapsed > 0:

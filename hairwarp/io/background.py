@@ -123,6 +123,7 @@ class BackgroundCacheWriter(CacheWriter):
             self.resumed_after = self.folder.prepare(resume)
             if self.resumed_after is not None:
                 self._frames = list(range(self.folder.frame_range()[0], self.resumed_after + 1))
+            self._resumed_frames = len(self._frames)
             self._start(comment, resume)
         except BaseException:
             self.folder.release()

@@ -127,6 +127,7 @@ class CacheWriter:
         self._owner = owner
         if self.resumed_after is not None:
             self._frames = list(range(self.folder.frame_range()[0], self.resumed_after + 1))
+        self._resumed_frames = len(self._frames)
 
     def _setup(self, path, fps, start_frame, meters_per_unit, up_axis, layout, comment) -> None:
         """Check the arguments and set what both writers keep: units, the frames written, the prims declared."""
@@ -143,6 +144,7 @@ class CacheWriter:
         self._topology: list[tuple[str, dict]] = []
         self._topology_written = False
         self._half_widths: dict[str, float] = {}
+        self._resumed_frames = 0
         self.resumed_after = None
         _check_stage_units(self.path, up_axis, meters_per_unit)
         if not (np.isfinite(fps) and fps > 0.0):
@@ -188,7 +190,7 @@ class CacheWriter:
         where = f"{self.path}: curves {name!r}"
         self._check_open()
         self._check_name(name, where)
-        if self._frames:
+        if len(self._frames) > self._resumed_frames:
             raise UsdFileError(f"{where}: curves must be added before the first frame is written")
         if kind not in ("dense", "guides"):
             raise UsdFileError(f"{where}: kind must be 'dense' or 'guides', not {kind!r}")
@@ -226,7 +228,7 @@ class CacheWriter:
         where = f"{self.path}: mesh {name!r}"
         self._check_open()
         self._check_name(name, where)
-        if self._frames:
+        if len(self._frames) > self._resumed_frames:
             raise UsdFileError(f"{where}: meshes must be added before the first frame is written")
         pts, lo, hi = self._points(points, None, where)
         faces = np.asarray(face_vertex_indices)
