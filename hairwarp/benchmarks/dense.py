@@ -73,7 +73,7 @@ def _time_writes(folder: Path, name: str, counts: np.ndarray, widths, basis: str
     One value changes between frames: the crate format stores identical arrays once, which would flatter the
     figures.
     """
-    from hairwarp.io.cache import CacheWriter
+    from hairwarp.io.cache import CacheWriter, cache_bytes
 
     path = folder / f"{name}.usdc"
     points, velocities = points.copy(), velocities.copy()
@@ -91,7 +91,7 @@ def _time_writes(folder: Path, name: str, counts: np.ndarray, widths, basis: str
         t0 = time.perf_counter()
     wall += time.perf_counter() - t0  # the close saves what is left
     phases = {k: (cache.timings[k] - before[k]) / frames for k in before}
-    size = path.stat().st_size
+    size = cache_bytes(path)
     path.unlink()
     return {"basis": basis, "frames": frames, "write_s": wall / frames,
             **{f"{k}_s": v for k, v in phases.items()}, "bytes_per_frame": size / (frames + 1)}
@@ -206,7 +206,7 @@ def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: in
     import warp as wp
 
     from hairwarp.io.background import BackgroundCacheWriter
-    from hairwarp.io.cache import CacheWriter
+    from hairwarp.io.cache import CacheWriter, cache_bytes
 
     hermite = basis == "linear"
     fps = float(sim.scene.sim.fps)
@@ -248,7 +248,7 @@ def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: in
         row["close_s"] = time.perf_counter() - t_close
         row.update({f"{k}_s": (cache.timings[k] - before[k]) / frames for k in before})
         row["writer_own_s"] = (sum(cache.timings[k] - before[k] for k in ("convert", "set", "save")) / frames)
-        row["bytes_per_frame"] = path.stat().st_size / (frames + 1)
+        row["bytes_per_frame"] = cache_bytes(path) / (frames + 1)
         path.unlink()
     return row
 
@@ -399,7 +399,7 @@ def bench_usd_write(counts=(10_000, 100_000), quick: bool = False, device=None, 
     frames = int(frames or (2 if quick else 4))
     rng = np.random.default_rng(0)
     results = []
-    from hairwarp.io.cache import CacheWriter
+    from hairwarp.io.cache import CacheWriter, cache_bytes
 
     with tempfile.TemporaryDirectory(prefix="hairwarp-bench-usd-") as tmp:
         for n in counts:
@@ -416,7 +416,7 @@ def bench_usd_write(counts=(10_000, 100_000), quick: bool = False, device=None, 
                     t0 = time.perf_counter()
                     cache.write_frame(f, {"hair": (points, velocities)})
                     wall += (time.perf_counter() - t0) if f > 0 else 0.0
-            size = sum(f.stat().st_size for f in (path, *path.with_name(path.stem + ".clips").iterdir()))
+            size = cache_bytes(path)
             per_frame = wall / frames
             results.append({"count": int(n), "points": npts, "write_s": per_frame,
                             **{f"{k}_s": (cache.timings[k] - before[k]) / frames for k in before},

@@ -52,7 +52,7 @@ from hairwarp.io.usd_common import (
     _vertex_widths,
 )
 
-__all__ = ["CHUNK_BYTES", "LAYOUTS", "CacheWriter"]
+__all__ = ["CHUNK_BYTES", "LAYOUTS", "CacheWriter", "cache_bytes"]
 
 LAYOUTS = ("clips", "single")
 """``output.layout``: a root layer with one clip layer per frame, or one flattened file."""
@@ -683,3 +683,10 @@ def _reload_clips(clips_dir: Path) -> None:
                 layer.Reload(force=True)
             except Exception:  # the file went with the cache it belonged to
                 pass
+
+
+def cache_bytes(path) -> int:
+    """Bytes of a finished cache: its root file and, for layout "clips", the clip layers beside it."""
+    path = Path(path)
+    clips = path.with_name(path.stem + ".clips")
+    return path.stat().st_size + (sum(p.stat().st_size for p in clips.iterdir()) if clips.is_dir() else 0)

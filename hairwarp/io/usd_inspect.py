@@ -69,8 +69,9 @@ def describe(path) -> str:
     path = Path(path)
     stage = _open_stage(path)
     conv = _stage_to_metres_z(stage)
-    clips = path.with_name(path.stem + ".clips")  # the clip layers of a cache written with layout "clips"
-    size = path.stat().st_size + (sum(p.stat().st_size for p in clips.iterdir()) if clips.is_dir() else 0)
+    from hairwarp.io.cache import cache_bytes
+
+    size = cache_bytes(path)
     layer = stage.GetRootLayer()
     up = UsdGeom.GetStageUpAxis(stage)
     mpu = UsdGeom.GetStageMetersPerUnit(stage)
