@@ -227,6 +227,29 @@ class Solver:
         )
         return self.joint_qdd
 
+    def persistent_arrays(self) -> dict[str, wp.array]:
+        """Device arrays the stages keep from one step or frame to the next besides the :class:`State`: what a
+        checkpoint must hold for a run to go on exactly (``Simulation.checkpoint``). A stage that keeps state across
+        steps adds its arrays here, and only here. Scratch that every step rewrites before reading is left out.
+
+        Returns:
+            name -> array: ``links.link_broken`` and ``links.link_broken_total`` (links break for good),
+            ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
+            ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
+            frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
+            or step from the state).
+        """
+        out = {}
+        if self.links is not None:
+            out["links.link_broken"] = self.links.link_broken
+            out["links.link_broken_total"] = self.links.link_broken_total
+        if self.colliders is not None and self.colliders.vert_exempt is not None:
+            out["colliders.vert_exempt"] = self.colliders.vert_exempt
+        if self.contacts is not None:
+            out["contacts.contact_counter"] = self.contacts.contact_counter
+            out["contacts.contact_overflow"] = self.contacts.contact_overflow
+        return out
+
     def check(self, state, frame: int, *, substeps: int | None = None):
         """Raise :class:`SimulationFault` if a stage flagged a fault; call once per output frame.
 
