@@ -131,20 +131,6 @@ class Solver:
         if self.body_contacts.enabled:
             self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
 
-    def persistent_arrays(self) -> dict[str, wp.array]:
-        """The device arrays the stages carry from one step to the next besides the states (the body contacts'
-        friction history and forces, the colliders' exemptions, broken links), by name: what a checkpoint must
-        hold with the state to go on exactly."""
-        out = {}
-        if self.body_contacts.enabled:
-            out["body_contact_beta"] = self.body_contacts.beta
-            out["body_contact_force"] = self.body_contacts.force
-            out["collider_exempt"] = self.colliders.vert_exempt
-        if self.links is not None:
-            out["link_broken"] = self.links.link_broken
-            out["link_broken_total"] = self.links.link_broken_total
-        return out
-
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""
         if dt != self._dt_host:
@@ -237,9 +223,13 @@ class Solver:
             ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
             ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
             frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
-            or step from the state).
+            or step from the state), ``body_contacts.beta`` and ``body_contacts.force`` (each vertex's friction
+            share and the force its collider put on it last step, warm-starting the next).
         """
         out = {}
+        if self.body_contacts.enabled:
+            out["body_contacts.beta"] = self.body_contacts.beta
+            out["body_contacts.force"] = self.body_contacts.force
         if self.links is not None:
             out["links.link_broken"] = self.links.link_broken
             out["links.link_broken_total"] = self.links.link_broken_total
