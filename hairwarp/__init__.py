@@ -45,6 +45,9 @@ _EXPORTS = {
     "simulate": "hairwarp.runner",
     "Simulation": "hairwarp.runner",
     "Stepper": "hairwarp.runner",
+    # many runs on Dask
+    "wedge": "hairwarp.farm",
+    "batch": "hairwarp.farm",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

@@ -6,13 +6,16 @@
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
+    hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
+    hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
 
-Exit codes: 0 success; 1 a part of hairwarp this installation lacks; 2 bad input (usage, scene,
-groom or cache errors, a missing file, an output that cannot be written, a missing device, not
-enough memory or disk for the run, another run on the same output), with one message on stderr and
-no traceback; 3 the simulation stopped on a fault (the message names the frame, the stage and the
-parameter) or writing the cache failed (disk full, I/O error); 128 + N a signal N stopped the run
-(130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame.
+Exit codes: 0 success; 1 a part of hairwarp this installation lacks (for ``wedge`` and ``batch``: Dask);
+2 bad input (usage, scene, groom or cache errors, a missing file, an output that cannot be written, a missing
+device, not enough memory or disk for the run, another run on the same output; for ``wedge`` every variant is
+checked before any runs), with one message on stderr and no traceback; 3 the simulation stopped on a fault (the
+message names the frame, the stage and the parameter) or writing the cache failed (disk full, I/O error); for
+``wedge`` and ``batch``: some runs faulted, failed or were lost, the others finished, the summary says which;
+128 + N a signal N stopped the run (130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame.
 Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one-line message.
 """
 
@@ -141,6 +144,81 @@ def _cmd_preview(args) -> int:
     return EXIT_OK
 
 
+def _dask_missing(command: str) -> bool:
+    """Tell the user how to install Dask when it is missing (``wedge`` and ``batch`` run on it)."""
+    try:
+        import distributed  # noqa: F401
+    except ModuleNotFoundError:
+        from hairwarp.farm import INSTALL_HINT
+
+        _error(f"'{command}' runs on Dask, which this installation does not have: {INSTALL_HINT}")
+        return True
+    return False
+
+
+def _common_overrides(args) -> list[str]:
+    overrides = list(args.set or [])
+    if args.frames is not None:
+        overrides.append(f"sim.frames={args.frames}")
+    return overrides
+
+
+def _cmd_wedge(args) -> int:
+    if _dask_missing("wedge"):
+        return EXIT_MISSING_PART
+    from hairwarp import farm
+    from hairwarp.scene import Scene
+
+    path = Path(args.scene) if args.scene else Scene.default_path()
+    params: dict[str, list[str]] = {}
+    for key, values in args.wedge:
+        if key in params:
+            raise ValueError(f"-w {key} is given twice; list all its values in one -w {key}=V1,V2,...")
+        params[key] = values
+    overrides = _common_overrides(args)
+    base = Scene.load(path, overrides=overrides)
+    out = Path(args.output) if args.output else Path("out") / f"wedge_{base.name}"
+    tasks = farm.wedge_tasks(path, params, out, mode="zip" if args.zip else "grid", overrides=overrides)
+    print(f"wedge    {len(tasks)} variants of {path} into {out}", file=sys.stderr)
+    return _run_farm(args, farm, tasks, out, shared_framing=True)
+
+
+def _cmd_batch(args) -> int:
+    if _dask_missing("batch"):
+        return EXIT_MISSING_PART
+    from hairwarp import farm
+
+    out = Path(args.output) if args.output else Path("out") / "batch"
+    tasks = farm.batch_tasks(args.scenes, out, overrides=_common_overrides(args))
+    print(f"batch    {len(tasks)} shots into {out}", file=sys.stderr)
+    return _run_farm(args, farm, tasks, out, shared_framing=False)
+
+
+def _run_farm(args, farm, tasks, out: Path, shared_framing: bool) -> int:
+    import time
+
+    t0 = time.perf_counter()
+    try:
+        records = farm.run_tasks(tasks, out, scheduler=args.scheduler, workers=args.workers, retries=args.retries,
+                                 progress=True, sheet=not args.no_sheet, shared_framing=shared_framing)
+    except KeyboardInterrupt:
+        _error(f"interrupted: unfinished runs cancelled; a rerun reuses the finished ones in {out}")
+        return 130
+    counts: dict[str, int] = {}
+    for r in records:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    for r in records:
+        if r["status"] != farm.STATUS_OK:
+            print(f"{r['status']:<8} {r['name']}: {r['message']}")
+    print(f"summary  {out / 'summary.csv'}  {out / 'summary.md'}")
+    if (out / "sheet.png").is_file() and not args.no_sheet:
+        print(f"sheet    {out / 'sheet.png'}")
+    reused = sum(1 for r in records if r.get("skipped"))
+    print(f"{len(records)} runs: " + ", ".join(f"{n} {k}" for k, n in counts.items())
+          + (f" ({reused} complete before, not rerun)" if reused else "") + f" in {time.perf_counter() - t0:.1f} s")
+    return EXIT_OK if counts.get(farm.STATUS_OK, 0) == len(records) else EXIT_FAULT
+
+
 # ----------------------------------------------------------------------------------------------
 # parser
 
@@ -159,6 +237,33 @@ def _override(text: str) -> str:
     if "=" not in text or not text.split("=", 1)[0].strip():
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE such as sim.frames=10, got {text!r}")
     return text
+
+
+def _wedge_param(text: str) -> tuple[str, list[str]]:
+    from hairwarp.farm import split_values
+
+    key, sep, values = text.partition("=")
+    if not sep or not key.strip() or not values.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=V1,V2,... such as strands.bend_stiffness=1e-4,1e-3, "
+                                         f"got {text!r}")
+    return key.strip(), split_values(values)
+
+
+def _farm_options(p) -> None:
+    p.add_argument("-o", "--output", metavar="DIR", help="output folder (one subfolder per run, the summaries and "
+                                                         "the contact sheet)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="a running Dask scheduler, e.g. tcp://host:8786 (dask-jobqueue, dask-kubernetes); "
+                            "default: a local cluster")
+    where.add_argument("--workers", type=_positive_int, metavar="N",
+                       help="worker processes of the local cluster (default: one per core this process may use)")
+    p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames of every run (sim.frames)")
+    p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
+                   help="override a scene key in every run (repeatable)")
+    p.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="reruns of a run after an error other than a simulation fault (default 2)")
+    p.add_argument("--no-sheet", action="store_true", help="do not draw the contact sheet")
 
 
 def _version() -> str:
@@ -212,6 +317,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=_positive_int, default=4, metavar="N", help="frames on the sheet (default 4)")
     p.add_argument("--gif", action="store_true", help="write an animated GIF of every frame instead")
     p.set_defaults(func=_cmd_preview)
+
+    p = sub.add_parser("wedge", help="run variants of a scene on Dask (one run per combination of values)",
+                       description="Run variants of a scene, one Dask task each, on a local cluster or a Dask "
+                                   "scheduler; write each run's cache, preview and stats, a summary and a contact "
+                                   "sheet. A rerun skips the runs already complete.")
+    p.add_argument("scene", nargs="?", metavar="SCENE", help="scene file (.toml); default: the bundled long_hair")
+    p.add_argument("-w", "--wedge", action="append", type=_wedge_param, required=True, metavar="KEY=V1,V2,...",
+                   help="a key and its values, in TOML syntax (repeatable), e.g. -w strands.bend_stiffness=1e-4,1e-3")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--grid", action="store_true", help="every combination of the values (default)")
+    mode.add_argument("--zip", action="store_true", help="the i-th value of every key together (equal lengths)")
+    _farm_options(p)
+    p.set_defaults(func=_cmd_wedge)
+
+    p = sub.add_parser("batch", help="run several scenes (shots) on Dask",
+                       description="Run several scenes, one Dask task each, like 'wedge' does for variants.")
+    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files, or @LIST.txt (one scene a line)")
+    _farm_options(p)
+    p.set_defaults(func=_cmd_batch)
     return parser
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["VIEWS", "preview_cache", "render_frames"]
+__all__ = ["VIEWS", "preview_cache", "render_frames", "render_grid"]
 
 VIEWS = {
     "front": (0.0, 0.0),
@@ -347,6 +347,80 @@ def render_frames(frames, out_png, *, titles=None, meshes=None, view="three_quar
     if titles is None:
         titles = [f"frame {i}" for i in range(len(frames))]
     fig = _sheet(panels, titles, size_px)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=DPI, facecolor=BACKGROUND)
+    return out_png
+
+
+GRID_LABEL_PX = 190
+"""Width of the row-title column of :func:`render_grid` [px]."""
+GRID_HEADER_PX = 30
+"""Height of the column-title band of :func:`render_grid` [px]."""
+
+
+def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_quarter", panel_px=(300, 300),
+                max_curves: int = 2000, shared_limits: bool = True, row_colors=None) -> Path:
+    """Draw a grid of panels: one row per run (a wedge variant, a shot), one column per frame.
+
+    Args:
+        rows: list of rows; a row is a list of frames, each a dict ``{"curves": {...}, "meshes": [...]}`` as
+            :func:`render_frames` takes them (curves: prim name -> (points, counts); meshes: (vertices, faces)
+            pairs, world space), or None for an empty panel (a run that stopped before that frame).
+        out_png: the PNG to write (its folder is created).
+        row_titles: a caption per row, drawn left of it (may hold several lines).
+        col_titles: a caption per column, drawn above the grid.
+        view: a name from :data:`VIEWS` or (azimuth, elevation) in degrees.
+        panel_px: (width, height) of one panel in pixels.
+        max_curves: curves drawn per panel at most.
+        shared_limits: one camera framing and depth range for the whole grid (a wedge: looks compare
+            directly); False frames each row on its own (shots of different scenes).
+        row_colors: an optional text colour per row title (e.g. to mark runs that stopped on a fault).
+
+    Returns:
+        The path of the PNG.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    out_png = Path(out_png)
+    cam = _camera(view)
+    n_rows = max(len(rows), 1)
+    n_cols = max((len(r) for r in rows), default=1) or 1
+    panels = [[None if f is None else _Panel(f["curves"], f.get("meshes"), cam, max_curves) for f in row]
+              for row in rows]
+    pw, ph = (int(v) for v in panel_px)
+    width, height = GRID_LABEL_PX + n_cols * pw, GRID_HEADER_PX + n_rows * ph
+    fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, facecolor=BACKGROUND)
+    FigureCanvasAgg(fig)
+    pad = 4
+    aspect = (pw - 2 * pad) / (ph - 2 * pad)
+    everything = [p for row in panels for p in row if p is not None]
+    limits = _limits(everything, aspect) if shared_limits else None
+    depth = _depth_limits(everything) if shared_limits else None
+    for r, row in enumerate(panels):
+        present = [p for p in row if p is not None]
+        row_limits = limits or _limits(present, aspect)
+        lo, hi = depth or _depth_limits(present)
+        top = height - GRID_HEADER_PX - r * ph
+        if row_titles is not None and r < len(row_titles) and row_titles[r]:
+            color = row_colors[r] if row_colors is not None and r < len(row_colors) and row_colors[r] else None
+            fig.text(8 / width, (top - ph / 2) / height, str(row_titles[r]), ha="left", va="center",
+                     fontsize=8, color=color or CAPTION_COLOR, family="sans-serif", linespacing=1.4)
+        for c, panel in enumerate(row):
+            rect = ((GRID_LABEL_PX + c * pw + pad) / width, (top - ph + pad) / height, (pw - 2 * pad) / width,
+                    (ph - 2 * pad) / height)
+            ax = fig.add_axes(rect)
+            ax.set_facecolor(BACKGROUND)
+            if panel is None:
+                ax.set_axis_off()
+                ax.text(0.5, 0.5, "not reached", ha="center", va="center", fontsize=8, color=CAPTION_COLOR,
+                        transform=ax.transAxes)
+                continue
+            _draw(ax, panel, row_limits, lo, hi, _line_width(panel.curve_count, min(pw, ph)))
+    for c in range(n_cols):
+        if col_titles is not None and c < len(col_titles) and col_titles[c]:
+            fig.text((GRID_LABEL_PX + (c + 0.5) * pw) / width, 1.0 - 0.5 * GRID_HEADER_PX / height, str(col_titles[c]),
+                     ha="center", va="center", fontsize=9, color=CAPTION_COLOR, family="sans-serif")
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=DPI, facecolor=BACKGROUND)
     return out_png

@@ -1,0 +1,238 @@
+"""What the Dask engine of ``hairwarp wedge`` costs and buys on this machine.
+
+:func:`suite_wedge` (``hairwarp bench wedge``) runs one 8-variant wedge of the default scene (``long_hair.toml``,
+its bend stiffness times its link stiffness, frames shortened to :data:`FRAMES`) with 1 and with 2 worker processes
+of a local cluster, each from a fresh cluster into a fresh folder, and reports the wall time of each (the goal:
+at least 1.8x faster with 2 workers on 2 cores). From the timestamps every task record carries (submitted and
+received on the client, started and ended on the worker) it takes the engine's own cost per task: the time a task
+waits for a free worker beyond the previous task's end (scheduling) plus the time its result takes back to the
+client (transfer), against the task's time on the worker. A round trip of an empty task on the same kind of
+cluster is the floor of that cost. :func:`md_wedge` renders the report section and :func:`chart_wedge` its chart.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+# 8 variants: 4 bend stiffnesses (EI [N m^2]) x 2 link stiffnesses [N/m] around the shipped 2e-4 and 1.0.
+PARAMS = {"strands.bend_stiffness": [1e-4, 2e-4, 4e-4, 8e-4], "links.stiffness": [0.5, 1.0]}
+FRAMES = 20
+"""Output frames per variant (the scene ships 90): 8 runs of 20 frames keep the suite near two minutes."""
+QUICK_PARAMS = {"strands.bend_stiffness": [1e-4, 1e-3], "strands.drag": [0.01, 0.02]}
+QUICK_FRAMES = 3
+WORKERS = (1, 2)
+ROUNDS = 2
+"""Each wedge is timed this often, the worker counts interleaved; the fastest of each counts (the machine is shared:
+the least disturbed run is the closest to what the engine does)."""
+GOAL_SPEEDUP = 1.8
+NOOP_TASKS = 40
+CHART = "bench_wedge.png"
+
+
+def _noop():
+    return None
+
+
+def _overheads(records: list[dict]) -> list[dict]:
+    """Per task: seconds on the worker, of which simulating, and the engine's scheduling wait and transfer."""
+    rows = []
+    by_worker: dict = {}
+    for r in records:
+        by_worker.setdefault(r.get("worker"), []).append(r)
+    for tasks in by_worker.values():
+        tasks.sort(key=lambda r: r["timing"]["t_start"])
+        previous_end = None
+        for r in tasks:
+            t = r["timing"]
+            ready = t["t_submit"] if previous_end is None else max(t["t_submit"], previous_end)
+            rows.append({"name": r["name"], "task_s": t["t_end"] - t["t_start"], "simulate_s": t.get("simulate_s"),
+                         "scheduling_s": max(t["t_start"] - ready, 0.0), "transfer_s": t["t_received"] - t["t_end"]})
+            previous_end = t["t_end"]
+    return rows
+
+
+def _cpu_seconds() -> tuple[float, float]:
+    """(CPU seconds the whole machine has been busy, CPU seconds of this process and its reaped children)."""
+    import psutil
+
+    t = psutil.cpu_times()
+    busy = sum(t) - t.idle - getattr(t, "iowait", 0.0)
+    own = psutil.Process().cpu_times()
+    return busy, own.user + own.system + own.children_user + own.children_system
+
+
+def _timed_wedge(scene, params, overrides, workers: int, log) -> dict:
+    from hairwarp import farm
+    from hairwarp.benchmarks.common import GATE, load_average
+
+    gate = GATE.wait()
+    load_start = load_average()
+    with tempfile.TemporaryDirectory(prefix="hairwarp-bench-wedge-") as tmp:
+        busy0, own0 = _cpu_seconds()
+        t0 = time.perf_counter()
+        records = farm.wedge(scene, params, out=Path(tmp) / "w", workers=workers, overrides=overrides, sheet=False)
+        wall = time.perf_counter() - t0
+        busy1, own1 = _cpu_seconds()  # the cluster is closed: its worker processes are reaped children by now
+    others = max(busy1 - busy0 - (own1 - own0), 0.0) / wall
+    bad = [r for r in records if r["status"] != "ok"]
+    if bad:
+        raise RuntimeError(f"bench wedge: {bad[0]['name']} {bad[0]['status']}: {bad[0]['message']}")
+    first_submit = min(r["timing"]["t_submit"] for r in records)
+    last_received = max(r["timing"]["t_received"] for r in records)
+    rows = _overheads(records)
+    engine = [row["scheduling_s"] + row["transfer_s"] for row in rows]
+    out = {"workers": workers, "tasks": len(records), "wall_s": wall, "submit_to_last_result_s": last_received -
+           first_submit, "cluster_s": wall - (last_received - first_submit),
+           "task_s_mean": statistics.fmean(row["task_s"] for row in rows),
+           "simulate_s_mean": statistics.fmean(row["simulate_s"] for row in rows),
+           "task_s_sum": sum(row["task_s"] for row in rows),
+           "engine_s_mean": statistics.fmean(engine), "engine_s_max": max(engine),
+           "scheduling_s_mean": statistics.fmean(row["scheduling_s"] for row in rows),
+           "transfer_s_mean": statistics.fmean(row["transfer_s"] for row in rows),
+           "tasks_detail": rows, "quiet_gate": gate, "load_average_start": load_start,
+           "load_average_end": load_average(), "others_busy_cores": others, "own_cpu_s": own1 - own0}
+    log(f"wedge: {workers} worker(s): {wall:.1f} s for {len(records)} tasks (tasks {out['task_s_mean']:.2f} s on "
+        f"average, engine {1e3 * out['engine_s_mean']:.1f} ms per task; other programs kept {others:.2f} cores "
+        "busy meanwhile)")
+    return out
+
+
+def noop_round_trip(workers: int = 2, tasks: int = NOOP_TASKS) -> dict:
+    """Submit-to-result time of an empty task, one at a time, on a local cluster like the wedge's."""
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+        client.submit(_noop, pure=False).result()  # the first call carries the connection set-up
+        samples = []
+        for _ in range(tasks):
+            t0 = time.perf_counter()
+            client.submit(_noop, pure=False).result()
+            samples.append(time.perf_counter() - t0)
+    return {"tasks": tasks, "median_s": statistics.median(samples), "max_s": max(samples)}
+
+
+def suite_wedge(config, out, log=lambda message: None) -> dict:
+    """The ``wedge`` suite of ``hairwarp bench``: an 8-variant wedge of the default scene (quick: 4 variants of
+    tiny.toml) with 1 and 2 workers, the engine's cost per task, and an empty task's round trip."""
+    from hairwarp import farm
+    from hairwarp.scene import Scene
+
+    quick = bool(config.quick)
+    scene = Scene.default_path() if not quick else Path(Scene.default_path()).with_name("tiny.toml")
+    params = QUICK_PARAMS if quick else PARAMS
+    frames = QUICK_FRAMES if quick else FRAMES
+    overrides = [f"sim.frames={frames}"]
+    variants = 1
+    for values in params.values():
+        variants *= len(values)
+    log(f"wedge: {variants} variants of {Path(scene).name}, {frames} frames each, with {WORKERS} workers")
+    all_runs = []
+    for n in range(1 if quick else ROUNDS):
+        for w in WORKERS:
+            all_runs.append({"round": n, **_timed_wedge(scene, params, overrides, w, log)})
+    runs = [min((r for r in all_runs if r["workers"] == w), key=lambda r: r["wall_s"]) for w in WORKERS]
+    log("wedge: round trip of an empty task")
+    noop = noop_round_trip()
+    speedup = runs[0]["wall_s"] / runs[-1]["wall_s"]
+    data = {"scene": Path(scene).name, "variants": variants, "params": params, "frames": frames,
+            "frames_shipped": int(Scene.load(scene).sim.frames), "cores": farm.local_cores(), "runs": runs,
+            "all_runs": all_runs,
+            "noop": noop, "speedup": speedup, "goal_speedup": GOAL_SPEEDUP, "meets": speedup >= GOAL_SPEEDUP,
+            "threads_key": farm._threads_key_exists()}
+    chart = Path(out) / CHART
+    try:
+        chart_wedge(data, chart)
+        data["files"] = [str(chart)]
+    except (ImportError, OSError, ValueError) as exc:
+        log(f"wedge: chart not drawn: {exc}")
+    return data
+
+
+def chart_wedge(data: dict, path: Path) -> None:
+    """Wall time with 1 and 2 workers (with the ideal of 2), and one task's time split into simulation, the rest of
+    the task, and the engine's scheduling and transfer."""
+    from hairwarp.benchmarks.report import _pyplot
+
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    runs = data["runs"]
+    xs = [str(r["workers"]) for r in runs]
+    a.bar(xs, [r["wall_s"] for r in runs], color="#4c72b0", label="measured")
+    a.plot(xs, [runs[0]["wall_s"] / r["workers"] for r in runs], "k--", marker="o", ms=3, label="ideal (1 / workers)")
+    a.set_xlabel("worker processes")
+    a.set_ylabel("wall time of the wedge [s]")
+    a.set_title(f"{data['variants']} variants of {data['scene']}, {data['frames']} frames: {data['speedup']:.2f}x")
+    a.legend(fontsize=7)
+    parts = [("simulate", "simulate_s_mean", "#4c72b0"), ("rest of the task", None, "#dd8452"),
+             ("engine: scheduling + transfer", "engine_s_mean", "#c44e52")]
+    bottom = [0.0] * len(runs)
+    for label, key, color in parts:
+        values = [r["task_s_mean"] - r["simulate_s_mean"] if key is None else r[key] for r in runs]
+        b.bar(xs, values, bottom=bottom, color=color, label=label)
+        bottom = [x + v for x, v in zip(bottom, values)]
+    b.set_xlabel("worker processes")
+    b.set_ylabel("mean per task [s]")
+    b.set_title("one task: where its time goes")
+    b.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def md_wedge(data: dict) -> list[str]:
+    """The report section of :func:`suite_wedge`."""
+    runs = data["runs"]
+    noop = data["noop"]
+    keys = " × ".join(f"`{k}`" for k in data["params"])
+    lines = ["## Wedges on Dask (`hairwarp bench wedge`)", "",
+             f"A wedge of {data['variants']} variants of `{data['scene']}` ({keys}, every combination), frames "
+             f"shortened from {data['frames_shipped']} to {data['frames']} per variant, each writing its cache, "
+             "preview and stats, run by `hairwarp.farm` on a local cluster of 1 and of 2 single-threaded worker "
+             f"processes ({data['cores']} cores usable), each from a fresh cluster into a fresh folder. *Wall* "
+             "includes starting and closing the cluster."]
+    lines += ["", f"![wedge]({CHART})", "",
+              "| round | workers | wall [s] | submit → last result [s] | cluster start + close [s] "
+              "| task on a worker, mean [s] | of which simulate [s] | engine per task, mean / max [ms] "
+              "| other programs during the run [cores] | load average at start |",
+              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in data.get("all_runs", runs):
+        load = r.get("load_average_start")
+        best = "**" if r in runs else ""
+        others = r.get("others_busy_cores")
+        lines.append(f"| {r.get('round', 0) + 1} | {r['workers']} | {best}{r['wall_s']:.1f}{best} "
+                     f"| {r['submit_to_last_result_s']:.1f} | {r['cluster_s']:.1f} | {r['task_s_mean']:.2f} "
+                     f"| {r['simulate_s_mean']:.2f} | {1e3 * r['engine_s_mean']:.1f} / {1e3 * r['engine_s_max']:.1f} "
+                     f"| {'–' if others is None else f'{others:.2f}'} "
+                     f"| {', '.join(f'{x:g}' for x in load) if load else '–'} |")
+    lines += ["", "Bold: the fastest run of each worker count, which the speed-up and the chart use. *Other programs*: "
+              "the machine's busy CPU time during the run less this process's and its workers', per second of wall "
+              "time."]
+    two = runs[-1]
+    share = two["engine_s_mean"] / two["task_s_mean"] if two["task_s_mean"] else float("nan")
+    lines += ["",
+              f"- **Speed-up with 2 workers: {data['speedup']:.2f}×** (goal ≥ {data['goal_speedup']:g}×: "
+              f"{'met' if data['meets'] else 'not met'}).",
+              f"- The engine's cost per task (waiting for a worker beyond the previous task's end, plus the result's "
+              f"way back) is {1e3 * two['engine_s_mean']:.1f} ms on average against {two['task_s_mean']:.2f} s of "
+              f"task: {100 * share:.2f} % of it. An empty task's round trip on a 2-worker cluster takes "
+              f"{1e3 * noop['median_s']:.1f} ms (median of {noop['tasks']}, max {1e3 * noop['max_s']:.1f} ms).",
+              "- *Simulate* is `hairwarp.simulate` (the simulation, the cache and the preview picture); the rest of a "
+              "task reads the tip travel back from the cache and writes the stats and the markers.",
+              ("- `sim.threads` is in the scene schema: each run was given cores / workers threads."
+               if data.get("threads_key") else
+               "- Warp's CPU kernels run on one thread per process, so one worker per core fills the machine; the "
+               "scene has no `sim.threads` key yet (the engine sets it to cores / workers once it has)."),
+              "- The machine is shared with other work. Two workers only run twice as fast as one when nothing else "
+              "needs the cores: every core-second another program takes during the 2-worker run comes out of the "
+              "wedge, while the 1-worker run has a core to spare for it. Where the speed-up falls short, the "
+              "*other programs* column says by how much the machine was taken."]
+    sm = data.get("machine", {})
+    lines += ["", f"*Suite `wedge`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s on "
+                  f"{sm.get('date')}, load average at the end {sm.get('load_average_end')}.*"]
+    return lines
