@@ -37,7 +37,7 @@ _EXPORTS = {
     "ColliderError": "hairwarp.colliders",
     # dense hair and output
     "DenseHair": "hairwarp.dense",
-    "CacheWriter": "hairwarp.usd",
+    "CacheWriter": "hairwarp.io.cache",
     # scenes and runs
     "Scene": "hairwarp.scene",
     "SceneError": "hairwarp.scene",

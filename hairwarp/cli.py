@@ -10,10 +10,12 @@
     hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
 
 Exit codes: 0 success; 1 a part of hairwarp this installation lacks (for ``wedge`` and ``batch``: Dask);
-2 bad input (usage, scene, groom or cache errors, a missing file; for ``wedge`` every variant is checked
-before any runs), with one message on stderr and no traceback; 3 the simulation stopped on a fault
-(the message names the frame, the stage and the parameter; for ``wedge`` and ``batch``: some runs
-faulted, failed or were lost, the others finished, the summary says which); 130 interrupted.
+2 bad input (usage, scene, groom or cache errors, a missing file, an output that cannot be written, a missing
+device, not enough memory or disk for the run, another run on the same output; for ``wedge`` every variant is
+checked before any runs), with one message on stderr and no traceback; 3 the simulation stopped on a fault (the
+message names the frame, the stage and the parameter) or writing the cache failed (disk full, I/O error); for
+``wedge`` and ``batch``: some runs faulted, failed or were lost, the others finished, the summary says which;
+128 + N a signal N stopped the run (130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame.
 Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one-line message.
 """
 
@@ -53,7 +55,7 @@ def _cmd_run(args) -> int:
 
     from hairwarp.runner import simulate
 
-    result = simulate(scene, out, frames=args.frames, device=args.device, progress=True)
+    result = simulate(scene, out, frames=args.frames, device=args.device, progress=True, resume=args.resume)
     print(f"cache    {result.cache_path}")
     if getattr(result, "preview_path", None):
         print(f"preview  {result.preview_path}")
@@ -73,7 +75,7 @@ def _cmd_info(args) -> int:
     elif suffix in _GROOM_SUFFIXES:
         print(_groom_summary(path))
     elif suffix in _USD_SUFFIXES:
-        from hairwarp.usd import describe
+        from hairwarp.io.usd_inspect import describe
 
         text = describe(path)
         print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))
@@ -297,6 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
     p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
                    help="override a scene key, value in TOML syntax, e.g. -s sim.substeps=4 "
                         "-s 'head.motion.kind=\"nod\"' (repeatable)")
@@ -359,6 +363,14 @@ def main(argv=None) -> int:
     Usage errors exit through argparse (``SystemExit(2)``); ``--help`` and ``--version`` exit 0.
     """
     args = build_parser().parse_args(argv)
+    try:  # Warp's banner, its module-load lines and the CUDA-driver warning of a CPU machine: not news on every run
+        import warp as wp
+
+        wp.config.quiet = True  # Warp before 1.19
+        if hasattr(wp, "LOG_ERROR"):
+            wp.config.log_level = wp.LOG_ERROR
+    except ImportError:
+        pass
     if os.environ.get("HAIRWARP_TRACEBACK"):
         return args.func(args)
     try:
@@ -373,10 +385,20 @@ def main(argv=None) -> int:
         return EXIT_MISSING_PART
     except RuntimeError as exc:
         solver = sys.modules.get("hairwarp.solver")
+        folder = sys.modules.get("hairwarp.io.cache_folder")
+        if folder is not None and isinstance(exc, folder.CacheWriteError):
+            _error(f"writing the cache failed: {exc}")
+            return EXIT_FAULT
         if solver is None or not isinstance(exc, getattr(solver, "SimulationFault", ())):
             raise
         _error(f"simulation stopped: {exc}")
         return EXIT_FAULT
     except KeyboardInterrupt:
-        _error("interrupted")
-        return 130
+        _error("interrupted; the frame in flight was dropped")
+        return 128 + 2
+    except Exception as exc:
+        runner = sys.modules.get("hairwarp.runner")
+        if runner is None or not isinstance(exc, runner.RunStopped):
+            raise
+        _error(str(exc))
+        return 128 + exc.signum

@@ -11,7 +11,7 @@ Sources:
   +z after the Y-up to Z-up rotation below.
 - :func:`read_tfx` reads AMD TressFX ``.tfx`` files (Y up).
 - :func:`read_hair` and :func:`write_hair` read and write Cem Yuksel's ``.hair`` files.
-- :meth:`Groom.load` picks a reader by suffix; USD files go through ``hairwarp.usd.read_curves``.
+- :meth:`Groom.load` picks a reader by suffix; USD files go through ``hairwarp.io.usd_groom.read_curves``.
 
 Y up to Z up: ``(x, y, z)_Yup -> (x, -z, y)_Zup``, a rotation of +90 degrees about x
 (:data:`Y_UP_TO_Z_UP`). It keeps handedness, so nothing is mirrored.
@@ -201,8 +201,8 @@ class Groom:
             return read_hair(p, min_length=min_length, up_axis=up_axis or "z")
         if up_axis is not None:
             raise GroomError(f"{p}: up_axis applies to .tfx and .hair files; USD stages record their own upAxis")
-        # Imported here: hairwarp.usd pulls in pxr, which step-API users need not load.
-        curves = importlib.import_module("hairwarp.usd").read_curves(p)
+        # Imported here: hairwarp.io pulls in pxr, which step-API users need not load.
+        curves = importlib.import_module("hairwarp.io.usd_groom").read_curves(p)
         return cls.from_polylines(curves, min_length=min_length, source=str(p)).with_projected_roots()
 
     @property

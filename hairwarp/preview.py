@@ -434,7 +434,7 @@ def _frame_title(frame: dict) -> str:
 
 def _pick_frames(cache_path, frames) -> list[float]:
     """Frame numbers to show: the listed ones, or ``frames`` evenly spaced time samples including the ends."""
-    from hairwarp.usd import _open_stage, _time_samples
+    from hairwarp.io.usd_common import _open_stage, _time_samples
 
     if not isinstance(frames, int | np.integer):
         return [float(f) for f in frames]
@@ -447,7 +447,7 @@ def _pick_frames(cache_path, frames) -> list[float]:
 
 
 def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_quarter") -> Path:
-    """Render a cache written by :class:`hairwarp.usd.CacheWriter` as a contact sheet PNG or an animated GIF.
+    """Render a cache written by :class:`hairwarp.io.cache.CacheWriter` as a contact sheet PNG or an animated GIF.
 
     Args:
         cache_path: the USD cache.
@@ -459,7 +459,7 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
     Returns:
         The path of the picture written.
     """
-    from hairwarp.usd import read_frames
+    from hairwarp.io.usd_inspect import read_frames
 
     cache_path = Path(cache_path)
     suffix = ".gif" if gif else ".png"
@@ -481,7 +481,8 @@ def _write_gif(cache_path: Path, out: Path, view) -> Path:
     """Every time sample as one GIF frame, all with the camera and limits of the whole animation."""
     from PIL import Image
 
-    from hairwarp.usd import _open_stage, read_frames
+    from hairwarp.io.usd_common import _open_stage
+    from hairwarp.io.usd_inspect import read_frames
 
     fps = _open_stage(cache_path).GetTimeCodesPerSecond() or 24.0
     data = read_frames(cache_path)

@@ -20,6 +20,9 @@ from hairwarp.model import Model
 from hairwarp.solver import SimulationFault, Solver
 
 
+_STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
+
+
 class Stepper:
     """Advances a solver by whole frames of ``substeps`` steps, swapping two states.
 
@@ -201,7 +204,7 @@ class Simulation:
             elif c.kind == "ellipsoid":
                 out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, **opts))
             elif c.kind == "usd":
-                from hairwarp.usd import read_animated_collider
+                from hairwarp.io.usd_anim import read_animated_collider
 
                 opts.pop("attach")
                 out.append(read_animated_collider(c.file, c.prim, name=c.name, **opts))
@@ -248,6 +251,41 @@ class Simulation:
     def state(self):
         return self.stepper.state
 
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """Host copies of everything the run needs to go on from here exactly: both states of the stepper (every
+        array of :class:`hairwarp.State`), its time [s], frame and parity, and the solver's
+        :meth:`hairwarp.Solver.persistent_arrays`."""
+        st = self.stepper
+        out = {f"state{i}.{name}": getattr(s, name).numpy() for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
+        out["stepper.time"] = np.array(st.time, dtype=np.float64)
+        out["stepper.frame"] = np.array(st.frame, dtype=np.int64)
+        out["stepper.parity"] = np.array(st.parity, dtype=np.int64)
+        out.update({f"solver.{k}": a.numpy() for k, a in self.solver.persistent_arrays().items()})
+        return out
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Put the run back where :meth:`checkpoint` was taken (in place: captured graphs stay valid).
+
+        Raises:
+            ValueError: the arrays are not those of this simulation (another scene, groom or feature set).
+        """
+        st = self.stepper
+        targets = {f"state{i}.{name}": getattr(s, name) for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
+        targets.update({f"solver.{k}": a for k, a in self.solver.persistent_arrays().items()})
+        expected = set(targets) | {"stepper.time", "stepper.frame", "stepper.parity"}
+        if set(arrays) != expected:
+            raise ValueError(f"the checkpoint does not fit this scene: it holds {sorted(set(arrays) - expected)} "
+                             f"more and {sorted(expected - set(arrays))} less than the simulation")
+        for key, target in targets.items():
+            value = np.asarray(arrays[key])
+            if value.shape != target.numpy().shape:
+                raise ValueError(f"the checkpoint does not fit this scene: {key} has shape {value.shape}, the "
+                                 f"simulation {target.numpy().shape} (another groom, segment count or feature set)")
+            target.assign(value)
+        st.time = float(arrays["stepper.time"])
+        st.frame = int(arrays["stepper.frame"])
+        st.parity = int(arrays["stepper.parity"])
+
     def guide_curves(self) -> tuple[np.ndarray, np.ndarray]:
         """Host copies of the guide vertex positions and velocities, (G*(S+1), 3) each."""
         s = self.stepper.state
@@ -257,18 +295,146 @@ class Simulation:
         return self.motion.evaluate(t).matrix()
 
 
-def _cache_writer(scene, out_path, notes: list):
-    """The writer ``output.writer`` asks for: the inline :class:`hairwarp.usd.CacheWriter` or a
-    :class:`hairwarp.usd.BackgroundCacheWriter` (the simulation goes on while a second process converts and saves
-    each frame); the inline one, with a note, where the background writer cannot run."""
-    from hairwarp.usd import BackgroundCacheWriter, CacheWriter, background_supported
+def _cache_writer(scene, out_path, notes: list, resume: bool):
+    """The writer ``output.writer`` asks for: the inline :class:`hairwarp.io.cache.CacheWriter` or a
+    :class:`hairwarp.io.background.BackgroundCacheWriter` (the simulation goes on while a second process converts and
+    saves each frame); the inline one, with a note, where the background writer cannot run."""
+    from hairwarp.io.background import BackgroundCacheWriter, background_supported
+    from hairwarp.io.cache import CacheWriter
 
-    options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}"}
+    options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}", "layout": scene.output.layout,
+               "resume": resume}
     if scene.output.writer == "background":
         if background_supported():
             return BackgroundCacheWriter(out_path, **options)
         notes.append("output.writer = background needs a POSIX system; the cache was written inline")
     return CacheWriter(out_path, **options)
+
+
+class RunStopped(Exception):
+    """A run stopped by a signal (SIGINT, SIGTERM, SIGHUP) after its last complete frame.
+
+    Attributes:
+        signum: the signal; the ``hairwarp`` command exits with 128 + signum.
+    """
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
+
+
+_STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
+
+
+class _Stops:
+    """While active, SIGINT, SIGTERM and SIGHUP ask the run to stop after the frame in flight (``requested``); a
+    second one drops that frame at once (KeyboardInterrupt). The previous handlers come back on exit. Only the
+    main thread can take signals; elsewhere this does nothing."""
+
+    def __init__(self):
+        self.requested: int | None = None
+        self._previous = {}
+
+    def _handle(self, signum, _frame):
+        if self.requested is not None:
+            raise KeyboardInterrupt
+        self.requested = signum
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for name in _STOP_SIGNALS:
+                sig = getattr(signal, name, None)
+                if sig is not None:
+                    self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def _estimate_bytes(scene, frames: int) -> tuple[int, int]:
+    """(device and host memory of the run, bytes of one cache frame), from the scene alone (before building)."""
+    S = int(scene.sim.segments)
+    G = int(scene.groom.count) if scene.groom.generator else 0  # a groom file is bounded by its own size
+    points = int(getattr(scene.groom, "points", 0) or S + 1)
+    # per segment: two states, the ABA workspace, the model, links and contact slots (about 2 KB measured loosely
+    # from the arrays each allocates); the generator's float64 polylines, a few copies while it grows them
+    guides = G * S * 2048 + G * points * 24 * 4
+    dense_count = int(scene.dense.count or 0)
+    verts_per = S * (int(scene.dense.samples_per_segment) if scene.dense.basis == "linear" else 1) + 1
+    dense_verts = dense_count * verts_per
+    dense = dense_verts * 12 * (2 if scene.dense.velocities else 1)
+    memory = guides + 4 * dense  # device arrays, host copies, the Vt arrays of the frame
+    frame_bytes = dense + (G * (S + 1) * 24 if scene.output.guides else 0) + 2048
+    return memory, frame_bytes
+
+
+def _available_memory() -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def _preflight(scene, out_path: Path, frames: int, device) -> None:
+    """The checks a run makes before building anything; each raises ValueError with one line naming the key or
+    the path: the cache's suffix and folder, the device, and memory for the arrays the scene asks for."""
+    from hairwarp.io.usd_common import USD_SUFFIXES, _human_bytes
+
+    if out_path.is_dir():
+        raise ValueError(f"{out_path}: is a folder; name the cache file, e.g. {out_path / (scene.name + '.usdc')}")
+    if out_path.suffix.lower() not in USD_SUFFIXES:
+        raise ValueError(f"{out_path}: a cache must end in one of {', '.join(USD_SUFFIXES)}, not "
+                         f"{out_path.suffix or 'no suffix'!r}")
+    name = str(device or scene.sim.device)
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"sim.device = {name!r}: Warp finds no CUDA device on this machine; use \"cpu\"")
+    try:
+        wp.get_device(name)
+    except (ValueError, RuntimeError) as exc:
+        raise ValueError(f"sim.device = {name!r}: {exc}") from None
+    memory, _ = _estimate_bytes(scene, frames)
+    available = _available_memory()
+    if available is not None and memory > available:
+        raise ValueError(f"{scene.name}: the run needs about {_human_bytes(memory)} of memory for its arrays, "
+                         f"{_human_bytes(available)} are available: lower groom.count, sim.segments or dense.count")
+
+
+def _check_disk(cache, scene, frames: int, start: int, report) -> None:
+    """Print the estimated cache size and refuse a run whose cache cannot fit on the disk (one line, ValueError)."""
+    from hairwarp.io.cache_folder import free_bytes
+    from hairwarp.io.usd_common import _human_bytes
+
+    _, frame_bytes = _estimate_bytes(scene, frames)
+    count = frames + 1 - start
+    total = frame_bytes * count * (2 if scene.output.layout == "single" else 1)  # flattening copies it once
+    report.note(f"cache    {cache.path}: about {_human_bytes(frame_bytes * (frames + 1))} "
+                f"({_human_bytes(frame_bytes)} per frame x {frames + 1} frames)")
+    free = free_bytes(cache.folder.dir)
+    if total > free:
+        raise ValueError(f"{cache.path}: the cache needs about {_human_bytes(total)} "
+                         f"({_human_bytes(frame_bytes)} per frame x {count} frames), {_human_bytes(free)} are free "
+                         f"on its disk: free space, or lower sim.frames or dense.count")
+
+
+def _kept(cache) -> str:
+    """Where the frames of a run that did not finish are, for its message."""
+    if cache.last_frame is None:
+        return "no frame was complete"
+    first = cache.last_frame - cache.frames_written + 1
+    return (f"frames {first}-{cache.last_frame} are in {cache.partial_path} (hairwarp run --resume continues "
+            f"from there; the cache at {cache.path} is untouched)")
 
 
 def _mesh_collider(path, up_axis, scale, translate, rotate_deg, name, options):
@@ -329,23 +495,42 @@ class RunResult:
 
 
 class _Progress:
-    """One line on the terminal: frame, speed, time left; a line per 10 % when not a terminal."""
+    """One line on the terminal: frame, speed, time left; a line per 10 % when not a terminal.
+
+    The speed is that of the frames simulated since the first one written (frame 0 costs no step, and the first
+    step loads the kernels), so no estimate is shown until one frame has been simulated."""
 
     def __init__(self, total: int, enabled: bool, stream=None):
         self.total = total
         self.enabled = enabled
         self.stream = stream or sys.stderr
         self.start = time.perf_counter()
+        self.base = 0
+        self._clock = False
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._last_decile = -1
+
+    def note(self, line: str):
+        """One line of its own (what a run found, the estimated cache size)."""
+        if self.enabled:
+            self.stream.write(line + "\n")
+            self.stream.flush()
+
+    def restart(self, first: int):
+        """Frames before ``first`` were written by an earlier run."""
+        self.base = first
 
     def update(self, done: int, stats: dict | None = None):
         if not self.enabled:
             return
-        elapsed = time.perf_counter() - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        left = (self.total - done) / rate if rate > 0 else float("inf")
-        line = f"frame {done}/{self.total}  {rate:.2f} frames/s  {left:.0f} s left"
+        now = time.perf_counter()
+        if not self._clock and done > self.base:  # the clock starts once the first simulated frame is out
+            self.start, self.base, self._clock = now, done, True
+        elapsed = now - self.start
+        line = f"frame {done}/{self.total}"
+        if done > self.base and elapsed > 0:
+            rate = (done - self.base) / elapsed
+            line += f"  {rate:.2f} frames/s  {(self.total - done) / rate:.0f} s left"
         if stats:
             line += "  " + "  ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items())
         if self.tty:
@@ -361,8 +546,11 @@ class _Progress:
 
 
 def simulate(scene, out_path, *, frames: int | None = None, device=None, progress: bool = True,
-             preview: bool | None = None) -> RunResult:
+             preview: bool | None = None, resume: bool = False) -> RunResult:
     """Run ``scene`` headless and write its USD cache to ``out_path`` and a preview PNG beside it.
+
+    The cache is written frame by frame in ``<stem>.partial/`` beside ``out_path`` and moved there when the run
+    succeeds (see :mod:`hairwarp.io.cache`); SIGINT, SIGTERM and SIGHUP stop the run after the frame in flight.
 
     Args:
         scene: a :class:`hairwarp.Scene`.
@@ -371,69 +559,62 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         device: Warp device; default ``sim.device``.
         progress: report progress on stderr.
         preview: render the preview picture; default ``output.preview``.
+        resume: continue the run a stop or a fault left in the working folder after its last complete frame.
 
     Raises:
+        ValueError: a check before the first step failed (the output, the device, memory, disk space), or
+            another run writes the same cache (one line, naming the path or the key).
         SimulationFault: the run left its bounds; the message names the frame, the stage and the
-            parameter to change, and the cache keeps every frame written before it.
+            parameter to change, and where the complete frames are.
+        RunStopped: a signal stopped the run; the message says where the complete frames are.
+        hairwarp.io.cache_folder.CacheWriteError: the disk filled up or failed; the message names the path, the
+            space needed and where the complete frames are.
     """
+    from hairwarp.io.cache_folder import CacheWriteError
+
     t_start = time.perf_counter()
     out_path = Path(out_path)
     frames = int(scene.sim.frames if frames is None else frames)
     preview = bool(scene.output.preview if preview is None else preview)
-    sim = Simulation(scene, device=device)
-    model = sim.model
-    G, S = model.strand_count, model.seg_per_strand
-    counts = np.full(G, S + 1, dtype=np.int32)
-    meshes0 = sim.collider_meshes(0.0)
-    shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
-    kept, notes, all_stats = [], [], []
+    _preflight(scene, out_path, frames, device)
+    notes, all_stats = [], []
     report = _Progress(frames, progress)
-    overflow_noted = False
-
-    dense = sim.dense
-    with _cache_writer(scene, out_path, notes) as cache:
-        if dense is not None:
-            hermite = scene.dense.basis == "linear"
-            cache_counts = dense.curve_vertex_counts(hermite)
-            cache.add_curves("hair", cache_counts, widths=tuple(scene.dense.width), kind="dense",
-                             basis=scene.dense.basis)
-        if scene.output.guides:
-            # with dense hair the guides are a guide purpose: renderers skip them, viewports may show them
-            cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides",
-                             purpose="guide" if dense is not None else "default")
-        for name, verts, faces, _ in meshes0:
-            cache.add_mesh(name, verts, faces)
-        for frame in range(frames + 1):
-            if frame > 0:
-                try:
-                    bits = sim.advance_frame()
-                except SimulationFault as fault:
-                    raise SimulationFault(
-                        f"{fault} The cache {out_path} keeps frames 0-{frame - 1}.",
-                        frame=fault.frame, stage=fault.stage, bits=fault.bits,
-                    ) from None
-                if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
-                    overflow_noted = True
-                    notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
-            stats = sim.frame_stats()
-            all_stats.append(stats)
-            points, velocities = sim.guide_curves()
-            meshes = sim.collider_meshes(frame * sim.frame_dt)
-            curves = {"guides": (points, velocities)} if scene.output.guides else {}
-            if dense is not None:
-                curves["hair"] = sim.dense_curves()
-            cache.write_frame(frame, curves, xforms={name: world for name, _, _, world in meshes} or None)
-            if frame in shown:
-                mesh = _merged_world_mesh(meshes)
-                if dense is not None:  # the preview shows what renders: the dense hair
-                    shown_curves = {"hair": (curves["hair"][0].copy(), cache_counts)}
-                else:
-                    shown_curves = {"guides": (points, counts)}
-                kept.append((frame, shown_curves, mesh))
-            report.update(frame, stats)
+    cache = _cache_writer(scene, out_path, notes, resume)
+    try:
+        if cache.folder.found:
+            report.note(cache.folder.found)
+        sim = Simulation(scene, device=device)
+        start = 0
+        if cache.resumed_after is not None:
+            if cache.resumed_after > frames:
+                raise ValueError(f"{out_path}: cannot resume: the stopped run is at frame {cache.resumed_after}, "
+                                 f"past sim.frames = {frames}")
+            sim.restore(cache.folder.read_checkpoint(cache.resumed_after))
+            start = cache.resumed_after + 1
+        _check_disk(cache, scene, frames, start, report)
+        with _Stops() as stops:
+            kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
+        cache.close()
+    except SimulationFault as fault:
+        cache.abandon()
+        raise SimulationFault(f"{fault} {_kept(cache).capitalize()}.", frame=fault.frame, stage=fault.stage,
+                              bits=fault.bits) from None
+    except CacheWriteError as exc:
+        cache.abandon()
+        raise CacheWriteError(f"{cache.path}: {exc}; {_kept(cache)}") from None
+    except RunStopped as stop:
+        cache.abandon()
+        raise RunStopped(f"{stop} {_kept(cache).capitalize()}.", stop.signum) from None
+    except BaseException:
+        cache.abandon()
+        raise
 
     preview_path = None
-    if preview and kept:
+    if preview and start > 0:  # the frames before the resume are in the cache only
+        from hairwarp.preview import preview_cache
+
+        preview_path = preview_cache(out_path, out_path.with_suffix(".png"), frames=int(scene.output.preview_frames))
+    elif preview and kept:
         from hairwarp.preview import render_frames
 
         preview_path = out_path.with_suffix(".png")
@@ -441,7 +622,61 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             [c for _, c, _ in kept],
             preview_path,
             titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
-            meshes=[m for _, _, m in kept] if meshes0 else None,
+            meshes=[m for _, _, m in kept] if sim.colliders else None,
         )
     seconds = time.perf_counter() - t_start
-    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames, 1), notes, all_stats)
+    done = frames + 1 - start
+    return RunResult(out_path, preview_path, frames, seconds, seconds / max(done - 1, 1), notes, all_stats)
+
+
+def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_stats, stops) -> list:
+    """Declare the cache's prims, then simulate and write frames ``start`` .. ``frames`` (each with its checkpoint);
+    returns the frames kept for the preview."""
+    import signal
+
+    model = sim.model
+    G, S = model.strand_count, model.seg_per_strand
+    counts = np.full(G, S + 1, dtype=np.int32)
+    meshes0 = sim.collider_meshes(0.0)
+    shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
+    kept = []
+    overflow_noted = False
+    dense = sim.dense
+    if dense is not None:
+        hermite = scene.dense.basis == "linear"
+        cache_counts = dense.curve_vertex_counts(hermite)
+        cache.add_curves("hair", cache_counts, widths=tuple(scene.dense.width), kind="dense", basis=scene.dense.basis)
+    if scene.output.guides:
+        # with dense hair the guides are a guide purpose: renderers skip them, viewports may show them
+        cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides",
+                         purpose="guide" if dense is not None else "default")
+    for name, verts, faces, _ in meshes0:
+        cache.add_mesh(name, verts, faces)
+    report.restart(start)
+    for frame in range(start, frames + 1):
+        if frame > 0:
+            bits = sim.advance_frame()
+            if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
+                overflow_noted = True
+                notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
+        stats = sim.frame_stats()
+        all_stats.append(stats)
+        points, velocities = sim.guide_curves()
+        meshes = sim.collider_meshes(frame * sim.frame_dt)
+        curves = {"guides": (points, velocities)} if scene.output.guides else {}
+        if dense is not None:
+            curves["hair"] = sim.dense_curves()
+        cache.write_frame(frame, curves, xforms={name: world for name, _, _, world in meshes} or None,
+                          checkpoint=sim.checkpoint())
+        if frame in shown:
+            mesh = _merged_world_mesh(meshes)
+            if dense is not None:  # the preview shows what renders: the dense hair
+                shown_curves = {"hair": (curves["hair"][0].copy(), cache_counts)}
+            else:
+                shown_curves = {"guides": (points, counts)}
+            kept.append((frame, shown_curves, mesh))
+        report.update(frame, stats)
+        if stops.requested is not None and frame < frames:
+            name = signal.Signals(stops.requested).name
+            raise RunStopped(f"stopped by {name} after frame {frame}.", stops.requested)
+    return kept

@@ -517,12 +517,21 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "writer": Field("str", "inline", "who writes the cache: the simulating thread (inline), or a second "
                                              "process while the simulation goes on (background; needs a free core)",
                             choices=("inline", "background")),
+            "layout": Field("str", "clips", "the cache: a root layer with one clip layer per frame (clips), or one "
+                                            "file flattened at the end (single)", choices=("clips", "single")),
         },
         doc="what a run writes",
     ),
 }
 
 _ROOT = Section(SCHEMA, doc="a hairwarp scene", check=_check_scene)
+
+
+def _finite_allowed(value: float, f: Field) -> bool:
+    """NaN is never a value; an infinity only where it is the field's default (e.g. ``wind.end``: never stops)."""
+    if math.isfinite(value):
+        return True
+    return not math.isnan(value) and isinstance(f.default, float) and value == f.default
 
 
 # ----------------------------------------------------------------------------------------------
@@ -580,8 +589,8 @@ class _Validator:
                 self.error(path, f"expected {want}, got {_type_name(value)} {_show(value)}")
                 return f.default if f.default is not REQUIRED else None
             value = float(value) if f.type == "float" else int(value)
-            if f.type == "float" and math.isnan(value):
-                self.error(path, "must not be nan")
+            if f.type == "float" and not _finite_allowed(value, f):
+                self.error(path, f"must be a finite number, got {_show(value)}")
             elif f.range and not _in_range(value, f.range):
                 self.error(path, f"must be in {f.range}, got {_show(value)}")
             return value
@@ -591,8 +600,8 @@ class _Validator:
                 self.error(path, f"expected an array of {n} numbers, got {_type_name(value)} {_show(value)}")
                 return f.default
             value = tuple(float(v) for v in value)
-            if any(math.isnan(v) for v in value):
-                self.error(path, "must not contain nan")
+            if not all(_finite_allowed(v, f) for v in value):
+                self.error(path, f"must contain finite numbers only, got {_show(list(value))}")
             elif f.range and not all(_in_range(v, f.range) for v in value):
                 self.error(path, f"every component must be in {f.range}, got {_show(list(value))}")
             return value

@@ -96,6 +96,12 @@ class Solver:
         self.seg_implicit_mass = wp.zeros(n if self.has_implicit_mass else 1, dtype=float, device=device)
         self.loads = self._loads(self.seg_force, self.seg_torque, self.has_forces, self.seg_implicit_mass,
                                  self.has_implicit_mass)
+        from hairwarp.colliders import body_contacts
+
+        has_colliders = colliders is not None and len(colliders) > 0
+        if has_colliders and colliders.model is not model:
+            colliders.bind(model)
+        self.body_contacts = colliders.contacts if has_colliders else body_contacts(1, device, enabled=False)
 
     @staticmethod
     def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
@@ -118,9 +124,11 @@ class Solver:
         self.set_dt(dt)
         if self.has_forces:
             self._accumulate_forces(state_in, control)
+        if self.body_contacts.enabled:
+            self.colliders.detect(self.model, state_in, control, self.dt)  # solved inside the integration
         # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
         self._integrate(state_in, state_out, control)
-        if self.colliders is not None:
+        if self.body_contacts.enabled:
             self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
 
     def set_dt(self, dt: float):
@@ -163,14 +171,14 @@ class Solver:
         if self.integrator == Integrator.RK4:
             wp.launch(articulated.integrate_rk4, dim=model.strand_count,
                       inputs=[model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
-                              state_in.joint_qd, state_in.fault, self.scratch, self.rk_q, self.rk_w, self.rk_dq,
-                              self.rk_dw],
+                              state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch, self.rk_q,
+                              self.rk_w, self.rk_dq, self.rk_dw],
                       outputs=outputs, device=model.device)
         else:
             implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
             wp.launch(articulated.integrate_euler, dim=model.strand_count,
                       inputs=[model.chains, self.max_rotation_per_step, *head, implicit, self.loads,
-                              state_in.joint_q, state_in.joint_qd, state_in.fault, self.scratch],
+                              state_in.joint_q, state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch],
                       outputs=outputs, device=model.device)
 
     # -- tools ----------------------------------------------------------------------------
@@ -205,6 +213,33 @@ class Solver:
         )
         return self.joint_qdd
 
+    def persistent_arrays(self) -> dict[str, wp.array]:
+        """Device arrays the stages keep from one step or frame to the next besides the :class:`State`: what a
+        checkpoint must hold for a run to go on exactly (``Simulation.checkpoint``). A stage that keeps state across
+        steps adds its arrays here, and only here. Scratch that every step rewrites before reading is left out.
+
+        Returns:
+            name -> array: ``links.link_broken`` and ``links.link_broken_total`` (links break for good),
+            ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
+            ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
+            frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
+            or step from the state), ``body_contacts.beta`` and ``body_contacts.force`` (each vertex's friction
+            share and the force its collider put on it last step, warm-starting the next).
+        """
+        out = {}
+        if self.body_contacts.enabled:
+            out["body_contacts.beta"] = self.body_contacts.beta
+            out["body_contacts.force"] = self.body_contacts.force
+        if self.links is not None:
+            out["links.link_broken"] = self.links.link_broken
+            out["links.link_broken_total"] = self.links.link_broken_total
+        if self.colliders is not None and self.colliders.vert_exempt is not None:
+            out["colliders.vert_exempt"] = self.colliders.vert_exempt
+        if self.contacts is not None:
+            out["contacts.contact_counter"] = self.contacts.contact_counter
+            out["contacts.contact_overflow"] = self.contacts.contact_overflow
+        return out
+
     def check(self, state, frame: int, *, substeps: int | None = None):
         """Raise :class:`SimulationFault` if a stage flagged a fault; call once per output frame.
 
@@ -218,23 +253,46 @@ class Solver:
         return Fault(bits)
 
     def _fault(self, bits: Fault, frame: int, substeps: int | None) -> SimulationFault:
+        """The fault of the stage that set its bits, with advice that works for that stage.
+
+        Each stage checks its own output: links and hair contacts their forces (before the dynamics uses
+        them), the integrator the free joint velocities, the body contact response its corrected ones.
+        A blow-up spreads to every later stage within a step, so the earliest stage in the step order that
+        flagged is the one that failed.
+        """
         dt = self._dt_host
         step = f"dt = {dt:.3g} s" + (f" ({substeps} substeps per frame)" if substeps else "")
         more = "raise sim.substeps" if substeps else "use a smaller dt"
-        if bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
+        if bits & Fault.LINK_FORCE:
+            stage = "static links"
+            what = "a link force became non-finite or too large for the step"
+            advice = (f"lower links.stiffness or links.damping, or lower links.break_length so overstretched links "
+                      f"break; {more} (now {step})")
+        elif bits & Fault.HAIR_CONTACT_FORCE:
+            stage = "hair contacts"
+            what = "a hair-hair contact force became non-finite or too large for the step"
+            advice = (f"lower interactions.stiffness or interactions.damping, or raise interactions.threshold; "
+                      f"{more} (now {step})")
+        elif bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
             stage = "dynamics (aba + integrate)"
             what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
                     else f"a joint turned more than {self.max_rotation_per_step} rad in one step")
-            if self.integrator == Integrator.SEMI_IMPLICIT:
+            stiff = bool(np.any(self.model.joint_stiffness.numpy() > 0.0))
+            if self.integrator == Integrator.SEMI_IMPLICIT and stiff:
                 advice = (f"the explicit joint springs are unstable at {step}: use integrator = \"implicit_joints\", "
                           f"{more}, or lower strands.bend_stiffness / strands.twist_stiffness")
+            elif not stiff:
+                advice = (f"a chain without joint stiffness whips freely: give strands.bend_stiffness a value, raise "
+                          f"strands.damping or strands.drag, or {more} (now {step})")
             else:
-                advice = (f"{more} (now {step}), lower the stiffness or the interaction stiffness, "
-                          "or slow the head motion")
-        elif bits & (Fault.NONFINITE_COLLISION | Fault.STRETCH):
-            stage = "collision (push-out)"
-            what = "the collision projection produced an invalid strand"
-            advice = f"{more} (now {step}) so colliders move less per step, or raise the collider thickness"
+                advice = f"{more} (now {step}), raise strands.drag or strands.damping, or slow the head motion"
+        elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED):
+            stage = "collision (body contact)"
+            what = ("the body contact response produced an invalid strand" if bits & Fault.NONFINITE_COLLISION
+                    else f"the body contact response turned a joint more than {self.max_rotation_per_step} rad "
+                         f"in one step")
+            advice = (f"a collider moved or jumped too far for the step: set head.teleport_distance for cuts and "
+                      f"jumps, slow the collider, or {more} (now {step})")
         else:
             stage = "unknown"
             what = f"fault bits {int(bits)}"

@@ -60,6 +60,30 @@ class SegmentLoads:
 
 
 @wp.struct
+class BodyContacts:
+    """Body contacts of a step, one entry per vertex (``G*(S+1)``), found by
+    ``body_collision.detect_body_contacts`` at the step's start and solved here, inside the step.
+
+    ``normal`` (world, unit; zero: no candidate), ``object_velocity`` [m/s] of the collider's surface point at
+    the step's end, ``gap`` [m] the distance at the step's start less the contact layer (the approach the
+    step may still make), ``friction`` (the collider's, 0 frictionless to 1 full match). Persistent across
+    steps: ``beta``, the tangential share of the contact damper in [0, 1] (1 static friction, less while
+    sliding), and ``force`` [N, world], the force the collider put on the vertex in the last step (zero when
+    none). ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the strand (see
+    ``body_contact_solve``).
+    """
+
+    enabled: int
+    stiffness: float
+    normal: wp.array(dtype=wp.vec3)
+    object_velocity: wp.array(dtype=wp.vec3)
+    gap: wp.array(dtype=float)
+    friction: wp.array(dtype=float)
+    beta: wp.array(dtype=float)
+    force: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
 class AbaScratch:
     """Per-segment ABA workspace: bias forces p, velocity-product accelerations c, ``D^-1 A``,
     ``D^-1 B``, ``D^-1 u`` and the joint accelerations; allocated once by the solver."""
@@ -283,13 +307,219 @@ def aba_strand(
     aba_forward_pass2(chains, strand, a_head, joint_q, scratch)
 
 
+# Coulomb coefficient of the scenes' friction f in [0, 1): mu = f / (1 - f); f = 1 holds the vertex (mu infinite).
+FULL_FRICTION = wp.constant(1.0)
+
+
+@wp.func
+def contact_projector(n: wp.vec3, beta: float):
+    """``n n^T + beta (I - n n^T)``: the contact damper's directions, normal whole, tangential by ``beta``."""
+    nn = wp.outer(n, n)
+    return nn + beta * (wp.identity(n=3, dtype=float) - nn)
+
+
+@wp.func
+def body_contact_solve(
+    chains: StrandChains,
+    strand: int,
+    dt: float,
+    implicit: int,
+    X_head: wp.transform,
+    V_head: wp.spatial_vector,
+    loads: SegmentLoads,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    contacts: BodyContacts,
+    scratch: AbaScratch,
+):
+    """Body contact as part of the step: correct the free joint velocities ``joint_qd`` (in place) by impulses
+    computed with the strand's own articulated inertia.
+
+    Each vertex whose free end-of-step velocity would take it into a collider's contact layer (deeper than its
+    ``gap`` allows) gets a damper ``F = -c P (v - v_target)`` toward the surface point's velocity, normal whole
+    and tangential by its friction share ``beta`` (``contact_projector``), taken at the end of the step:
+    ``(M_eff + h c J^T P J) dw = -h c J^T P (J w* - v_target)``. That is an ABA with no velocity terms, the
+    dampers' ``h c P`` as point inertias at the vertices and their forces as loads, ``M_eff`` the step's own
+    (the implicit joint armature and interaction-spring masses included): one more inward and outward pass,
+    O(S). ``h c`` is ``contacts.stiffness`` times the strand's mass, so a contact leaves at most
+    ``1 / stiffness`` of the approach and the slip it stops; the backward-Euler damper against a static
+    body only removes energy (MuJoCo's soft constraints work the same way, Todorov 2014). The force of the
+    vertex's last step acts as well (warm start), so the damper answers only the change: a resting vertex's
+    residual velocity goes to zero instead of to ``F / c``, and it neither sinks nor creeps.
+
+    Friction is Coulomb's with the normal force of this step: a force outside the cone is cut back to it and
+    the vertex's share ``beta`` is scaled so that its next step's damper meets the cone (static friction holds
+    while the force stays within it). Writes ``contacts.beta`` and ``contacts.force`` of every vertex.
+    """
+    S = chains.seg_per_strand
+    vbase = strand * (S + 1)
+    h = dt
+    mass = float(0.0)
+    for k in range(S):
+        mass += chains.seg_mass[strand * S + k]
+    hc = contacts.stiffness * mass
+    c = hc / h
+
+    # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
+    R = wp.transform_get_rotation(X_head)
+    omega = wp.spatial_top(V_head)
+    x = wp.transform_point(X_head, chains.strand_root_pos[strand])
+    v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+    active = int(0)
+    for k in range(S):
+        i = strand * S + k
+        vi = vbase + k + 1
+        R = R * joint_q[i]
+        omega = omega + wp.quat_rotate(R, joint_qd[i])
+        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
+        v = v + wp.cross(omega, d)
+        n = contacts.normal[vi]
+        held = float(0.0)
+        target = float(0.0)
+        beta = contacts.beta[vi]
+        if wp.length_sq(n) > 0.0:
+            target = -wp.max(contacts.gap[vi], 0.0) / h
+            if wp.dot(v - contacts.object_velocity[vi], n) < target:
+                held = 1.0
+        scratch.c[i] = wp.spatial_vector(held, target, beta, 0.0, 0.0, 0.0)
+        M = wp.mat33()
+        F = wp.vec3()
+        if held > 0.0:
+            active = 1
+            n_b = wp.quat_rotate_inv(R, n)
+            P = contact_projector(n_b, beta)
+            M = hc * P
+            rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
+            F = wp.quat_rotate_inv(R, contacts.force[vi]) - c * (P * rel)
+        scratch.DB[i] = M
+        tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
+        scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
+    if active == 0:
+        for k in range(S):
+            contacts.beta[vbase + k + 1] = 1.0
+            contacts.force[vbase + k + 1] = wp.vec3()
+        return
+
+    # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
+    # springs acted in the free step; their implicit share is the armature).
+    cA = wp.mat33()
+    cB = wp.mat33()
+    cC = wp.mat33()
+    cn = wp.vec3()
+    cf = wp.vec3()
+    eye = wp.identity(n=3, dtype=float)
+    zero = wp.mat33()
+    for kk in range(S):
+        k = S - 1 - kk
+        i = strand * S + k
+        extra = float(0.0)
+        if loads.has_implicit_mass != 0:
+            extra = loads.seg_implicit_mass[i]
+        m = chains.seg_mass[i]
+        L = chains.seg_length[i]
+        A0, B0 = segment_inertia_blocks(m, L, chains.seg_inertia[i], extra)
+        M = scratch.DB[i]
+        Ac, Bc = inertia_shift_z(zero, zero, M, -L)
+        A = A0 + Ac + cA
+        B = B0 + Bc + cB
+        C = (m + extra) * eye + M + cC
+        p = scratch.p[i]
+        n_ = wp.spatial_top(p) + cn
+        f = wp.spatial_bottom(p) + cf
+        armature = wp.vec3()
+        if implicit != 0:
+            armature = dt * chains.joint_damping[i] + dt * dt * chains.joint_stiffness[i]
+        Dinv = wp.inverse(A + wp.diag(armature))
+        DA = Dinv * A
+        DB = Dinv * B
+        Du = -(Dinv * n_)
+        scratch.DA[i] = DA
+        scratch.DB[i] = DB
+        scratch.Du[i] = Du
+        if k > 0:
+            q = joint_q[i]
+            Rm = wp.quat_to_matrix(q)
+            z = -chains.seg_length[i - 1]
+            Aa = transpose_scale_columns(DA, armature)
+            Ba = scale_rows(DB, armature)
+            Ca = C - wp.transpose(B) * DB
+            na = Rm * (n_ + A * Du)
+            fa = Rm * (f + wp.transpose(B) * Du)
+            Aa, Ba, Ca = rotate_blocks(Rm, Aa, Ba, Ca)
+            cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
+            cC = Ca
+            cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
+            cf = fa
+
+    # Outward: the velocity change dw = h qdd (the head's motion is prescribed: no change at the base), the
+    # final tip velocities, and from them each damper's force, the normal force and the friction share.
+    a_ang_p = wp.vec3()
+    a_lin_p = wp.vec3()
+    R = wp.transform_get_rotation(X_head)
+    omega = wp.spatial_top(V_head)
+    v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+    for k in range(S):
+        i = strand * S + k
+        vi = vbase + k + 1
+        q = joint_q[i]
+        r = joint_offset(chains, strand, k, i)
+        a_ang = wp.quat_rotate_inv(q, a_ang_p)
+        a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r))
+        qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+        a_ang_p = a_ang + qdd
+        a_lin_p = a_lin
+        w = joint_qd[i] + h * qdd
+        joint_qd[i] = w
+        R = R * q
+        omega = omega + wp.quat_rotate(R, w)
+        v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
+        flags = scratch.c[i]
+        beta = float(1.0)
+        force = wp.vec3()
+        if wp.spatial_top(flags)[0] > 0.0:
+            n = contacts.normal[vi]
+            target = wp.spatial_top(flags)[1]
+            beta = wp.spatial_top(flags)[2]
+            rel = v - contacts.object_velocity[vi] - target * n
+            force = contacts.force[vi] - c * (contact_projector(n, beta) * rel)
+            fn = wp.dot(force, n)
+            beta = 1.0
+            if fn <= 0.0:
+                force = wp.vec3()  # it pulled: the vertex leaves (it will not be held from its free velocity)
+            else:
+                ft = force - fn * n
+                ftl = wp.length(ft)
+                friction = contacts.friction[vi]
+                limit = float(0.0)
+                if friction < FULL_FRICTION:
+                    limit = friction / (1.0 - friction) * fn
+                if friction < FULL_FRICTION and ftl > limit:
+                    # Sliding: Coulomb's force, and the damper's share scaled by the excess, so the next step's
+                    # tangential force meets the cone.
+                    beta = wp.spatial_top(flags)[2] * limit / ftl
+                    force = fn * n + (limit / ftl) * ft
+        contacts.beta[vi] = beta
+        contacts.force[vi] = force
+
+
 @wp.func
 def flag_joint(w: wp.vec3, q: wp.quat, dt: float, max_rotation: float, fault: wp.array(dtype=wp.int32)):
-    """Set fault bits for a non-finite joint state or a joint turning too far in one step."""
+    """Set fault bits for a non-finite joint state or a joint turning too far in one step (the free dynamics)."""
     if not (wp.isfinite(w) and wp.isfinite(q)):
         wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
     elif wp.length(w) * dt > max_rotation:
         wp.atomic_or(fault, 0, int(Fault.JOINT_SPEED))
+
+
+@wp.func
+def flag_contact_response(w_free: wp.vec3, w: wp.vec3, dt: float, max_rotation: float,
+                          fault: wp.array(dtype=wp.int32)):
+    """Set collision fault bits when the body contact response, not the free dynamics, left the bounds."""
+    if wp.isfinite(w_free) and wp.length(w_free) * dt <= max_rotation:
+        if not wp.isfinite(w):
+            wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
+        elif wp.length(w) * dt > max_rotation:
+            wp.atomic_or(fault, 0, int(Fault.COLLISION_SPEED))
 
 
 @wp.kernel
@@ -335,6 +565,7 @@ def integrate_euler(
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
     fault_in: wp.array(dtype=wp.int32),
+    contacts: BodyContacts,
     # Scratch:
     scratch: AbaScratch,
     # Out:
@@ -345,11 +576,11 @@ def integrate_euler(
     vertex_velocities_out: wp.array(dtype=wp.vec3),
     fault: wp.array(dtype=wp.int32),
 ):
-    """One thread per strand: ABA, then symplectic Euler ``w += h qdd; q <- q exp(h w)``.
-
-    ``implicit`` != 0 is the ``implicit_joints`` integrator (joint springs and damping at the end
-    of the step). Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame], the new state's
-    world frames and vertices (forward kinematics, fused), and fault bits.
+    """One thread per strand: ABA, the body contacts' impulses (``body_contact_solve``, with ``contacts``
+    enabled), then ``q <- q exp(h w)``: symplectic Euler ``w += h qdd`` with the springs explicit, or with
+    ``implicit`` != 0 the ``implicit_joints`` integrator (joint springs and damping at the end of the step).
+    Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame], the new state's world frames and
+    vertices (forward kinematics, fused), and fault bits.
     """
     strand = wp.tid()
     if strand == 0:
@@ -363,9 +594,21 @@ def integrate_euler(
     for k in range(S):
         i = strand * S + k
         w = joint_qd_in[i] + h * scratch.qdd[i]
-        q = wp.normalize(joint_q_in[i] * quat_exp(h * w))
-        flag_joint(w, q, h, max_rotation, fault)
+        flag_joint(w, joint_q_in[i], h, max_rotation, fault)
         joint_qd_out[i] = w
+    if contacts.enabled != 0:
+        for k in range(S):
+            scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for the fault check
+        body_contact_solve(chains, strand, h, implicit, head_xform[0], head_velocity[0], loads, joint_q_in,
+                           joint_qd_out, contacts, scratch)
+    for k in range(S):
+        i = strand * S + k
+        w = joint_qd_out[i]
+        if contacts.enabled != 0:
+            flag_contact_response(scratch.qdd[i], w, h, max_rotation, fault)
+        q = wp.normalize(joint_q_in[i] * quat_exp(h * w))
+        if not wp.isfinite(q):
+            wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
         joint_q_out[i] = q
     fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
               seg_xform_out, vertex_positions_out, vertex_velocities_out)
@@ -386,6 +629,7 @@ def integrate_rk4(
     joint_q_in: wp.array(dtype=wp.quat),
     joint_qd_in: wp.array(dtype=wp.vec3),
     fault_in: wp.array(dtype=wp.int32),
+    contacts: BodyContacts,
     # Scratch:
     scratch: AbaScratch,
     rk_q: wp.array(dtype=wp.quat),
@@ -403,7 +647,7 @@ def integrate_rk4(
     """One thread per strand: classical RK4 on the Lie group, as MuJoCo's ``RK4`` does.
 
     Stage configurations are ``q0 exp(c h w)``; the update is ``q0 exp(h/6 (w1 + 2w2 + 2w3 + w4))``.
-    External loads stay fixed over the step. Writes ``joint_q_out``, ``joint_qd_out``, the new
+    External loads stay fixed over the step; body contacts act after it (``body_contact_solve``). Writes ``joint_q_out``, ``joint_qd_out``, the new
     state's world frames and vertices, and fault bits.
     """
     strand = wp.tid()
@@ -444,6 +688,17 @@ def integrate_rk4(
         flag_joint(w, q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
+        rk_w[i] = w
+    if contacts.enabled != 0:
+        # Contact impulses after the update, with the explicit inertia (RK4's stages would not stay stable with
+        # the stiff dampers inside them); the velocity change also moves the configuration over the step.
+        body_contact_solve(chains, strand, h, 0, head_xform[0], head_velocity[0], loads, joint_q_in, joint_qd_out,
+                           contacts, scratch)
+        for k in range(S):
+            i = strand * S + k
+            w = joint_qd_out[i]
+            flag_contact_response(rk_w[i], w, h, max_rotation, fault)
+            joint_q_out[i] = wp.normalize(joint_q_out[i] * quat_exp(h * (w - rk_w[i])))
     fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
               seg_xform_out, vertex_positions_out, vertex_velocities_out)
 

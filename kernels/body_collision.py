@@ -18,6 +18,7 @@ deep inside is found whatever its depth).
 
 import warp as wp
 
+from hairwarp.kernels.articulated import StrandChains, fk_strand
 from hairwarp.kernels.types import ColliderKind, Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -33,9 +34,6 @@ PUSH_ITERATIONS = wp.constant(4)
 # jump back by the whole layer, kicking the rest of the strand every time (tips resting on a shoulder
 # jittered by the layer thickness, 2 mm, at 250 mm/s RMS).
 PUSH_MARGIN = wp.constant(1.0e-5)
-
-# Friction's position correction is skipped below this [m]: float32 rounding of metre-sized coordinates.
-MIN_SHIFT = wp.constant(1.0e-8)
 
 # Collider bits of the per-vertex exemption mask (an int32 per vertex): colliders past this index are
 # never exempt.
@@ -382,28 +380,6 @@ def _lift_on_sphere(p_prev: wp.vec3, length: float, x: wp.vec3, c: wp.vec3, n: w
     return p_prev + length * (c_min * n + s * t)
 
 
-@wp.func
-def _contact_velocity(v: wp.vec3, v_object: wp.vec3, n: wp.vec3, friction: float):
-    """Velocity of a vertex in contact: no approach along ``n``, Coulomb friction on the tangential slip.
-
-    Removing the approach speed ``dvn`` is the normal impulse (per unit mass); the slip relative to the
-    object may change by at most ``mu * dvn``, ``mu = friction / (1 - friction)``, so a resting contact
-    holds on a slope flatter than ``atan(mu)`` and friction does not depend on the step size.
-    ``friction`` 1 is the seed's full velocity match, 0 frictionless.
-    """
-    rel = v - v_object
-    vn = wp.dot(rel, n)
-    tangential = rel - vn * n
-    out = v_object + wp.max(vn, 0.0) * n
-    if friction >= 1.0:
-        return out
-    budget = friction / (1.0 - friction) * wp.max(-vn, 0.0)
-    slip = wp.length(tangential)
-    if slip <= budget:
-        return out
-    return out + (1.0 - budget / slip) * tangential
-
-
 @wp.struct
 class ColliderShapes:
     """The colliders' fixed description, one entry per collider (``hairwarp.ColliderSet`` builds it): ``count``;
@@ -474,11 +450,90 @@ def collider_distances(
 
 
 @wp.kernel
-def collide_strands(
+def detect_body_contacts(
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
-    strand_root_pos: wp.array(dtype=wp.vec3),
+    shapes: ColliderShapes,
+    gravity: wp.vec3,
+    # Control:
+    collider_xform: wp.array(dtype=wp.transform),
+    collider_velocity: wp.array(dtype=wp.spatial_vector),
+    head_xform: wp.array(dtype=wp.transform),
+    head_velocity: wp.array(dtype=wp.spatial_vector),
+    dt: wp.array(dtype=float),
+    # State in:
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    vert_exempt: wp.array(dtype=wp.int32),
+    # Out:
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_object_velocity: wp.array(dtype=wp.vec3),
+    contact_gap: wp.array(dtype=float),
+    contact_friction: wp.array(dtype=float),
+):
+    """One thread per strand: the body contact candidates of vertices 1..S for the step about to be taken.
+
+    A vertex is a candidate of the nearest collider whose contact layer it can reach within the step: its
+    distance at the step's start (``x + h v_object`` against the collider's end-of-step pose, which the
+    Control holds) less the layer is at most its speed relative to the surface times ``h``, plus what gravity
+    adds over the step, twice over. Writes the outward ``contact_normal`` (world; zero: none), the surface
+    point's velocity at the step's end ``contact_object_velocity`` [m/s], ``contact_gap`` [m] (the start
+    distance less the layer thickness) and the collider's ``contact_friction``; ``articulated.body_contact_solve``
+    decides from the free velocities which of them hold. Vertices inside a collider at rest (exempt) are no
+    candidates of it. Signed distances are 1-Lipschitz, so a vertex far from every collider skips the queries.
+    """
+    strand = wp.tid()
+    S = seg_per_strand
+    sbase = strand * S
+    vbase = strand * (S + 1)
+    h = dt[0]
+    X_head = head_xform[0]
+    V_head = head_velocity[0]
+    fall = h * h * wp.length(gravity)
+    clearance = float(-UNBOUNDED)
+    for k in range(1, S + 1):
+        vi = vbase + k
+        x = vertex_positions[vi]
+        v = vertex_velocities[vi]
+        bound = clearance - seg_length[sbase + k - 1] - LIPSCHITZ_SLOP
+        clearance = float(UNBOUNDED)
+        best = float(UNBOUNDED)
+        normal = wp.vec3()
+        v_best = wp.vec3()
+        friction = float(0.0)
+        exempt = vert_exempt[vi]
+        for c in range(shapes.count):
+            thickness = shapes.thickness[c]
+            X, vel = shape_motion(shapes, c, collider_xform, collider_velocity, X_head, V_head)
+            origin = wp.transform_get_translation(X)
+            v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), x - origin)
+            reach = 2.0 * (h * wp.length(v - v_object) + fall) + LIPSCHITZ_SLOP
+            start = x + h * v_object
+            if bound - h * wp.length(v_object) >= thickness + reach:
+                clearance = wp.min(clearance, bound - h * wp.length(v_object))
+                continue
+            if c < MAX_EXEMPT_COLLIDERS and (exempt & (1 << c)) != 0:
+                continue
+            s = shape_surface(shapes, c, wp.transform_point(wp.transform_inverse(X), start), thickness + reach, 0)
+            clearance = wp.min(clearance, s.distance)
+            if s.found == 0 or s.distance >= thickness + reach or s.distance >= best:
+                continue
+            best = s.distance
+            normal = wp.transform_vector(X, s.normal)
+            point = wp.transform_point(X, s.point)
+            v_best = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), point - origin)
+            friction = shapes.friction[c]
+            contact_gap[vi] = s.distance - thickness
+        contact_normal[vi] = normal
+        contact_object_velocity[vi] = v_best
+        contact_friction[vi] = friction
+
+
+@wp.kernel
+def collide_strands(
+    # Model:
+    chains: StrandChains,
     swept: int,
     shapes: ColliderShapes,
     # Control:
@@ -500,46 +555,46 @@ def collide_strands(
     vertex_velocities: wp.array(dtype=wp.vec3),
     fault: wp.array(dtype=wp.int32),
 ):
-    """One thread per strand: push vertices 1..S out of the colliders and match contact velocities.
+    """One thread per strand: push vertices 1..S that ended the step inside a collider back out (positions only).
 
-    A strand that moved gets new ``joint_q``, ``seg_xform`` and ``vertex_positions`` [m, world] such that
-    forward kinematics reproduces them; a strand in contact gets new ``vertex_velocities`` [m/s] and the
-    ``joint_qd`` [rad/s, child frame] recovered from them. A strand clear of every collider is not written.
+    The velocities were settled inside the step (``articulated.body_contact_solve``); this pass only removes
+    what penetration is left, with the seed's length-preserving propagation, and never adds velocity: a moved
+    strand gets new ``joint_q`` (minimal rotations onto the new segment directions, twist kept), ``seg_xform``,
+    ``vertex_positions`` [m] and the ``vertex_velocities`` [m/s] of its unchanged ``joint_qd`` [rad/s] at the
+    new configuration. A strand clear of every collider is not written.
     """
     strand = wp.tid()
-    S = seg_per_strand
+    S = chains.seg_per_strand
     sbase = strand * S
     vbase = strand * (S + 1)
     h = dt[0]
     X_head = head_xform[0]
     V_head = head_velocity[0]
 
-    # Pass 1, root to tip: propagate upstream moves, push out, match velocities (seed rule).
-    # ``clearance`` bounds the smallest signed distance to the colliders from below; signed distances are
-    # 1-Lipschitz, so one segment further it drops by at most the segment length. It lets far vertices
-    # skip the queries, and tells a mesh query that found nothing within reach that the vertex is outside
-    # (no ray needed). The root is not queried: the first vertex starts from no bound.
+    # Pass 1, root to tip: propagate upstream moves, push out. ``clearance`` bounds the smallest signed distance
+    # to the colliders from below; signed distances are 1-Lipschitz, so one segment further it drops by at most
+    # the segment length. It lets far vertices skip the queries, and tells a mesh query that found nothing within
+    # reach that the vertex is outside (no ray needed). The root is not queried.
     moved = int(0)
     first_moved = S + 1
-    touched = int(0)
     clearance = float(-UNBOUNDED)
     p_prev = vertex_positions[vbase]
     for k in range(1, S + 1):
         vi = vbase + k
-        length = seg_length[sbase + k - 1]
+        length = chains.seg_length[sbase + k - 1]
         p_old = vertex_positions[vi]
         v = vertex_velocities[vi]
-        v_start = v
+        if not wp.isfinite(p_old):
+            # a push would put it back on the surface and hide it
+            wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
         p = p_old
         if moved != 0:
             u = p_old - p_prev
             ul = wp.length(u)
             if ul > TINY_LENGTH:
                 p = p_prev + (length / ul) * u
-            v = v + (p - p_old) / h
         bound = clearance - length - LIPSCHITZ_SLOP
         clearance = float(UNBOUNDED)
-        contact = int(0)
         pushed = int(0)
         exempt = vert_exempt[vi]
         exempt_new = exempt
@@ -554,9 +609,8 @@ def collide_strands(
             v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
             X_inv = wp.transform_inverse(X)
             x_local = wp.transform_point(X_inv, p)
-            # Swept test: the vertex's path over the step relative to the collider, from its position at
-            # the start of the step (given, or implied by its velocity: upstream pushes moved p and v
-            # together, so this is the position before any push) to where it is now.
+            # Swept test: the vertex's path over the step relative to the collider, from its position at the start
+            # of the step (given, or implied by its velocity) to where it is now.
             sweep = int(0)
             reach = float(0.0)
             x_before = x_local
@@ -570,12 +624,11 @@ def collide_strands(
                 x_before = wp.transform_point(X_inv, start)
                 reach = wp.length(x_local - x_before)
             if bound >= thickness + reach:
-                # Clear of this collider's contact layer (and of its reach over the step) by the bound alone.
                 exempt_new = exempt_new & ~bit
                 clearance = wp.min(clearance, bound)
                 continue
-            # Reach just past the layer: wider queries cost more near finely meshed surfaces than the
-            # rays they would save (measured: 3x on a 20k-triangle head under combed hair).
+            # Reach just past the layer: wider queries cost more near finely meshed surfaces than the rays they
+            # would save (measured: 3x on a 20k-triangle head under combed hair).
             max_dist = thickness + LIPSCHITZ_SLOP
             outside_known = int(0)
             if bound > -max_dist:
@@ -587,155 +640,72 @@ def collide_strands(
                     exempt_new = exempt_new & ~bit
                 clearance = wp.min(clearance, s.distance)
                 continue
-            queried = s.distance
-            entered = int(0)
-            # A mesh casts its ray only when the path can have met the surface: the vertex is inside,
-            # or it moved further than its distance to the surface.
+            # A mesh casts its ray only when the path can have met the surface: the vertex is inside, or it moved
+            # further than its distance to the surface.
             if sweep != 0 and (kind != ColliderKind.MESH or s.distance < 0.0 or reach > s.distance):
                 e = segment_entry(kind, shapes.radius[c], shapes.half_height[c], shapes.mesh[c], shapes.bound_hi[c],
                                   x_before, x_local)
                 if e.found != 0:
-                    # Resolve on the side the vertex came in from: the push starts from the tangent
-                    # plane at the entry point, not from the nearest surface point (the far side when
-                    # the vertex got past the middle, or none when it got through).
-                    entered = 1
+                    # Resolve on the side the vertex came in from: the push starts from the tangent plane at the
+                    # entry point, not from the nearest surface point (the far side when the vertex got past the
+                    # middle, or none when it got through).
                     s.point = e.point
                     s.normal = e.normal
                     s.distance = wp.min(s.distance, -TINY_LENGTH)
                     s.found = 1
-            if entered == 0 and (s.found == 0 or s.distance >= thickness):
+            if s.found == 0 or s.distance >= 0.0:
                 clearance = wp.min(clearance, s.distance)
                 continue
-            n_local = s.normal
-            if s.distance < 0.0:
-                push_target = wp.min(thickness, PUSH_MARGIN)
-                p_prev_local = wp.transform_point(X_inv, p_prev)
-                for _it in range(PUSH_ITERATIONS):
-                    x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, push_target)
-                    s = shape_surface(shapes, c, x_local, max_dist, 0)
-                    if s.found != 0:
-                        n_local = s.normal
-                    if s.found == 0 or s.distance >= 0.0:
-                        break
-                p = wp.transform_point(X, x_local)
-                pushed = 1
-                # The bound held where the vertex was; the colliders after this one start from none.
-                bound = -UNBOUNDED
-                if moved == 0:
-                    first_moved = k
-                moved = 1
-            distance = s.distance
-            n = wp.transform_vector(X, n_local)
-            v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
-            v_contact = _contact_velocity(v, v_object, n, shapes.friction[c])
-            # Static friction acts over the time the vertex spent in contact during the step: it moved
-            # with its old velocity before this stage ran, so the slip that friction stops comes off that
-            # part of this step's displacement too. A vertex held by static friction then stays put
-            # instead of creeping by g h^2 sin(slope) per step; one that only arrived this step, at its
-            # approach speed, is hardly moved. (Doing the same along the normal, lifting a vertex in
-            # the layer back by its own approach, made hair lying on a still head move 1.7x faster on
-            # average: measured, left out.)
-            # From the vertex's own velocity in the step: what upstream pushes added is no displacement
-            # it made.
-            approach = h * wp.max(-wp.dot(v_start - v_object, n), 0.0)
-            in_contact = float(1.0)
-            if approach > thickness - queried:
-                in_contact = (thickness - wp.min(queried, thickness)) / approach
-            v_own = _contact_velocity(v_start, v_object, n, shapes.friction[c])
-            dv = v_own - v_start
-            shift = (h * in_contact) * (dv - wp.dot(dv, n) * n)
-            slip = v_own - v_object
-            if wp.length_sq(slip - wp.dot(slip, n) * n) > 0.0:
-                # Sliding: kinetic friction only slows the slip; the position is left alone (moving
-                # vertices dragged along a fast collider blew up sooner with it: measured).
-                shift = wp.vec3(0.0)
-            shift_length = wp.length(shift)
-            if shift_length > MIN_SHIFT:
-                u = p + shift - p_prev
-                ul = wp.length(u)
-                if ul > TINY_LENGTH:
-                    p = p_prev + (length / ul) * u
-                pushed = 1
-                bound = -UNBOUNDED
-                if moved == 0:
-                    first_moved = k
-                moved = 1
-                # Distances are 1-Lipschitz: only a shift longer than the clearance can end inside.
-                distance = distance - shift_length
-                if distance < 0.0:
-                    x_local = wp.transform_point(X_inv, p)
-                    s = shape_surface(shapes, c, x_local, max_dist, 0)
-                    distance = s.distance
-                    if s.found != 0 and s.distance < 0.0:
-                        x_local = _lift_on_sphere(wp.transform_point(X_inv, p_prev), length, x_local, s.point,
-                                                  s.normal, wp.min(thickness, PUSH_MARGIN))
-                        p = wp.transform_point(X, x_local)
-                        distance = 0.0
-                # The object's velocity where the vertex ends up (it turns with a spinning object).
-                v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), p - origin)
-                v_contact = _contact_velocity(v, v_object, n, shapes.friction[c])
-            clearance = wp.min(clearance, distance)
-            v = v_contact
-            contact = 1
+            push_target = wp.min(thickness, PUSH_MARGIN)
+            p_prev_local = wp.transform_point(X_inv, p_prev)
+            for _it in range(PUSH_ITERATIONS):
+                x_local = _lift_on_sphere(p_prev_local, length, x_local, s.point, s.normal, push_target)
+                s = shape_surface(shapes, c, x_local, max_dist, 0)
+                if s.found == 0 or s.distance >= 0.0:
+                    break
+            p = wp.transform_point(X, x_local)
+            pushed = 1
+            # The bound held where the vertex was; the colliders after this one start from none.
+            bound = -UNBOUNDED
+            if moved == 0:
+                first_moved = k
+            moved = 1
+            clearance = wp.min(clearance, s.distance)
         if pushed != 0 and shapes.count > 1:
             # Distances to the colliders queried before the push are stale.
             clearance = -UNBOUNDED
         if exempt_new != exempt:
             vert_exempt[vi] = exempt_new
-        if contact != 0:
-            touched = 1
-        if moved != 0 or contact != 0:
+        if moved != 0:
             vertex_positions[vi] = p
-            vertex_velocities[vi] = v
-            if not (wp.isfinite(p) and wp.isfinite(v)):
+            if not wp.isfinite(p):
                 wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
         p_prev = p
 
-    if moved == 0 and touched == 0:
+    if moved == 0:
         return
 
-    # Pass 2, root to tip: minimal rotations onto the new directions (twist kept), joint coordinates
-    # from world rotations, forward kinematics exactly as ``articulated.fk_strand`` does it, and joint
-    # velocities from the vertex velocities.
-    R_head = wp.transform_get_rotation(X_head)
-    R_old = R_head
-    R_new = R_head
-    w_head = wp.spatial_top(V_head)
-    w_old = w_head
-    w_new_prev = w_head
-    x = wp.transform_point(X_head, strand_root_pos[strand])
-    v_prev = vertex_velocities[vbase]
+    # Pass 2, root to tip: minimal rotations of the old segment frames onto the new directions (twist kept), joint
+    # rotations from the world rotations; then forward kinematics of the strand, its joint velocities unchanged.
+    R_old = wp.transform_get_rotation(X_head)
+    R_new = R_old
+    x = wp.transform_point(X_head, chains.strand_root_pos[strand])
     for k in range(S):
         i = sbase + k
-        vi = vbase + k + 1
-        length = seg_length[i]
         R_parent = R_new
         R_old = R_old * joint_q[i]
-        w_old = w_old + wp.quat_rotate(R_old, joint_qd[i])
-        d_old = wp.quat_rotate(R_old, wp.vec3(0.0, 0.0, -1.0))
+        R_new = R_old
         if k + 1 >= first_moved:
-            target = vertex_positions[vi] - x
+            d_old = wp.quat_rotate(R_old, wp.vec3(0.0, 0.0, -1.0))
+            target = vertex_positions[vbase + k + 1] - x
             tl = wp.length(target)
             d_new = d_old
             if tl > TINY_LENGTH:
                 d_new = target / tl
             q = wp.normalize(wp.quat_inverse(R_parent) * (_min_rotation(d_old, d_new) * R_old))
             joint_q[i] = q
-            R_new = R_parent * q
-            seg_xform[i] = wp.transform(x, R_new)
-            x = x + wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -length))
-            vertex_positions[vi] = x
-            if not (wp.isfinite(q) and wp.isfinite(x)):
+            if not wp.isfinite(q):
                 wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
-        else:
-            R_new = R_old
-            x = vertex_positions[vi]
-        d = wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -1.0))
-        v_next = vertex_velocities[vi]
-        w_new = wp.dot(w_old, d_old) * d + wp.cross(d, v_next - v_prev) / wp.max(length, TINY_LENGTH)
-        qd = wp.quat_rotate_inv(R_new, w_new - w_new_prev)
-        joint_qd[i] = qd
-        if not wp.isfinite(qd):
-            wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
-        w_new_prev = w_new
-        v_prev = v_next
+            R_new = R_parent * q
+        x = x + wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
+    fk_strand(chains, strand, X_head, V_head, joint_q, joint_qd, seg_xform, vertex_positions, vertex_velocities)

@@ -12,7 +12,7 @@ Conventions, fixed for the whole project:
   with centre of mass c, ``A = Ic + m(|c|^2 I - c c^T)``, ``B = m [c]x``, ``C = m I``.
 
 The permutations to Pinocchio's (linear, angular) vectors, MuJoCo's (w, x, y, z) quaternions
-and USD's ``Gf.Quatf(real, i, j, k)`` live only in ``tests/_reference.py`` and ``hairwarp/usd.py``.
+and USD's ``Gf.Quatf(real, i, j, k)`` live only in ``tests/_reference.py`` and ``hairwarp/io/usd_common.py``.
 """
 
 import warp as wp

@@ -31,18 +31,23 @@ class Fault(enum.IntFlag):
 
     Attributes:
         NONFINITE_DYNAMICS: a joint acceleration, velocity or rotation became NaN or infinite in ABA.
-        JOINT_SPEED: a joint turned more than ``max_rotation_per_step`` radians in one step.
-        NONFINITE_COLLISION: the collision projection produced a non-finite vertex.
-        STRETCH: a segment's length left its rest length by more than the stretch tolerance.
+        JOINT_SPEED: a joint turned more than ``max_rotation_per_step`` radians in one step (free dynamics).
+        NONFINITE_COLLISION: the body contact response or the push-out produced a non-finite joint or vertex.
+        COLLISION_SPEED: the body contact response turned a joint further than ``max_rotation_per_step``
+            in one step while the free dynamics alone did not.
         CONTACT_OVERFLOW: more contacts than the buffers hold; some were dropped.
+        LINK_FORCE: a static link's force became non-finite or larger than the step resolves.
+        HAIR_CONTACT_FORCE: a hair-hair contact force became non-finite or larger than the step resolves.
     """
 
     NONE = 0
     NONFINITE_DYNAMICS = 1
     JOINT_SPEED = 2
     NONFINITE_COLLISION = 4
-    STRETCH = 8
+    COLLISION_SPEED = 8
     CONTACT_OVERFLOW = 16
+    LINK_FORCE = 32
+    HAIR_CONTACT_FORCE = 64
 
 
 class ColliderKind(enum.IntEnum):

@@ -189,8 +189,8 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     assert "tiny.usdc" in out and "tiny.png" in out
 
 
-@pytest.mark.skipif(not (_has("hairwarp.groom") and _has("hairwarp.usd")),
-                    reason="needs hairwarp.groom and hairwarp.usd, not in this installation")
+@pytest.mark.skipif(not (_has("hairwarp.groom") and _has("hairwarp.io.usd_inspect")),
+                    reason="needs hairwarp.groom and hairwarp.io, not in this installation")
 def test_info_usd_groom_and_cache(tmp_path):
     """A static stage with curves is described as a groom too; an animated one (a cache) is not."""
     from pxr import Usd, UsdGeom, Vt

@@ -594,7 +594,9 @@ def test_suite_dense_quick_through_hairwarp_bench(tmp_path, monkeypatch):
         assert r["writer_own_s"] == pytest.approx(bg["convert_s"] + bg["set_s"] + bg["save_s"])
         assert r["write_cheaper_than_simulate"] == (r["background_write_s"] < pipe["simulate_frame_s"])
         # Same frames, same file: the two writers store the same bytes per frame.
-        assert bg["bytes_per_frame"] == inline["bytes_per_frame"] >= 24 * r["points"]
+        # the same frames; the clip layers are named after each cache, so the roots differ by a few bytes
+        assert bg["bytes_per_frame"] == pytest.approx(inline["bytes_per_frame"], rel=1e-3)
+        assert inline["bytes_per_frame"] >= 24 * r["points"]
     assert data["stages"]["results"][0]["count"] == 1000
     # The disk floor of a row is its bytes at the disk's measured pace.
     assert data["disk_write_rate"] > 0

@@ -498,9 +498,9 @@ def test_load_dispatch_and_errors(tmp_path, monkeypatch):
         Groom.load(hair, up_axis="x")
 
     calls = []
-    fake = types.ModuleType("hairwarp.usd")
+    fake = types.ModuleType("hairwarp.io.usd_groom")
     fake.read_curves = lambda p: calls.append(p) or lines
-    monkeypatch.setitem(sys.modules, "hairwarp.usd", fake)
+    monkeypatch.setitem(sys.modules, "hairwarp.io.usd_groom", fake)
     usd = tmp_path / "g.usda"
     usd.write_text("#usda 1.0\n")
     from_usd = Groom.load(usd)

@@ -4,7 +4,7 @@ import numpy as np
 from PIL import Image
 
 from hairwarp.preview import BACKGROUND, preview_cache, render_frames
-from hairwarp.usd import CacheWriter
+from hairwarp.io.cache import CacheWriter
 
 BG_TOLERANCE = 12
 """Max per-channel difference [0-255] still counted as background (anti-aliased edges, PNG is lossless)."""

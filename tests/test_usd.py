@@ -7,16 +7,14 @@ import trimesh
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdUtils, Vt
 
 from hairwarp.colliders import ColliderSet
-from hairwarp.usd import (
-    CacheWriter,
-    UsdFileError,
+from hairwarp.io.cache import CacheWriter
+from hairwarp.io.cache_folder import CacheWriteError
+from hairwarp.io.usd_anim import mesh_motion, read_animated_collider, read_animated_mesh
+from hairwarp.io.usd_common import UsdFileError
+from hairwarp.io.usd_groom import read_curves, write_curves
+from hairwarp.io.usd_inspect import (
     describe,
-    mesh_motion,
-    read_animated_collider,
-    read_animated_mesh,
-    read_curves,
     read_frames,
-    write_curves,
 )
 
 F32_ATOL = 1e-6
@@ -70,7 +68,7 @@ def _write_small_cache(path, frames=(0, 1, 2)):
 def test_cache_read_back_with_pxr(tmp_path):
     path = tmp_path / "cache.usdc"
     written = _write_small_cache(path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache.usdc"], "temporary file left behind"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache.clips", "cache.usdc"], "temporary file left behind"
 
     stage = Usd.Stage.Open(str(path))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
@@ -129,13 +127,15 @@ def test_exception_inside_with_keeps_frames_written(tmp_path):
                 if f == 2:
                     raise RuntimeError("solver blew up")
                 cache.write_frame(f, {"guides": (_strands(2, 4, f), None)})
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["crash.usdc"]
-    stage = Usd.Stage.Open(str(path))
+    # the frames stay in the visible working folder, a valid cache; nothing is put at the output path
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["crash.partial"]
+    assert cache.partial_path == tmp_path / "crash.partial" / "crash.usdc"
+    assert sorted(p.name for p in cache.partial_path.parent.iterdir()) == ["crash.clips", "crash.usdc"]
+    stage = Usd.Stage.Open(str(cache.partial_path))
     attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides")).GetPointsAttr()
     assert attr.GetTimeSamples() == [0.0, 1.0]
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, 1)
     np.testing.assert_array_equal(np.asarray(attr.Get(1)), _strands(2, 4, 1).astype(np.float32))
-    assert cache.close() == path  # idempotent
 
 
 @pytest.mark.parametrize("suffix", [".usda", ".usd"])
@@ -508,7 +508,7 @@ def test_writer_timings_add_up_per_phase(tmp_path):
 
 
 def test_bench_usd_write_reports_phases():
-    from hairwarp.usd import bench_usd_write
+    from hairwarp.benchmarks.dense import bench_usd_write
 
     result = bench_usd_write(counts=(50,), quick=True, points_per_curve=9)
     (row,) = result["results"]
@@ -554,7 +554,7 @@ def _child_gone(cache):
 
 
 def test_vec3f_direct_copy_reads_back_exactly():
-    from hairwarp.usd import _direct_copy_works, _vec3f
+    from hairwarp.io.usd_common import _direct_copy_works, _vec3f
 
     assert _direct_copy_works()  # else the writer falls back to FromNumpy, and this test would not test the copy
     rng = np.random.default_rng(3)
@@ -571,14 +571,15 @@ def test_vec3f_direct_copy_reads_back_exactly():
 
 @pytest.mark.parametrize("suffix", [".usdc", ".usda"])
 def test_background_writer_writes_the_inline_stage(tmp_path, suffix):
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     inline, background = tmp_path / f"inline{suffix}", tmp_path / f"background{suffix}"
     _write_small_cache(inline)
     with pytest.MonkeyPatch.context() as m:  # the same frames through the background writer
         m.setitem(globals(), "CacheWriter", BackgroundCacheWriter)
         _write_small_cache(background)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([inline.name, background.name])
+    clips = [p.with_name(p.stem + ".clips").name for p in (inline, background)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([inline.name, background.name, *clips])
     _assert_same_stage(inline, background)
     # The static topology is there too (compared above as default values): spot-check one against the input.
     stage = Usd.Stage.Open(str(background))
@@ -587,7 +588,7 @@ def test_background_writer_writes_the_inline_stage(tmp_path, suffix):
 
 
 def test_background_writer_y_up_animated_mesh_and_timings(tmp_path):
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     pts, faces = _tetra()
     paths = {}
@@ -606,7 +607,7 @@ def test_background_writer_y_up_animated_mesh_and_timings(tmp_path):
 
 
 def test_background_invalid_frame_raises_in_the_caller_and_keeps_earlier_frames(tmp_path):
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     path = tmp_path / "bad.usdc"
     with BackgroundCacheWriter(path, fps=24) as cache:
@@ -630,7 +631,7 @@ def test_background_invalid_frame_raises_in_the_caller_and_keeps_earlier_frames(
 
 
 def test_background_exception_inside_with_keeps_frames_and_ends_the_process(tmp_path):
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     path = tmp_path / "crash.usdc"
     with pytest.raises(RuntimeError, match="solver blew up"):
@@ -640,17 +641,17 @@ def test_background_exception_inside_with_keeps_frames_and_ends_the_process(tmp_
                 if f == 3:
                     raise RuntimeError("solver blew up")
                 cache.write_frame(f, {"guides": (_strands(2, 4, f), None)})
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["crash.usdc"]
-    stage = Usd.Stage.Open(str(path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["crash.partial"]
+    stage = Usd.Stage.Open(str(cache.partial_path))
     attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides")).GetPointsAttr()
     assert attr.GetTimeSamples() == [0.0, 1.0, 2.0]
-    assert _child_gone(cache) and cache.close() == path
+    assert _child_gone(cache)
 
 
 def test_background_failure_in_the_process_names_the_file(tmp_path):
     import shutil
 
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     folder = tmp_path / "shot"
     path = folder / "hair.usdc"
@@ -658,9 +659,10 @@ def test_background_failure_in_the_process_names_the_file(tmp_path):
     cache.add_curves("c", np.full(2, 4))
     cache.write_frame(0, {"c": (_strands(2, 4, 0), None)})
     cache.flush()
-    shutil.rmtree(folder)  # the temporary file and its folder go: the next save fails in the writer process
+    shutil.rmtree(folder)  # the working folder goes, a file takes its place: the next layer fails in the process
+    folder.write_text("")
     cache.write_frame(1, {"c": (_strands(2, 4, 1), None)})
-    with pytest.raises(UsdFileError, match=r"shot/hair\.usdc: the background writer failed at frame 1"):
+    with pytest.raises(CacheWriteError, match=r"shot/hair\.usdc: the background writer failed at frame 1"):
         for f in range(2, 50):  # raised by a later write_frame once the failure is reported
             cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
             cache.flush()
@@ -672,7 +674,7 @@ def test_background_process_killed_is_reported(tmp_path):
     import os
     import signal
 
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     path = tmp_path / "killed.usdc"
     cache = BackgroundCacheWriter(path, fps=24)
@@ -685,18 +687,18 @@ def test_background_process_killed_is_reported(tmp_path):
         cache.write_frame(1, {"c": (_strands(2, 4, 1), None)})
         cache.close()
     cache._abandon()
-    # The temporary file holds the frame saved before the kill.
-    (partial,) = tmp_path.glob(".killed.usdc.*.partial.usdc")
-    stage = Usd.Stage.Open(str(partial))
+    # The working folder holds the frame saved before the kill, and no lock.
+    assert sorted(p.name for p in (tmp_path / "killed.partial").iterdir()) == ["killed.clips", "killed.usdc"]
+    stage = Usd.Stage.Open(str(cache.partial_path))
     assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0]
 
 
 def test_background_writer_dropped_without_close_ends_its_process(tmp_path):
     """A writer that is never closed (lost reference, or the interpreter exiting: the same hook runs at exit) ends
-    its process and leaves the frames saved in the temporary file, as the inline writer does."""
+    its process and leaves the frames saved in the working folder, as the inline writer does."""
     import gc
 
-    from hairwarp.usd import BackgroundCacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
 
     cache = BackgroundCacheWriter(tmp_path / "dropped.usdc", fps=24)
     cache.add_curves("c", np.full(2, 4))
@@ -707,6 +709,5 @@ def test_background_writer_dropped_without_close_ends_its_process(tmp_path):
     del cache
     gc.collect()
     assert proc.poll() is not None
-    (partial,) = tmp_path.glob(".dropped.usdc.*.partial.usdc")
-    stage = Usd.Stage.Open(str(partial))
+    stage = Usd.Stage.Open(str(tmp_path / "dropped.partial" / "dropped.usdc"))
     assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0, 1.0]

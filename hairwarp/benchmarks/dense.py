@@ -3,10 +3,10 @@
 :func:`bench_dense_frame` runs the default scene (``long_hair.toml``: about 300 guides of 20 segments, 8 substeps a
 frame, the ellipsoid head) and times, per output frame and separately: the simulation of the guides, then for each
 dense strand count the interpolation of positions and velocities, their Hermite densification, the optional push-out
-from the head, the copy to the host, and :meth:`hairwarp.usd.CacheWriter.write_frame` of the dense curves with
+from the head, the copy to the host, and :meth:`hairwarp.io.cache.CacheWriter.write_frame` of the dense curves with
 velocities into a temporary file, split by the writer into checks, ``Vt`` conversion, authoring and crate saves.
 :func:`bench_dense_pipeline` times whole frames (simulate, output, write) with no writer, the inline writer and the
-background writer (:class:`hairwarp.usd.BackgroundCacheWriter`), which is the honest figure once the writing runs
+background writer (:class:`hairwarp.io.background.BackgroundCacheWriter`), which is the honest figure once the writing runs
 beside the simulation. The goal is a frame that costs less to write than to simulate. :func:`suite_dense` is
 ``hairwarp bench dense``; :func:`md_dense` renders its report section.
 """
@@ -73,7 +73,7 @@ def _time_writes(folder: Path, name: str, counts: np.ndarray, widths, basis: str
     One value changes between frames: the crate format stores identical arrays once, which would flatter the
     figures.
     """
-    from hairwarp.usd import CacheWriter
+    from hairwarp.io.cache import CacheWriter, cache_bytes
 
     path = folder / f"{name}.usdc"
     points, velocities = points.copy(), velocities.copy()
@@ -91,7 +91,7 @@ def _time_writes(folder: Path, name: str, counts: np.ndarray, widths, basis: str
         t0 = time.perf_counter()
     wall += time.perf_counter() - t0  # the close saves what is left
     phases = {k: (cache.timings[k] - before[k]) / frames for k in before}
-    size = path.stat().st_size
+    size = cache_bytes(path)
     path.unlink()
     return {"basis": basis, "frames": frames, "write_s": wall / frames,
             **{f"{k}_s": v for k, v in phases.items()}, "bytes_per_frame": size / (frames + 1)}
@@ -205,7 +205,8 @@ def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: in
     """
     import warp as wp
 
-    from hairwarp.usd import BackgroundCacheWriter, CacheWriter
+    from hairwarp.io.background import BackgroundCacheWriter
+    from hairwarp.io.cache import CacheWriter, cache_bytes
 
     hermite = basis == "linear"
     fps = float(sim.scene.sim.fps)
@@ -247,7 +248,7 @@ def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: in
         row["close_s"] = time.perf_counter() - t_close
         row.update({f"{k}_s": (cache.timings[k] - before[k]) / frames for k in before})
         row["writer_own_s"] = (sum(cache.timings[k] - before[k] for k in ("convert", "set", "save")) / frames)
-        row["bytes_per_frame"] = path.stat().st_size / (frames + 1)
+        row["bytes_per_frame"] = cache_bytes(path) / (frames + 1)
         path.unlink()
     return row
 
@@ -375,3 +376,50 @@ def md_dense(data: dict) -> list[str]:
             f"{'yes' if r['write_cheaper_than_simulate'] else 'no'} |")
     lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s.*"]
     return lines
+
+
+def bench_usd_write(counts=(10_000, 100_000), quick: bool = False, device=None, *, points_per_curve: int = 81,
+                    frames: int | None = None) -> dict:
+    """Time :meth:`CacheWriter.write_frame` of dense curves with velocities into a temporary ``.usdc``, per phase.
+
+    The curves are synthetic random walks (a fresh array per frame, so the crate cannot share them between
+    frames); :func:`hairwarp.benchmarks.dense.bench_dense_frame` times the same writes with simulated hair.
+
+    Args:
+        counts: curve counts.
+        quick: two frames per count instead of four.
+        device: not used (writing is host work); accepted so every stage hook is called alike.
+        points_per_curve: vertices per curve (81: 20 segments Hermite-sampled 4 times).
+        frames: timed frames per count (after one untimed frame).
+
+    Returns:
+        ``{"points_per_curve", "frames", "results": [{"count", "points", "write_s", "check_s", "convert_s", "set_s",
+        "save_s", "bytes_per_frame", "megabytes_per_s"}, ...]}``, seconds per frame (mean over the timed frames).
+    """
+    frames = int(frames or (2 if quick else 4))
+    rng = np.random.default_rng(0)
+    results = []
+    from hairwarp.io.cache import CacheWriter, cache_bytes
+
+    with tempfile.TemporaryDirectory(prefix="hairwarp-bench-usd-") as tmp:
+        for n in counts:
+            npts = int(n) * int(points_per_curve)
+            base = np.cumsum(rng.normal(scale=1e-3, size=(npts, 3)).astype(np.float32), axis=0)
+            path = Path(tmp) / f"bench{n}.usdc"
+            wall = 0.0
+            with CacheWriter(path, fps=30.0) as cache:
+                cache.add_curves("hair", np.full(int(n), int(points_per_curve)))
+                for f in range(frames + 1):
+                    points, velocities = base + np.float32(1e-4 * f), base * np.float32(0.01 * (f + 1))
+                    if f == 1:
+                        before = dict(cache.timings)
+                    t0 = time.perf_counter()
+                    cache.write_frame(f, {"hair": (points, velocities)})
+                    wall += (time.perf_counter() - t0) if f > 0 else 0.0
+            size = cache_bytes(path)
+            per_frame = wall / frames
+            results.append({"count": int(n), "points": npts, "write_s": per_frame,
+                            **{f"{k}_s": (cache.timings[k] - before[k]) / frames for k in before},
+                            "bytes_per_frame": size / (frames + 1),
+                            "megabytes_per_s": 24.0 * npts / per_frame / 1e6})
+    return {"points_per_curve": int(points_per_curve), "frames": frames, "results": results}

@@ -25,7 +25,7 @@ STAGE_HOOKS = (
      True),
     ("body collision (projection)", "hairwarp.colliders", "bench_collision", False),
     ("body collision in motion (Ratboy)", "hairwarp.benchmarks.collision", "bench_collision_cost", True),
-    ("USD write", "hairwarp.usd", "bench_usd_write", False),
+    ("USD write", "hairwarp.benchmarks.dense", "bench_usd_write", False),
 )
 
 

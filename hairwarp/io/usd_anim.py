@@ -1,0 +1,199 @@
+"""Animated colliders from USD: a Mesh prim's world poses over time, and the rigid motion through them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hairwarp.io.usd_common import UsdFileError, _open_stage, _prims, _stage_to_metres_z, _triangles
+
+__all__ = ["mesh_motion", "read_animated_collider", "read_animated_mesh"]
+
+
+# A world transform's scale, shear or mirror (the symmetric factor of its polar decomposition) is baked into the
+# vertices when it stays within this (relative, float64 matrices of float32 or float64 authored ops) of its value
+# at the first time sample; colliders move rigidly.
+_CONSTANT_SCALE_RTOL = 1.0e-6
+
+
+def _find_mesh(stage, prim_path, path):
+    from pxr import UsdGeom
+
+    if prim_path is None:
+        prim = next(_prims(stage, UsdGeom.Mesh), None)
+        if prim is None:
+            raise UsdFileError(f"{path}: no Mesh prim in the stage")
+        return prim
+    prim = stage.GetPrimAtPath(str(prim_path))
+    if not prim or not prim.IsValid():
+        raise UsdFileError(f"{path}: no prim at {prim_path}")
+    if not prim.IsA(UsdGeom.Mesh):
+        raise UsdFileError(f"{path}: {prim_path} is a {prim.GetTypeName() or 'typeless prim'}, not a Mesh")
+    return prim
+
+
+def _transform_times(prim) -> set[float]:
+    """Time codes of the transform samples of a prim and of every ancestor (its world matrix depends on them)."""
+    from pxr import UsdGeom
+
+    times: set[float] = set()
+    while prim and not prim.IsPseudoRoot():
+        xformable = UsdGeom.Xformable(prim)
+        if xformable:
+            times.update(xformable.GetTimeSamples())
+        prim = prim.GetParent()
+    return times
+
+
+def _rigid_factor(linear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``linear = R K`` with R a rotation and K symmetric (the polar decomposition; a mirror goes into K)."""
+    u, sv, vt = np.linalg.svd(linear)
+    d = np.ones(3)
+    if np.linalg.det(u @ vt) < 0.0:
+        d[2] = -1.0
+    rot = u @ np.diag(d) @ vt
+    return rot, rot.T @ linear
+
+
+def read_animated_mesh(path, prim_path=None):
+    """A Mesh prim and its animation, in metres, Z up: for colliders that follow a USD animation.
+
+    The world transform of the prim (its own transform ops and its ancestors') is read at every time code where
+    any of them, or the prim's points, has a sample; ``metersPerUnit`` and ``upAxis`` are converted as by the
+    other readers. A scale, shear or mirror that is the same at every sample is baked into the vertices (the
+    winding is reversed with a mirror) so that the returned matrices are rigid; polygons are split into fans and
+    a ``leftHanded`` orientation is turned into right-handed winding, so the faces point outward as authored.
+
+    Args:
+        path: a .usd, .usda, .usdc or .usdz file.
+        prim_path: the Mesh prim; None takes the first Mesh in traversal order.
+
+    Returns:
+        ``(vertices, faces, times, matrices)``: vertices [m] in the mesh's own frame, float64 ``(V, 3)``, or
+        ``(T, V, 3)`` when the points themselves are time-sampled (then one set per time); faces ``(F, 3)`` int64;
+        times [s] ``(T,)`` (time code / timeCodesPerSecond; a stage with no sample gives one time, 0, read at
+        the default time); matrices ``(T, 4, 4)`` rigid world poses, column convention (``p_world = M @ [p, 1]``).
+        ``vertices`` moved by ``matrices[i]`` is the mesh in the world at ``times[i]``.
+
+    Raises:
+        UsdFileError: missing or unreadable file, no Mesh prim (or ``prim_path`` is not one), a scale that changes
+            with time, or a point count that changes with time.
+    """
+    return _read_animated_mesh(path, prim_path)[:4]
+
+
+def _read_animated_mesh(path, prim_path):
+    """:func:`read_animated_mesh`, and the prim's name."""
+    from pxr import Usd, UsdGeom
+
+    stage = _open_stage(path)
+    prim = _find_mesh(stage, prim_path, path)
+    where = f"{path}: {prim.GetPath()}"
+    mesh = UsdGeom.Mesh(prim)
+    conv = _stage_to_metres_z(stage)
+    c4 = np.eye(4)
+    c4[:3, :3] = conv
+    c4_inv = np.linalg.inv(c4)
+    points_attr = mesh.GetPointsAttr()
+    point_times = points_attr.GetTimeSamples()
+    codes = sorted(_transform_times(prim) | set(point_times))
+    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
+    times = np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)
+
+    matrices = np.empty((len(time_codes), 4, 4))
+    scale = None
+    for i, tc in enumerate(time_codes):
+        m_usd = np.array(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim), dtype=np.float64)
+        # Row-vector USD matrix in stage units -> column convention in metres, Z up, acting on metre Z-up points.
+        world = c4 @ m_usd.T @ c4_inv
+        rot, k = _rigid_factor(world[:3, :3])
+        if scale is None:
+            scale = k
+        elif np.abs(k - scale).max() > _CONSTANT_SCALE_RTOL * max(np.abs(scale).max(), 1e-300):
+            raise UsdFileError(f"{where}: its world scale changes with time (at time code {codes[i]:g}); "
+                               "colliders move rigidly, so only a constant scale can be baked into the mesh")
+        matrices[i] = np.eye(4)
+        matrices[i, :3, :3] = rot
+        matrices[i, :3, 3] = world[:3, 3]
+
+    first = time_codes[0]
+    faces = _triangles(mesh, first)
+    if (mesh.GetOrientationAttr().Get(first) == UsdGeom.Tokens.leftHanded) != (np.linalg.det(scale) < 0.0):
+        faces = faces[:, ::-1].copy()
+
+    def local_points(tc):
+        pts = np.asarray(points_attr.Get(tc) or [], dtype=np.float64).reshape(-1, 3)
+        # Metres Z up in the mesh frame, with the constant scale applied: (K C p) as rows.
+        return pts @ (scale @ conv).T
+
+    if point_times:
+        frames = [local_points(tc) for tc in time_codes]
+        counts = {len(f) for f in frames}
+        if len(counts) != 1:
+            raise UsdFileError(f"{where}: the number of points changes with time ({sorted(counts)})")
+        vertices = np.stack(frames)
+    else:
+        vertices = local_points(first)
+    if vertices.size == 0 or faces.size == 0:
+        raise UsdFileError(f"{where}: the mesh has no points or no faces")
+    if faces.min() < 0 or faces.max() >= vertices.shape[-2]:
+        raise UsdFileError(f"{where}: face vertex indices out of range for {vertices.shape[-2]} points")
+    return vertices, faces, times, matrices, prim.GetName()
+
+
+def mesh_motion(times, matrices):
+    """A rigid motion through sampled world poses, e.g. those of :func:`read_animated_mesh`.
+
+    The poses become the keys of a :class:`hairwarp.motion.Keyframes` (about the world origin): translation by
+    cubic Hermite with Catmull-Rom tangents, rotation by a cubic Hermite in the tangent space of SO(3), so
+    position and velocity are continuous and ``evaluate(t)`` gives analytic world velocities and accelerations.
+    The pose is held before the first and after the last sample, so the velocity is zero there. Usable as a
+    world collider's ``motion`` (``Collider(..., attach="world", motion=mesh_motion(times, matrices))``) or as a
+    head motion.
+
+    Args:
+        times: strictly increasing sample times [s], (T,).
+        matrices: rigid world poses, (T, 4, 4), column convention; consecutive ones under 180 degrees apart.
+
+    Returns:
+        The :class:`hairwarp.motion.Keyframes`; its ``evaluate(t)`` returns a ``MotionSample`` with ``matrix()``,
+        ``linear_velocity`` (of the frame origin), ``angular_velocity``, ``linear_acceleration`` and
+        ``angular_acceleration``, world.
+    """
+    from hairwarp.colliders import matrix_to_transform
+    from hairwarp.motion import Keyframes
+
+    m = np.asarray(matrices, dtype=np.float64).reshape(-1, 4, 4)
+    xf = np.array([matrix_to_transform(x) for x in m]).reshape(-1, 7)
+    return Keyframes(np.asarray(times, dtype=np.float64).reshape(-1), xf[:, :3], xf[:, 3:])
+
+
+def read_animated_collider(path, prim_path=None, *, name: str | None = None, **options):
+    """A world collider that follows a Mesh prim's animation in a USD file (rigid; see :func:`read_animated_mesh`).
+
+    Args:
+        path: the USD file.
+        prim_path: the Mesh prim; None takes the first one.
+        name: collider name; the prim's name by default.
+        **options: ``thickness``, ``friction`` of :class:`hairwarp.colliders.Collider`.
+
+    Returns:
+        A MESH :class:`hairwarp.colliders.Collider` with ``attach="world"`` and ``motion`` from :func:`mesh_motion`
+        (static when the stage has a single sample).
+
+    Raises:
+        UsdFileError: as :func:`read_animated_mesh`, and for time-sampled points (a deforming mesh cannot be a
+            rigid collider).
+    """
+    import trimesh
+
+    from hairwarp.colliders import Collider
+
+    vertices, faces, times, matrices, prim_name = _read_animated_mesh(path, prim_path)
+    if vertices.ndim == 3:
+        raise UsdFileError(f"{path}: mesh {prim_name!r} deforms (time-sampled points); a collider must be rigid")
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    motion = mesh_motion(times, matrices) if len(times) > 1 else None
+    local = np.eye(4) if motion is not None else matrices[0]
+    return Collider.from_trimesh(mesh, local_xform=local, name=name or prim_name, attach="world", motion=motion,
+                                 **options)
