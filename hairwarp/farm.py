@@ -22,9 +22,9 @@ Farm behaviour:
   up to :data:`WORKER_LOSS_RETRIES` times on a local cluster (``distributed.scheduler.allowed-failures``; a remote
   scheduler keeps its own setting), then recorded as ``lost``;
 - a task whose folder holds a completion marker with the same key (a hash of the resolved scene and the hairwarp
-  version) and every file it lists at the size it lists is not run again: a rerun of a wedge only runs what is
-  missing, partial, changed or lost. A fault is complete (the same scene faults the same way); an error or a loss
-  is not;
+  version) and every file it lists (the cache's root layer and its clip layers too) at the size it lists is not
+  run again: a rerun of a wedge only runs what is missing, partial, changed or lost. A fault is complete (the same
+  scene faults the same way); an error or a loss is not;
 - Ctrl-C cancels the tasks not yet finished and closes the client and the local cluster; finished tasks stay
   complete for the next run.
 """
@@ -201,9 +201,7 @@ def run_task(task: Task) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / MARKER).unlink(missing_ok=True)  # from here on the folder is partial until the new marker
     cache = folder / f"{task.name}.usdc"
-    preview_png = cache.with_suffix(".png")
-    for old in (STATS, SCENE_JSON, cache.name, preview_png.name):
-        (folder / old).unlink(missing_ok=True)
+    _clear_outputs(folder, cache)
 
     _init_warp()
     from hairwarp.runner import simulate
@@ -233,15 +231,42 @@ def run_task(task: Task) -> dict:
             record["preview"] = Path(result.preview_path).name
         record.update(_frame_stats(result.frame_stats))
     record["seconds"] = round(time.perf_counter() - t_sim, 3)
-    if cache.is_file():
-        record["cache"] = cache.name
-        record.update(_tip_travel(cache))
+    # A run that stopped on a fault keeps its complete frames in its working folder, not at the cache's path.
+    written = cache if cache.is_file() else _partial_root(cache)
+    if written.is_file():
+        record["cache"] = str(written.relative_to(folder))
+        record.update(_tip_travel(written))
     _write_json(folder / STATS, record)
-    files = [STATS, SCENE_JSON] + [record[k] for k in ("cache", "preview") if record[k]]
-    _write_json(folder / MARKER, {"key": task.key, "status": record["status"],
-                                  "files": {name: (folder / name).stat().st_size for name in files}})
+    _write_json(folder / MARKER, {"key": task.key, "status": record["status"], "files": _file_sizes(folder)})
     out = _with_paths(record, folder)
     out["timing"] = {"t_start": t_start, "t_end": time.time(), "simulate_s": record["seconds"]}
+    return out
+
+
+def _partial_root(cache: Path) -> Path:
+    """Where :func:`hairwarp.runner.simulate` leaves the frames of a run that did not finish."""
+    return cache.with_name(cache.stem + ".partial") / cache.name
+
+
+def _clear_outputs(folder: Path, cache: Path) -> None:
+    """Remove what an earlier attempt of the task left: its record, scene, preview and cache (the root layer, its
+    clips, the working folder with its checkpoints and lock). Dask runs a task again only once the earlier attempt's
+    worker is gone, so its lock (which names a process on another machine, maybe) must not block the new one."""
+    import shutil
+
+    for name in (STATS, SCENE_JSON, cache.name, cache.with_suffix(".png").name):
+        (folder / name).unlink(missing_ok=True)
+    for name in (cache.stem + ".clips", cache.stem + ".partial"):
+        if (folder / name).is_dir():
+            shutil.rmtree(folder / name)
+
+
+def _file_sizes(folder: Path) -> dict[str, int]:
+    """Every file under ``folder`` but the marker (and temporary files): relative path -> size in bytes."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        if path.is_file() and path.name != MARKER and ".tmp" not in path.name:
+            out[str(path.relative_to(folder))] = path.stat().st_size
     return out
 
 

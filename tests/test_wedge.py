@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -129,7 +130,8 @@ def test_rerun_skips_complete_tasks_and_redoes_partial_ones(wedge4, tmp_path):
     shutil.copytree(src, out)  # keeps the mtimes
     before = {r["name"]: (out / r["name"] / f"{r['name']}.usdc").stat().st_mtime_ns for r in records}
     marker_before = {r["name"]: (out / r["name"] / farm.MARKER).stat().st_mtime_ns for r in records}
-    truncated = out / records[1]["name"] / f"{records[1]['name']}.usdc"
+    # the largest file of the cache: a layer in its clips folder, beside the small root layer
+    truncated = max((p for p in (out / records[1]["name"]).rglob("*.usdc")), key=lambda p: p.stat().st_size)
     size = truncated.stat().st_size
     with open(truncated, "r+b") as f:
         f.truncate(size // 2)
@@ -179,12 +181,18 @@ def test_variants_grid_zip_and_values_with_commas():
 
 
 def _kill_worker_once(marker: str, task):
-    """The first attempt of variant 0 leaves a half-written cache and kills its own worker process."""
+    """The first attempt of variant 0 kills its own worker process once the run has written a frame: the run's
+    working folder, its lock and its checkpoint stay behind, as after a crash."""
     if task.index == 0 and not os.path.exists(marker):
-        Path(marker).write_text(str(os.getpid()))
-        Path(task.folder).mkdir(parents=True, exist_ok=True)
-        (Path(task.folder) / f"{task.name}.usdc").write_bytes(b"half a cache")
-        os.kill(os.getpid(), signal.SIGKILL)
+        root = Path(task.folder) / f"{task.name}.partial" / f"{task.name}.usdc"
+
+        def kill_after_the_first_frame():
+            while not root.exists():
+                time.sleep(0.005)
+            Path(marker).write_text(str(os.getpid()))
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        threading.Thread(target=kill_after_the_first_frame, daemon=True).start()
     return farm.run_task(task)
 
 
@@ -195,15 +203,18 @@ def _kill_worker_always(task):
 def test_a_killed_worker_is_retried_elsewhere_and_the_wedge_completes(tmp_path):
     marker = tmp_path / "killed.pid"
     out = tmp_path / "w"
-    tasks = farm.wedge_tasks(TINY, {"strands.bend_stiffness": ["1e-4", "1e-3"]}, out, overrides=FIXED)
+    frames = 40  # long enough for the killer to see the first frame while the run goes on
+    tasks = farm.wedge_tasks(TINY, {"strands.bend_stiffness": ["1e-4", "1e-3"]}, out,
+                             overrides=[f"sim.frames={frames}"])
     records = farm.run_tasks(tasks, out, workers=2, sheet=False,
                              task_fn=functools.partial(_kill_worker_once, str(marker)))
-    assert marker.is_file()  # the first attempt did die
+    assert marker.is_file()  # the first attempt did die, mid-run
     assert [r["status"] for r in records] == ["ok", "ok"]
-    assert records[0]["frames"] == FRAMES and records[0]["worker"] is not None
+    assert records[0]["frames"] == frames and records[0]["worker"] is not None
     assert int(marker.read_text()) != os.getpid()
-    arrays = _usd_arrays(records[0]["cache"])  # the retry replaced the half-written file with a whole cache
-    assert ("/World/Hair/guides", "points", float(FRAMES)) in arrays
+    arrays = _usd_arrays(records[0]["cache"])  # the retry wrote a whole cache over what the dead one left
+    assert ("/World/Hair/guides", "points", float(frames)) in arrays
+    assert not (out / tasks[0].name / f"{tasks[0].name}.partial").exists()
 
 
 def test_a_task_that_kills_every_worker_is_lost_after_bounded_retries(tmp_path):
@@ -230,6 +241,9 @@ def test_a_faulting_variant_is_reported_and_the_rest_complete(tmp_path, capsys):
         assert "joint turned more than 0.0001 rad" in r["message"]
         assert f"fault    {r['name']}: simulation fault" in captured.out
         assert (out / r["name"] / farm.MARKER).is_file()  # a fault is a result: complete, not rerun
+        # the frames before the fault (frame 0) stay readable where the run left them
+        assert ".partial" in r["cache"] and ("/World/Hair/guides", "points", 0.0) in _usd_arrays(r["cache"])
+        assert r["tip_travel_mean_m"] == 0.0
     assert all(r["frames"] == FRAMES for r in records[:2])
     assert "2 ok, 2 fault" in captured.out and (out / "sheet.png").is_file()
     md = (out / "summary.md").read_text()
