@@ -290,14 +290,24 @@ def _ignore_interrupts() -> None:
         pass
 
 
-def _local_worker_plugin():
-    """A Dask worker plugin (every worker of the local cluster, restarted ones too): Ctrl-C ignored, Warp quiet."""
+def _limit_usd_threads(threads: int) -> None:
+    """usd-core saves layers with a thread pool of its own, one thread per core unless told otherwise: a worker
+    given one core's share would compete with the other workers' pools for their cores."""
+    from pxr import Work
+
+    Work.SetConcurrencyLimit(int(threads))
+
+
+def _local_worker_plugin(threads: int):
+    """A Dask worker plugin (every worker of the local cluster, restarted ones too): Ctrl-C ignored, Warp quiet,
+    usd-core's threads limited to the worker's share of the cores."""
     from distributed import WorkerPlugin
 
     class LocalWorker(WorkerPlugin):
         def setup(self, worker):
             _ignore_interrupts()
             _init_warp()
+            _limit_usd_threads(threads)
 
     return LocalWorker()
 
@@ -560,7 +570,8 @@ class _Cluster:
                 self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                             dashboard_address=":0", silence_logs=logging.CRITICAL)
             self.client = Client(self.cluster)
-            self.client.register_plugin(_local_worker_plugin(), name="hairwarp-local-worker")
+            self.client.register_plugin(_local_worker_plugin(threads_per_run(self.cores, self.workers)),
+                                        name="hairwarp-local-worker")
         self.client.run(_init_warp)  # before the progress line, so Warp's start-up messages do not cut through it
         services = self.client.scheduler_info().get("services", {})
         if "dashboard" in services and self._scheduler_has_bokeh():
