@@ -216,6 +216,13 @@ def md_wedge(data: dict) -> list[str]:
               "the machine's busy CPU time during the run less this process's and its workers', per second of wall "
               "time. The load average (over 1, 5 and 15 minutes) still holds this suite's own earlier runs."]
     one, two = runs[0], runs[-1]
+    every = data.get("all_runs", runs)
+    max_others = max((r.get("others_busy_cores") or 0.0) for r in every)
+
+    def spread(workers: int) -> str:
+        walls = [r["wall_s"] for r in every if r["workers"] == workers]
+        return f"{100 * (max(walls) - min(walls)) / min(walls):.0f} %" if len(walls) > 1 else "– (one round)"
+
     ideal = two["cluster_s"] + (one["wall_s"] - one["cluster_s"]) / 2
     share = two["engine_s_mean"] / two["task_s_mean"] if two["task_s_mean"] else float("nan")
     lines += ["",
@@ -230,9 +237,9 @@ def md_wedge(data: dict) -> list[str]:
               f"{1e3 * noop['median_s']:.1f} ms (median of {noop['tasks']}, max {1e3 * noop['max_s']:.1f} ms).",
               "- *Simulate* is `hairwarp.simulate` (the simulation, the cache and the preview picture); the rest of a "
               "task reads the tip travel back from the cache and writes the stats and the markers.",
-              "- The same wedge varies by 10-20 % from round to round with no other program on the cores (compare the "
-              "rounds of one worker count above; the cache writer also waits on the disk, which writes and flushes "
-              "a layer per frame): the speed-up is good to about that much.",
+              f"- The same wedge varied between rounds by {spread(1)} with 1 worker and {spread(2)} with 2, while "
+              f"other programs took at most {max_others:.2f} cores (the cache writer also waits on the disk: it "
+              "writes and flushes a layer per frame): the speed-up is good to about that much.",
               ("- `sim.threads` is in the scene schema: each run was given cores / workers threads."
                if data.get("threads_key") else
                "- Warp's CPU kernels run on one thread per process, so one worker per core fills the machine; the "
