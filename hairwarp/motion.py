@@ -58,6 +58,9 @@ __all__ = [
 #: ``kind`` values understood by :meth:`HeadMotion.from_config`.
 MOTION_KINDS = ("still", "turn", "nod", "shake", "translate", "keyframes")
 
+#: How :class:`Keyframes` interpolates between keys.
+KEY_INTERPOLATIONS = ("smooth", "monotone", "linear")
+
 #: Defaults of the procedural motions' parameters (also the scene file's defaults).
 DEFAULT_AMPLITUDE_DEG = 30.0
 DEFAULT_PERIOD = 2.0
@@ -330,12 +333,12 @@ class HeadMotion:
             "nod": {"amplitude_deg", "period", "start", "ramp", "axis"},
             "shake": {"amplitude_deg", "period", "start", "ramp", "axis"},
             "translate": {"distance", "period", "start", "ramp", "axis"},
-            "keyframes": {"keys"},
+            "keyframes": {"keys", "interpolation"},
         }[kind]
         pivot = cfg.pop("pivot", pivot)
         extra = sorted(set(cfg) - allowed)
         common = {"amplitude_deg", "period", "start", "ramp", "axis", "distance"}
-        unknown = [k for k in extra if k not in common and k != "keys"]
+        unknown = [k for k in extra if k not in common and k not in ("keys", "interpolation")]
         if unknown:
             raise ValueError(f"head.motion.{unknown[0]}: unknown key for a head motion")
         kw = {k: cfg[k] for k in allowed if k in cfg}
@@ -344,7 +347,8 @@ class HeadMotion:
         if kind == "keyframes":
             if "keys" not in kw:
                 raise ValueError("head.motion.keys: kind = 'keyframes' needs at least one [[head.motion.keys]] entry")
-            return Keyframes.from_keys(kw["keys"], pivot=pivot, rest_position=rest_position)
+            return Keyframes.from_keys(kw["keys"], pivot=pivot, rest_position=rest_position,
+                                       interpolation=kw.get("interpolation", "smooth"))
         cls = {"turn": Turn, "nod": Nod, "shake": Shake, "translate": Translate}[kind]
         return cls(**kw, pivot=pivot, rest_position=rest_position)
 
@@ -538,6 +542,16 @@ class Translate(_Oscillation):
                 f"ramp={self.ramp:g}, axis={self.axis.tolist()})")
 
 
+def _pchip_tangent(s0: np.ndarray, s1: np.ndarray, h0: float, h1: float) -> np.ndarray:
+    """Fritsch-Carlson tangent at a key between slopes ``s0`` (interval length ``h0``) and ``s1`` (``h1``), per
+    component: zero where they differ in sign or one is zero, else the weighted harmonic mean (PCHIP)."""
+    w0, w1 = 2.0 * h1 + h0, h1 + 2.0 * h0
+    out = np.zeros_like(s0)
+    same = (s0 * s1) > 0.0
+    out[same] = (w0 + w1) / (w0 / s0[same] + w1 / s1[same])
+    return out
+
+
 def _hermite(u: float):
     """Cubic Hermite basis (h00, h10, h01, h11) at ``u`` and its first two derivatives in ``u``."""
     u2, u3 = u * u, u * u * u
@@ -548,14 +562,21 @@ def _hermite(u: float):
 
 
 class Keyframes(_PivotMotion):
-    """Keyed head poses, interpolated C1-smoothly; the pose holds before the first and after the last key.
+    """Keyed head poses; the pose holds before the first and after the last key.
 
-    Translation: cubic Hermite with Catmull-Rom tangents ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``.
-    Rotation: on each interval ``R(t) = R_i exp(phi(u))`` with ``phi`` a cubic Hermite curve in the
-    tangent space from 0 to ``log(R_i^T R_{i+1})`` whose end slopes give the key's world angular
-    velocity ``w_i`` (the time-weighted mean of the two neighbouring intervals' constant rates; at the
-    end slope the inverse right Jacobian of SO(3) maps it). Velocities are continuous at every key and
-    zero at the first and last key; accelerations jump at keys. Derivatives are analytic.
+    ``interpolation = "smooth"`` (C1): translation by cubic Hermite with Catmull-Rom tangents
+    ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``; rotation on each interval ``R(t) = R_i exp(phi(u))``
+    with ``phi`` a cubic Hermite curve in the tangent space from 0 to ``log(R_i^T R_{i+1})`` whose end slopes
+    give the key's world angular velocity ``w_i`` (the time-weighted mean of the two neighbouring intervals'
+    constant rates; at the end slope the inverse right Jacobian of SO(3) maps it). Velocities are continuous
+    at every key and zero at the first and last key; accelerations jump at keys. Catmull-Rom overshoots next to
+    a jump (a head held still before a fast move drifts backwards first).
+
+    ``"monotone"`` (C1, no overshoot): the same Hermite curves with Fritsch-Carlson tangents, per component of
+    the translation (the PCHIP rule: zero where the neighbouring slopes differ in sign, else their weighted
+    harmonic mean), and for the rotation the key's angular velocity is zero where the neighbouring rates turn
+    opposite ways and otherwise at most the slower one's. ``"linear"``: constant velocity within each interval
+    (translation and rotation), jumping at keys. Derivatives are analytic.
 
     Args:
         times: strictly increasing key times [s], (N,).
@@ -564,10 +585,16 @@ class Keyframes(_PivotMotion):
             must differ by less than 180 degrees.
         pivot: world point the rotation is about [m]; None takes ``rest_position``.
         rest_position: head frame origin at rest [m].
+        interpolation: one of :data:`KEY_INTERPOLATIONS`.
     """
 
-    def __init__(self, times, translations, rotations, *, pivot=None, rest_position=(0.0, 0.0, 0.0)):
+    def __init__(self, times, translations, rotations, *, pivot=None, rest_position=(0.0, 0.0, 0.0),
+                 interpolation: str = "smooth"):
         super().__init__(pivot, rest_position)
+        if interpolation not in KEY_INTERPOLATIONS:
+            raise ValueError(f"head.motion.interpolation: unknown {interpolation!r}; choose one of "
+                             f"{', '.join(KEY_INTERPOLATIONS)}")
+        self.interpolation = interpolation
         t = np.asarray(times, dtype=np.float64).reshape(-1)
         d = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
         q = np.asarray(rotations, dtype=np.float64).reshape(-1, 4)
@@ -589,10 +616,17 @@ class Keyframes(_PivotMotion):
         q = q / norms[:, None]
         self.times, self.translations, self.rotations = t, d, q
 
-        # Translation tangents (Catmull-Rom), zero at the ends so the head starts and stops at rest.
-        self._dtan = np.zeros_like(d)
+        # Translation tangents at the interval ends, zero at the first and last key so the head starts and stops at
+        # rest (linear: each interval's own constant slope).
+        slopes = np.diff(d, axis=0) / np.diff(t)[:, None]
+        key_tan = np.zeros_like(d)
         for i in range(1, n - 1):
-            self._dtan[i] = (d[i + 1] - d[i - 1]) / (t[i + 1] - t[i - 1])
+            if interpolation == "monotone":
+                key_tan[i] = _pchip_tangent(slopes[i - 1], slopes[i], t[i] - t[i - 1], t[i + 1] - t[i])
+            else:
+                key_tan[i] = (d[i + 1] - d[i - 1]) / (t[i + 1] - t[i - 1])
+        self._tan0 = slopes.copy() if interpolation == "linear" else key_tan[:-1].copy()
+        self._tan1 = slopes.copy() if interpolation == "linear" else key_tan[1:].copy()
 
         # Rotation: interval steps log(R_i^T R_{i+1}) and world angular velocities at the keys.
         self._delta = np.zeros((max(n - 1, 0), 3))
@@ -607,17 +641,30 @@ class Keyframes(_PivotMotion):
         for i in range(1, n - 1):
             h0, h1 = t[i] - t[i - 1], t[i + 1] - t[i]
             self._omega[i] = (h0 * rates[i - 1] + h1 * rates[i]) / (h0 + h1)
-        # Tangent-space end slopes per interval, d(phi)/du at u = 0 and u = 1.
+            if interpolation == "monotone":
+                r0, r1 = rates[i - 1], rates[i]
+                if float(np.dot(r0, r1)) <= 0.0:
+                    self._omega[i] = 0.0
+                else:
+                    cap = min(np.linalg.norm(r0), np.linalg.norm(r1))
+                    size = float(np.linalg.norm(self._omega[i]))
+                    if size > cap:
+                        self._omega[i] *= cap / size
+        # Tangent-space end slopes per interval, d(phi)/du at u = 0 and u = 1 (linear: the interval's step).
         self._slope0 = np.zeros((max(n - 1, 0), 3))
         self._slope1 = np.zeros((max(n - 1, 0), 3))
         for i in range(n - 1):
             h = t[i + 1] - t[i]
+            if interpolation == "linear":
+                self._slope0[i] = self._slope1[i] = self._delta[i]
+                continue
             self._slope0[i] = h * quat_rotate(_conj(q[i]), self._omega[i])
             self._slope1[i] = h * (_right_jacobian_inv(self._delta[i]) @ quat_rotate(_conj(q[i + 1]),
                                                                                      self._omega[i + 1]))
 
     @classmethod
-    def from_keys(cls, keys: Sequence[Mapping], *, pivot=None, rest_position=(0.0, 0.0, 0.0)) -> Keyframes:
+    def from_keys(cls, keys: Sequence[Mapping], *, pivot=None, rest_position=(0.0, 0.0, 0.0),
+                  interpolation: str = "smooth") -> Keyframes:
         """Keyframes from tables with ``time``, ``translate`` and ``rotate_deg`` or ``axis`` + ``angle_deg``."""
         times, trans, rots = [], [], []
         for i, key in enumerate(keys):
@@ -641,7 +688,7 @@ class Keyframes(_PivotMotion):
                                              math.radians(float(key["angle_deg"]))))
             else:
                 rots.append(_IDENTITY_Q.copy())
-        return cls(times, trans, rots, pivot=pivot, rest_position=rest_position)
+        return cls(times, trans, rots, pivot=pivot, rest_position=rest_position, interpolation=interpolation)
 
     def _locate(self, t: float):
         """(interval i, u in [0, 1], interval length) or (key index, None, None) outside the keys."""
@@ -658,11 +705,11 @@ class Keyframes(_PivotMotion):
         i, u, h = self._locate(t)
         if u is None:
             return self.translations[i], _ZERO3, _ZERO3
-        d, m = self.translations, self._dtan
+        d, m0, m1 = self.translations, self._tan0[i], self._tan1[i]
         (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
-        p = h00 * d[i] + h10 * h * m[i] + h01 * d[i + 1] + h11 * h * m[i + 1]
-        v = (d00 * d[i] + d10 * h * m[i] + d01 * d[i + 1] + d11 * h * m[i + 1]) / h
-        a = (e00 * d[i] + e10 * h * m[i] + e01 * d[i + 1] + e11 * h * m[i + 1]) / (h * h)
+        p = h00 * d[i] + h10 * h * m0 + h01 * d[i + 1] + h11 * h * m1
+        v = (d00 * d[i] + d10 * h * m0 + d01 * d[i + 1] + d11 * h * m1) / h
+        a = (e00 * d[i] + e10 * h * m0 + e01 * d[i + 1] + e11 * h * m1) / (h * h)
         return p, v, a
 
     def _rotation(self, t: float):

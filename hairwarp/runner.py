@@ -7,6 +7,7 @@ swap parity of the two states, optional graph capture, and the fault check once 
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ import warp as wp
 
 from hairwarp.kernels.types import Fault
 from hairwarp.model import Model
+from hairwarp.motion import MotionSample
 from hairwarp.solver import SimulationFault, Solver
 
 
@@ -82,6 +84,15 @@ class Stepper:
             self.step()
         self.frame += 1
         return self.solver.check(self.state, self.frame, substeps=self.substeps)
+
+
+def is_teleport(before, after, distance: float, angle_deg: float) -> bool:
+    """Whether the head jumped between two motion samples: its origin moved farther than ``distance`` [m] or it
+    turned by more than ``angle_deg``."""
+    if float(np.linalg.norm(np.asarray(after.position) - np.asarray(before.position))) > distance:
+        return True
+    cos_half = abs(float(np.dot(np.asarray(after.rotation), np.asarray(before.rotation))))
+    return 2.0 * math.degrees(math.acos(min(cos_half, 1.0))) > angle_deg
 
 
 class Simulation:
@@ -228,7 +239,18 @@ class Simulation:
         return out
 
     def _before_step(self, t, control):
-        control.set_motion(self.motion.evaluate(t))
+        sample = self.motion.evaluate(t)
+        head = self.scene.head
+        limits = (float(head.teleport_distance), float(head.teleport_angle_deg))
+        # A cut, or a move faster than a frame can show (the frame before this step or the one after it, since the
+        # motion is known ahead): the hair rides along rigidly, at rest relative to the head, all the while.
+        if (is_teleport(self.motion.evaluate(t - self.frame_dt), sample, *limits)
+                or is_teleport(sample, self.motion.evaluate(t + self.frame_dt), *limits)):
+            still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+            control.set_motion(still)
+            self.solver.teleport(self.stepper.state, control)
+        else:
+            control.set_motion(sample)
         control.set_wind(self.scene.wind_at(t))
         if self._moving_colliders:
             self.collider_set.update(t)

@@ -419,6 +419,11 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                                "pushed-out vertices land this far above it", "m", range="[0, inf)"),
             "friction": Field("float", 0.3, "0 = hair slides freely, 1 = the head carries it along (full match)",
                               range="[0, 1]"),
+            "teleport_distance": Field("float", 0.2, "a head that moves farther than this within one frame (a cut, a "
+                                                     "respawn) carries the hair rigidly and resets its velocities; "
+                                                     "inf = never", "m", range="(0, inf]"),
+            "teleport_angle_deg": Field("float", 60.0, "the same for a head that turns farther than this within one "
+                                                       "frame", "deg", range="(0, 180]"),
             "motion": Section(
                 {
                     "kind": Field("str", "still", "how the head moves", choices=_motion.MOTION_KINDS),
@@ -434,6 +439,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                     "pivot": Field("vec3", None, "world point the head turns about; default: the neck, "
                                                  "center - (0, 0, radii.z)", "m"),
                     "keys": ArrayOf(_MOTION_KEY, doc="keyframes: the keys, in time order"),
+                    "interpolation": Field("str", "smooth", "keyframes: smooth (Catmull-Rom, C1; overshoots before a "
+                                                            "jump), monotone (no overshoot, C1) or linear (constant "
+                                                            "speed between keys)",
+                                           choices=_motion.KEY_INTERPOLATIONS),
                 },
                 doc="rigid motion of the head (hairwarp.motion)",
                 check=_check_motion,
@@ -528,10 +537,14 @@ _ROOT = Section(SCHEMA, doc="a hairwarp scene", check=_check_scene)
 
 
 def _finite_allowed(value: float, f: Field) -> bool:
-    """NaN is never a value; an infinity only where it is the field's default (e.g. ``wind.end``: never stops)."""
+    """NaN is never a value; an infinity only where it is the field's default (e.g. ``wind.end``: never stops) or
+    its range includes it (``(0, inf]``: ``head.teleport_distance = inf`` turns teleports off)."""
     if math.isfinite(value):
         return True
-    return not math.isnan(value) and isinstance(f.default, float) and value == f.default
+    if math.isnan(value):
+        return False
+    return (isinstance(f.default, float) and value == f.default) or (
+        value > 0 and f.range is not None and f.range.replace(" ", "").endswith("inf]"))
 
 
 # ----------------------------------------------------------------------------------------------

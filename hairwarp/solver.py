@@ -143,6 +143,19 @@ class Solver:
         """Recompute the world quantities of ``state`` from its joints."""
         forward_kinematics(self.model, state, control)
 
+    def teleport(self, state, control):
+        """Carry the strands of ``state`` rigidly to the head pose of ``control`` and stop them (a cut, a respawn).
+
+        The joint rotations are relative to the head, so the strands keep their shape; their joint velocities are
+        zeroed, the world quantities recomputed, and the body contacts' history cleared. Call it between steps, on
+        the state the next step reads, after setting the new pose on ``control`` (give it the head's velocity after
+        the jump, usually zero). Host launches only: not for inside a captured graph.
+        """
+        state.joint_qd.zero_()
+        forward_kinematics(self.model, state, control)
+        if self.body_contacts.enabled:
+            self.colliders.reset_contacts()
+
     def _accumulate_forces(self, state, control):
         model = self.model
         self.seg_force.zero_()

@@ -246,3 +246,46 @@ def test_from_config_kinds_and_defaults():
 def test_from_config_errors(cfg, match):
     with pytest.raises(ValueError, match=match):
         HeadMotion.from_config(cfg)
+
+
+def _translation_keys(values, times):
+    return Keyframes(times, [[v, 0.0, 0.0] for v in values], [[0.0, 0.0, 0.0, 1.0]] * len(times),
+                     interpolation="monotone")
+
+
+def test_monotone_keyframes_match_pchip_and_never_overshoot():
+    """Monotone keys take SciPy's PCHIP (Fritsch-Carlson) tangents at the inner keys and stay within each interval's
+    ends; the smooth (Catmull-Rom) curve drifts backwards before a jump."""
+    from scipy.interpolate import PchipInterpolator
+
+    times = np.array([0.0, 1.0, 1.1, 1.5, 2.5])
+    values = np.array([0.0, 0.0, 0.5, 0.55, 0.2])  # held, a jump, a slow rise, back down
+    m = _translation_keys(values, times)
+    ref = PchipInterpolator(times, values).derivative()
+    for i in range(1, len(times) - 1):
+        # the motion's velocity just past the key is the key's tangent
+        np.testing.assert_allclose(m.evaluate(times[i]).linear_velocity[0], ref(times[i]), rtol=1e-12, atol=1e-12)
+    for a, b, va, vb in zip(times[:-1], times[1:], values[:-1], values[1:]):
+        x = np.array([m.evaluate(t).position[0] for t in np.linspace(a, b, 201)])
+        assert x.min() >= min(va, vb) - 1e-12 and x.max() <= max(va, vb) + 1e-12
+        assert np.all(np.diff(x) * np.sign(vb - va) >= -1e-12)  # monotone within the interval
+    smooth = Keyframes(times, [[v, 0.0, 0.0] for v in values], [[0.0, 0.0, 0.0, 1.0]] * len(times))
+    drift = min(smooth.evaluate(t).position[0] for t in np.linspace(0.0, 1.0, 101))
+    assert drift < -1e-3  # the overshoot that "monotone" removes
+
+
+def test_linear_keyframes_move_at_constant_speed():
+    times, values = [0.0, 1.0, 3.0], [0.0, 0.2, -0.2]
+    m = Keyframes(times, [[v, 0.0, 0.0] for v in values],
+                  [euler_xyz_deg_to_quat((0.0, 0.0, a)) for a in (0.0, 30.0, 90.0)], interpolation="linear")
+    # 30 deg in the first second, 60 deg in the next two: 30 deg/s throughout
+    for t, v in ((0.3, 0.2), (0.9, 0.2), (1.5, -0.2), (2.7, -0.2)):
+        s = m.evaluate(t)
+        np.testing.assert_allclose(s.position[0] - m.evaluate(t - 1e-6).position[0], v * 1e-6, rtol=1e-5)
+        np.testing.assert_allclose(s.angular_velocity, (0.0, 0.0, math.radians(30.0)), atol=1e-12)
+        np.testing.assert_allclose(s.linear_acceleration, 0.0, atol=1e-12)
+
+
+def test_keyframe_interpolation_is_checked():
+    with pytest.raises(ValueError, match="interpolation"):
+        Keyframes([0.0, 1.0], [[0.0] * 3] * 2, [[0.0, 0.0, 0.0, 1.0]] * 2, interpolation="cubic")

@@ -1,6 +1,8 @@
 """End-to-end runs of scenes: the cache usd-core reads back, the preview, faults that stop a run with
 a clear message and keep what was written, the swap parity and CPU graph capture."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import warp as wp
@@ -140,3 +142,58 @@ def test_usd_animated_collider_moves_through_a_run(tiny, tmp_path):
     centre = np.array(box.ComputeLocalToWorldTransform(Usd.TimeCode(6))).T[:3, 3]
     inside = np.all(np.abs(pts - centre) < h - 1e-4, axis=1)
     assert not inside.any()
+
+
+def _jump_scene(gap, **extra):
+    """The default scene, 100 guides, the head held still, then moved 0.5 m along x within ``gap`` seconds."""
+    import tomllib
+
+    import hairwarp as hw
+
+    path = Path(__file__).resolve().parents[1] / "scenes" / "long_hair.toml"
+    raw = tomllib.loads(path.read_text())
+    raw["head"]["motion"] = {"kind": "keyframes", "interpolation": "monotone", "keys": [
+        {"time": 0.0}, {"time": 0.5}, {"time": 0.5 + gap, "translate": [0.5, 0.0, 0.0]}]}
+    overrides = ["dense.count=0", "groom.count=100"] + [f"{k}={v}" for k, v in extra.items()]
+    return hw.Scene.from_dict(raw, path, overrides=overrides)
+
+
+@pytest.mark.parametrize("gap", [0.001, 2.0 / 30.0])  # a cut, and a 0.5 m move in two frames
+def test_head_jump_carries_the_hair_and_it_settles(gap):
+    """A head that moves farther than head.teleport_distance within a frame carries the hair rigidly: no fault,
+    and 1 s later the tips move at most 0.1 m/s (the head is still again)."""
+    from hairwarp.runner import Simulation
+
+    sim = Simulation(_jump_scene(gap))
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    previous = None
+    for frame in range(1, 46):  # to 1 s after the jump
+        sim.advance_frame()
+        x = sim.guide_curves()[0].reshape(G, S + 1, 3)
+        if frame == 45:
+            speed = np.linalg.norm(x[:, -1] - previous[:, -1], axis=-1) * sim.scene.sim.fps
+            assert np.sqrt((speed ** 2).mean()) <= 0.1
+            assert np.abs(x[:, 0, 0] - 0.5 - sim.model.rest_vertex_positions[:, 0, 0]).max() < 1e-5  # roots moved
+        previous = x
+
+
+def test_solver_teleport_keeps_the_shape_relative_to_the_head():
+    """``Solver.teleport`` moves the strands with the head pose and stops them."""
+    import hairwarp as hw
+
+    model = hw.Model.build(hw.scalp_groom(count=20, length=0.2, points=9), segments=8)
+    solver = hw.Solver(model)
+    s0, s1, control = model.state(), model.state(), model.control()
+    solver.forward_kinematics(s0, control)
+    for _ in range(20):
+        solver.step(s0, s1, control, 1.0 / 240.0)
+        s0, s1 = s1, s0
+    before = s0.vertex_positions.numpy().astype(float)
+    angle = 0.7
+    control.set_head(position=(1.0, -2.0, 0.5), rotation=(0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)))
+    solver.teleport(s0, control)
+    R = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    # float32 positions of metre-sized coordinates: a few 1e-7 m
+    np.testing.assert_allclose(s0.vertex_positions.numpy(), before @ R.T + (1.0, -2.0, 0.5), atol=2e-6)
+    np.testing.assert_array_equal(s0.joint_qd.numpy(), 0.0)
+    np.testing.assert_allclose(s0.vertex_velocities.numpy(), 0.0, atol=1e-7)
