@@ -268,25 +268,13 @@ class Solver:
     def _fault(self, bits: Fault, frame: int, substeps: int | None) -> SimulationFault:
         """The fault of the stage that set its bits, with advice that works for that stage.
 
-        Each stage checks its own output: links and hair contacts their forces (before the dynamics uses
-        them), the integrator the free joint velocities, the body contact response its corrected ones.
-        A blow-up spreads to every later stage within a step, so the earliest stage in the step order that
-        flagged is the one that failed.
+        The integrator checks the free joint velocities, the body contact response its corrected ones: a
+        fault of the contact response alone names collision, with advice for colliders.
         """
         dt = self._dt_host
         step = f"dt = {dt:.3g} s" + (f" ({substeps} substeps per frame)" if substeps else "")
         more = "raise sim.substeps" if substeps else "use a smaller dt"
-        if bits & Fault.LINK_FORCE:
-            stage = "static links"
-            what = "a link force became non-finite or too large for the step"
-            advice = (f"lower links.stiffness or links.damping, or lower links.break_length so overstretched links "
-                      f"break; {more} (now {step})")
-        elif bits & Fault.HAIR_CONTACT_FORCE:
-            stage = "hair contacts"
-            what = "a hair-hair contact force became non-finite or too large for the step"
-            advice = (f"lower interactions.stiffness or interactions.damping, or raise interactions.threshold; "
-                      f"{more} (now {step})")
-        elif bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
+        if bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
             stage = "dynamics (aba + integrate)"
             what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
                     else f"a joint turned more than {self.max_rotation_per_step} rad in one step")

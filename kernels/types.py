@@ -36,8 +36,6 @@ class Fault(enum.IntFlag):
         COLLISION_SPEED: the body contact response turned a joint further than ``max_rotation_per_step``
             in one step while the free dynamics alone did not.
         CONTACT_OVERFLOW: more contacts than the buffers hold; some were dropped.
-        LINK_FORCE: a static link's force became non-finite or larger than the step resolves.
-        HAIR_CONTACT_FORCE: a hair-hair contact force became non-finite or larger than the step resolves.
     """
 
     NONE = 0
@@ -46,8 +44,6 @@ class Fault(enum.IntFlag):
     NONFINITE_COLLISION = 4
     COLLISION_SPEED = 8
     CONTACT_OVERFLOW = 16
-    LINK_FORCE = 32
-    HAIR_CONTACT_FORCE = 64
 
 
 class ColliderKind(enum.IntEnum):

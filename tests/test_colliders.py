@@ -802,3 +802,28 @@ def test_solver_steps_with_moving_head(device):
     wp.capture_launch(capture.graph)
     for key in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
         np.testing.assert_array_equal(getattr(replayed, key).numpy(), getattr(eager, key).numpy())
+
+
+def test_fault_names_the_collision_stage():
+    """A collider that hits the hair faster than a step resolves trips the contact response's own bit, and the
+    message names collision with collision advice, not the dynamics."""
+    import hairwarp as hw
+    from hairwarp.solver import SimulationFault
+
+    pts = np.stack([np.zeros(9), np.linspace(0.0, 0.16, 9), np.full(9, 5e-4)], axis=1)
+    model = hw.Model.build(hw.Groom.from_polylines([pts]), segments=8)
+    plane = Collider.plane(attach="world", thickness=1e-3, friction=1.0)
+    colliders = ColliderSet([plane], "cpu", model=model)
+    # 100 m/s up, from 0.32 m below: it ends the step 10 cm above the strand, which it must sweep along
+    lifted = np.eye(4)
+    lifted[2, 3] = 0.1
+    colliders.set_pose(0, lifted, linear_velocity=(0.0, 0.0, 100.0))
+    solver = hw.Solver(model, colliders=colliders)
+    s0, s1, control = model.state(), model.state(), model.control()
+    solver.forward_kinematics(s0, control)
+    solver.step(s0, s1, control, 1.0 / 240.0)
+    assert s1.fault.numpy()[0] & int(Fault.COLLISION_SPEED)
+    assert not s1.fault.numpy()[0] & int(Fault.JOINT_SPEED)  # the free dynamics were fine
+    with pytest.raises(SimulationFault, match="in collision.*teleport_distance") as info:
+        solver.check(s1, frame=1)
+    assert info.value.stage.startswith("collision")
