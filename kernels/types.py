@@ -15,9 +15,14 @@ class Integrator(enum.IntEnum):
     """Time integrators of the articulated strands.
 
     Attributes:
-        SEMI_IMPLICIT: symplectic Euler, ``w += h qdd`` then ``q <- q exp(h w)``; joint springs explicit.
+        SEMI_IMPLICIT: ``w += h qdd`` then ``q <- q exp(h w)``, joint springs explicit: symplectic Euler in form,
+            but the chain's velocity-product terms make it gain energy on rotating strands (a free 20-segment
+            strand spun at 10 rad/s gains +62 %, +18 %, +7.7 %, +3.7 % in 1 s at dt 2e-4, 1e-4, 5e-5, 2.5e-5:
+            first order in dt), and a stiff spring bounds its step. For accuracy studies use RK4.
         IMPLICIT_JOINTS: the same with joint springs and damping taken at the end of the step
-            (``D + hC + h^2 K`` inside ABA); stable for stiff hair at frame-rate steps.
+            (``D + hC + h^2 K`` inside ABA); stable for stiff hair at frame-rate steps, and dissipative: with no
+            damping and no drag a 0.2 m strand of 10 segments (EI 1e-4 N m^2) swinging from horizontal at
+            dt = 1/240 s loses 88 % of its energy in 2 s (0.64 to 0.075 mJ), where both explicit schemes blow up.
         RK4: classical fourth-order Runge-Kutta on the Lie group; for accuracy studies.
     """
 

@@ -18,7 +18,8 @@ from hairwarp.interactions import HairContacts, StaticLinks, closest_points_segm
 from hairwarp.runner import Simulation
 from hairwarp.scene import Scene
 
-LONG_HAIR = Path(__file__).resolve().parents[1] / "scenes" / "long_hair.toml"
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+LONG_HAIR = SCENES / "long_hair.toml"
 
 # Style recovery: 120 guides of 0.35 m, a 0.6 s side gust of 10 m/s, then 2.2 s calm. With links the mean distance of
 # the vertices from the pose before the gust falls to about 5 mm (without them about 14 mm: hair blown over the head
@@ -234,3 +235,37 @@ def test_shipped_scenes_run_with_links_and_contacts(name):
         found.append(sim.frame_stats()["contacts"])
     assert min(found) > 0 and not sim.contacts.overflowed()
     assert sim.frame_stats()["broken_links"] <= 0.02 * sim.links.link_count
+
+
+def _still_tip_speeds(path, seconds, overrides=()):
+    """Guide tip RMS speed [m/s] per second of a shipped scene with the head held still (finite differences of
+    the guide points between frames, as a cache gives them)."""
+    import tomllib
+
+    from hairwarp.runner import Simulation
+
+    raw = tomllib.loads(Path(path).read_text())
+    raw.setdefault("head", {})["motion"] = {"kind": "still"}
+    scene = hw.Scene.from_dict(raw, path, overrides=["dense.count=0", *overrides])
+    sim = Simulation(scene)
+    G, S, fps = sim.model.strand_count, sim.model.seg_per_strand, int(scene.sim.fps)
+    prev = sim.guide_curves()[0].reshape(G, S + 1, 3)
+    speeds = []
+    for _ in range(int(seconds * fps)):
+        sim.advance_frame()
+        x = sim.guide_curves()[0].reshape(G, S + 1, 3)
+        speeds.append(np.mean(np.sum((x[:, -1] - prev[:, -1]) ** 2, axis=-1)) * fps * fps)
+        prev = x
+    return np.sqrt(np.asarray(speeds).reshape(-1, fps).mean(axis=1))
+
+
+@pytest.mark.parametrize("scene, overrides", [
+    ("long_hair.toml", ["groom.count=100"]),   # links, hair contacts and the head: a third of the guides
+    ("long_hair_shoulders.toml", []),          # tips resting on the shoulders
+])
+def test_hair_comes_to_rest_with_the_head_still(scene, overrides):
+    """Every force between hair and hair or body takes energy out once the head stops: guide tips settle under
+    2 mm/s in the 6th second. (Before, body contact and hair contacts detected once a frame kept the hair
+    crawling at 30-90 mm/s.)"""
+    speeds = _still_tip_speeds(SCENES / scene, 6.0, overrides)
+    assert speeds[5] <= 2e-3, speeds
