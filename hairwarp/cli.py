@@ -77,15 +77,13 @@ def _cmd_info(args) -> int:
     elif suffix in _USD_SUFFIXES:
         from hairwarp.io.usd_inspect import describe
 
+        animated, has_curves = _usd_kind(path)
+        # A static stage with curves is a groom: read it first, so a bad strand is the one line printed.
+        summary = _groom_summary(path) if has_curves and not animated else None
         text = describe(path)
         print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))
-        if not _usd_is_animated(path):
-            try:
-                summary = _groom_summary(path)
-            except ValueError:
-                summary = None  # a static stage without curves is not a groom; describe said what it holds
-            if summary:
-                print(summary)
+        if summary:
+            print(summary)
     else:
         raise ValueError(f"{path}: cannot tell what {suffix or 'a file without suffix'} is; "
                          f"expected .toml, {', '.join(_GROOM_SUFFIXES + _USD_SUFFIXES)}")
@@ -97,7 +95,11 @@ def _groom_summary(path: Path) -> str:
 
     from hairwarp.groom import Groom
 
-    groom = Groom.load(path)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the dropped strands are a line of the summary below
+        groom = Groom.load(path)
     counts = np.array([len(s) for s in groom.strands])
     lengths = groom.lengths()
     lo, hi = groom.bounds()
@@ -112,19 +114,27 @@ def _groom_summary(path: Path) -> str:
     ]
     if groom.grid_shape is not None:
         lines.append(f"grid     {groom.grid_shape[0]} x {groom.grid_shape[1]} roots")
+    if groom.dropped:
+        from hairwarp.groom import _index_list
+
+        lines.append(f"dropped  {len(groom.dropped)} of {groom.strand_count + len(groom.dropped)} strands shorter "
+                     f"than {groom.min_length:g} m ({_index_list(groom.dropped)}), not simulated")
     return "\n".join(lines)
 
 
-def _usd_is_animated(path: Path) -> bool:
-    from pxr import Usd, UsdGeom
+def _usd_kind(path: Path) -> tuple[bool, bool]:
+    """(animated: a point-based prim has time samples, has_curves: the stage holds a BasisCurves prim)."""
+    from pxr import UsdGeom
 
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise ValueError(f"{path}: USD cannot open this file")
+    from hairwarp.io.usd_common import _open_stage
+
+    stage = _open_stage(path)
+    animated = has_curves = False
     for prim in stage.Traverse():
+        has_curves = has_curves or prim.IsA(UsdGeom.BasisCurves)
         if prim.IsA(UsdGeom.PointBased) and UsdGeom.PointBased(prim).GetPointsAttr().GetNumTimeSamples() > 1:
-            return True
-    return False
+            animated = True
+    return animated, has_curves
 
 
 def _cmd_bench(args) -> int:

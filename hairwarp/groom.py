@@ -104,6 +104,8 @@ class Groom:
         root_normal: (G, 3) unit outward scalp normal at each root, or None when unknown.
         grid_shape: (rows, cols) when the roots lie on a generator grid, strand = r * cols + c; else None.
         source: the file path or generator name, used in messages.
+        dropped: indices, among the polylines read, of the strands dropped for being shorter than ``min_length``.
+        min_length: the arc length below which strands were dropped [m].
     """
 
     strands: list[np.ndarray]
@@ -111,6 +113,8 @@ class Groom:
     root_normal: np.ndarray | None = None
     grid_shape: tuple[int, int] | None = None
     source: str = "polylines"
+    dropped: tuple[int, ...] = ()
+    min_length: float = 0.0
 
     @classmethod
     def from_polylines(
@@ -154,10 +158,16 @@ class Groom:
                 a = np.array(line, dtype=np.float64)
             except (TypeError, ValueError) as exc:
                 raise GroomError(f"{source}: strand {index} is not a numeric array ({exc})") from None
-            if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 2:
+            if a.ndim != 2 or a.shape[1] != 3:
                 raise GroomError(f"{source}: strand {index} must have shape (n >= 2, 3), got {a.shape}")
-            if not np.isfinite(a).all():
-                raise GroomError(f"{source}: strand {index} has non-finite coordinates")
+            if a.shape[0] < 2:
+                raise GroomError(f"{source}: strand {index} has {a.shape[0]} point{'s' * (a.shape[0] != 1)}; "
+                                 f"a strand needs at least 2")
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            if bad.size:
+                more = f"; {bad.size} such vertices in it" if bad.size > 1 else ""
+                raise GroomError(f"{source}: strand {index} vertex {int(bad[0])} is not finite "
+                                 f"({', '.join(f'{x:g}' for x in a[bad[0]])}){more}")
             strands.append(a)
         count = len(strands)
         if count == 0:
@@ -181,7 +191,8 @@ class Groom:
             raise GroomError(f"{source}: all {count} strands are shorter than min_length = {min_length:g} m")
         if dropped:
             warnings.warn(
-                f"{source}: dropped {dropped} of {count} strands shorter than {min_length:g} m",
+                f"{source}: dropped {dropped} of {count} strands shorter than {min_length:g} m "
+                f"({_index_list(np.flatnonzero(~keep))})",
                 UserWarning,
                 stacklevel=2,
             )
@@ -189,7 +200,8 @@ class Groom:
             uv = None if uv is None else uv[keep]
             normal = None if normal is None else normal[keep]
             grid_shape = None
-        return cls(strands=strands, root_uv=uv, root_normal=normal, grid_shape=grid_shape, source=str(source))
+        return cls(strands=strands, root_uv=uv, root_normal=normal, grid_shape=grid_shape, source=str(source),
+                   dropped=tuple(int(i) for i in np.flatnonzero(~keep)), min_length=float(min_length))
 
     @classmethod
     def load(cls, path, *, min_length: float = 1e-3, up_axis: str | None = None) -> Groom:
@@ -370,6 +382,13 @@ def _optional_rows(value, count: int, width: int, name: str, source: str) -> np.
     if not np.isfinite(a).all():
         raise GroomError(f"{source}: {name} has non-finite values")
     return a
+
+
+def _index_list(indices, limit: int = 8) -> str:
+    """``strand 3`` or ``strands 0, 4, 9`` (the first ``limit``, then how many more)."""
+    idx = [int(i) for i in indices]
+    text = ", ".join(str(i) for i in idx[:limit]) + (f" and {len(idx) - limit} more" if len(idx) > limit else "")
+    return f"strand{'s' * (len(idx) != 1)} {text}"
 
 
 def _arc_length(a: np.ndarray) -> float:

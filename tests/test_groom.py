@@ -126,10 +126,10 @@ def test_from_polylines_drops_short_strands_with_one_warning():
 @pytest.mark.parametrize(
     "bad, what",
     [
-        ([[0, 0, 0]], "shape"),  # one vertex
+        ([[0, 0, 0]], "has 1 point; a strand needs at least 2"),  # one vertex
         ([[0, 0], [1, 1]], "shape"),  # 2-D points
-        ([[0, 0, 0], [0, np.nan, 1]], "non-finite"),
-        ([[0, 0, 0], [0, np.inf, 1]], "non-finite"),
+        ([[0, 0, 0], [0, np.nan, 1]], r"vertex 1 is not finite \(0, nan, 1\)"),
+        ([[0, 0, 0], [0, 0, 1], [0, np.inf, 1]], r"vertex 2 is not finite \(0, inf, 1\)"),
         ("abc", "numeric"),
     ],
 )

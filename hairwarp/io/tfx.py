@@ -78,8 +78,8 @@ def read_tfx(path, *, min_length: float = 1e-3, up_axis: str = "y") -> Groom:
     xyzw = np.frombuffer(data, dtype="<f4", count=n_strands * n_verts * 4, offset=off_pos)
     xyzw = xyzw.reshape(n_strands, n_verts, 4).astype(np.float64)
     if not np.isfinite(xyzw).all():
-        g = int(np.flatnonzero(~np.isfinite(xyzw).all(axis=(1, 2)))[0])
-        raise GroomError(f"{p}: strand {g} has non-finite vertex data")
+        g, v = (int(i) for i in np.argwhere(~np.isfinite(xyzw).all(axis=2))[0])
+        raise GroomError(f"{p}: strand {g} vertex {v} is not finite ({', '.join(f'{x:g}' for x in xyzw[g, v])})")
     unpinned = np.flatnonzero(xyzw[:, 0, 3] != 0.0)
     if unpinned.size:
         raise GroomError(
