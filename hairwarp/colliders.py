@@ -95,6 +95,27 @@ def matrix_to_transform(matrix) -> np.ndarray:
     return np.concatenate([m[:3, 3], q])
 
 
+def _check_obj_vertices(path: Path) -> None:
+    """Raises ColliderError naming the first ``v`` line of an OBJ file whose coordinates are not finite numbers."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError as exc:
+        raise ColliderError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    vertex = 0
+    for number, line in enumerate(lines, 1):
+        fields = line.split()
+        if not fields or fields[0] != "v":
+            continue
+        vertex += 1
+        try:
+            ok = len(fields) >= 4 and np.isfinite([float(x) for x in fields[1:4]]).all()
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ColliderError(f"{path}: line {number}: vertex {vertex} is not three finite numbers: "
+                                f"{' '.join(fields[1:4])!r}")
+
+
 @dataclasses.dataclass
 class Collider:
     """One strand collider.
@@ -241,12 +262,20 @@ class Collider:
 
             mesh = read_tfxmesh(path)
         else:
+            if path.suffix.lower() == ".obj":
+                _check_obj_vertices(path)
             try:
-                mesh = trimesh.load(str(path), force="mesh")
+                # Unprocessed first: processing drops non-finite vertices and every face using them, silently.
+                mesh = trimesh.load(str(path), force="mesh", process=False)
             except Exception as exc:
                 raise ColliderError(f"{path}: cannot load mesh ({exc})") from exc
             if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
                 raise ColliderError(f"{path}: no triangles in the file")
+            bad = np.flatnonzero(~np.isfinite(mesh.vertices).all(axis=1))
+            if bad.size:
+                raise ColliderError(f"{path}: vertex {int(bad[0])} is not finite "
+                                    f"({', '.join(f'{x:g}' for x in mesh.vertices[bad[0]])})")
+            mesh.process()
             if axis == "Y":
                 v = mesh.vertices
                 mesh = trimesh.Trimesh(vertices=np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1), faces=mesh.faces,
