@@ -364,7 +364,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _error(message: str) -> None:
+    if "pxr" in message or "\n" in message:  # usd-core's text can reach any message that quotes an error
+        from hairwarp.io.usd_common import clean_usd_text
+
+        message = clean_usd_text(message)
     print(f"hairwarp: {message}", file=sys.stderr)
+
+
+def _is_usd_error(exc: BaseException) -> bool:
+    tf = sys.modules.get("pxr.Tf")
+    return tf is not None and isinstance(exc, tf.ErrorException)
 
 
 def main(argv=None) -> int:
@@ -399,6 +408,11 @@ def main(argv=None) -> int:
         if folder is not None and isinstance(exc, folder.CacheWriteError):
             _error(f"writing the cache failed: {exc}")
             return EXIT_FAULT
+        if _is_usd_error(exc):  # a file usd-core could not read or write, past hairwarp's own checks
+            from hairwarp.io.usd_common import usd_error_text
+
+            _error(f"USD: {usd_error_text(exc)}")
+            return EXIT_BAD_INPUT
         if solver is None or not isinstance(exc, getattr(solver, "SimulationFault", ())):
             raise
         _error(f"simulation stopped: {exc}")

@@ -188,6 +188,48 @@ def test_info_groom_reports_the_strands_dropped_as_too_short(tmp_path):
     assert "Warning" not in r.stderr
 
 
+def _corrupt_usdc(tmp_path):
+    """A crate file written by usd-core, then its second half overwritten: usd-core itself refuses it."""
+    src = tmp_path / "ok.usda"
+    _write_usd_curves(src, _straight_strands())
+    from pxr import Tf, Usd
+
+    path = tmp_path / "corrupt.usdc"
+    Usd.Stage.Open(str(src)).Export(str(path))
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2:] = b"\xff" * (len(data) - len(data) // 2)
+    path.write_bytes(bytes(data))
+    try:
+        Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:
+        return path, str(exc)
+    raise AssertionError("usd-core opened the corrupt file")
+
+
+def test_usd_error_text_keeps_what_went_wrong_and_drops_the_internals(tmp_path):
+    from hairwarp.io.usd_common import clean_usd_text
+
+    _, raw = _corrupt_usdc(tmp_path)
+    assert "pxrInternal_" in raw and " at line " in raw  # what usd-core says, C++ places and all
+    said = [line.rsplit(" : ", 1)[1].strip("'") for line in raw.strip().splitlines() if " : " in line]
+    clean = clean_usd_text(raw)
+    assert "\n" not in clean and "pxrInternal" not in clean and " at line " not in clean and ".cpp" not in clean
+    assert clean == "; ".join(dict.fromkeys(said))  # every diagnostic usd-core gave, in its order, repeats once
+    assert clean_usd_text("x: pxrInternal_v0_26_11__pxrReserved__::UsdStage::Open at line 1287") == "x: UsdStage::Open"
+    ours = "a.tfxmesh: expected 'numOfBones <count>' at line 3"  # hairwarp's own line numbers stay
+    assert clean_usd_text(ours) == ours
+
+
+@pytest.mark.parametrize("command", ["info", "preview"])
+def test_corrupt_usdc_is_one_clean_line(tmp_path, command):
+    path, raw = _corrupt_usdc(tmp_path)
+    r = _hairwarp(command, path)
+    _one_line_error(r, str(path))
+    assert "pxrInternal" not in r.stderr and " at line " not in r.stderr
+    last = raw.strip().splitlines()[-1].rsplit(" : ", 1)[1].strip("'")  # usd-core's own last word on it
+    assert last in r.stderr
+
+
 def test_unknown_file_type_exits_2(tmp_path):
     path = tmp_path / "notes.txt"
     path.write_text("hello")
