@@ -149,7 +149,7 @@ def _cmd_preview(args) -> int:
         raise FileNotFoundError(f"{path.resolve()}: no such file")
     from hairwarp.preview import preview_cache
 
-    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif)
+    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif, progress=True)
     print(f"preview  {out}")
     return EXIT_OK
 

@@ -50,7 +50,8 @@ _USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _SUPPORTED_SUFFIXES = (".tfx", ".hair") + _USD_SUFFIXES
 
 
-_FORMAT_NAMES = {"read_tfx": "hairwarp.io.tfx", "read_hair": "hairwarp.io.cem_hair", "write_hair": "hairwarp.io.cem_hair"}
+_FORMAT_NAMES = {"read_tfx": "hairwarp.io.tfx", "read_hair": "hairwarp.io.cem_hair",
+                 "write_hair": "hairwarp.io.cem_hair"}
 
 
 def __getattr__(name):
