@@ -77,15 +77,13 @@ def _cmd_info(args) -> int:
     elif suffix in _USD_SUFFIXES:
         from hairwarp.io.usd_inspect import describe
 
+        animated, has_curves = _usd_kind(path)
+        # A static stage with curves is a groom: read it first, so a bad strand is the one line printed.
+        summary = _groom_summary(path) if has_curves and not animated else None
         text = describe(path)
         print(text if isinstance(text, str) else "\n".join(f"{k}: {v}" for k, v in dict(text).items()))
-        if not _usd_is_animated(path):
-            try:
-                summary = _groom_summary(path)
-            except ValueError:
-                summary = None  # a static stage without curves is not a groom; describe said what it holds
-            if summary:
-                print(summary)
+        if summary:
+            print(summary)
     else:
         raise ValueError(f"{path}: cannot tell what {suffix or 'a file without suffix'} is; "
                          f"expected .toml, {', '.join(_GROOM_SUFFIXES + _USD_SUFFIXES)}")
@@ -97,7 +95,11 @@ def _groom_summary(path: Path) -> str:
 
     from hairwarp.groom import Groom
 
-    groom = Groom.load(path)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the dropped strands are a line of the summary below
+        groom = Groom.load(path)
     counts = np.array([len(s) for s in groom.strands])
     lengths = groom.lengths()
     lo, hi = groom.bounds()
@@ -112,19 +114,27 @@ def _groom_summary(path: Path) -> str:
     ]
     if groom.grid_shape is not None:
         lines.append(f"grid     {groom.grid_shape[0]} x {groom.grid_shape[1]} roots")
+    if groom.dropped:
+        from hairwarp.groom import _index_list
+
+        lines.append(f"dropped  {len(groom.dropped)} of {groom.strand_count + len(groom.dropped)} strands shorter "
+                     f"than {groom.min_length:g} m ({_index_list(groom.dropped)}), not simulated")
     return "\n".join(lines)
 
 
-def _usd_is_animated(path: Path) -> bool:
-    from pxr import Usd, UsdGeom
+def _usd_kind(path: Path) -> tuple[bool, bool]:
+    """(animated: a point-based prim has time samples, has_curves: the stage holds a BasisCurves prim)."""
+    from pxr import UsdGeom
 
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise ValueError(f"{path}: USD cannot open this file")
+    from hairwarp.io.usd_common import _open_stage
+
+    stage = _open_stage(path)
+    animated = has_curves = False
     for prim in stage.Traverse():
+        has_curves = has_curves or prim.IsA(UsdGeom.BasisCurves)
         if prim.IsA(UsdGeom.PointBased) and UsdGeom.PointBased(prim).GetPointsAttr().GetNumTimeSamples() > 1:
-            return True
-    return False
+            animated = True
+    return animated, has_curves
 
 
 def _cmd_bench(args) -> int:
@@ -139,7 +149,7 @@ def _cmd_preview(args) -> int:
         raise FileNotFoundError(f"{path.resolve()}: no such file")
     from hairwarp.preview import preview_cache
 
-    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif)
+    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif, progress=True)
     print(f"preview  {out}")
     return EXIT_OK
 
@@ -354,7 +364,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _error(message: str) -> None:
+    if "pxr" in message or "\n" in message:  # usd-core's text can reach any message that quotes an error
+        from hairwarp.io.usd_common import clean_usd_text
+
+        message = clean_usd_text(message)
     print(f"hairwarp: {message}", file=sys.stderr)
+
+
+def _is_usd_error(exc: BaseException) -> bool:
+    tf = sys.modules.get("pxr.Tf")
+    return tf is not None and isinstance(exc, tf.ErrorException)
 
 
 def main(argv=None) -> int:
@@ -389,6 +408,11 @@ def main(argv=None) -> int:
         if folder is not None and isinstance(exc, folder.CacheWriteError):
             _error(f"writing the cache failed: {exc}")
             return EXIT_FAULT
+        if _is_usd_error(exc):  # a file usd-core could not read or write, past hairwarp's own checks
+            from hairwarp.io.usd_common import usd_error_text
+
+            _error(f"USD: {usd_error_text(exc)}")
+            return EXIT_BAD_INPUT
         if solver is None or not isinstance(exc, getattr(solver, "SimulationFault", ())):
             raise
         _error(f"simulation stopped: {exc}")

@@ -48,6 +48,15 @@ class TfxMeshError(ColliderError):
     """A ``.tfxmesh`` file could not be read; the message names the file and the line."""
 
 
+def __getattr__(name):
+    """``read_tfxmesh``, which lives in :mod:`hairwarp.io.tfx`, imported from there on first use."""
+    if name == "read_tfxmesh":
+        from hairwarp.io.tfx import read_tfxmesh
+
+        return read_tfxmesh
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def _translation(offset) -> np.ndarray:
     m = np.eye(4)
     m[:3, 3] = np.asarray(offset, dtype=float)
@@ -86,69 +95,25 @@ def matrix_to_transform(matrix) -> np.ndarray:
     return np.concatenate([m[:3, 3], q])
 
 
-def read_tfxmesh(path) -> Any:
-    """Read a TressFX collision mesh (``.tfxmesh``, text) as a Z-up ``trimesh.Trimesh``.
-
-    The file is Y-up; points are turned to Z-up by (x, y, z) -> (x, -z, y), a proper rotation, so the
-    face winding (outward) is kept. Normals and skinning weights in the file are not used.
-
-    Args:
-        path: the ``.tfxmesh`` file.
-
-    Returns:
-        The mesh, not processed (vertex order and count as in the file).
-
-    Raises:
-        TfxMeshError: missing or malformed sections, counts that do not match, indices out of range,
-            non-finite coordinates.
-    """
-    import trimesh
-
-    path = Path(path)
+def _check_obj_vertices(path: Path) -> None:
+    """Raises ColliderError naming the first ``v`` line of an OBJ file whose coordinates are not finite numbers."""
     try:
-        raw = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TfxMeshError(f"{path}: cannot read ({exc})") from exc
-    lines = [(n + 1, line.split()) for n, line in enumerate(raw) if line.strip() and not line.lstrip().startswith("#")]
-    pos = 0
-
-    def section(key: str, width: int):
-        nonlocal pos
-        if pos >= len(lines) or len(lines[pos][1]) != 2 or lines[pos][1][0] != key:
-            where = f"line {lines[pos][0]}" if pos < len(lines) else "end of file"
-            raise TfxMeshError(f"{path}: expected '{key} <count>' at {where}")
-        line_no, (_, count_text) = lines[pos]
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError as exc:
+        raise ColliderError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    vertex = 0
+    for number, line in enumerate(lines, 1):
+        fields = line.split()
+        if not fields or fields[0] != "v":
+            continue
+        vertex += 1
         try:
-            count = int(count_text)
+            ok = len(fields) >= 4 and np.isfinite([float(x) for x in fields[1:4]]).all()
         except ValueError:
-            raise TfxMeshError(f"{path}: line {line_no}: bad count {count_text!r}") from None
-        rows = lines[pos + 1:pos + 1 + count]
-        if count < 0 or len(rows) != count:
-            raise TfxMeshError(f"{path}: line {line_no}: {key} {count} but {len(rows)} entries follow")
-        pos += 1 + count
-        if width == 0:
-            return None
-        bad = next((r for r in rows if len(r[1]) != width), None)
-        if bad is not None:
-            raise TfxMeshError(f"{path}: line {bad[0]}: expected {width} fields, got {len(bad[1])}")
-        try:
-            return np.array([r[1] for r in rows], dtype=float).reshape(count, width)
-        except ValueError as exc:
-            raise TfxMeshError(f"{path}: {key} block: non-numeric entry ({exc})") from None
-
-    section("numOfBones", 0)
-    vertices = section("numOfVertices", 15)
-    triangles = section("numOfTriangles", 4)
-    points = vertices[:, 1:4]
-    if not np.all(np.isfinite(points)):
-        raise TfxMeshError(f"{path}: non-finite vertex coordinates")
-    faces = triangles[:, 1:4]
-    if len(faces) == 0 or len(points) == 0:
-        raise TfxMeshError(f"{path}: no vertices or no triangles")
-    if np.any(faces != np.round(faces)) or faces.min() < 0 or faces.max() >= len(points):
-        raise TfxMeshError(f"{path}: triangle vertex indices must be integers in [0, {len(points)})")
-    z_up = np.stack([points[:, 0], -points[:, 2], points[:, 1]], axis=1)
-    return trimesh.Trimesh(vertices=z_up, faces=faces.astype(np.int64), process=False)
+            ok = False
+        if not ok:
+            raise ColliderError(f"{path}: line {number}: vertex {vertex} is not three finite numbers: "
+                                f"{' '.join(fields[1:4])!r}")
 
 
 @dataclasses.dataclass
@@ -293,14 +258,24 @@ class Collider:
         if not (np.isfinite(scale) and scale > 0.0):
             raise ColliderError(f"{path}: scale must be > 0, got {scale!r}")
         if path.suffix.lower() == ".tfxmesh":
+            from hairwarp.io.tfx import read_tfxmesh
+
             mesh = read_tfxmesh(path)
         else:
+            if path.suffix.lower() == ".obj":
+                _check_obj_vertices(path)
             try:
-                mesh = trimesh.load(str(path), force="mesh")
+                # Unprocessed first: processing drops non-finite vertices and every face using them, silently.
+                mesh = trimesh.load(str(path), force="mesh", process=False)
             except Exception as exc:
                 raise ColliderError(f"{path}: cannot load mesh ({exc})") from exc
             if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
                 raise ColliderError(f"{path}: no triangles in the file")
+            bad = np.flatnonzero(~np.isfinite(mesh.vertices).all(axis=1))
+            if bad.size:
+                raise ColliderError(f"{path}: vertex {int(bad[0])} is not finite "
+                                    f"({', '.join(f'{x:g}' for x in mesh.vertices[bad[0]])})")
+            mesh.process()
             if axis == "Y":
                 v = mesh.vertices
                 mesh = trimesh.Trimesh(vertices=np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1), faces=mesh.faces,

@@ -342,8 +342,11 @@ def _tip_travel(cache: Path) -> dict:
     import numpy as np
     from pxr import Usd, UsdGeom
 
-    stage = Usd.Stage.Open(str(cache))
-    if stage is None:
+    from hairwarp.io.usd_common import UsdFileError, _open_stage
+
+    try:
+        stage = _open_stage(cache)
+    except UsdFileError:  # statistics of a cache that cannot be read are left out; the run's record says why
         return {}
     curves = [UsdGeom.BasisCurves(p) for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]
     if not curves:
@@ -631,6 +634,9 @@ def _log_to_stderr(message: str) -> None:
 
 
 def _failure_record(task: Task, status: str, message: str) -> dict:
+    from hairwarp.io.usd_common import clean_usd_text
+
+    message = clean_usd_text(message)  # one line, without usd-core's internals when a USD error is quoted
     return {"index": task.index, "name": task.name, "folder": task.folder,
             "scene": str(task.scene.source) if task.scene.source else task.scene.name, "values": dict(task.values),
             "overrides": list(task.overrides), "key": task.key, "status": status, "message": message, "frames": 0,
@@ -812,9 +818,9 @@ def read_cache_frames(path, frames: Sequence[float]) -> list[dict | None]:
     import numpy as np
     from pxr import Usd, UsdGeom
 
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise ValueError(f"{path}: USD cannot open this file")
+    from hairwarp.io.usd_common import _open_stage
+
+    stage = _open_stage(path)
     curves = [p for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]
     render = [p for p in curves if UsdGeom.Imageable(p).ComputePurpose() != UsdGeom.Tokens.guide]
     curves = render or curves

@@ -9,9 +9,10 @@ Sources:
 - :func:`scalp_groom` generates strands on an ellipsoid head. The head's face looks toward
   **-y** (so +y is the back of the head and +x its left side); this matches a Y-up asset facing
   +z after the Y-up to Z-up rotation below.
-- :func:`read_tfx` reads AMD TressFX ``.tfx`` files (Y up).
-- :func:`read_hair` and :func:`write_hair` read and write Cem Yuksel's ``.hair`` files.
-- :meth:`Groom.load` picks a reader by suffix; USD files go through ``hairwarp.io.usd_groom.read_curves``.
+- :meth:`Groom.load` picks a reader by suffix: AMD TressFX ``.tfx`` (:mod:`hairwarp.io.tfx`), Cem Yuksel's
+  ``.hair`` (:mod:`hairwarp.io.cem_hair`, which also writes them) and USD (:mod:`hairwarp.io.usd_groom`). They are
+  imported when a file is read, so this module holds no file format. ``read_tfx``, ``read_hair`` and
+  ``write_hair`` are still reachable from here and from ``hairwarp``.
 
 Y up to Z up: ``(x, y, z)_Yup -> (x, -z, y)_Zup``, a rotation of +90 degrees about x
 (:data:`Y_UP_TO_Z_UP`). It keeps handedness, so nothing is mirrored.
@@ -26,8 +27,6 @@ from __future__ import annotations
 
 import importlib
 import math
-import os
-import struct
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -51,6 +50,18 @@ _USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _SUPPORTED_SUFFIXES = (".tfx", ".hair") + _USD_SUFFIXES
 
 
+_FORMAT_NAMES = {"read_tfx": "hairwarp.io.tfx", "read_hair": "hairwarp.io.cem_hair",
+                 "write_hair": "hairwarp.io.cem_hair"}
+
+
+def __getattr__(name):
+    """The format readers that used to live here, imported from :mod:`hairwarp.io` on first use."""
+    module = _FORMAT_NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)
+
+
 class GroomError(ValueError):
     """A groom that cannot be read, built or used; the message names the file or generator and the strand."""
 
@@ -63,6 +74,15 @@ def _up_matrix(up_axis: str, source: str) -> np.ndarray | None:
     if axis == "y":
         return Y_UP_TO_Z_UP
     raise GroomError(f"{source}: up_axis must be 'y' or 'z', got {up_axis!r}")
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise GroomError(f"{path}: no such groom file") from None
+    except OSError as exc:
+        raise GroomError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
 def _unit_rows(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +105,8 @@ class Groom:
         root_normal: (G, 3) unit outward scalp normal at each root, or None when unknown.
         grid_shape: (rows, cols) when the roots lie on a generator grid, strand = r * cols + c; else None.
         source: the file path or generator name, used in messages.
+        dropped: indices, among the polylines read, of the strands dropped for being shorter than ``min_length``.
+        min_length: the arc length below which strands were dropped [m].
     """
 
     strands: list[np.ndarray]
@@ -92,6 +114,8 @@ class Groom:
     root_normal: np.ndarray | None = None
     grid_shape: tuple[int, int] | None = None
     source: str = "polylines"
+    dropped: tuple[int, ...] = ()
+    min_length: float = 0.0
 
     @classmethod
     def from_polylines(
@@ -135,10 +159,16 @@ class Groom:
                 a = np.array(line, dtype=np.float64)
             except (TypeError, ValueError) as exc:
                 raise GroomError(f"{source}: strand {index} is not a numeric array ({exc})") from None
-            if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 2:
+            if a.ndim != 2 or a.shape[1] != 3:
                 raise GroomError(f"{source}: strand {index} must have shape (n >= 2, 3), got {a.shape}")
-            if not np.isfinite(a).all():
-                raise GroomError(f"{source}: strand {index} has non-finite coordinates")
+            if a.shape[0] < 2:
+                raise GroomError(f"{source}: strand {index} has {a.shape[0]} point{'s' * (a.shape[0] != 1)}; "
+                                 f"a strand needs at least 2")
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            if bad.size:
+                more = f"; {bad.size} such vertices in it" if bad.size > 1 else ""
+                raise GroomError(f"{source}: strand {index} vertex {int(bad[0])} is not finite "
+                                 f"({', '.join(f'{x:g}' for x in a[bad[0]])}){more}")
             strands.append(a)
         count = len(strands)
         if count == 0:
@@ -162,7 +192,8 @@ class Groom:
             raise GroomError(f"{source}: all {count} strands are shorter than min_length = {min_length:g} m")
         if dropped:
             warnings.warn(
-                f"{source}: dropped {dropped} of {count} strands shorter than {min_length:g} m",
+                f"{source}: dropped {dropped} of {count} strands shorter than {min_length:g} m "
+                f"({_index_list(np.flatnonzero(~keep))})",
                 UserWarning,
                 stacklevel=2,
             )
@@ -170,7 +201,8 @@ class Groom:
             uv = None if uv is None else uv[keep]
             normal = None if normal is None else normal[keep]
             grid_shape = None
-        return cls(strands=strands, root_uv=uv, root_normal=normal, grid_shape=grid_shape, source=str(source))
+        return cls(strands=strands, root_uv=uv, root_normal=normal, grid_shape=grid_shape, source=str(source),
+                   dropped=tuple(int(i) for i in np.flatnonzero(~keep)), min_length=float(min_length))
 
     @classmethod
     def load(cls, path, *, min_length: float = 1e-3, up_axis: str | None = None) -> Groom:
@@ -195,13 +227,18 @@ class Groom:
             raise GroomError(f"{p}: unknown groom suffix {p.suffix!r}; supported: {', '.join(_SUPPORTED_SUFFIXES)}")
         if not p.is_file():
             raise GroomError(f"{p}: no such groom file")
+        # The readers are imported here: the domain type holds no file format (and hairwarp.io's USD modules pull
+        # in pxr, which step-API users need not load).
         if suffix == ".tfx":
+            from hairwarp.io.tfx import read_tfx
+
             return read_tfx(p, min_length=min_length, up_axis=up_axis or "y")
         if suffix == ".hair":
+            from hairwarp.io.cem_hair import read_hair
+
             return read_hair(p, min_length=min_length, up_axis=up_axis or "z")
         if up_axis is not None:
             raise GroomError(f"{p}: up_axis applies to .tfx and .hair files; USD stages record their own upAxis")
-        # Imported here: hairwarp.io pulls in pxr, which step-API users need not load.
         curves = importlib.import_module("hairwarp.io.usd_groom").read_curves(p)
         return cls.from_polylines(curves, min_length=min_length, source=str(p)).with_projected_roots()
 
@@ -346,6 +383,13 @@ def _optional_rows(value, count: int, width: int, name: str, source: str) -> np.
     if not np.isfinite(a).all():
         raise GroomError(f"{source}: {name} has non-finite values")
     return a
+
+
+def _index_list(indices, limit: int = 8) -> str:
+    """``strand 3`` or ``strands 0, 4, 9`` (the first ``limit``, then how many more)."""
+    idx = [int(i) for i in indices]
+    text = ", ".join(str(i) for i in idx[:limit]) + (f" and {len(idx) - limit} more" if len(idx) > limit else "")
+    return f"strand{'s' * (len(idx) != 1)} {text}"
 
 
 def _arc_length(a: np.ndarray) -> float:
@@ -649,232 +693,3 @@ def _ellipsoid_gap(points, centre, radii):
     gap = t * norm
     gap[inside] = -(1.0 - np.sqrt(f[inside])) * radii.min()
     return gap, normal
-
-
-# --------------------------------------------------------------------------------------------
-# TressFX
-
-
-_TFX_HEADER = struct.Struct("<f7I32I")  # version, counts, 5 offsets, 32 reserved = 160 bytes
-_TFX_VERSION = 4.0
-
-
-def read_tfx(path, *, min_length: float = 1e-3, up_axis: str = "y") -> Groom:
-    """Reads an AMD TressFX 4 ``.tfx`` hair file.
-
-    Layout (little-endian): ``float version`` (4.0), ``uint32 numHairStrands``,
-    ``uint32 numVerticesPerStrand``, then byte offsets of the vertex positions, strand UVs, vertex
-    UVs, strand thickness and vertex colours (0 = absent), and 32 reserved uint32 (160 bytes).
-    Positions are ``float4`` per vertex, strand after strand, root first; ``w = 0`` marks a pinned
-    vertex and ``w = 1`` a free one. Only the positions are read. The assets are Y up; they are
-    turned to Z up with :data:`Y_UP_TO_Z_UP`. Lengths are taken as metres.
-
-    Args:
-        path: the ``.tfx`` file.
-        min_length: strands shorter than this are dropped with one warning [m].
-        up_axis: the file's up axis, ``"y"`` (TressFX's) or ``"z"``.
-
-    Returns:
-        The groom, with ``root_uv`` and ``root_normal`` from :meth:`Groom.with_projected_roots`.
-
-    Raises:
-        GroomError: naming the file: truncated or corrupt header or data, an unsupported version, or
-            a strand whose vertex 0 is not pinned.
-    """
-    p = Path(path)
-    rot = _up_matrix(up_axis, str(p))
-    data = _read_bytes(p)
-    size = len(data)
-    if size < _TFX_HEADER.size:
-        raise GroomError(f"{p}: truncated TressFX file: {size} bytes, the header alone is {_TFX_HEADER.size}")
-    header = _TFX_HEADER.unpack_from(data, 0)
-    version, n_strands, n_verts, off_pos, off_suv, off_vuv, off_thick, off_col = header[:8]
-    if not (math.isfinite(version) and abs(version - _TFX_VERSION) < 1e-6):
-        raise GroomError(f"{p}: unsupported TressFX version {version!r} (expected {_TFX_VERSION})")
-    if n_strands < 1 or n_verts < 2:
-        raise GroomError(f"{p}: corrupt TressFX header: {n_strands} strands of {n_verts} vertices")
-    blocks = {
-        "vertex positions": (off_pos, n_strands * n_verts * 16),
-        "strand UVs": (off_suv, n_strands * 8),
-        "vertex UVs": (off_vuv, n_strands * n_verts * 8),
-        "strand thickness": (off_thick, n_strands * 4),
-        "vertex colours": (off_col, n_strands * n_verts * 16),
-    }
-    if off_pos == 0:
-        raise GroomError(f"{p}: corrupt TressFX header: no vertex positions")
-    for name, (offset, nbytes) in blocks.items():
-        if offset == 0:
-            continue
-        if offset < _TFX_HEADER.size or offset % 4:
-            raise GroomError(f"{p}: corrupt TressFX header: {name} offset {offset}")
-        if offset + nbytes > size:
-            raise GroomError(
-                f"{p}: truncated TressFX file: {name} need bytes {offset}..{offset + nbytes}, the file has {size}"
-            )
-    xyzw = np.frombuffer(data, dtype="<f4", count=n_strands * n_verts * 4, offset=off_pos)
-    xyzw = xyzw.reshape(n_strands, n_verts, 4).astype(np.float64)
-    if not np.isfinite(xyzw).all():
-        g = int(np.flatnonzero(~np.isfinite(xyzw).all(axis=(1, 2)))[0])
-        raise GroomError(f"{p}: strand {g} has non-finite vertex data")
-    unpinned = np.flatnonzero(xyzw[:, 0, 3] != 0.0)
-    if unpinned.size:
-        raise GroomError(
-            f"{p}: strand {int(unpinned[0])} has no pinned root (w of vertex 0 = {xyzw[unpinned[0], 0, 3]:g}, "
-            f"expected 0); {unpinned.size} such strands"
-        )
-    xyz = xyzw[:, :, :3]
-    if rot is not None:
-        xyz = xyz @ rot.T
-    groom = Groom.from_polylines(list(xyz), min_length=min_length, source=str(p))
-    return groom.with_projected_roots()
-
-
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise GroomError(f"{path}: no such groom file") from None
-    except OSError as exc:
-        raise GroomError(f"{path}: cannot read ({exc.strerror or exc})") from None
-
-
-# --------------------------------------------------------------------------------------------
-# Cem Yuksel's .hair
-
-
-_HAIR_HEADER = struct.Struct("<4sIIIIff3f88s")  # 128 bytes
-_HAIR_SEGMENTS, _HAIR_POINTS, _HAIR_THICKNESS, _HAIR_TRANSPARENCY, _HAIR_COLORS = 1, 2, 4, 8, 16
-
-
-def read_hair(path, *, min_length: float = 1e-3, up_axis: str = "z") -> Groom:
-    """Reads Cem Yuksel's ``.hair`` file (http://www.cemyuksel.com/cyCodeBase/soln/using_hair_files.html).
-
-    Header (128 bytes, little-endian): ``"HAIR"``, ``uint32`` hair count, ``uint32`` point count,
-    ``uint32`` bit array (1 segments, 2 points, 4 thickness, 8 transparency, 16 colours present),
-    ``uint32`` default segments, ``float`` default thickness, ``float`` default transparency,
-    ``float[3]`` default colour, ``char[88]`` file info. Then, for each bit set in that order:
-    ``uint16`` segments per hair, ``float[3]`` per point, ``float`` thickness per point, ``float``
-    transparency per point, ``float[3]`` colour per point. The format has no units or up axis; we
-    read metres, Z up unless ``up_axis="y"``. Only the points are kept.
-
-    Raises:
-        GroomError: naming the file: a wrong signature, no points, inconsistent counts, or a file
-            shorter than its header says.
-    """
-    p = Path(path)
-    rot = _up_matrix(up_axis, str(p))
-    data = _read_bytes(p)
-    size = len(data)
-    if size < _HAIR_HEADER.size:
-        raise GroomError(f"{p}: truncated .hair file: {size} bytes, the header alone is {_HAIR_HEADER.size}")
-    sig, n_hair, n_points, bits, d_segments = _HAIR_HEADER.unpack_from(data, 0)[:5]
-    if sig != b"HAIR":
-        raise GroomError(f"{p}: not a .hair file (signature {sig!r}, expected b'HAIR')")
-    if not bits & _HAIR_POINTS:
-        raise GroomError(f"{p}: .hair file without points (bit array {bits:#x})")
-    if n_hair < 1:
-        raise GroomError(f"{p}: .hair file with no hairs")
-    offset = _HAIR_HEADER.size
-    if bits & _HAIR_SEGMENTS:
-        if offset + 2 * n_hair > size:
-            raise GroomError(f"{p}: truncated .hair file: segment array needs {2 * n_hair} bytes at {offset}")
-        segments = np.frombuffer(data, dtype="<u2", count=n_hair, offset=offset).astype(np.int64)
-        offset += 2 * n_hair
-    else:
-        segments = np.full(n_hair, d_segments, dtype=np.int64)
-    short = np.flatnonzero(segments < 1)
-    if short.size:
-        raise GroomError(f"{p}: strand {int(short[0])} has {int(segments[short[0]])} segments")
-    counts = segments + 1
-    if int(counts.sum()) != n_points:
-        raise GroomError(f"{p}: corrupt .hair file: segments give {int(counts.sum())} points, the header {n_points}")
-    if offset + 12 * n_points > size:
-        raise GroomError(
-            f"{p}: truncated .hair file: points need {12 * n_points} bytes at {offset}, the file has {size}"
-        )
-    pts = np.frombuffer(data, dtype="<f4", count=3 * n_points, offset=offset).reshape(n_points, 3).astype(np.float64)
-    offset += 12 * n_points
-    for bit, width, name in (
-        (_HAIR_THICKNESS, 4, "thickness"),
-        (_HAIR_TRANSPARENCY, 4, "transparency"),
-        (_HAIR_COLORS, 12, "colour"),
-    ):
-        if bits & bit:
-            offset += width * n_points
-            if offset > size:
-                raise GroomError(f"{p}: truncated .hair file: the {name} array runs past the end ({size} bytes)")
-    if rot is not None:
-        pts = pts @ rot.T
-    strands = np.split(pts, np.cumsum(counts)[:-1])
-    groom = Groom.from_polylines(strands, min_length=min_length, source=str(p))
-    return groom.with_projected_roots()
-
-
-def write_hair(path, groom: Groom, *, thickness=None, info: str = "") -> None:
-    """Writes a groom as Cem Yuksel's ``.hair`` file: segments and points, and thickness if given.
-
-    Coordinates are written as stored (metres, Z up), as float32. The file is written beside its
-    target and renamed into place, so a failed write leaves no partial file.
-
-    Args:
-        path: the file to write.
-        groom: the strands; each may have at most 65,536 points (uint16 segment counts).
-        thickness: None (default thickness 0 in the header), a number (the header default), one value per
-            strand, or one value per point (all strands' points in order) [m].
-        info: up to 88 bytes of file information (UTF-8, truncated).
-
-    Raises:
-        GroomError: a strand with too many points or a thickness of the wrong size.
-    """
-    p = Path(path)
-    counts = np.array([len(a) for a in groom.strands], dtype=np.int64)
-    too_long = np.flatnonzero(counts - 1 > 0xFFFF)
-    if too_long.size:
-        raise GroomError(f"{p}: strand {int(too_long[0])} has {int(counts[too_long[0]])} points; .hair allows 65536")
-    n_points = int(counts.sum())
-    bits = _HAIR_SEGMENTS | _HAIR_POINTS
-    default_thickness = 0.0
-    per_point = None
-    if thickness is not None:
-        t = np.asarray(thickness, dtype=np.float64)
-        if t.ndim == 0:
-            default_thickness = float(t)
-        elif t.shape == (groom.strand_count,):
-            per_point = np.repeat(t, counts)
-        elif t.shape == (n_points,):
-            per_point = t
-        else:
-            raise GroomError(
-                f"{p}: thickness must be a number, ({groom.strand_count},) per strand or ({n_points},) per point, "
-                f"got shape {t.shape}"
-            )
-        if per_point is not None:
-            bits |= _HAIR_THICKNESS
-    header = _HAIR_HEADER.pack(
-        b"HAIR",
-        groom.strand_count,
-        n_points,
-        bits,
-        0,
-        default_thickness,
-        0.0,
-        1.0,
-        1.0,
-        1.0,
-        info.encode("utf-8")[:88],
-    )
-    body = [
-        header,
-        (counts - 1).astype("<u2").tobytes(),
-        np.concatenate(groom.strands).astype("<f4").tobytes(),
-    ]
-    if per_point is not None:
-        body.append(per_point.astype("<f4").tobytes())
-    tmp = p.with_name(p.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(b"".join(body))
-        os.replace(tmp, p)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise GroomError(f"{p}: cannot write ({exc.strerror or exc})") from None

@@ -1,6 +1,7 @@
 """Runs that stop, fail or share an output: real ``hairwarp run`` children of scenes/tiny.toml, read back with
 usd-core and compared against an uninterrupted run."""
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -151,24 +152,58 @@ def test_read_only_and_immutable_folders(tmp_path):
     assert res.returncode == 2 and "cannot write" in res.stderr and "Traceback" not in res.stderr
 
 
-def test_disk_full_mid_run_keeps_frames_and_exits_3(tmp_path):
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(mnt)],
-                                           capture_output=True).returncode != 0:
-        pytest.skip("mounting a tmpfs needs root and a system that allows it")
+def _message_lines(res) -> int:
+    """Lines hairwarp wrote on stderr (Warp may print a CUDA-driver warning of its own as it loads)."""
+    return sum(1 for line in res.stderr.splitlines() if line.startswith("hairwarp:"))
+
+
+@contextlib.contextmanager
+def _tmpfs(folder: Path, options: str):
+    """A tmpfs mounted at ``folder`` for the test, or a skip saying why it cannot be."""
+    folder.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"this system does not allow mounting a tmpfs: {res.stderr.strip()}")
     try:
-        # the estimate passes (the frames are small), then the head mesh's topology and frames fill the disk
-        (mnt / "filler").write_bytes(b"\0" * 40_000)
-        res = _run(mnt / "tiny.usdc", "--frames", "200", "-s", 'output.guides=true')
-        partial = mnt / "tiny.partial" / "tiny.usdc"
-        assert res.returncode in (2, 3), res.stderr
-        assert "Traceback" not in res.stderr and "pxrInternal" not in res.stderr
-        if res.returncode == 3:
-            assert "no space left" in res.stderr and str(partial) in res.stderr
-            assert _samples(partial)
+        yield folder
     finally:
-        subprocess.run(["umount", str(mnt)])
+        subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+def test_disk_too_small_for_the_estimate_is_refused_before_the_first_step(tmp_path):
+    with _tmpfs(tmp_path / "small", "size=160k") as mnt:
+        res = _run(mnt / "tiny.usdc", "--frames", "100000")
+        assert res.returncode == 2, res.stderr
+        assert "are free on its disk" in res.stderr and _message_lines(res) == 1, res.stderr
+        assert not (mnt / "tiny.partial").exists() and not (mnt / "tiny.usdc").exists()
+
+
+def test_disk_full_mid_run_keeps_frames_and_exits_3(tmp_path):
+    """The pre-check is bypassed (its estimate would refuse the run), so the disk fills at a later frame for sure."""
+    with _tmpfs(tmp_path / "small", "size=256k") as mnt:
+        out = mnt / "tiny.usdc"
+        code = ("import sys\nimport hairwarp.runner as r\nr._check_disk = lambda *a, **k: None\n"
+                "from hairwarp.cli import main\nsys.exit(main(sys.argv[1:]))")
+        cmd = [sys.executable, "-c", code, "run", str(TINY), "-o", str(out), "-s", "output.preview=false",
+               "-s", "output.guides=true", "--frames", "100000"]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        partial = mnt / "tiny.partial" / "tiny.usdc"
+        assert res.returncode == 3, res.stderr
+        assert "Traceback" not in res.stderr and "pxrInternal" not in res.stderr
+        assert "no space left" in res.stderr and str(partial) in res.stderr, res.stderr
+        assert not out.exists()
+        samples = _samples(partial)  # usd-core reads every frame the run kept
+        assert samples, res.stderr
+
+
+def test_read_only_file_system_is_refused_before_the_first_step(tmp_path):
+    with _tmpfs(tmp_path / "ro", "ro,size=1m") as mnt:
+        res = _run(mnt / "tiny.usdc", "--frames", "2")
+        assert res.returncode == 2, res.stderr
+        assert "cannot write" in res.stderr and str(mnt) in res.stderr, res.stderr
+        assert "Traceback" not in res.stderr and _message_lines(res) == 1, res.stderr
 
 
 @pytest.mark.parametrize("frames", [10, 100, pytest.param(1000, marks=pytest.mark.slow)])

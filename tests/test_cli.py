@@ -131,6 +131,105 @@ def test_info_bad_groom_exits_2(tmp_path):
     assert r.returncode == 2 and "g.hair" in r.stderr and "Traceback" not in r.stderr
 
 
+def _straight_strands(counts=(5, 6, 7)):
+    return [np.column_stack([np.full(n, 0.01 * i), np.zeros(n), 1.6 - 0.02 * np.arange(n)])
+            for i, n in enumerate(counts)]
+
+
+def _write_usd_curves(path, strands):
+    """A linear BasisCurves prim written with usd-core directly (not through hairwarp), Z up, metres."""
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    curves = UsdGeom.BasisCurves.Define(stage, "/groom")
+    curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+    curves.CreateCurveVertexCountsAttr(Vt.IntArray([len(s) for s in strands]))
+    curves.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, p)) for p in np.concatenate(strands)]))
+    stage.GetRootLayer().Save()
+
+
+def _one_line_error(r, *words):
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert r.stdout == "" and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
+    for w in words:
+        assert w in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("suffix", [".hair", ".usda"])
+def test_info_groom_with_a_nan_vertex_exits_2_naming_the_strand(tmp_path, suffix):
+    strands = _straight_strands()
+    strands[2][3, 1] = np.nan  # strand 2, vertex 3
+    path = tmp_path / f"g{suffix}"
+    (_write_hair if suffix == ".hair" else _write_usd_curves)(path, strands)
+    _one_line_error(_hairwarp("info", path), str(path), "strand 2 vertex 3 is not finite")
+
+
+def test_info_groom_with_a_one_point_strand_exits_2_naming_the_strand(tmp_path):
+    path = tmp_path / "g.usda"
+    _write_usd_curves(path, [*_straight_strands((5, 6)), np.array([[0.0, 0.0, 1.6]])])
+    _one_line_error(_hairwarp("info", path), str(path), "strand 2 has 1 point")
+    # .hair stores segments per strand: a one-point strand is 0 segments.
+    path = tmp_path / "g.hair"
+    _write_hair(path, [*_straight_strands((5,)), np.array([[0.0, 0.0, 1.6]]), *_straight_strands((4,))])
+    _one_line_error(_hairwarp("info", path), str(path), "strand 1 has 0 segments")
+
+
+def test_info_groom_reports_the_strands_dropped_as_too_short(tmp_path):
+    strands = _straight_strands((5, 6, 7, 8))
+    strands[1] = np.tile(strands[1][:1], (6, 1))  # six copies of its root: length 0 < min_length (1 mm)
+    path = tmp_path / "g.usda"
+    _write_usd_curves(path, strands)
+    r = _hairwarp("info", path)
+    assert r.returncode == 0, r.stderr
+    assert "strands  3" in r.stdout and "vertices 20" in r.stdout  # 5 + 7 + 8 kept, as written
+    assert "dropped  1 of 4 strands shorter than 0.001 m (strand 1)" in r.stdout
+    assert "Warning" not in r.stderr
+
+
+def _corrupt_usdc(tmp_path):
+    """A crate file written by usd-core, then its second half overwritten: usd-core itself refuses it."""
+    src = tmp_path / "ok.usda"
+    _write_usd_curves(src, _straight_strands())
+    from pxr import Tf, Usd
+
+    path = tmp_path / "corrupt.usdc"
+    Usd.Stage.Open(str(src)).Export(str(path))
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2:] = b"\xff" * (len(data) - len(data) // 2)
+    path.write_bytes(bytes(data))
+    try:
+        Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:
+        return path, str(exc)
+    raise AssertionError("usd-core opened the corrupt file")
+
+
+def test_usd_error_text_keeps_what_went_wrong_and_drops_the_internals(tmp_path):
+    from hairwarp.io.usd_common import clean_usd_text
+
+    _, raw = _corrupt_usdc(tmp_path)
+    assert "pxrInternal_" in raw and " at line " in raw  # what usd-core says, C++ places and all
+    said = [line.rsplit(" : ", 1)[1].strip("'") for line in raw.strip().splitlines() if " : " in line]
+    clean = clean_usd_text(raw)
+    assert "\n" not in clean and "pxrInternal" not in clean and " at line " not in clean and ".cpp" not in clean
+    assert clean == "; ".join(dict.fromkeys(said))  # every diagnostic usd-core gave, in its order, repeats once
+    assert clean_usd_text("x: pxrInternal_v0_26_11__pxrReserved__::UsdStage::Open at line 1287") == "x: UsdStage::Open"
+    ours = "a.tfxmesh: expected 'numOfBones <count>' at line 3"  # hairwarp's own line numbers stay
+    assert clean_usd_text(ours) == ours
+
+
+@pytest.mark.parametrize("command", ["info", "preview"])
+def test_corrupt_usdc_is_one_clean_line(tmp_path, command):
+    path, raw = _corrupt_usdc(tmp_path)
+    r = _hairwarp(command, path)
+    _one_line_error(r, str(path))
+    assert "pxrInternal" not in r.stderr and " at line " not in r.stderr
+    last = raw.strip().splitlines()[-1].rsplit(" : ", 1)[1].strip("'")  # usd-core's own last word on it
+    assert last in r.stderr
+
+
 def test_unknown_file_type_exits_2(tmp_path):
     path = tmp_path / "notes.txt"
     path.write_text("hello")

@@ -244,6 +244,34 @@ def test_mesh_file_up_axis(tmp_path):
     np.testing.assert_allclose(y_up.mesh.extents, (0.1, 0.4, 0.2), atol=1e-12)
 
 
+def test_mesh_file_with_a_nan_vertex_is_refused_naming_the_line(tmp_path):
+    """An OBJ vertex that is NaN is an error naming the file, its line and vertex number (as the file counts them),
+    not a warning about a mesh trimesh silently emptied of the faces that use it."""
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    path = tmp_path / "head.obj"
+    sphere.export(path)
+    lines = path.read_text().splitlines()
+    v_lines = [n for n, line in enumerate(lines) if line.startswith("v ")]
+    assert len(v_lines) == len(sphere.vertices)
+    lines[v_lines[4]] = "v 0.0 nan 0.1"  # vertex 5 in OBJ's 1-based count
+    path.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "not watertight" warning on the way to the error
+        with pytest.raises(ColliderError) as info:
+            Collider.from_mesh_file(path)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message
+    assert f"line {v_lines[4] + 1}: vertex 5 is not three finite numbers" in message
+
+    # Other formats: the vertex index trimesh reads, checked before trimesh drops the vertex.
+    verts = sphere.vertices.copy()
+    verts[7] = (np.inf, 0.0, 0.0)
+    ply = tmp_path / "head.ply"
+    trimesh.Trimesh(verts, sphere.faces, process=False).export(ply)
+    with pytest.raises(ColliderError, match=r"head\.ply: vertex 7 is not finite \(inf, 0, 0\)"):
+        Collider.from_mesh_file(ply)
+
+
 # ---------------------------------------------------------------- queries
 
 

@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from hairwarp.groom import Groom, GroomError, read_hair, read_tfx, scalp_groom, write_hair
+from hairwarp.groom import Groom, GroomError, scalp_groom
+from hairwarp.io.cem_hair import read_hair, write_hair
+from hairwarp.io.tfx import read_tfx
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RATBOY = DATA / "tressfx_ratboy" / "Ratboy_mohawk.tfx"
@@ -124,10 +126,10 @@ def test_from_polylines_drops_short_strands_with_one_warning():
 @pytest.mark.parametrize(
     "bad, what",
     [
-        ([[0, 0, 0]], "shape"),  # one vertex
+        ([[0, 0, 0]], "has 1 point; a strand needs at least 2"),  # one vertex
         ([[0, 0], [1, 1]], "shape"),  # 2-D points
-        ([[0, 0, 0], [0, np.nan, 1]], "non-finite"),
-        ([[0, 0, 0], [0, np.inf, 1]], "non-finite"),
+        ([[0, 0, 0], [0, np.nan, 1]], r"vertex 1 is not finite \(0, nan, 1\)"),
+        ([[0, 0, 0], [0, 0, 1], [0, np.inf, 1]], r"vertex 2 is not finite \(0, inf, 1\)"),
         ("abc", "numeric"),
     ],
 )
@@ -537,3 +539,17 @@ def test_load_usd_curves_through_hairwarp_usd(tmp_path):
     assert groom.strand_count == 2 and groom.source == str(path)
     for a, b in zip(lines, groom.strands, strict=True):
         np.testing.assert_allclose(b, 0.01 * a @ _Y_TO_Z.T, rtol=RTOL_F32, atol=1e-9)
+
+
+def test_domain_types_import_no_file_format():
+    """Groom and Collider read files through hairwarp.io, imported when a file is read; the old names still work."""
+    import subprocess
+
+    code = (
+        "import sys, hairwarp, hairwarp.groom as g, hairwarp.colliders as c\n"
+        "assert not [m for m in sys.modules if m.startswith('hairwarp.io')], sorted(sys.modules)\n"
+        "import hairwarp.io.tfx as t, hairwarp.io.cem_hair as h\n"
+        "assert g.read_tfx is t.read_tfx is hairwarp.read_tfx and c.read_tfxmesh is t.read_tfxmesh\n"
+        "assert g.read_hair is h.read_hair is hairwarp.read_hair and g.write_hair is h.write_hair\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -7,4 +7,6 @@ of these at module level; ``pxr`` is imported inside the functions that need it.
 - :mod:`hairwarp.io.usd_groom`: static grooms written to and read from USD.
 - :mod:`hairwarp.io.usd_anim`: colliders that follow a Mesh prim's animation in a USD stage.
 - :mod:`hairwarp.io.usd_inspect`: caches read back frame by frame, and their summary.
+- :mod:`hairwarp.io.tfx`: AMD TressFX hair (``.tfx``) and collision meshes (``.tfxmesh``).
+- :mod:`hairwarp.io.cem_hair`: Cem Yuksel's ``.hair`` files, read and written.
 """

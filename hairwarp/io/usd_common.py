@@ -213,15 +213,29 @@ def _define_curves(stage, prim_path: str, counts: np.ndarray, widths: np.ndarray
     return curves
 
 
-_TF_ERROR_RE = re.compile(r"^\s*Error in '[^']*' at line \d+ in file \S+ : '(.*)'\s*$")
+# One diagnostic of usd-core: "Error in 'pxrInternal_v0_26_11__pxrReserved__::UsdStage::Open' at line 1287 in file
+# /opt/USD/pxr/usd/usd/stage.cpp : 'Failed to open layer @x.usdc@'" (also "Coding Error", "Runtime Error", "Warning").
+_TF_ERROR_RE = re.compile(r"^\s*[A-Za-z ]*(?:Error|Warning) in '[^']*' at line \d+ (?:in|of) file \S+ : '(.*)'\s*$")
+# What is left of usd-core's internals anywhere else in a message: the versioned namespace and the source place.
+_TF_NAMESPACE_RE = re.compile(r"pxrInternal_v\d+_\d+(?:_\d+)?__pxrReserved__::")
+_TF_PLACE_RE = re.compile(r"\s*\bat line \d+ (?:in|of) file \S+(?: :)?")
+_TF_LINE_RE = re.compile(r"\s*\bat line \d+\b")  # cut only after usd-core's namespace: other messages cite lines
+
+
+def clean_usd_text(text: str) -> str:
+    """``text`` on one line without usd-core's internals: each ``Error in 'pxrInternal_...::UsdStage::Open' at
+    line 1287 in file ... : 'what'`` becomes ``what`` (repeats dropped, joined by ``; ``), and any other mention of
+    the versioned namespace or a C++ source line is cut. Every USD error shown to a user goes through this."""
+    lines = [ln for ln in str(text).strip().splitlines() if ln.strip()]
+    texts = [m.group(1) if (m := _TF_ERROR_RE.match(ln)) else ln.strip() for ln in lines]
+    texts = [_TF_LINE_RE.sub("", _TF_NAMESPACE_RE.sub("", t)) if _TF_NAMESPACE_RE.search(t) else t for t in texts]
+    texts = [_TF_PLACE_RE.sub("", t).strip() for t in texts]
+    return "; ".join(dict.fromkeys(t for t in texts if t))
 
 
 def usd_error_text(exc: BaseException) -> str:
-    """The message of a usd-core error without its C++ function, source line and file (``Error in
-    'pxrInternal_...::UsdStage::Open' at line 1287 in file ...``): what went wrong, for a user."""
-    lines = [ln for ln in str(exc).strip().splitlines() if ln.strip()]
-    texts = [m.group(1) if (m := _TF_ERROR_RE.match(ln)) else ln.strip() for ln in lines]
-    return "; ".join(dict.fromkeys(t for t in texts if t)) or type(exc).__name__
+    """The message of a usd-core error for a user (:func:`clean_usd_text`), or the exception's type name."""
+    return clean_usd_text(str(exc)) or type(exc).__name__
 
 
 def _open_stage(path):
