@@ -2,7 +2,8 @@
 
 ::
 
-    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [-s KEY=VALUE ...]
+    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--up-axis Y|Z] [--units M] [--start-frame N]
+                 [-s KEY=VALUE ...]
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
@@ -50,6 +51,12 @@ def _cmd_run(args) -> int:
         overrides.append(f"sim.frames={args.frames}")
     if args.device is not None:
         overrides.append(f"sim.device={args.device!r}")
+    if args.up_axis is not None:
+        overrides.append(f"output.up_axis={args.up_axis!r}")
+    if args.meters_per_unit is not None:
+        overrides.append(f"output.meters_per_unit={args.meters_per_unit!r}")
+    if args.start_frame is not None:
+        overrides.append(f"output.start_frame={args.start_frame}")
     scene = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
@@ -299,6 +306,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
     p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
+    p.add_argument("--up-axis", choices=("Y", "Z"), help="up axis of the cache (overrides output.up_axis)")
+    p.add_argument("--meters-per-unit", "--units", type=float, metavar="M",
+                   help="unit of the cache in metres, e.g. 0.01 for centimetres (overrides output.meters_per_unit)")
+    p.add_argument("--start-frame", type=_non_negative_int, metavar="N",
+                   help="time code of the first frame (overrides output.start_frame)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
