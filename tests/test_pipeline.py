@@ -344,3 +344,18 @@ amplitude_deg = 10.0
     again = hw.Groom.load(out)
     np.testing.assert_allclose(again.surface_uv, ST, atol=F32_REL)
     np.testing.assert_allclose(again.widths[3], 2e-4, rtol=F32_REL)
+
+
+@pytest.mark.parametrize("layout", ["clips", "single"])
+def test_omniverse_asset_validator(dense_cache, tmp_path, layout):
+    """NVIDIA's omniverse-asset-validator (its default rules, usd-core's among them) reports no failure and no
+    error on a cache with dense hair, guides and a collider, in both layouts (.usdc; ASCII layers of this size
+    are reported as slow by its UsdAsciiPerformanceChecker, as they should be)."""
+    av = pytest.importorskip("omni.asset_validator", reason="omniverse-asset-validator is not installed "
+                                                           "(pip install -e '.[test]')")
+    path = dense_cache[0] if layout == "clips" else _run(tmp_path, "single", "dense.count=24",
+                                                          'output.layout="single"')[0]
+    issues = av.ValidationEngine(init_rules=True).validate(str(path)).issues()
+    bad = [f"{i.rule.__name__ if i.rule else '?'}: {i.message}" for i in issues
+           if i.severity in (av.IssueSeverity.FAILURE, av.IssueSeverity.ERROR)]
+    assert not bad, bad
