@@ -5,6 +5,7 @@
     hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--up-axis Y|Z] [--units M] [--start-frame N]
                  [-s KEY=VALUE ...]
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
+    hairwarp schema [SECTION]       # every scene key: type, default, range, unit, meaning
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
@@ -67,6 +68,28 @@ def _cmd_run(args) -> int:
     if getattr(result, "preview_path", None):
         print(f"preview  {result.preview_path}")
     print(f"{result.frames} frames in {result.seconds:.2f} s")
+    return EXIT_OK
+
+
+def _cmd_schema(args) -> int:
+    from hairwarp.scene import schema_doc
+
+    text = schema_doc()
+    if args.section:
+        keep, show = [], False
+        for line in text.splitlines():
+            if line.startswith("["):
+                name = line[1:].lstrip("[").split("]")[0]
+                show = name == args.section or name.startswith(args.section + ".")
+            if show:
+                keep.append(line)
+        if not keep:
+            sections = sorted({ln[1:].lstrip("[").split("]")[0].split(".")[0] for ln in text.splitlines()
+                               if ln.startswith("[")})
+            print(f"hairwarp schema: no section {args.section!r}; sections: {', '.join(sections)}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        text = "\n".join(keep)
+    print(text)
     return EXIT_OK
 
 
@@ -317,6 +340,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a scene key, value in TOML syntax, e.g. -s sim.substeps=4 "
                         "-s 'head.motion.kind=\"nod\"' (repeatable)")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("schema", help="print every scene key: type, default, range, unit and meaning",
+                       description="The scene reference: every key of a scene file, section by section.")
+    p.add_argument("section", nargs="?", metavar="SECTION", help="only this section, e.g. output or head.motion")
+    p.set_defaults(func=_cmd_schema)
 
     p = sub.add_parser("info", help="describe a scene, a groom or a cache",
                        description="Describe a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*).")

@@ -525,7 +525,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                             choices=("inline", "background")),
             "layout": Field("str", "clips", "the cache: a root layer with one clip layer per frame (clips), or one "
                                             "file flattened at the end (single)", choices=("clips", "single")),
-            "up_axis": Field("str", "Z", "up axis of the cache stage (points are rotated into it; Maya and Unreal "
+            "up_axis": Field("str", "Z", "up axis of the cache stage (points are rotated into it; Maya and Houdini "
                                          "work Y up)", choices=("Z", "Y")),
             "meters_per_unit": Field("float", 1.0, "unit of the cache stage (0.01 = centimetres, as Maya and "
                                                    "Unreal)", "m", range="(0, inf)"),
