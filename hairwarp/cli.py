@@ -2,8 +2,10 @@
 
 ::
 
-    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [-s KEY=VALUE ...]
+    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--up-axis Y|Z] [--units M] [--start-frame N]
+                 [-s KEY=VALUE ...]
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
+    hairwarp schema [SECTION]       # every scene key: type, default, range, unit, meaning
     hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
@@ -50,6 +52,12 @@ def _cmd_run(args) -> int:
         overrides.append(f"sim.frames={args.frames}")
     if args.device is not None:
         overrides.append(f"sim.device={args.device!r}")
+    if args.up_axis is not None:
+        overrides.append(f"output.up_axis={args.up_axis!r}")
+    if args.meters_per_unit is not None:
+        overrides.append(f"output.meters_per_unit={args.meters_per_unit!r}")
+    if args.start_frame is not None:
+        overrides.append(f"output.start_frame={args.start_frame}")
     scene = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
@@ -60,6 +68,28 @@ def _cmd_run(args) -> int:
     if getattr(result, "preview_path", None):
         print(f"preview  {result.preview_path}")
     print(f"{result.frames} frames in {result.seconds:.2f} s")
+    return EXIT_OK
+
+
+def _cmd_schema(args) -> int:
+    from hairwarp.scene import schema_doc
+
+    text = schema_doc()
+    if args.section:
+        keep, show = [], False
+        for line in text.splitlines():
+            if line.startswith("["):
+                name = line[1:].lstrip("[").split("]")[0]
+                show = name == args.section or name.startswith(args.section + ".")
+            if show:
+                keep.append(line)
+        if not keep:
+            sections = sorted({ln[1:].lstrip("[").split("]")[0].split(".")[0] for ln in text.splitlines()
+                               if ln.startswith("[")})
+            print(f"hairwarp schema: no section {args.section!r}; sections: {', '.join(sections)}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        text = "\n".join(keep)
+    print(text)
     return EXIT_OK
 
 
@@ -309,12 +339,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
     p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
+    p.add_argument("--up-axis", choices=("Y", "Z"), help="up axis of the cache (overrides output.up_axis)")
+    p.add_argument("--meters-per-unit", "--units", type=float, metavar="M",
+                   help="unit of the cache in metres, e.g. 0.01 for centimetres (overrides output.meters_per_unit)")
+    p.add_argument("--start-frame", type=_non_negative_int, metavar="N",
+                   help="time code of the first frame (overrides output.start_frame)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
                    help="override a scene key, value in TOML syntax, e.g. -s sim.substeps=4 "
                         "-s 'head.motion.kind=\"nod\"' (repeatable)")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("schema", help="print every scene key: type, default, range, unit and meaning",
+                       description="The scene reference: every key of a scene file, section by section.")
+    p.add_argument("section", nargs="?", metavar="SECTION", help="only this section, e.g. output or head.motion")
+    p.set_defaults(func=_cmd_schema)
 
     p = sub.add_parser("info", help="describe a scene, a groom or a cache",
                        description="Describe a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*).")

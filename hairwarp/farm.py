@@ -811,7 +811,8 @@ def _cell(v) -> str:
 
 def read_cache_frames(path, frames: Sequence[float]) -> list[dict | None]:
     """Frames of a cache for pictures, read through USD: per frame ``{"curves": {name: (points, counts)},
-    "meshes": [(vertices, triangles)]}`` in world space, or None where the cache has no such time sample.
+    "meshes": [(vertices, triangles)]}`` in world space, or None where the cache has no such time sample. Frame
+    ``f`` is the time code ``start + f``, ``start`` the stage's start time code (``output.start_frame``).
 
     Curves whose purpose is ``guide`` are left out when the cache also holds curves to render (dense hair).
     """
@@ -829,7 +830,8 @@ def read_cache_frames(path, frames: Sequence[float]) -> list[dict | None]:
     for p in curves:
         samples.update(UsdGeom.BasisCurves(p).GetPointsAttr().GetTimeSamples())
     out = []
-    for frame in frames:
+    start = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else 0.0
+    for frame in (start + float(f) for f in frames):
         if samples and float(frame) not in samples:
             out.append(None)
             continue

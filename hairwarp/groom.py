@@ -107,6 +107,11 @@ class Groom:
         source: the file path or generator name, used in messages.
         dropped: indices, among the polylines read, of the strands dropped for being shorter than ``min_length``.
         min_length: the arc length below which strands were dropped [m].
+        widths: per-vertex diameters [m], one float64 array (n_i,) per strand, or None (the scene's widths
+            are used); read from USD grooms and written to the cache.
+        surface_uv: (G, 2) texture coordinates of the roots on the scalp's UV map, as the file gives them (USD
+            ``primvars:st``, Unreal's ``groom_root_uv``, Blender's ``surface_uv_coordinate``), or None. Unlike
+            ``root_uv`` it may have seams, so only the cache uses it.
     """
 
     strands: list[np.ndarray]
@@ -116,6 +121,8 @@ class Groom:
     source: str = "polylines"
     dropped: tuple[int, ...] = ()
     min_length: float = 0.0
+    widths: list[np.ndarray] | None = None
+    surface_uv: np.ndarray | None = None
 
     @classmethod
     def from_polylines(
@@ -127,6 +134,8 @@ class Groom:
         root_uv=None,
         root_normal=None,
         grid_shape: tuple[int, int] | None = None,
+        widths=None,
+        surface_uv=None,
     ) -> Groom:
         """Validates polylines and makes a groom of them.
 
@@ -141,6 +150,8 @@ class Groom:
             root_uv: optional (G, 2) root parametrisation.
             root_normal: optional (G, 3) outward root normals; normalised here.
             grid_shape: optional (rows, cols) with rows * cols == G.
+            widths: optional per-vertex diameters [m], one sequence per strand (same lengths as the strands).
+            surface_uv: optional (G, 2) texture coordinates of the roots.
 
         Returns:
             The groom, strands as float64 copies.
@@ -174,6 +185,14 @@ class Groom:
         if count == 0:
             raise GroomError(f"{source}: no strands")
         uv = _optional_rows(root_uv, count, 2, "root_uv", source)
+        tex = _optional_rows(surface_uv, count, 2, "surface_uv", source)
+        if widths is not None:
+            widths = [np.asarray(w, dtype=np.float64).reshape(-1) for w in widths]
+            if len(widths) != count:
+                raise GroomError(f"{source}: widths has {len(widths)} strands, the groom {count}")
+            for index, (w, a) in enumerate(zip(widths, strands, strict=True)):
+                if w.shape != (len(a),) or not np.all(np.isfinite(w)) or np.any(w < 0.0):
+                    raise GroomError(f"{source}: widths of strand {index} must be {len(a)} finite numbers >= 0")
         normal = _optional_rows(root_normal, count, 3, "root_normal", source)
         if normal is not None:
             normal, norm = _unit_rows(normal)
@@ -200,12 +219,15 @@ class Groom:
             strands = [a for a, k in zip(strands, keep, strict=True) if k]
             uv = None if uv is None else uv[keep]
             normal = None if normal is None else normal[keep]
+            tex = None if tex is None else tex[keep]
+            widths = None if widths is None else [w for w, k in zip(widths, keep, strict=True) if k]
             grid_shape = None
         return cls(strands=strands, root_uv=uv, root_normal=normal, grid_shape=grid_shape, source=str(source),
-                   dropped=tuple(int(i) for i in np.flatnonzero(~keep)), min_length=float(min_length))
+                   dropped=tuple(int(i) for i in np.flatnonzero(~keep)), min_length=float(min_length),
+                   widths=widths, surface_uv=tex)
 
     @classmethod
-    def load(cls, path, *, min_length: float = 1e-3, up_axis: str | None = None) -> Groom:
+    def load(cls, path, *, min_length: float = 1e-3, up_axis: str | None = None, purpose: str = "auto") -> Groom:
         """Reads a groom file, choosing the reader by suffix.
 
         Args:
@@ -213,6 +235,8 @@ class Groom:
             min_length: strands with a shorter arc length are dropped with a warning [m].
             up_axis: ``"y"`` or ``"z"``: the up axis the file's coordinates use, for formats that do not
                 record it (default: Y for ``.tfx``, Z for ``.hair``). USD stages carry their own.
+            purpose: USD stages: which curves to read by their UsdGeom purpose: "guide", "render" (every
+                curve not of purpose guide), "all", or "auto" (the guides when the stage has both, else all).
 
         Returns:
             The groom in metres, Z up, with ``root_uv`` and ``root_normal`` estimated by
@@ -239,8 +263,10 @@ class Groom:
             return read_hair(p, min_length=min_length, up_axis=up_axis or "z")
         if up_axis is not None:
             raise GroomError(f"{p}: up_axis applies to .tfx and .hair files; USD stages record their own upAxis")
-        curves = importlib.import_module("hairwarp.io.usd_groom").read_curves(p)
-        return cls.from_polylines(curves, min_length=min_length, source=str(p)).with_projected_roots()
+        # Imported here: hairwarp.io pulls in pxr, which step-API users need not load.
+        data = importlib.import_module("hairwarp.io.usd_groom").read_groom(p, purpose=purpose)
+        return cls.from_polylines(data["curves"], min_length=min_length, source=str(p), widths=data["widths"],
+                                  surface_uv=data["uv"]).with_projected_roots()
 
     @property
     def strand_count(self) -> int:
@@ -290,6 +316,18 @@ class Groom:
             out[g, -1] = a[-1]
         return out
 
+    def resampled_widths(self, segments: int) -> np.ndarray | None:
+        """The per-vertex ``widths`` at the vertices of :meth:`resample` (linear in arc length), shape
+        (G, S + 1) [m], or None when the groom has none."""
+        if self.widths is None:
+            return None
+        s = int(segments)
+        out = np.empty((self.strand_count, s + 1))
+        for g, (a, w) in enumerate(zip(self.strands, self.widths, strict=True)):
+            cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(a, axis=0), axis=1))))
+            out[g] = np.interp(np.linspace(0.0, cum[-1], s + 1), cum, w)
+        return out
+
     def transformed(self, matrix) -> Groom:
         """Applies a 3x3 linear or 4x4 affine transform (numpy, column vectors).
 
@@ -314,7 +352,11 @@ class Groom:
         normal = None
         if self.root_normal is not None:
             normal, _ = _unit_rows(self.root_normal @ np.linalg.inv(linear))
-        return replace(self, strands=strands, root_normal=normal)
+        widths = self.widths
+        if widths is not None:  # a width scales with the transform's mean length factor
+            factor = abs(np.linalg.det(linear)) ** (1.0 / 3.0)
+            widths = [w * factor for w in widths]
+        return replace(self, strands=strands, root_normal=normal, widths=widths)
 
     def subset(self, indices) -> Groom:
         """The strands at ``indices`` (integer indices or a boolean mask of length G), in that order.
@@ -340,6 +382,8 @@ class Groom:
             root_normal=None if self.root_normal is None else self.root_normal[idx],
             grid_shape=self.grid_shape if whole else None,
             source=self.source,
+            widths=None if self.widths is None else [self.widths[i].copy() for i in idx],
+            surface_uv=None if self.surface_uv is None else self.surface_uv[idx],
         )
 
     def with_projected_roots(self, *, overwrite: bool = False) -> Groom:

@@ -324,13 +324,42 @@ def _cache_writer(scene, out_path, notes: list, resume: bool):
     from hairwarp.io.background import BackgroundCacheWriter, background_supported
     from hairwarp.io.cache import CacheWriter
 
-    options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}", "layout": scene.output.layout,
-               "resume": resume}
+    out = scene.output
+    options = {"fps": float(scene.sim.fps), "comment": f"scene: {scene.name}", "layout": out.layout,
+               "resume": resume, "up_axis": out.up_axis, "meters_per_unit": float(out.meters_per_unit),
+               "start_frame": int(out.start_frame)}
     if scene.output.writer == "background":
         if background_supported():
             return BackgroundCacheWriter(out_path, **options)
         notes.append("output.writer = background needs a POSIX system; the cache was written inline")
     return CacheWriter(out_path, **options)
+
+
+def cache_root_uv(groom, root_uv) -> np.ndarray | None:
+    """Texture coordinates of the guide roots for the cache (``primvars:st``, ``groom_root_uv``): the groom's own
+    ``surface_uv`` when its file had them, else its 2-D root chart ``root_uv`` moved and scaled uniformly into the
+    unit square (a planar map of the scalp without seams), else None."""
+    if getattr(groom, "surface_uv", None) is not None:
+        return np.asarray(groom.surface_uv, dtype=np.float64)
+    if root_uv is None:
+        return None
+    uv = np.asarray(root_uv, dtype=np.float64)
+    lo = uv.min(axis=0)
+    span = float(np.max(uv.max(axis=0) - lo))
+    return (uv - lo) / span if span > 0.0 else np.zeros_like(uv)
+
+
+def _dense_widths(dense, guide_widths: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Per-vertex widths of the dense curves from the guides' (G, S+1): the guides' widths at the same fraction
+    of the strand, blended with each dense strand's guide weights."""
+    G, n = guide_widths.shape
+    blended = np.einsum("dj,djk->dk", dense.guide_weight, guide_widths[dense.guide_index])  # (D, S+1)
+    m = int(counts[0])
+    if m == n:
+        return blended.ravel()
+    t = np.linspace(0.0, 1.0, m)
+    s = np.linspace(0.0, 1.0, n)
+    return np.array([np.interp(t, s, row) for row in blended]).ravel()
 
 
 class RunStopped(Exception):
@@ -608,11 +637,16 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         sim = Simulation(scene, device=device)
         start = 0
         if cache.resumed_after is not None:
-            if cache.resumed_after > frames:
+            # Frames are stored at time code output.start_frame + frame; the checkpoints are named by time code.
+            first = cache.folder.frame_range()[0]
+            if first != cache.start_frame:
+                raise ValueError(f"{out_path}: cannot resume: the stopped run starts at frame {first}, "
+                                 f"output.start_frame is {cache.start_frame}")
+            if cache.resumed_after - cache.start_frame > frames:
                 raise ValueError(f"{out_path}: cannot resume: the stopped run is at frame {cache.resumed_after}, "
                                  f"past sim.frames = {frames}")
             sim.restore(cache.folder.read_checkpoint(cache.resumed_after))
-            start = cache.resumed_after + 1
+            start = cache.resumed_after - cache.start_frame + 1
         _check_disk(cache, scene, frames, start, report)
         with _Stops() as stops:
             kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
@@ -664,16 +698,22 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     kept = []
     overflow_noted = False
     dense = sim.dense
+    guide_uv = cache_root_uv(sim.groom, model.root_uv)
+    guide_widths = sim.groom.resampled_widths(S)  # (G, S+1) from the groom file, or None
     if dense is not None:
         hermite = scene.dense.basis == "linear"
         cache_counts = dense.curve_vertex_counts(hermite)
-        cache.add_curves("hair", cache_counts, widths=tuple(scene.dense.width), kind="dense", basis=scene.dense.basis)
+        dense_uv = None if guide_uv is None else np.einsum("dj,djc->dc", dense.guide_weight, guide_uv[dense.guide_index])
+        widths = tuple(scene.dense.width) if guide_widths is None else _dense_widths(dense, guide_widths, cache_counts)
+        cache.add_curves("hair", cache_counts, widths=widths, kind="dense", basis=scene.dense.basis, root_uv=dense_uv)
     if scene.output.guides:
         # with dense hair the guides are a guide purpose: renderers skip them, viewports may show them
-        cache.add_curves("guides", counts, widths=tuple(scene.output.guide_width), kind="guides",
-                         purpose="guide" if dense is not None else "default")
+        widths = tuple(scene.output.guide_width) if guide_widths is None else guide_widths.ravel()
+        cache.add_curves("guides", counts, widths=widths, kind="guides",
+                         purpose="guide" if dense is not None else "default", root_uv=guide_uv)
     for name, verts, faces, _ in meshes0:
-        cache.add_mesh(name, verts, faces)
+        cache.add_mesh(name, verts, faces, purpose=scene.output.collider_purpose)
+    t0 = cache.start_frame
     report.restart(start)
     for frame in range(start, frames + 1):
         if frame > 0:
@@ -688,7 +728,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         curves = {"guides": (points, velocities)} if scene.output.guides else {}
         if dense is not None:
             curves["hair"] = sim.dense_curves()
-        cache.write_frame(frame, curves, xforms={name: world for name, _, _, world in meshes} or None,
+        cache.write_frame(t0 + frame, curves, xforms={name: world for name, _, _, world in meshes} or None,
                           checkpoint=sim.checkpoint())
         if frame in shown:
             mesh = _merged_world_mesh(meshes)

@@ -184,7 +184,7 @@ _GROOM_SUFFIXES = (".tfx", ".hair", ".usd", ".usda", ".usdc", ".usdz")
 _MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off", ".tfxmesh")
 _SCALP_KEYS = ("count", "length", "points", "curl", "curl_period", "scalp_center", "scalp_radii", "cap_angle_deg",
                "front_cutoff_deg", "margin", "seed")
-_FILE_KEYS = ("up_axis", "scale", "translate")
+_FILE_KEYS = ("up_axis", "scale", "translate", "purpose")
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
 
@@ -214,6 +214,9 @@ def _check_groom(values, given, error):
                 error(key, "applies to generator = \"scalp\" only, not to groom.file")
         if values["up_axis"] is not None and Path(values["file"] or "").suffix.lower() not in (".tfx", ".hair"):
             error("up_axis", "applies to .tfx and .hair files; USD stages record their own up axis")
+        if _changed(values, given, "groom", "purpose") and Path(values["file"] or "").suffix.lower() not in (
+                ".usd", ".usda", ".usdc", ".usdz"):
+            error("purpose", "applies to USD stages only")
     if has_gen and values["front_cutoff_deg"] > values["cap_angle_deg"]:
         error("front_cutoff_deg", f"must be at most cap_angle_deg ({values['cap_angle_deg']:g}), "
                                   f"got {values['front_cutoff_deg']:g}")
@@ -382,6 +385,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "min_length": Field("float", 0.001, "drop strands shorter than this", "m", range="[0, inf)"),
             "max_strands": Field("int", 0, "keep every n-th strand so at most this many remain (0 = all)",
                                  range="[0, inf)"),
+            "purpose": Field("str", "auto", "file, USD: the curves to read by UsdGeom purpose: guide, render (all "
+                                            "but guides), all, or auto (the guides when the stage has both)",
+                             choices=("auto", "guide", "render", "all")),
         },
         doc="the guide strands: generated on a scalp, or read from a file",
         check=_check_groom,
@@ -528,6 +534,15 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                             choices=("inline", "background")),
             "layout": Field("str", "clips", "the cache: a root layer with one clip layer per frame (clips), or one "
                                             "file flattened at the end (single)", choices=("clips", "single")),
+            "up_axis": Field("str", "Z", "up axis of the cache stage (points are rotated into it; Maya and Houdini "
+                                         "work Y up)", choices=("Z", "Y")),
+            "meters_per_unit": Field("float", 1.0, "unit of the cache stage (0.01 = centimetres, as Maya and "
+                                                   "Unreal)", "m", range="(0, inf)"),
+            "start_frame": Field("int", 0, "time code of the first frame in the cache (shots often start at 1001)",
+                                 range="[0, inf)"),
+            "collider_purpose": Field("str", "proxy", "UsdGeom purpose of the collider meshes: proxy (shown in "
+                                                      "viewports, not rendered) or render",
+                                      choices=("proxy", "render")),
         },
         doc="what a run writes",
     ),
@@ -946,7 +961,9 @@ class Scene:
             groom = _groom.scalp_groom(**self.scalp_groom_kwargs())
         else:
             up = g["up_axis"].lower() if g["up_axis"] else None
-            groom = _groom.Groom.load(g["file"], min_length=g["min_length"], up_axis=up)
+            usd = Path(g["file"]).suffix.lower() in (".usd", ".usda", ".usdc", ".usdz")
+            extra = {"purpose": g["purpose"]} if usd else {}
+            groom = _groom.Groom.load(g["file"], min_length=g["min_length"], up_axis=up, **extra)
             if g["scale"] != 1.0 or any(g["translate"]):
                 m = np.eye(4)
                 m[:3, :3] *= g["scale"]

@@ -318,3 +318,16 @@ def test_info_usd_groom_and_cache(tmp_path):
     r = _hairwarp("info", tmp_path / "cache.usda")
     assert r.returncode == 0, r.stderr
     assert "2 curves" in r.stdout and "strands" not in r.stdout
+
+
+def test_schema_command(capsys):
+    """``hairwarp schema`` prints schema_doc(); with a section, only its keys; an unknown section exits 2."""
+    from hairwarp import cli
+    from hairwarp.scene import schema_doc
+
+    assert cli.main(["schema"]) == 0
+    assert capsys.readouterr().out.strip() == schema_doc().strip()
+    assert cli.main(["schema", "output"]) == 0
+    out = capsys.readouterr().out
+    assert "output.start_frame" in out and "sim.fps" not in out
+    assert cli.main(["schema", "nope"]) == 2

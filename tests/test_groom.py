@@ -501,7 +501,7 @@ def test_load_dispatch_and_errors(tmp_path, monkeypatch):
 
     calls = []
     fake = types.ModuleType("hairwarp.io.usd_groom")
-    fake.read_curves = lambda p: calls.append(p) or lines
+    fake.read_groom = lambda p, purpose: calls.append(p) or {"curves": lines, "widths": None, "uv": None}
     monkeypatch.setitem(sys.modules, "hairwarp.io.usd_groom", fake)
     usd = tmp_path / "g.usda"
     usd.write_text("#usda 1.0\n")

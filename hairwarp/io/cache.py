@@ -49,6 +49,7 @@ from hairwarp.io.usd_common import (
     _extent,
     _new_stage,
     _vec3f,
+    _vertex_normals,
     _vertex_widths,
 )
 
@@ -144,6 +145,7 @@ class CacheWriter:
         self._topology: list[tuple[str, dict]] = []
         self._topology_written = False
         self._half_widths: dict[str, float] = {}
+        self._mesh_faces: dict[str, np.ndarray] = {}  # triangles of each mesh, for per-frame normals
         self._resumed_frames = 0
         self.resumed_after = None
         _check_stage_units(self.path, up_axis, meters_per_unit)
@@ -170,7 +172,7 @@ class CacheWriter:
     # --- setup -----------------------------------------------------------------------------------------------
 
     def add_curves(self, name: str, curve_vertex_counts, *, widths=DEFAULT_WIDTHS, kind: str = "dense",
-                   basis: str = "linear", purpose: str = "default") -> str:
+                   basis: str = "linear", purpose: str = "default", root_uv=None, strand_ids=None) -> str:
         """Declare a BasisCurves prim ``/World/Hair/<name>``; its points are given to :meth:`write_frame`.
 
         Args:
@@ -182,7 +184,11 @@ class CacheWriter:
                 displayColor (brown for dense hair, orange for guides).
             basis: "linear" (a polyline through the points) or "catmullRom" (cubic Catmull-Rom with wrap "pinned",
                 which passes through every point, root and tip included).
-            purpose: the UsdGeom purpose; "guide" hides the curves from renders and from viewports that hide guides.
+            purpose: the UsdGeom purpose; "guide" hides the curves from renders and from viewports that hide guides,
+                and marks them as simulation guides for Unreal (``primvars:groom_guide`` = 1).
+            root_uv: optional (C, 2) texture coordinates of each curve's root on the scalp, written as
+                ``primvars:st`` and ``primvars:groom_root_uv`` (uniform, one per curve).
+            strand_ids: optional (C,) ints for ``primvars:groom_id``; default 0 .. C-1.
 
         Returns:
             The prim path.
@@ -206,21 +212,34 @@ class CacheWriter:
             raise UsdFileError(f"{where}: every {basis} curve needs at least {min_count} vertices")
         counts = counts.astype(np.int64)
         w, interp = _vertex_widths(counts, widths, where)
+        uv = ids = None
+        if root_uv is not None:
+            uv = np.asarray(root_uv, dtype=np.float64)
+            if uv.shape != (len(counts), 2) or not np.all(np.isfinite(uv)):
+                raise UsdFileError(f"{where}: root_uv must be a finite ({len(counts)}, 2) array, got {uv.shape}")
+        if strand_ids is not None:
+            ids = np.asarray(strand_ids)
+            if ids.shape != (len(counts),) or not np.issubdtype(ids.dtype, np.integer):
+                raise UsdFileError(f"{where}: strand_ids must be {len(counts)} ints")
         spec = {"name": name, "counts": counts, "widths": w / self.meters_per_unit, "interp": interp, "basis": basis,
-                "kind": kind, "purpose": purpose}
+                "kind": kind, "purpose": purpose, "root_uv": uv, "strand_ids": ids}
         self._author_curves(spec)
         self._curves[name] = {"vertex_count": int(counts.sum()),
                               "half_width": 0.5 * float(w.max()) / self.meters_per_unit, "velocities": None}
         return f"{HAIR_PATH}/{name}"
 
-    def add_mesh(self, name: str, points, face_vertex_indices, *, animated_points: bool = False) -> str:
-        """Declare a triangle mesh ``/World/Colliders/<name>`` with a time-sampled transform.
+    def add_mesh(self, name: str, points, face_vertex_indices, *, animated_points: bool = False,
+                 purpose: str = "proxy") -> str:
+        """Declare a triangle mesh ``/World/Colliders/<name>`` with a time-sampled transform and vertex normals.
 
         Args:
             name: prim name, a valid USD identifier.
             points: (V, 3) vertices [m] in the mesh's own frame (Z up); for an animated mesh, its rest pose.
             face_vertex_indices: (F, 3) vertex indices of the triangles.
-            animated_points: the points change per frame and are given to :meth:`write_frame` in ``mesh_points``.
+            animated_points: the points change per frame and are given to :meth:`write_frame` in ``mesh_points``
+                (the normals are then written per frame too).
+            purpose: the UsdGeom purpose: "proxy" (default) shows the collider in viewports and keeps it out of
+                renders; "render" or "default" renders it.
 
         Returns:
             The prim path.
@@ -236,8 +255,10 @@ class CacheWriter:
             raise UsdFileError(f"{where}: face_vertex_indices must be an (F, 3) array of ints")
         if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
             raise UsdFileError(f"{where}: face_vertex_indices out of range for {len(pts)} points")
+        if purpose not in ("default", "render", "proxy"):
+            raise UsdFileError(f"{where}: purpose must be default, render or proxy, not {purpose!r}")
         spec = {"name": name, "points": pts, "extent": np.stack([lo, hi]).astype(np.float32),
-                "faces": faces.astype(np.int32), "animated": bool(animated_points)}
+                "faces": faces.astype(np.int32), "animated": bool(animated_points), "purpose": purpose}
         self._author_mesh(spec)
         self._meshes[name] = {"animated": bool(animated_points), "vertex_count": len(pts)}
         return f"{COLLIDERS_PATH}/{name}"
@@ -251,6 +272,7 @@ class CacheWriter:
     def _author_mesh(self, spec: dict) -> None:
         """Keep a checked ``add_mesh`` (points in stage units, float32) for the topology layer."""
         self._topology.append(("mesh", spec))
+        self._mesh_faces[spec["name"]] = spec["faces"]
 
     # --- frames ----------------------------------------------------------------------------------------------
 
@@ -365,7 +387,8 @@ class CacheWriter:
         values = [(name, _vec3f(p), None if v is None else _vec3f(v),
                    _vec3f(_extent(*_column_bounds(p), self._half_widths[name]) if ext is None else ext))
                   for name, p, v, ext in prepared["curves"]]
-        mesh_values = {name: (_vec3f(p), _vec3f(_extent(*_column_bounds(p), 0.0) if ext is None else ext))
+        mesh_values = {name: (_vec3f(p), _vec3f(_extent(*_column_bounds(p), 0.0) if ext is None else ext),
+                              _vec3f(_vertex_normals(p, self._mesh_faces[name])))
                        for name, (p, ext) in prepared["meshes"].items()}
         nbytes = sum(a.nbytes for _, p, v, _ in prepared["curves"] for a in (p, v) if a is not None)
         nbytes += sum(p.nbytes for p, _ in prepared["meshes"].values())
@@ -384,10 +407,11 @@ class CacheWriter:
         for name, mat in prepared["xforms"].items():
             spec = Sdf.CreatePrimInLayer(layer, f"{COLLIDERS_PATH}/{name}")
             _sample(layer, spec, "xformOp:transform", types.Matrix4d, t, Gf.Matrix4d(mat.T.tolist()))
-        for name, (p, extent) in mesh_values.items():
+        for name, (p, extent, normals) in mesh_values.items():
             spec = Sdf.CreatePrimInLayer(layer, f"{COLLIDERS_PATH}/{name}")
             _sample(layer, spec, "points", types.Point3fArray, t, p)
             _sample(layer, spec, "extent", types.Float3Array, t, extent)
+            _sample(layer, spec, "normals", types.Normal3fArray, t, normals)
         del values, mesh_values
         t_set = time.perf_counter()
         self.folder.export_layer(layer, self.folder.frame_layer(frame), nbytes + _FRAME_OVERHEAD, f"frame {frame}")
@@ -416,7 +440,8 @@ class CacheWriter:
             if kind == "curves":
                 path = f"{HAIR_PATH}/{name}"
                 curves = _define_curves(stage, path, spec["counts"], spec["widths"], spec["interp"],
-                                        basis=spec["basis"], kind=spec["kind"], purpose=spec["purpose"])
+                                        basis=spec["basis"], kind=spec["kind"], purpose=spec["purpose"],
+                                        root_uv=spec.get("root_uv"), strand_ids=spec.get("strand_ids"))
                 curves.CreatePointsAttr()
                 curves.CreateExtentAttr()
                 animated = [("points", types.Point3fArray), ("extent", types.Float3Array)]
@@ -438,10 +463,14 @@ class CacheWriter:
                 # The given points are the default value; an animated mesh's clip samples override it.
                 mesh.CreatePointsAttr(_vec3f(spec["points"]))
                 mesh.CreateExtentAttr(_vec3f(spec["extent"]))
+                mesh.CreateNormalsAttr(_vec3f(_vertex_normals(spec["points"], faces)))
+                mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+                mesh.CreatePurposeAttr(spec.get("purpose", "proxy"))
                 mesh.AddTransformOp().Set(Gf.Matrix4d(1.0))
                 animated = [("xformOp:transform", types.Matrix4d)]
                 if spec["animated"]:
-                    animated += [("points", types.Point3fArray), ("extent", types.Float3Array)]
+                    animated += [("points", types.Point3fArray), ("extent", types.Float3Array),
+                                 ("normals", types.Normal3fArray)]
                 nbytes += 2 * faces.nbytes + spec["points"].nbytes
             prim = Sdf.CreatePrimInLayer(manifest, path)
             for attr, type_name in animated:

@@ -190,9 +190,22 @@ def _new_stage(layer_path: str | None, *, up_axis: str, meters_per_unit: float, 
     return layer, stage
 
 
+GROOM_API = "GroomAPI"
+"""The API schema Unreal's USD importer looks for to take a prim as a groom (it reads the curves under it, their
+points, widths and every ``primvars:groom_*``). usd-core does not define it, so it is applied by name (an entry of
+the prim's ``apiSchemas`` metadata), which is all the importer checks."""
+
+
 def _define_curves(stage, prim_path: str, counts: np.ndarray, widths: np.ndarray, widths_interp: str, *, basis: str,
-                   kind: str, purpose: str):
-    """Define a BasisCurves prim with its static topology, widths, colour and purpose."""
+                   kind: str, purpose: str, root_uv: np.ndarray | None = None, strand_ids: np.ndarray | None = None):
+    """Define a BasisCurves prim with its static topology, widths, colour, purpose and groom primvars.
+
+    Besides the UsdGeom attributes every client reads, the prim carries what Unreal's groom importer reads (one
+    value per curve, ``uniform``): ``primvars:groom_id`` (int, the strand's id), ``primvars:groom_guide`` (int, 1
+    on simulation guides: curves of purpose "guide"), and with ``root_uv`` both ``primvars:groom_root_uv`` (float2)
+    and the standard ``primvars:st`` (texCoord2f) that renderers, Blender and Houdini read; the prim and its
+    parent get the ``GroomAPI`` schema (see :data:`GROOM_API`).
+    """
     from pxr import Sdf, UsdGeom, Vt
 
     curves = UsdGeom.BasisCurves.Define(stage, prim_path)
@@ -208,9 +221,41 @@ def _define_curves(stage, prim_path: str, counts: np.ndarray, widths: np.ndarray
     curves.CreatePurposeAttr(purpose)
     color = GUIDE_COLOR if kind == "guides" else DENSE_COLOR
     curves.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([color]))
-    curves.GetPrim().CreateAttribute("hairwarp:curveKind", Sdf.ValueTypeNames.Token, custom=True,
-                                     variability=Sdf.VariabilityUniform).Set(kind)
+    prim = curves.GetPrim()
+    prim.CreateAttribute("hairwarp:curveKind", Sdf.ValueTypeNames.Token, custom=True,
+                         variability=Sdf.VariabilityUniform).Set(kind)
+    n = len(counts)
+    api = UsdGeom.PrimvarsAPI(prim)
+    ids = np.arange(n, dtype=np.int32) if strand_ids is None else np.asarray(strand_ids, dtype=np.int32)
+    api.CreatePrimvar("groom_id", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.uniform).Set(Vt.IntArray.FromNumpy(ids))
+    guide = np.full(n, 1 if purpose == "guide" else 0, dtype=np.int32)
+    api.CreatePrimvar("groom_guide", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.uniform).Set(
+        Vt.IntArray.FromNumpy(guide))
+    if root_uv is not None:
+        uv = np.ascontiguousarray(root_uv, dtype=np.float32).reshape(n, 2)
+        api.CreatePrimvar("groom_root_uv", Sdf.ValueTypeNames.Float2Array, UsdGeom.Tokens.uniform).Set(
+            Vt.Vec2fArray.FromNumpy(uv))
+        api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.uniform).Set(
+            Vt.Vec2fArray.FromNumpy(uv))
+    # The parent too: Unreal then imports the curves under it as one groom (dense hair and its guides together).
+    for p in (prim, prim.GetParent()):
+        p.AddAppliedSchema(GROOM_API)  # by name; a no-op when already there
     return curves
+
+
+def _vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals of a triangle mesh: the area-weighted sum of the normals of the faces
+    around each vertex, in the winding's (right-handed) sense; a vertex on no face gets (0, 0, 1)."""
+    p = np.asarray(points, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = np.zeros_like(p)
+    if len(f):
+        face_n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])  # length = twice the area
+        for k in range(3):
+            np.add.at(n, f[:, k], face_n)
+    norm = np.linalg.norm(n, axis=1)
+    out = np.where(norm[:, None] > 0.0, n / np.where(norm > 0.0, norm, 1.0)[:, None], (0.0, 0.0, 1.0))
+    return out.astype(np.float32)
 
 
 # One diagnostic of usd-core: "Error in 'pxrInternal_v0_26_11__pxrReserved__::UsdStage::Open' at line 1287 in file
