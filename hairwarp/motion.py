@@ -17,6 +17,8 @@ Kinds (``HeadMotion.from_config`` builds them from a scene's ``[head.motion]`` t
   the translation, a cubic Hermite in the rotation's tangent space on the rotation (world angular
   velocity continuous at every key), zero velocity at the first and last key.
 * :class:`Compose` - one motion carried by another.
+* ``usd`` - a prim of a USD stage (a character's head xform) over its time samples, relative to its first
+  sample (``hairwarp.io.usd_anim.head_motion_from_usd``): keyframes through the samples.
 
 Here ``tau = t - start`` and ``ramp(t)`` is the quintic smoothstep ``6x^5 - 15x^4 + 10x^3`` of
 ``x = tau / ramp``: the amplitude fades in over ``ramp`` seconds, so position, velocity and
@@ -56,7 +58,7 @@ __all__ = [
 ]
 
 #: ``kind`` values understood by :meth:`HeadMotion.from_config`.
-MOTION_KINDS = ("still", "turn", "nod", "shake", "translate", "keyframes")
+MOTION_KINDS = ("still", "turn", "nod", "shake", "translate", "keyframes", "usd")
 
 #: How :class:`Keyframes` interpolates between keys.
 KEY_INTERPOLATIONS = ("smooth", "monotone", "linear")
@@ -334,16 +336,23 @@ class HeadMotion:
             "shake": {"amplitude_deg", "period", "start", "ramp", "axis"},
             "translate": {"distance", "period", "start", "ramp", "axis"},
             "keyframes": {"keys", "interpolation"},
+            "usd": {"file", "prim", "interpolation"},
         }[kind]
         pivot = cfg.pop("pivot", pivot)
         extra = sorted(set(cfg) - allowed)
         common = {"amplitude_deg", "period", "start", "ramp", "axis", "distance"}
-        unknown = [k for k in extra if k not in common and k not in ("keys", "interpolation")]
+        unknown = [k for k in extra if k not in common and k not in ("keys", "interpolation", "file", "prim")]
         if unknown:
             raise ValueError(f"head.motion.{unknown[0]}: unknown key for a head motion")
         kw = {k: cfg[k] for k in allowed if k in cfg}
         if kind == "still":
             return Still(rest_position=rest_position)
+        if kind == "usd":
+            if "file" not in kw or "prim" not in kw:
+                raise ValueError("head.motion: kind = 'usd' needs file (a USD stage) and prim (the head's prim path)")
+            from hairwarp.io.usd_anim import head_motion_from_usd
+
+            return head_motion_from_usd(kw["file"], kw["prim"], interpolation=kw.get("interpolation", "smooth"))
         if kind == "keyframes":
             if "keys" not in kw:
                 raise ValueError("head.motion.keys: kind = 'keyframes' needs at least one [[head.motion.keys]] entry")

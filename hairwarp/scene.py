@@ -235,6 +235,14 @@ def _check_keys(values, given, error):
 
 def _check_motion(values, given, error):
     kind, keys = values["kind"], values["keys"]
+    if kind == "usd":
+        for key in ("file", "prim"):
+            if values[key] is None:
+                error(key, "kind = \"usd\" needs file (the stage) and prim (the head's prim path)")
+    else:
+        for key in ("file", "prim"):
+            if values[key] is not None:
+                error(key, f"applies to kind = \"usd\" only (kind is \"{kind}\")")
     if kind == "keyframes" and not keys:
         error("keys", "kind = \"keyframes\" needs at least one [[head.motion.keys]] table")
     if kind != "keyframes" and keys:
@@ -445,7 +453,11 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                     "pivot": Field("vec3", None, "world point the head turns about; default: the neck, "
                                                  "center - (0, 0, radii.z)", "m"),
                     "keys": ArrayOf(_MOTION_KEY, doc="keyframes: the keys, in time order"),
-                    "interpolation": Field("str", "smooth", "keyframes: smooth (Catmull-Rom, C1; overshoots before a "
+                    "file": Field("path", None, "usd: the stage holding the head's animation, relative to the scene "
+                                                "file", suffixes=(".usd", ".usda", ".usdc", ".usdz")),
+                    "prim": Field("str", None, "usd: the head's prim path in that stage, e.g. /Character/Head; the "
+                                               "head moves as it does from its first time sample on"),
+                    "interpolation": Field("str", "smooth", "keyframes, usd: smooth (Catmull-Rom, C1; overshoots before a "
                                                             "jump), monotone (no overshoot, C1) or linear (constant "
                                                             "speed between keys)",
                                            choices=_motion.KEY_INTERPOLATIONS),

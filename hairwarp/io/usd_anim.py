@@ -81,25 +81,12 @@ def read_animated_mesh(path, prim_path=None):
     return _read_animated_mesh(path, prim_path)[:4]
 
 
-def _read_animated_mesh(path, prim_path):
-    """:func:`read_animated_mesh`, and the prim's name."""
-    from pxr import Usd, UsdGeom
+def _rigid_world_poses(prim, time_codes, codes, c4, where):
+    """The prim's world matrices at ``time_codes`` as rigid poses in metres, Z up (column convention), and the
+    constant scale/shear/mirror factored out of them (the same at every sample, else an error)."""
+    from pxr import UsdGeom
 
-    stage = _open_stage(path)
-    prim = _find_mesh(stage, prim_path, path)
-    where = f"{path}: {prim.GetPath()}"
-    mesh = UsdGeom.Mesh(prim)
-    conv = _stage_to_metres_z(stage)
-    c4 = np.eye(4)
-    c4[:3, :3] = conv
     c4_inv = np.linalg.inv(c4)
-    points_attr = mesh.GetPointsAttr()
-    point_times = points_attr.GetTimeSamples()
-    codes = sorted(_transform_times(prim) | set(point_times))
-    tcps = stage.GetTimeCodesPerSecond() or 24.0
-    time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
-    times = np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)
-
     matrices = np.empty((len(time_codes), 4, 4))
     scale = None
     for i, tc in enumerate(time_codes):
@@ -111,10 +98,77 @@ def _read_animated_mesh(path, prim_path):
             scale = k
         elif np.abs(k - scale).max() > _CONSTANT_SCALE_RTOL * max(np.abs(scale).max(), 1e-300):
             raise UsdFileError(f"{where}: its world scale changes with time (at time code {codes[i]:g}); "
-                               "colliders move rigidly, so only a constant scale can be baked into the mesh")
+                               "it moves rigidly, so only a constant scale can be taken out of it")
         matrices[i] = np.eye(4)
         matrices[i, :3, :3] = rot
         matrices[i, :3, 3] = world[:3, 3]
+    return matrices, scale
+
+
+def read_prim_motion(path, prim_path: str):
+    """The world motion of any transformable prim (a head xform, a joint's proxy) over its time samples.
+
+    Returns ``(times [s] (T,), matrices (T, 4, 4))``: rigid world poses in metres, Z up, column convention, read
+    at every time code where the prim or an ancestor has a transform sample (one pose at the default time when
+    none has). A constant scale is left out; one that changes with time is an error.
+
+    Raises:
+        UsdFileError: missing or unreadable file, no such prim or not transformable, a changing scale.
+    """
+    from pxr import Usd, UsdGeom
+
+    stage = _open_stage(path)
+    prim = stage.GetPrimAtPath(prim_path) if prim_path and str(prim_path).startswith("/") else None
+    if prim is None or not prim.IsValid():
+        raise UsdFileError(f"{path}: no prim {prim_path!r} (give its absolute path, e.g. /Character/Head)")
+    if not UsdGeom.Xformable(prim):
+        raise UsdFileError(f"{path}: {prim_path} is a {prim.GetTypeName() or 'typeless prim'}, not transformable")
+    c4 = np.eye(4)
+    c4[:3, :3] = _stage_to_metres_z(stage)
+    codes = sorted(_transform_times(prim))
+    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
+    matrices, _ = _rigid_world_poses(prim, time_codes, codes, c4, f"{path}: {prim_path}")
+    return (np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)), matrices
+
+
+def head_motion_from_usd(path, prim_path: str, *, interpolation: str = "smooth"):
+    """A head motion that follows a prim of a USD stage, relative to its first sample.
+
+    The groom is built in the world at rest; the head frame there is the prim's pose at its first sample, so
+    ``M_head(t) = M(t) M(t_0)^-1``: at ``t_0`` the head is at rest, and after it moves as the prim does. The
+    samples become :class:`hairwarp.motion.Keyframes` (``interpolation`` as there; the pose holds before the
+    first and after the last sample).
+    """
+    from hairwarp.colliders import matrix_to_transform
+    from hairwarp.motion import Keyframes
+
+    times, matrices = read_prim_motion(path, prim_path)
+    first_inv = np.linalg.inv(matrices[0])
+    rel = np.array([m @ first_inv for m in matrices])
+    xf = np.array([matrix_to_transform(x) for x in rel]).reshape(-1, 7)
+    return Keyframes(times, xf[:, :3], xf[:, 3:], interpolation=interpolation)
+
+
+def _read_animated_mesh(path, prim_path):
+    """:func:`read_animated_mesh`, and the prim's name."""
+    from pxr import Usd, UsdGeom
+
+    stage = _open_stage(path)
+    prim = _find_mesh(stage, prim_path, path)
+    where = f"{path}: {prim.GetPath()}"
+    mesh = UsdGeom.Mesh(prim)
+    conv = _stage_to_metres_z(stage)
+    c4 = np.eye(4)
+    c4[:3, :3] = conv
+    points_attr = mesh.GetPointsAttr()
+    point_times = points_attr.GetTimeSamples()
+    codes = sorted(_transform_times(prim) | set(point_times))
+    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
+    times = np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)
+
+    matrices, scale = _rigid_world_poses(prim, time_codes, codes, c4, where)
 
     first = time_codes[0]
     faces = _triangles(mesh, first)

@@ -1,0 +1,67 @@
+"""A character from USD: the head's motion read from a stage, and the shipped character scene on it."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _character import END, NECK_CM, head_rotation_deg, write_character_stage
+from scipy.spatial.transform import Rotation
+
+import hairwarp as hw
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+# Y up in cm to Z up in m: (x, y, z) -> 0.01 (x, -z, y)
+Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def test_head_motion_equals_the_stage_at_every_sample(tmp_path):
+    """The head frame at each time sample is the prim's world pose (from its authored ops, converted to metres Z up
+    here, independently of the reader) relative to its first sample."""
+    from hairwarp.io.usd_anim import head_motion_from_usd
+
+    path = tmp_path / "character.usda"
+    write_character_stage(path)
+    motion = head_motion_from_usd(path, "/Character/Head")
+    neck = 0.01 * Y_TO_Z @ np.asarray(NECK_CM)
+    for code in range(0, END + 1, 2):
+        R = Y_TO_Z @ Rotation.from_euler("xyz", head_rotation_deg(code), degrees=True).as_matrix() @ Y_TO_Z.T
+        expect = np.eye(4)  # about the neck: T(neck) R T(-neck), the first sample being the identity
+        expect[:3, :3] = R
+        expect[:3, 3] = neck - R @ neck
+        # float64 throughout; the stage stores the angles as float32 (7 digits)
+        np.testing.assert_allclose(motion.evaluate(code / 24.0).matrix(), expect, atol=1e-6)
+
+
+def test_shipped_character_stage_is_the_generated_one(tmp_path):
+    """scenes/character.usda is what tests/_character.py writes (so the scene's input is reproducible)."""
+    from pxr import Usd
+
+    path = tmp_path / "character.usda"
+    write_character_stage(path)
+    shipped = Usd.Stage.Open(str(SCENES / "character.usda"))
+    made = Usd.Stage.Open(str(path))
+    for prim in made.Traverse():
+        other = shipped.GetPrimAtPath(prim.GetPath())
+        assert other.IsValid(), prim.GetPath()
+        for attr in prim.GetAttributes():
+            theirs = other.GetAttribute(attr.GetName())
+            assert attr.GetTimeSamples() == theirs.GetTimeSamples()
+            for t in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
+                assert attr.Get(t) == theirs.Get(t), (attr.GetPath(), t)
+
+
+@pytest.mark.parametrize("frames", [12])
+def test_character_scene_roots_follow_the_head(frames):
+    """The shipped character scene runs; every frame the guide roots sit on the head frame read from the stage."""
+    from hairwarp.runner import Simulation
+
+    scene = hw.Scene.load(SCENES / "character.toml", overrides=["dense.count=0", "groom.count=40"])
+    sim = Simulation(scene)
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    rest_roots = sim.model.rest_vertex_positions.reshape(G, S + 1, 3)[:, 0]
+    for frame in range(1, frames + 1):
+        sim.advance_frame()
+        m = sim.head_matrix(frame * sim.frame_dt)
+        roots = sim.guide_curves()[0].reshape(G, S + 1, 3)[:, 0]
+        np.testing.assert_allclose(roots, rest_roots @ m[:3, :3].T + m[:3, 3], atol=1e-5)  # float32 at 1.6 m
+    assert not np.allclose(m, np.eye(4))  # the head did move
