@@ -6,7 +6,7 @@ Usage::
     python -m hairwarp.bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
 
 SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling``, ``budget`` or ``all`` (the default), or a
-suite run only when named: ``collision``, ``interactions``, ``dense`` or ``wedge`` (``EXTRA_SUITES``). A run
+suite run only when named: ``collision``, ``interactions``, ``dense``, ``wedge`` or ``robustness`` (``EXTRA_SUITES``). A run
 writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
 ``benchmarks.md`` into the output folder: ``docs/`` of the source checkout for a full run,
 ``out/bench-quick/`` for ``--quick`` (a smoke run never overwrites the committed report).
@@ -29,6 +29,7 @@ EXTRA_SUITES = {
     "interactions": ("hairwarp.benchmarks.interactions", "suite_interactions"),
     "dense": ("hairwarp.benchmarks.dense", "suite_dense"),
     "wedge": ("hairwarp.benchmarks.wedge", "suite_wedge"),
+    "robustness": ("hairwarp.benchmarks.robustness", "suite_robustness"),
 }
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
