@@ -35,7 +35,7 @@ CHART_GRID = "bench_robustness_grid.png"
 
 SCENES = ("tiny", "long_hair", "long_hair_shoulders", "fast_turn", "ratboy_mohawk")
 
-# Goals of the item "Hair that holds up".
+# Goals of hair that holds up: at rest when the head is still, whole at speed, stable at frame rate.
 GOAL_REST_MM_S = 2.0  # guide tip RMS speed in the 6th second, head still [mm/s]
 GOAL_REST_RATIO = 1.2  # ... and at most this times the same scene without colliders
 GOAL_RESTING_MM = 0.05  # largest per-frame motion of a vertex resting on a collider [mm]
