@@ -6,8 +6,8 @@ Usage::
     python -m hairwarp.bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
 
 SUITE is ``dynamics``, ``accuracy``, ``stability``, ``scaling``, ``budget`` or ``all`` (the default), or a
-suite run only when named: ``collision``, ``interactions``, ``dense`` or ``wedge`` (``EXTRA_SUITES``). A run
-writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
+suite run only when named: ``collision``, ``interactions``, ``dense``, ``wedge`` or ``robustness``
+(``EXTRA_SUITES``). A run writes ``benchmarks.json`` (every figure and the machine it ran on), PNG charts and the report
 ``benchmarks.md`` into the output folder: ``docs/`` of the source checkout for a full run,
 ``out/bench-quick/`` for ``--quick`` (a smoke run never overwrites the committed report).
 Running one suite keeps the other suites' figures already in the folder's JSON.
@@ -29,6 +29,7 @@ EXTRA_SUITES = {
     "interactions": ("hairwarp.benchmarks.interactions", "suite_interactions"),
     "dense": ("hairwarp.benchmarks.dense", "suite_dense"),
     "wedge": ("hairwarp.benchmarks.wedge", "suite_wedge"),
+    "robustness": ("hairwarp.benchmarks.robustness", "suite_robustness"),
 }
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
@@ -62,15 +63,20 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     path = out / JSON_NAME
     results = {"schema": SCHEMA, "suites": {}}
+    old_machine = None
     if path.is_file():
         try:
             old = json.loads(path.read_text())
             if old.get("schema") == SCHEMA:
                 results["suites"] = old.get("suites", {})
+                old_machine = old.get("machine")
         except (OSError, ValueError):
             pass
     machine = common.machine_info()
-    results["machine"] = machine
+    # The report's header describes the main suites' machine: a run of suites named alone (each keeps its own
+    # machine in its section) leaves it as it was.
+    keep_header = old_machine is not None and not any(name in SUITES for name in suites)
+    results["machine"] = old_machine if keep_header else machine
     t_all = time.perf_counter()
     for name in suites:
         log(f"== suite {name} ==")
@@ -88,7 +94,8 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
         log(f"== suite {name}: {data['wall_s']} s ==")
         path.write_text(json.dumps(results, indent=1, default=_jsonable))
     results["wall_s"] = round(time.perf_counter() - t_all, 1)
-    results["machine"]["load_average_end"] = common.load_average()
+    if not keep_header:
+        results["machine"]["load_average_end"] = common.load_average()
     path.write_text(json.dumps(results, indent=1, default=_jsonable))
     report.write_report(results, out)
     return results

@@ -326,3 +326,35 @@ def test_budget_tiny_scene_picks_the_cheapest_within_bound(budget_tiny):
     assert s["combined"]["overrides"] == picked
     text = "\n".join(md_budget({"scenes": [s], "skipped": [{"name": "x", "reason": "absent"}]}))
     assert "### `tiny`" in text and "`x` skipped: absent" in text
+
+
+# ---------------------------------------------------------------------------------------------
+# robustness suite: its smallest pieces on the tiny scene
+
+
+def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
+    from hairwarp.benchmarks.robustness import bench_rest, bench_sweep, chart_grid, chart_rest
+
+    rest = bench_rest(["tiny"], duration=2.0, second=2)
+    (row,) = rest["rows"]
+    assert row["status"] == "ok" and row["scene"] == "tiny"
+    for label in ("colliders", "no_colliders"):
+        r = row[label]
+        assert r["fault"] is None and not r["nan"] and r["frames_done"] == 60
+        assert len(r["rms_speed_per_second_mm_s"]) == 2 and len(r["rms_speed_per_frame_mm_s"]) == 60
+        assert 0.0 <= r["moving_tips_fraction"] <= 1.0
+    assert row["colliders"]["second_mm_s"] == row["colliders"]["rms_speed_per_second_mm_s"][1]
+    assert row["ratio"] == pytest.approx(row["colliders"]["second_mm_s"] / row["no_colliders"]["second_mm_s"])
+    assert isinstance(row["meets_speed"], bool) and isinstance(row["meets_ratio"], bool)
+    assert set(row["resting"]) == {"vertices", "max_mm", "rms_mm"}
+    # With the head still and nothing to touch, the strands only lose energy (drag, damping): the tips slow down
+    # from one second to the next.
+    free = row["no_colliders"]["rms_speed_per_second_mm_s"]
+    assert free[1] < 0.8 * free[0]
+
+    sweep = bench_sweep((8,), (1,), (2e-4,), 0.2, scene_name="tiny")
+    assert len(sweep["cells"]) == 2  # links and contacts on, off
+    assert {c["status"] for c in sweep["cells"]} <= {"ok", "fault", "nan", "burst"}
+    assert sum(sweep["counts"].values()) == 2
+    assert chart_rest(rest, None, tmp_path / "rest.png").stat().st_size > 0
+    assert chart_grid(sweep, tmp_path / "grid.png").stat().st_size > 0

@@ -6,7 +6,8 @@ along body -z, centre of mass at (0, 0, -L/2), explicit mass and inertia in ever
 Warp and Newton store quaternions (x, y, z, w), MuJoCo (w, x, y, z).
 
 ``run_request(request)`` is the child's entry; ``request["kind"]`` is ``throughput``,
-``trajectory``, ``reference`` or ``stability_mujoco``.
+``trajectory``, ``reference``, ``stability_mujoco``, ``stability_newton`` or ``robustness_mujoco_rest``
+(:func:`hairwarp.benchmarks.robustness.mujoco_rest`).
 """
 
 from __future__ import annotations
@@ -682,4 +683,8 @@ def run_request(req: dict) -> dict:
         return stability_mujoco(req)
     if kind == "stability_newton":
         return stability_newton(req)
+    if kind == "robustness_mujoco_rest":
+        from hairwarp.benchmarks.robustness import mujoco_rest
+
+        return mujoco_rest(req)
     raise ValueError(f"unknown request kind {kind!r}")

@@ -610,7 +610,8 @@ def md_other(name: str, data: dict, out: Path) -> list[str]:
 # Suites run by name whose modules render their own report section: name -> (module, function(data) -> lines).
 EXTRA_SECTIONS = {"interactions": ("hairwarp.benchmarks.interactions", "md_interactions"),
                   "dense": ("hairwarp.benchmarks.dense", "md_dense"),
-                  "wedge": ("hairwarp.benchmarks.wedge", "md_wedge")}
+                  "wedge": ("hairwarp.benchmarks.wedge", "md_wedge"),
+                  "robustness": ("hairwarp.benchmarks.robustness", "md_robustness")}
 
 
 def _extra_section(name: str):
@@ -687,6 +688,10 @@ def summary_lines(results: dict, suites=None) -> list[str]:
                 lines.append(f"interactions: {g['strands']} guides, all stages {_g(g['per_dynamics'])}x the dynamics "
                              f"step (goal <= {s['interactions']['goal_per_dynamics']:g}x: "
                              f"{'meets' if g['meets'] else 'NOT MET'})")
+    if "robustness" in names and "robustness" in s:
+        from hairwarp.benchmarks.robustness import summary
+
+        lines += summary(s["robustness"])
     return lines
 
 
