@@ -2,9 +2,9 @@
 
 ::
 
-    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [-s KEY=VALUE ...]
+    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--threads N] [-s KEY=VALUE ...]
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
-    hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
+    hairwarp bench [SUITE] [--quick] [--device D] [--threads N] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
     hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
@@ -50,6 +50,8 @@ def _cmd_run(args) -> int:
         overrides.append(f"sim.frames={args.frames}")
     if args.device is not None:
         overrides.append(f"sim.device={args.device!r}")
+    if args.threads is not None:
+        overrides.append(f"sim.threads={args.threads}")
     scene = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
@@ -223,6 +225,16 @@ def _run_farm(args, farm, tasks, out: Path, shared_framing: bool) -> int:
 # parser
 
 
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -299,6 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
     p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
+    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+                   help="CPU threads (overrides sim.threads; 0: every core this process may use)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
@@ -316,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("suite", nargs="?", metavar="SUITE", help="benchmark suite; default: all")
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     p.add_argument("--device", metavar="D", help="Warp device")
+    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+                   help="CPU threads of the timed runs (default: every core this process may use; the threads "
+                        "suite times 1 against N)")
     p.add_argument("--out", metavar="DIR", help="folder for results and charts")
     p.add_argument("--format", choices=("human", "json"), default="human", help="output format")
     p.set_defaults(func=_cmd_bench)
