@@ -29,6 +29,7 @@ EXTRA_SUITES = {
     "interactions": ("hairwarp.benchmarks.interactions", "suite_interactions"),
     "dense": ("hairwarp.benchmarks.dense", "suite_dense"),
     "wedge": ("hairwarp.benchmarks.wedge", "suite_wedge"),
+    "threads": ("hairwarp.benchmarks.threads", "suite_threads"),
 }
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
@@ -178,6 +179,7 @@ def main(args=None) -> int:
     device = getattr(args, "device", None) or "cpu"
     quick = bool(getattr(args, "quick", False))
     config = BenchConfig.quick_preset(device) if quick else BenchConfig.full(device)
+    config.threads = int(getattr(args, "threads", None) or 0)
     out = Path(args.out) if getattr(args, "out", None) else default_out(quick)
     results = run_suites(suites, config, out, _log_to_stderr)
     if getattr(args, "format", "human") == "json":

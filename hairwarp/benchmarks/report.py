@@ -610,7 +610,8 @@ def md_other(name: str, data: dict, out: Path) -> list[str]:
 # Suites run by name whose modules render their own report section: name -> (module, function(data) -> lines).
 EXTRA_SECTIONS = {"interactions": ("hairwarp.benchmarks.interactions", "md_interactions"),
                   "dense": ("hairwarp.benchmarks.dense", "md_dense"),
-                  "wedge": ("hairwarp.benchmarks.wedge", "md_wedge")}
+                  "wedge": ("hairwarp.benchmarks.wedge", "md_wedge"),
+                  "threads": ("hairwarp.benchmarks.threads", "md_threads")}
 
 
 def _extra_section(name: str):
