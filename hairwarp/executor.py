@@ -162,7 +162,8 @@ class Executor:
             per_chunk: ``{index: [value per chunk]}``: arguments (indices as above) that differ between chunks.
         """
         args = [*inputs, *outputs]
-        if self.device.is_cuda:
+        if self.device.is_cuda or _capturing(self.device):
+            # a graph capture records launches made through wp.launch only, and replays them on one thread
             wp.launch(kernel, dim=dim, inputs=[0, *args], device=self.device)
             return
         if chunks is None:
@@ -222,6 +223,13 @@ class Executor:
             have.append(wp.zeros(array.shape, dtype=array.dtype, device=self.device))
         self._private[key] = have
         return have[:count]
+
+
+def _capturing(device) -> bool:
+    """Whether a Warp graph capture on the CPU is recording (then every launch is one recorded launch)."""
+    from warp._src.context import _get_apic_capture_for_device
+
+    return _get_apic_capture_for_device(device) is not None
 
 
 def _pack(kernel, index, value, device):

@@ -669,7 +669,9 @@ class HairContacts:
                 bounds(S, state.vertex_positions)
                 trees.append(bvh.rebuild if rebuild else bvh.refit)
         # Warp refits or rebuilds a CPU tree on one thread: the two trees (independent) go to two threads.
-        if self.executor is not None:
+        from hairwarp.executor import _capturing
+
+        if self.executor is not None and not _capturing(self.device):
             self.executor.run(trees)
         else:
             for fit in trees:
@@ -726,7 +728,10 @@ class HairContacts:
         """
         ex = self.executor
         n = len(inputs)
-        chunks = ex.chunks(dim, BLOCK_MIN_CHUNK) if ex is not None and ex.parallel else [(0, dim)]
+        from hairwarp.executor import _capturing
+
+        parallel = ex is not None and ex.parallel and not _capturing(self.device)
+        chunks = ex.chunks(dim, BLOCK_MIN_CHUNK) if parallel else [(0, dim)]
         if len(chunks) == 1:
             launch(ex, kernel, dim, inputs, [self.buffer, fault], device=self.device)
             return
