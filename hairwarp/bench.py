@@ -30,6 +30,7 @@ EXTRA_SUITES = {
     "dense": ("hairwarp.benchmarks.dense", "suite_dense"),
     "wedge": ("hairwarp.benchmarks.wedge", "suite_wedge"),
     "robustness": ("hairwarp.benchmarks.robustness", "suite_robustness"),
+    "threads": ("hairwarp.benchmarks.threads", "suite_threads"),
 }
 JSON_NAME = "benchmarks.json"
 REPORT_NAME = "benchmarks.md"
@@ -185,6 +186,7 @@ def main(args=None) -> int:
     device = getattr(args, "device", None) or "cpu"
     quick = bool(getattr(args, "quick", False))
     config = BenchConfig.quick_preset(device) if quick else BenchConfig.full(device)
+    config.threads = int(getattr(args, "threads", None) or 0)
     out = Path(args.out) if getattr(args, "out", None) else default_out(quick)
     results = run_suites(suites, config, out, _log_to_stderr)
     if getattr(args, "format", "human") == "json":

@@ -2,11 +2,11 @@
 
 ::
 
-    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--up-axis Y|Z] [--units M] [--start-frame N]
-                 [-s KEY=VALUE ...]
+    hairwarp run [SCENE] [-o OUT.usdc] [--frames N] [--device D] [--threads N] [--up-axis Y|Z] [--units M]
+                 [--start-frame N] [-s KEY=VALUE ...]
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
     hairwarp schema [SECTION]       # every scene key: type, default, range, unit, meaning
-    hairwarp bench [SUITE] [--quick] [--device D] [--out DIR] [--format human|json]
+    hairwarp bench [SUITE] [--quick] [--device D] [--threads N] [--out DIR] [--format human|json]
     hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
     hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
@@ -58,6 +58,8 @@ def _cmd_run(args) -> int:
         overrides.append(f"output.meters_per_unit={args.meters_per_unit!r}")
     if args.start_frame is not None:
         overrides.append(f"output.start_frame={args.start_frame}")
+    if args.threads is not None:
+        overrides.append(f"sim.threads={args.threads}")
     scene = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
@@ -263,6 +265,16 @@ def _run_farm(args, farm, tasks, out: Path, shared_framing: bool) -> int:
 # parser
 
 
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -270,16 +282,6 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
     return value
 
 
@@ -311,7 +313,7 @@ def _farm_options(p) -> None:
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames of every run (sim.frames)")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
                    help="override a scene key in every run (repeatable)")
-    p.add_argument("--retries", type=_non_negative_int, default=2, metavar="N",
+    p.add_argument("--retries", type=_nonnegative_int, default=2, metavar="N",
                    help="reruns of a run after an error other than a simulation fault (default 2)")
     p.add_argument("--no-sheet", action="store_true", help="do not draw the contact sheet")
 
@@ -342,8 +344,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--up-axis", choices=("Y", "Z"), help="up axis of the cache (overrides output.up_axis)")
     p.add_argument("--meters-per-unit", "--units", type=float, metavar="M",
                    help="unit of the cache in metres, e.g. 0.01 for centimetres (overrides output.meters_per_unit)")
-    p.add_argument("--start-frame", type=_non_negative_int, metavar="N",
+    p.add_argument("--start-frame", type=_nonnegative_int, metavar="N",
                    help="time code of the first frame (overrides output.start_frame)")
+    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+                   help="CPU threads (overrides sim.threads; 0: every core this process may use)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
@@ -366,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("suite", nargs="?", metavar="SUITE", help="benchmark suite; default: all")
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     p.add_argument("--device", metavar="D", help="Warp device")
+    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+                   help="CPU threads of the timed runs (default: every core this process may use; the threads "
+                        "suite times 1 against N)")
     p.add_argument("--out", metavar="DIR", help="folder for results and charts")
     p.add_argument("--format", choices=("human", "json"), default="human", help="output format")
     p.set_defaults(func=_cmd_bench)

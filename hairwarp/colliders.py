@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from hairwarp.executor import launch
 from hairwarp.kernels.types import ColliderKind
 
 # Rotation part of a placement must be orthonormal to this tolerance (float32 matrices written to
@@ -304,6 +305,10 @@ class Collider:
         return cls.from_trimesh(mesh, local_xform=_translation(center), name=name, **options)
 
 
+#: Fewest strands per chunk of the per-strand collision launches (``hairwarp.executor``).
+STRAND_MIN_CHUNK = 16
+
+
 class ColliderSet:
     """Colliders on the device and the per-step strand projection.
 
@@ -328,6 +333,7 @@ class ColliderSet:
         self.colliders = list(colliders)
         self.swept = bool(swept)
         self.device = wp.get_device(device)
+        self.executor = None  # the solver's hairwarp.executor.Executor, set when a Solver takes this set
         names = [c.name for c in self.colliders]
         duplicate = next((n for n in names if names.count(n) > 1), None)
         if duplicate is not None:
@@ -527,11 +533,11 @@ class ColliderSet:
             return
         self._check_bound(model)
         c = self.contacts
-        wp.launch(detect_body_contacts, dim=model.strand_count, device=self.device, inputs=[
+        launch(self.executor, detect_body_contacts, model.strand_count, [
             model.seg_per_strand, model.seg_length, self.shapes, model.chains.gravity, self.collider_xform,
             self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
             state.vertex_positions, state.vertex_velocities, self.vert_exempt,
-        ], outputs=[c.normal, c.object_velocity, c.gap, c.friction])
+        ], [c.normal, c.object_velocity, c.gap, c.friction], device=self.device, min_chunk=STRAND_MIN_CHUNK)
 
     def reset_contacts(self):
         """Forget the contacts' friction history (after a teleport)."""
@@ -563,14 +569,17 @@ class ColliderSet:
         if self.count == 0:
             return
         self._check_bound(model)
-        wp.launch(collide_strands, dim=model.strand_count, device=self.device, inputs=[
+        inputs = [
             model.chains, int(self.swept), self.shapes, self.collider_xform, self.collider_velocity, control.head_xform,
             control.head_velocity, dt_array,
             int(state_in is not None), self._no_previous if state_in is None else state_in.vertex_positions,
             self.vert_exempt,
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
             state.fault,
-        ])
+        ]
+        # one thread per strand, each writing its own strand; the fault bits are private per chunk
+        launch(self.executor, collide_strands, model.strand_count, inputs, device=self.device,
+               min_chunk=STRAND_MIN_CHUNK, private_or=[len(inputs) - 1])
 
 
 #: ``h c`` of a body contact's damper per kilogram of its strand: a contact leaves 1 % of an approach or a slip

@@ -18,6 +18,7 @@ import time
 import numpy as np
 import warp as wp
 
+from hairwarp.executor import launch
 from hairwarp.kernels import interpolate as _k
 
 # Boundary triangles of the Delaunay triangulation are dropped while their longest 3-D edge is
@@ -167,6 +168,12 @@ def barycentric_weights(root_uv: np.ndarray, triangles: np.ndarray, query_uv: np
     return found, weights
 
 
+#: Fewest dense vertices (or samples) per chunk of the interpolation and Hermite launches, and fewest dense
+#: strands per chunk of the push-out (``hairwarp.executor``).
+DENSE_MIN_CHUNK = 1024
+STRAND_MIN_CHUNK = 32
+
+
 class DenseHair:
     """Dense strands interpolated from guides, evaluated on the device once per output frame.
 
@@ -203,7 +210,11 @@ class DenseHair:
             dense_clump_guide: int32 (D,); dense_root_offset, dense_tip_offset: vec3 (D,) [m], head frame.
         dense_vertices, dense_velocities: interpolated vertices [m] / [m/s], vec3 (D*(S+1),), world.
         curve_points, curve_velocities: Hermite samples [m] / [m/s], vec3 (D*P,), world.
+        executor: the :class:`hairwarp.executor.Executor` its launches run on (a simulation gives it its
+            solver's), or None for one launch each.
     """
+
+    executor = None
 
     def __init__(self):
         raise TypeError("use DenseHair.build(guide_rest, root_uv, count=... | density=...)")
@@ -463,10 +474,11 @@ class DenseHair:
             )
 
     def _interpolate(self, guide_x, head_xform, head_velocity, velocity, out):
-        wp.launch(
+        launch(
+            self.executor,
             _k.dense_interpolate,
-            dim=out.shape[0],
-            inputs=[
+            out.shape[0],
+            [
                 self.seg_per_strand,
                 self.dense_guide_index,
                 self.dense_guide_weight,
@@ -481,8 +493,9 @@ class DenseHair:
                 self._identity_xform if head_xform is None else head_xform,
                 self._zero_velocity if head_velocity is None else head_velocity,
             ],
-            outputs=[out],
+            [out],
             device=self.device,
+            min_chunk=DENSE_MIN_CHUNK,
         )
         return out
 
@@ -520,13 +533,8 @@ class DenseHair:
     def _densify(self, src, out):
         if src.shape[0] != self.dense_count * (self.seg_per_strand + 1):
             raise DenseHairError(f"dense_vertices has {src.shape[0]} entries, expected D*(S+1)")
-        wp.launch(
-            _k.hermite_samples,
-            dim=out.shape[0],
-            inputs=[self.seg_per_strand, self.samples_per_segment, src],
-            outputs=[out],
-            device=self.device,
-        )
+        launch(self.executor, _k.hermite_samples, out.shape[0], [self.seg_per_strand, self.samples_per_segment, src],
+               [out], device=self.device, min_chunk=DENSE_MIN_CHUNK)
         return out
 
     def push_out(self, colliders, head_xform: wp.array | None = None, dense_vertices: wp.array | None = None,
@@ -567,10 +575,12 @@ class DenseHair:
             return src
         if colliders.device != self.device:
             raise DenseHairError(f"colliders are on {colliders.device}, dense hair on {self.device}")
-        wp.launch(
+        # one thread per dense strand, in place; the pushed-vertex counters are private per chunk
+        launch(
+            self.executor,
             _k.dense_push_out,
-            dim=self.dense_count,
-            inputs=[
+            self.dense_count,
+            [
                 self.seg_per_strand,
                 colliders.shapes,
                 colliders.collider_xform,
@@ -579,8 +589,10 @@ class DenseHair:
                 self._zero_velocity if head_velocity is None else head_velocity,
                 self._push_counts,
             ],
-            outputs=[src],
+            [src],
             device=self.device,
+            min_chunk=STRAND_MIN_CHUNK,
+            private_add=[6],
         )
         return src
 

@@ -208,8 +208,10 @@ def run_task(task: Task) -> dict:
     from hairwarp.solver import SimulationFault
 
     scene = task.scene
-    if task.threads is not None:
-        scene = scene.with_overrides([f"sim.threads={int(task.threads)}"])
+    threads = task.threads if task.threads is not None else _WORKER_THREADS
+    if threads is not None:
+        # a local worker has its share of the cores: the executor's default (every core) would oversubscribe them
+        scene = scene.with_overrides([f"sim.threads={int(threads)}"])
     _write_json(folder / SCENE_JSON, {"key": task.key, "source": str(scene.source) if scene.source else None,
                                       "overrides": list(task.overrides), "scene": scene.to_dict()})
     planned = int(scene.sim.frames)
@@ -298,6 +300,10 @@ def _limit_usd_threads(threads: int) -> None:
     Work.SetConcurrencyLimit(int(threads))
 
 
+#: CPU threads of a run in this process when it is a local cluster's worker (its share of the cores), else None.
+_WORKER_THREADS = None
+
+
 def _local_worker_plugin(threads: int):
     """A Dask worker plugin (every worker of the local cluster, restarted ones too): Ctrl-C ignored, Warp quiet,
     usd-core's threads limited to the worker's share of the cores."""
@@ -305,9 +311,11 @@ def _local_worker_plugin(threads: int):
 
     class LocalWorker(WorkerPlugin):
         def setup(self, worker):
+            global _WORKER_THREADS
             _ignore_interrupts()
             _init_warp()
             _limit_usd_threads(threads)
+            _WORKER_THREADS = int(threads)
 
     return LocalWorker()
 

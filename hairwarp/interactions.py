@@ -26,8 +26,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from hairwarp.executor import SCATTER_CHUNKS, Executor, launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
+from hairwarp.kernels.types import Fault
 
 # Strip triangles narrower than this fraction of the median width would make the density-scaled
 # vertex-face stiffness k0 s0 / s unbounded; wider than its inverse they would make it vanish. A strip quad
@@ -127,6 +129,10 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
     return np.unique(chosen, axis=0) if len(chosen) else np.zeros((0, 2), np.int64)
 
 
+#: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
+SEGMENT_MIN_CHUNK = 512
+
+
 class StaticLinks:
     """Breakable zero-rest-length springs between each segment and its nearest segments on other strands.
 
@@ -151,7 +157,10 @@ class StaticLinks:
             ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``.
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
+        executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the links), or None.
     """
+
+    executor = None
 
     @classmethod
     def build(
@@ -262,20 +271,21 @@ class StaticLinks:
         """
         if self.link_count == 0:
             return
-        wp.launch(
-            link_kernels.link_forces,
-            dim=len(self.seg_transport),
-            inputs=[
-                model.seg_per_strand, model.seg_length, model.joint_stiffness, self.seg_rest_axis,
-                self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
-                self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
-                state.joint_q, state.vertex_positions, state.vertex_velocities, dt,
-            ],
-            outputs=[seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total],
-            device=self.device,
-        )
+        inputs = [
+            model.seg_per_strand, model.seg_length, model.joint_stiffness, self.seg_rest_axis,
+            self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
+            self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
+            state.joint_q, state.vertex_positions, state.vertex_velocities, dt,
+        ]
+        n = len(inputs)
+        # A thread adds into its own segment a and into each link's segment b, which another chunk may own: the
+        # chunks (fixed by the segment count) accumulate privately and are summed in chunk order.
+        launch(self.executor, link_kernels.link_forces, len(self.seg_transport), inputs,
+               [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total],
+               device=self.device, chunks=Executor.fixed_chunks(len(self.seg_transport), SCATTER_CHUNKS),
+               private_sum=[n, n + 1, n + 2], private_add=[n + 4])
         if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device)
+            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
 
     def break_links(self, model, state):
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only): the test that
@@ -304,9 +314,9 @@ class StaticLinks:
         self.link_broken_total.zero_()
 
 
-def _add_excess_mass(model, seg_spring_mass, seg_implicit_mass, device):
-    wp.launch(link_kernels.add_excess_mass, dim=len(seg_spring_mass), inputs=[model.seg_mass, seg_spring_mass],
-              outputs=[seg_implicit_mass], device=device)
+def _add_excess_mass(model, seg_spring_mass, seg_implicit_mass, device, executor=None):
+    launch(executor, link_kernels.add_excess_mass, len(seg_spring_mass), [model.seg_mass, seg_spring_mass],
+           [seg_implicit_mass], device=device, min_chunk=SEGMENT_MIN_CHUNK)
 
 
 class TriangleStrips:
@@ -444,6 +454,10 @@ def _root_adjacency(roots: np.ndarray, root_uv, max_edge_ratio: float) -> np.nda
     return edges[length <= max_edge_ratio * np.median(length)].astype(np.int32)
 
 
+#: Fewest blocks per chunk of the bounds and detection launches (``hairwarp.executor``).
+BLOCK_MIN_CHUNK = 64
+
+
 class HairContacts:
     """Vertex-face (guide vertices against strips) and segment-segment contacts, with fixed-capacity buffers.
 
@@ -474,7 +488,11 @@ class HairContacts:
         contact_counter: int32 (1,), contacts found in the last step (may exceed the capacity).
         contact_overflow: int32 (1,), 1 once a step found more contacts than the capacity (sticky).
         buffer: the ``kernels.contacts.ContactBuffer`` of these arrays, as the kernels take them.
+        executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the contacts), or None.
     """
+
+    executor = None
+    _chunk_buffers = None
 
     @classmethod
     def build(
@@ -630,35 +648,34 @@ class HairContacts:
         return self.strips is not None or self.segment_segment
 
     def _strip_bounds(self, S, vertex_positions):
-        wp.launch(
-            contact_kernels.strip_bounds,
-            dim=len(self.strip_lowers),
-            inputs=[S, self.threshold + self.margin, self.strips.max_width, self.strips.strip_pairs, vertex_positions],
-            outputs=[self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
-                     self.strip_lowers, self.strip_uppers],
-            device=self.device,
-        )
+        launch(self.executor, contact_kernels.strip_bounds, len(self.strip_lowers),
+               [S, self.threshold + self.margin, self.strips.max_width, self.strips.strip_pairs, vertex_positions],
+               [self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
+                self.strip_lowers, self.strip_uppers], device=self.device, min_chunk=BLOCK_MIN_CHUNK)
 
     def _segment_bounds(self, S, vertex_positions):
-        wp.launch(
-            contact_kernels.segment_bounds,
-            dim=len(self.seg_block_lowers),
-            inputs=[S, self.threshold + self.margin, vertex_positions],
-            outputs=[self.seg_lowers, self.seg_uppers, self.seg_block_lowers, self.seg_block_uppers],
-            device=self.device,
-        )
+        launch(self.executor, contact_kernels.segment_bounds, len(self.seg_block_lowers),
+               [S, self.threshold + self.margin, vertex_positions],
+               [self.seg_lowers, self.seg_uppers, self.seg_block_lowers, self.seg_block_uppers], device=self.device,
+               min_chunk=BLOCK_MIN_CHUNK)
 
     def refit(self, model, state, rebuild: bool = False):
         """Fit the strip and segment BVHs to ``state``: refit (launch only; :meth:`detect` does it first), or with
         ``rebuild`` rebuild them (on the host for a CPU tree: not in a captured step)."""
         S = model.seg_per_strand
+        trees = []
         for bvh, bounds in ((self.strip_bvh, self._strip_bounds), (self.seg_bvh, self._segment_bounds)):
             if bvh is not None:
                 bounds(S, state.vertex_positions)
-                if rebuild:
-                    bvh.rebuild()
-                else:
-                    bvh.refit()
+                trees.append(bvh.rebuild if rebuild else bvh.refit)
+        # Warp refits or rebuilds a CPU tree on one thread: the two trees (independent) go to two threads.
+        from hairwarp.executor import _capturing
+
+        if self.executor is not None and not _capturing(self.device):
+            self.executor.run(trees)
+        else:
+            for fit in trees:
+                fit()
 
     def detect(self, model, state):
         """Fit the strip and segment BVHs to ``state`` and fill the contact buffers.
@@ -682,33 +699,83 @@ class HairContacts:
         if self.alignment_cutoff > 0.0:
             wp.launch(contact_kernels.vertex_tangents, dim=len(self.vertex_tangents),
                       inputs=[S, state.vertex_positions], outputs=[self.vertex_tangents], device=self.device)
-        wp.launch(
-            contact_kernels.vertex_face_contacts,
-            dim=self.strand_count * -(-S // contact_kernels.VERTEX_BLOCK),
-            inputs=[S, self.threshold + self.margin, self.alignment_cutoff, self.threshold,
-                    int(self.rest_gaps), int(self.skip_neighbour_strips), self.strip_bvh.id, self.rest_positions,
-                    strips.strip_pairs,
-                    strips.strand_neighbour_start, strips.strand_neighbours, state.vertex_positions,
-                    self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
-                    self.vertex_tangents],
-            outputs=[self.buffer, state.fault],
-            device=self.device,
-        )
+        self._detect_launch(
+            contact_kernels.vertex_face_contacts, self.strand_count * -(-S // contact_kernels.VERTEX_BLOCK),
+            [S, self.threshold + self.margin, self.alignment_cutoff, self.threshold,
+             int(self.rest_gaps), int(self.skip_neighbour_strips), self.strip_bvh.id, self.rest_positions,
+             strips.strip_pairs,
+             strips.strand_neighbour_start, strips.strand_neighbours, state.vertex_positions,
+             self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
+             self.vertex_tangents], state.fault)
 
     def detect_segment_segment(self, model, state):
         """Append the segment-segment contacts of ``state`` to the buffers (launch only; BVH refit by
         :meth:`refit`)."""
         if not self.segment_segment:
             return
-        wp.launch(
-            contact_kernels.segment_segment_contacts,
-            dim=len(self.seg_block_lowers),
-            inputs=[model.seg_per_strand, self.threshold + self.margin, self.alignment_cutoff,
-                    self.threshold, int(self.rest_gaps), self.seg_bvh.id, self.rest_positions, state.vertex_positions,
-                    self.seg_lowers, self.seg_uppers],
-            outputs=[self.buffer, state.fault],
-            device=self.device,
-        )
+        self._detect_launch(
+            contact_kernels.segment_segment_contacts, len(self.seg_block_lowers),
+            [model.seg_per_strand, self.threshold + self.margin, self.alignment_cutoff,
+             self.threshold, int(self.rest_gaps), self.seg_bvh.id, self.rest_positions, state.vertex_positions,
+             self.seg_lowers, self.seg_uppers], state.fault)
+
+    def _detect_launch(self, kernel, dim, inputs, fault):
+        """One detection launch appending to the buffers in element order, whatever the thread count.
+
+        On several threads each chunk appends to a buffer of its own (full capacity, so a chunk drops nothing one
+        launch would keep), and the chunks' contacts are concatenated in chunk order behind those already stored:
+        the order of one launch, which takes each element in turn.
+        """
+        ex = self.executor
+        n = len(inputs)
+        from hairwarp.executor import _capturing
+
+        parallel = ex is not None and ex.parallel and not _capturing(self.device)
+        chunks = ex.chunks(dim, BLOCK_MIN_CHUNK) if parallel else [(0, dim)]
+        if len(chunks) == 1:
+            launch(ex, kernel, dim, inputs, [self.buffer, fault], device=self.device)
+            return
+        bufs, counter, overflow = self._chunk_contact_buffers(len(chunks))
+        counter.zero_()
+        ex.launch(kernel, dim, inputs, [self.buffer, fault], chunks=chunks, per_chunk={n: bufs}, private_or=[n + 1])
+        # concatenate (host views of CPU arrays: the executor runs chunks on the CPU only)
+        counts = counter.numpy()[: len(chunks)]
+        total = self.contact_counter.numpy()
+        pos = int(total[0])
+        main = [self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap]
+        mains = [a.numpy() for a in main]
+        for c, buf in enumerate(bufs):
+            take = max(0, min(int(counts[c]), self.capacity - pos))
+            if take:
+                for dst, src in zip(mains, (buf.kind, buf.a, buf.b, buf.w, buf.gap)):
+                    dst[pos:pos + take] = src.numpy()[:take]
+            pos += int(counts[c])
+        total[0] = pos
+        if pos > self.capacity or np.any(overflow.numpy()[: len(chunks)]):
+            self.contact_overflow.numpy()[0] = 1
+            fault.numpy()[0] |= int(Fault.CONTACT_OVERFLOW)
+
+    def _chunk_contact_buffers(self, count):
+        have = self._chunk_buffers
+        if have is None or len(have[0]) < count:
+            dev, cap = self.device, self.capacity
+            counter = wp.zeros(count, dtype=wp.int32, device=dev)
+            overflow = wp.zeros(count, dtype=wp.int32, device=dev)
+            bufs = []
+            for c in range(count):
+                buf = contact_kernels.ContactBuffer()
+                buf.capacity = cap
+                buf.kind = wp.zeros(cap, dtype=wp.int32, device=dev)
+                buf.a = wp.zeros(cap, dtype=wp.int32, device=dev)
+                buf.b = wp.zeros(cap, dtype=wp.int32, device=dev)
+                buf.w = wp.zeros(cap, dtype=wp.vec3, device=dev)
+                buf.gap = wp.zeros(cap, dtype=float, device=dev)
+                buf.counter = counter[c:c + 1]
+                buf.overflow = overflow[c:c + 1]
+                bufs.append(buf)
+            self._chunk_buffers = have = (bufs, counter, overflow)
+        bufs, counter, overflow = have
+        return bufs[:count], counter, overflow
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
         """Detect the contacts of ``state`` (unless ``detect_each_step`` is off) and accumulate their forces into the
@@ -717,21 +784,21 @@ class HairContacts:
             return
         if self.detect_each_step:
             self.detect(model, state)
-        wp.launch(
-            contact_kernels.contact_forces,
-            dim=self.force_threads,
-            inputs=[
-                model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
-                self._tri_scale,
-                self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity,
-                self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
-                state.vertex_velocities, dt, self.buffer,
-            ],
-            outputs=[seg_force, seg_torque, self.seg_spring_mass],
-            device=self.device,
-        )
+        inputs = [
+            model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
+            self._tri_scale,
+            self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity,
+            self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
+            state.vertex_velocities, dt, self.buffer,
+        ]
+        n = len(inputs)
+        # A contact adds to the segments of both sides: chunks fixed by the force thread count accumulate
+        # privately and are summed in chunk order.
+        launch(self.executor, contact_kernels.contact_forces, self.force_threads, inputs,
+               [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
+               chunks=Executor.fixed_chunks(self.force_threads, SCATTER_CHUNKS), private_sum=[n, n + 1, n + 2])
         if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device)
+            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
 
     def rebuild(self):
         """Rebuild both BVHs from their current boxes (optional, e.g. once per frame after large motion)."""

@@ -35,7 +35,8 @@ class Stepper:
         control: the :class:`hairwarp.Control` the steps read; ``before_step(t, control)`` may
             update it from the host before each step, with ``t`` the time at the step's end: the
             step puts the new state's roots on the head pose the control holds.
-        use_graph: capture one step per parity in a Warp graph and replay it; default on CUDA.
+        use_graph: capture one step per parity in a Warp graph and replay it; default on CUDA. Never on the
+            CPU with a solver of more than one thread: a graph would replay on one.
     """
 
     def __init__(self, solver: Solver, *, dt: float, substeps: int = 1, control=None, state=None, use_graph=None):
@@ -50,7 +51,11 @@ class Stepper:
         self.parity = 0
         self.time = 0.0
         self.frame = 0
-        self.use_graph = model.device.is_cuda if use_graph is None else bool(use_graph)
+        # A captured graph replays its launches on one thread: on the CPU with several threads the eager step,
+        # whose launches the executor spreads over the threads, is the faster (hairwarp.executor).
+        executor = getattr(solver, "executor", None)
+        threaded = executor is not None and executor.parallel
+        self.use_graph = (model.device.is_cuda if use_graph is None else bool(use_graph)) and not threaded
         self._graphs = [None, None]
         solver.set_dt(self.dt)
 
@@ -103,7 +108,7 @@ class Simulation:
         frame_dt: time between output frames [s].
     """
 
-    def __init__(self, scene, *, device=None):
+    def __init__(self, scene, *, device=None, threads: int | None = None):
         sim = scene.sim
         self.scene = scene
         self.groom = scene.build_groom()
@@ -122,7 +127,8 @@ class Simulation:
         self.links = self._build_links(scene.links)
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
-                             contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step))
+                             contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
+                             threads=int(sim.threads) if threads is None else threads)
         control = self.model.control()
         control.set_motion(self.motion.evaluate(0.0))
         state = self.model.state()
@@ -130,6 +136,8 @@ class Simulation:
         self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
                                state=state)
         self.dense = self._build_dense(scene.dense)
+        if self.dense is not None:
+            self.dense.executor = self.solver.executor
 
     def _build_links(self, cfg):
         if not cfg.enabled:

@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated
 from hairwarp.kernels.types import Fault, Integrator
+
+
+#: Fewest strands per chunk of the integrator: one strand's ABA and contact sweeps take a few microseconds, so
+#: 16 strands outweigh handing a chunk to a thread (``hairwarp bench threads``).
+INTEGRATE_MIN_CHUNK = 16
 
 
 class SimulationFault(RuntimeError):
@@ -19,13 +25,14 @@ class SimulationFault(RuntimeError):
         self.bits = bits
 
 
-def forward_kinematics(model, state, control):
+def forward_kinematics(model, state, control, executor=None):
     """World segment frames, vertex positions and velocities of ``state`` from its joints."""
-    wp.launch(
+    launch(
+        executor,
         articulated.forward_kinematics,
-        dim=model.strand_count,
-        inputs=[model.chains, control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
-        outputs=[state.seg_xform, state.vertex_positions, state.vertex_velocities],
+        model.strand_count,
+        [model.chains, control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
+        [state.seg_xform, state.vertex_positions, state.vertex_velocities],
         device=model.device,
     )
 
@@ -53,6 +60,8 @@ class Solver:
         contacts: a :class:`hairwarp.interactions.HairContacts`, or None.
         max_rotation_per_step: fault bound [rad]: a joint turning further than this in one step
             means the step no longer resolves the motion.
+        threads: CPU threads the launches of a step run on (:class:`hairwarp.executor.Executor`); None or 0:
+            every core this process may use. Results are the same bits for any count. Ignored on CUDA.
 
     Everything a step needs is allocated here. ``step`` only launches kernels on
     ``model.device`` and never copies to the host, so it can be captured in a graph; the step
@@ -60,8 +69,9 @@ class Solver:
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
-                 max_rotation_per_step: float = 1.0):
+                 max_rotation_per_step: float = 1.0, threads: int | None = None):
         self.model = model
+        self.executor = Executor(model.device, threads)
         self.integrator = _integrator(integrator)
         self.colliders = colliders
         self.links = links
@@ -101,6 +111,9 @@ class Solver:
         has_colliders = colliders is not None and len(colliders) > 0
         if has_colliders and colliders.model is not model:
             colliders.bind(model)
+        for stage in (colliders, links, contacts):
+            if stage is not None:
+                stage.executor = self.executor
         self.body_contacts = colliders.contacts if has_colliders else body_contacts(1, device, enabled=False)
 
     @staticmethod
@@ -141,7 +154,7 @@ class Solver:
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""
-        forward_kinematics(self.model, state, control)
+        forward_kinematics(self.model, state, control, self.executor)
 
     def teleport(self, state, control):
         """Carry the strands of ``state`` rigidly to the head pose of ``control`` and stop them (a cut, a respawn).
@@ -152,7 +165,7 @@ class Solver:
         the jump, usually zero). Host launches only: not for inside a captured graph.
         """
         state.joint_qd.zero_()
-        forward_kinematics(self.model, state, control)
+        forward_kinematics(self.model, state, control, self.executor)
         if self.body_contacts.enabled:
             self.colliders.reset_contacts()
 
@@ -163,13 +176,11 @@ class Solver:
         if self.has_implicit_mass:
             self.seg_implicit_mass.zero_()
         if self.has_drag:
-            wp.launch(
-                articulated.air_drag,
-                dim=model.seg_count,
-                inputs=[model.seg_per_strand, model.seg_length, model.drag, control.wind,
-                        state.vertex_positions, state.vertex_velocities],
-                outputs=[self.seg_force, self.seg_torque],
-                device=model.device,
+            self.executor.launch(
+                articulated.air_drag, model.seg_count,
+                [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
+                 state.vertex_velocities],
+                [self.seg_force, self.seg_torque],
             )
         if self.links is not None:
             self.links.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)
@@ -182,17 +193,18 @@ class Solver:
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
         if self.integrator == Integrator.RK4:
-            wp.launch(articulated.integrate_rk4, dim=model.strand_count,
-                      inputs=[model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
-                              state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch, self.rk_q,
-                              self.rk_w, self.rk_dq, self.rk_dw],
-                      outputs=outputs, device=model.device)
+            inputs = [model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
+                      state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch, self.rk_q, self.rk_w,
+                      self.rk_dq, self.rk_dw]
+            kernel = articulated.integrate_rk4
         else:
             implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
-            wp.launch(articulated.integrate_euler, dim=model.strand_count,
-                      inputs=[model.chains, self.max_rotation_per_step, *head, implicit, self.loads,
-                              state_in.joint_q, state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch],
-                      outputs=outputs, device=model.device)
+            inputs = [model.chains, self.max_rotation_per_step, *head, implicit, self.loads, state_in.joint_q,
+                      state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch]
+            kernel = articulated.integrate_euler
+        # one thread per strand; the fault bits (ORed by any strand) are private per chunk
+        self.executor.launch(kernel, model.strand_count, inputs, outputs, min_chunk=INTEGRATE_MIN_CHUNK,
+                             private_or=[len(inputs) + len(outputs) - 1])
 
     # -- tools ----------------------------------------------------------------------------
 

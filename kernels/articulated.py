@@ -551,6 +551,8 @@ def aba_accelerations(
 
 @wp.kernel
 def integrate_euler(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     chains: StrandChains,
     max_rotation: float,
@@ -582,7 +584,7 @@ def integrate_euler(
     Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame], the new state's world frames and
     vertices (forward kinematics, fused), and fault bits.
     """
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     if strand == 0:
         # faults are sticky: the new state starts from the old state's bits (a superset of its own)
         wp.atomic_or(fault, 0, fault_in[0])
@@ -616,6 +618,8 @@ def integrate_euler(
 
 @wp.kernel
 def integrate_rk4(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     chains: StrandChains,
     max_rotation: float,
@@ -650,7 +654,7 @@ def integrate_rk4(
     External loads stay fixed over the step; body contacts act after it (``body_contact_solve``). Writes ``joint_q_out``, ``joint_qd_out``, the new
     state's world frames and vertices, and fault bits.
     """
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     if strand == 0:
         # faults are sticky: the new state starts from the old state's bits (a superset of its own)
         wp.atomic_or(fault, 0, fault_in[0])
@@ -739,6 +743,8 @@ def fk_strand(
 
 @wp.kernel
 def forward_kinematics(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     chains: StrandChains,
     # Control:
@@ -753,13 +759,15 @@ def forward_kinematics(
     vertex_velocities: wp.array(dtype=wp.vec3),
 ):
     """One thread per strand: world segment frames, vertex positions [m] and velocities [m/s]."""
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q, joint_qd, seg_xform, vertex_positions,
               vertex_velocities)
 
 
 @wp.kernel
 def air_drag(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
@@ -778,7 +786,7 @@ def air_drag(
     Adds the force [N, world] at the segment's midpoint to ``seg_force`` and its moment about
     the segment origin [N m] to ``seg_torque``.
     """
-    i = wp.tid()
+    i = tid_offset + wp.tid()
     strand = i // seg_per_strand
     k = i - strand * seg_per_strand
     a = strand * (seg_per_strand + 1) + k

@@ -451,6 +451,8 @@ def collider_distances(
 
 @wp.kernel
 def detect_body_contacts(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
@@ -483,7 +485,7 @@ def detect_body_contacts(
     decides from the free velocities which of them hold. Vertices inside a collider at rest (exempt) are no
     candidates of it. Signed distances are 1-Lipschitz, so a vertex far from every collider skips the queries.
     """
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     S = seg_per_strand
     sbase = strand * S
     vbase = strand * (S + 1)
@@ -532,6 +534,8 @@ def detect_body_contacts(
 
 @wp.kernel
 def collide_strands(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     chains: StrandChains,
     swept: int,
@@ -563,7 +567,7 @@ def collide_strands(
     ``vertex_positions`` [m] and the ``vertex_velocities`` [m/s] of its unchanged ``joint_qd`` [rad/s] at the
     new configuration. A strand clear of every collider is not written.
     """
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     S = chains.seg_per_strand
     sbase = strand * S
     vbase = strand * (S + 1)

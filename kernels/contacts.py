@@ -220,6 +220,8 @@ def push_contact(buf: ContactBuffer, kind: int, a: int, b: int, w: wp.vec3, gap:
 
 @wp.kernel
 def segment_bounds(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
@@ -233,7 +235,7 @@ def segment_bounds(
 ):
     """One thread per block of ``SEG_BLOCK`` consecutive segments of a strand: each segment's world box [m] grown by
     the contact reach, and their union, the block's box in the segment-block BVH."""
-    blk = wp.tid()
+    blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + SEG_BLOCK - 1) // SEG_BLOCK
     strand = blk // blocks
     k0 = (blk - strand * blocks) * SEG_BLOCK
@@ -258,6 +260,8 @@ def segment_bounds(
 
 @wp.kernel
 def segment_segment_contacts(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
@@ -284,7 +288,7 @@ def segment_segment_contacts(
     of the two segments in the rest pose (``rest_gaps``) or ``repel_distance``. Pairs more nearly parallel
     than the alignment cutoff (``1 - |T_a . T_b|`` below it) are left out: their repulsion is negligible.
     """
-    blk = wp.tid()
+    blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + SEG_BLOCK - 1) // SEG_BLOCK
     strand = blk // blocks
     k0 = (blk - strand * blocks) * SEG_BLOCK
@@ -333,6 +337,8 @@ def segment_segment_contacts(
 
 @wp.kernel
 def strip_bounds(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
@@ -354,7 +360,7 @@ def strip_bounds(
     distance from that plane (a slab holding every point within the reach of the quad); its unit along-strand
     direction; and the block's box, for the quad-block BVH. A quad wider than ``strip_max_width`` [m] (its strands
     have parted) gets an empty box: it is no contact surface until they come back together."""
-    blk = wp.tid()
+    blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
     pair = blk // blocks
     k0 = (blk - pair * blocks) * QUAD_BLOCK
@@ -410,6 +416,8 @@ def vertex_tangents(
 
 @wp.kernel
 def vertex_face_contacts(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     contact_threshold: float,
@@ -445,7 +453,7 @@ def vertex_face_contacts(
     triangles when that point belongs to the quad (``quad_feature_owned``), and as the gap the distance of the vertex
     from the quad in the rest pose (``rest_gaps``) or ``repel_distance``.
     """
-    blk = wp.tid()
+    blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + VERTEX_BLOCK - 1) // VERTEX_BLOCK
     strand = blk // blocks
     base = strand * (seg_per_strand + 1)
@@ -668,6 +676,8 @@ def contact_force(
 
 @wp.kernel
 def contact_forces(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
@@ -707,7 +717,7 @@ def contact_forces(
     # A fixed thread count covers however many contacts this step found (the count is only on the device): on a GPU
     # thread t takes slots t, t + n, ... (neighbouring threads read neighbouring slots), on a CPU, where the threads
     # run one after the other, a contiguous run of slots (one pass over the buffer instead of n).
-    t = wp.tid()
+    t = tid_offset + wp.tid()
     count = wp.min(contacts.counter[0], contacts.capacity)
     h = dt[0]
     slot = t

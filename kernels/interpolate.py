@@ -53,6 +53,8 @@ def hermite_point(p0: wp.vec3, m0: wp.vec3, p1: wp.vec3, m1: wp.vec3, t: float) 
 
 @wp.kernel
 def dense_interpolate(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     dense_guide_index: wp.array(dtype=wp.vec4i),
@@ -77,7 +79,7 @@ def dense_interpolate(
     Writes ``dense_x_out`` (D*(S+1)); with ``velocity = 1`` ``guide_x`` holds guide velocities and the
     result is the dense velocity [m/s, world]. Length scale, clumping and head-frame offsets as in ``DenseHair``.
     """
-    tid = wp.tid()
+    tid = tid_offset + wp.tid()
     n = seg_per_strand + 1
     strand = tid / n
     k = tid - strand * n
@@ -114,6 +116,8 @@ def dense_interpolate(
 
 @wp.kernel
 def hermite_samples(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     samples_per_segment: int,
@@ -127,7 +131,7 @@ def hermite_samples(
     Writes ``curve_x_out`` (D*(M*S+1)); sample ``m = M*k + r`` lies at ``t = r/M`` of segment ``k``, the
     last one at the tip, so every input vertex is reproduced exactly. Units and frame of ``dense_x``.
     """
-    tid = wp.tid()
+    tid = tid_offset + wp.tid()
     points = samples_per_segment * seg_per_strand + 1
     strand = tid / points
     m = tid - strand * points
@@ -156,6 +160,8 @@ def hermite_samples(
 
 @wp.kernel
 def dense_push_out(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     shapes: ColliderShapes,
@@ -178,7 +184,7 @@ def dense_push_out(
     Rewrites ``dense_x`` of strands that moved only; adds (vertices lifted, vertices projected) to
     ``push_counts``.
     """
-    strand = wp.tid()
+    strand = tid_offset + wp.tid()
     base = strand * (seg_per_strand + 1)
     X_head = head_xform[0]
     V_head = head_velocity[0]

@@ -139,6 +139,8 @@ def link_ends(
 
 @wp.kernel
 def link_forces(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     seg_length: wp.array(dtype=float),
@@ -178,7 +180,7 @@ def link_forces(
     the solver's implicit mass. The thread computes a's frame, its twist-free transport (``segment_transport``) and
     its velocity field once for all its links, and adds a's sums once.
     """
-    a = wp.tid()
+    a = tid_offset + wp.tid()
     first = seg_link_start[a]
     last = seg_link_start[a + 1]
     if first == last:
@@ -244,6 +246,8 @@ def link_forces(
 
 @wp.kernel
 def add_excess_mass(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_mass: wp.array(dtype=float),
     # Scratch:
@@ -259,7 +263,7 @@ def add_excess_mass(
     times. Springs whose ``h^2 k + h c`` stays within the segment's mass are stable explicit (the explicit step
     holds ``h^2 k / m < 4`` and ``h c / m < 2``); beyond it the added mass keeps the ratio at 1.
     """
-    seg = wp.tid()
+    seg = tid_offset + wp.tid()
     excess = seg_spring_mass[seg] - seg_mass[seg]
     if excess > 0.0:
         seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess

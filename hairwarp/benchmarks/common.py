@@ -320,6 +320,7 @@ class BenchConfig:
 
     quick: bool = False
     device: str = "cpu"
+    threads: int = 0  # CPU threads of the threads suite's N-thread runs; 0: every core this process may use
     # dynamics
     dyn_configs: list = field(default_factory=lambda: [(100, 20), (1000, 20), (100, 50)])
     dyn_integrators: tuple = ("semi_implicit", "implicit_joints")

@@ -611,7 +611,8 @@ def md_other(name: str, data: dict, out: Path) -> list[str]:
 EXTRA_SECTIONS = {"interactions": ("hairwarp.benchmarks.interactions", "md_interactions"),
                   "dense": ("hairwarp.benchmarks.dense", "md_dense"),
                   "wedge": ("hairwarp.benchmarks.wedge", "md_wedge"),
-                  "robustness": ("hairwarp.benchmarks.robustness", "md_robustness")}
+                  "robustness": ("hairwarp.benchmarks.robustness", "md_robustness"),
+                  "threads": ("hairwarp.benchmarks.threads", "md_threads")}
 
 
 def _extra_section(name: str):
