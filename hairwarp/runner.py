@@ -674,20 +674,31 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         raise
 
     preview_path = None
-    if preview and start > 0:  # the frames before the resume are in the cache only
-        from hairwarp.preview import preview_cache
+    with _Stops() as stops:  # the cache is complete: a stop now skips only the picture
+        try:
+            if preview and start > 0:  # the frames before the resume are in the cache only
+                from hairwarp.preview import preview_cache
 
-        preview_path = preview_cache(out_path, out_path.with_suffix(".png"), frames=int(scene.output.preview_frames))
-    elif preview and kept:
-        from hairwarp.preview import render_frames
+                preview_path = preview_cache(out_path, out_path.with_suffix(".png"),
+                                             frames=int(scene.output.preview_frames))
+            elif preview and kept:
+                from hairwarp.preview import render_frames
 
-        preview_path = out_path.with_suffix(".png")
-        render_frames(
-            [c for _, c, _ in kept],
-            preview_path,
-            titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
-            meshes=[m for _, _, m in kept] if sim.colliders else None,
-        )
+                preview_path = out_path.with_suffix(".png")
+                render_frames(
+                    [c for _, c, _ in kept],
+                    preview_path,
+                    titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
+                    meshes=[m for _, _, m in kept] if sim.colliders else None,
+                )
+        except KeyboardInterrupt:
+            pass  # a second signal: stop drawing at once
+        if stops.requested is not None:
+            import signal
+
+            name = signal.Signals(stops.requested).name
+            raise RunStopped(f"stopped by {name} while drawing the preview; the cache {out_path} is complete "
+                             f"({frames + 1} frames), the preview may be missing.", stops.requested)
     seconds = time.perf_counter() - t_start
     done = frames + 1 - start
     return RunResult(out_path, preview_path, frames, seconds, seconds / max(done - 1, 1), notes, all_stats)

@@ -215,3 +215,23 @@ def test_cache_size_is_linear_in_its_frames(tmp_path, frames):
     flat = tmp_path / "flat.usdc"
     Usd.Stage.Open(str(out)).Export(str(flat))
     assert size <= 1.1 * flat.stat().st_size, (size, flat.stat().st_size)
+
+
+def test_a_stop_while_drawing_the_preview_keeps_the_complete_cache(tmp_path, monkeypatch):
+    """A signal after the last frame, while the preview is drawn: the cache is complete and in place, and the run
+    reports the stop (RunStopped, exit 128 + signal) instead of dying mid-picture."""
+    import hairwarp as hw
+    import hairwarp.preview
+    from hairwarp.runner import RunStopped, simulate
+
+    def render_and_get_stopped(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(hairwarp.preview, "render_frames", render_and_get_stopped)
+    scene = hw.Scene.load(TINY, overrides=["sim.frames=3"])
+    out = tmp_path / "tiny.usdc"
+    with pytest.raises(RunStopped, match="while drawing the preview") as info:
+        simulate(scene, out, progress=False)
+    assert info.value.signum == signal.SIGTERM
+    stage = Usd.Stage.Open(str(out))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0.0, 3.0)
