@@ -93,11 +93,11 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
         data["machine"] = {**machine, "load_average_end": common.load_average()}
         results["suites"][name] = data
         log(f"== suite {name}: {data['wall_s']} s ==")
-        path.write_text(json.dumps(results, indent=1, default=_jsonable))
+        path.write_text(json.dumps(results, indent=1, default=json_default))
     results["wall_s"] = round(time.perf_counter() - t_all, 1)
     if not keep_header:
         results["machine"]["load_average_end"] = common.load_average()
-    path.write_text(json.dumps(results, indent=1, default=_jsonable))
+    path.write_text(json.dumps(results, indent=1, default=json_default))
     report.write_report(results, out)
     return results
 
@@ -131,7 +131,9 @@ def _suite(name, config, out, log) -> dict:
     raise ValueError(f"unknown benchmark suite {name!r}; choose one of {', '.join(SUITES)} or all")
 
 
-def _jsonable(value):
+def json_default(value):
+    """``json.dumps(..., default=json_default)``: numpy scalars and arrays, paths and objects with ``to_dict``
+    (scenes) as plain JSON values."""
     import numpy as np
 
     if isinstance(value, np.generic):
@@ -140,6 +142,8 @@ def _jsonable(value):
         return value.tolist()
     if isinstance(value, Path):
         return str(value)
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
@@ -165,7 +169,7 @@ def _child(request_json: str) -> int:
     wp.config.quiet = True
     GATE.enabled = False  # the parent waited for idle cores before starting this child
     result = child_result(run_request, json.loads(request_json))
-    print(RESULT_TAG + json.dumps(result, default=_jsonable), flush=True)
+    print(RESULT_TAG + json.dumps(result, default=json_default), flush=True)
     return 0
 
 
@@ -190,7 +194,7 @@ def main(args=None) -> int:
     out = Path(args.out) if getattr(args, "out", None) else default_out(quick)
     results = run_suites(suites, config, out, _log_to_stderr)
     if getattr(args, "format", "human") == "json":
-        print(json.dumps(results, indent=1, default=_jsonable))
+        print(json.dumps(results, indent=1, default=json_default))
     else:
         from hairwarp.benchmarks.report import summary_lines
 

@@ -46,6 +46,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hairwarp.bench import json_default
+
 __all__ = ["INSTALL_HINT", "Task", "batch", "batch_tasks", "completed_record", "local_cores", "read_cache_frames",
            "run_task", "run_tasks", "scene_key", "wedge", "wedge_tasks"]
 
@@ -159,24 +161,8 @@ def _with_paths(record: dict, folder: Path) -> dict:
 def _write_json(path: Path, data) -> None:
     """Write ``data`` as JSON through a temporary file and a rename, so a reader never sees half a file."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=_jsonable) + "\n")
+    tmp.write_text(json.dumps(data, indent=1, default=json_default) + "\n")
     os.replace(tmp, path)
-
-
-def _jsonable(value):
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    if hasattr(value, "to_dict"):
-        return value.to_dict()
-    if isinstance(value, tuple):
-        return list(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 # ----------------------------------------------------------------------------------------------

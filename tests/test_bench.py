@@ -67,7 +67,7 @@ def run(tmp_path_factory):
 def test_json_has_machine_and_suites(run):
     out, results = run
     data = json.loads((out / bench.JSON_NAME).read_text())
-    assert data == json.loads(json.dumps(results, default=bench._jsonable))
+    assert data == json.loads(json.dumps(results, default=bench.json_default))
     m = data["machine"]
     for key in ("cpu", "cores", "python", "date", "versions"):
         assert m[key], key
