@@ -212,9 +212,10 @@ class Model:
         forward_kinematics(self, state, self.control())
         return state
 
-    def control(self) -> Control:
-        """New animated inputs: head at its build pose, at rest, no wind."""
-        return Control(self)
+    def control(self, *, root_frames: bool = False) -> Control:
+        """New animated inputs: head at its build pose, at rest, no wind; ``root_frames``: a root frame per strand
+        (see :class:`hairwarp.Control`)."""
+        return Control(self, root_frames=root_frames)
 
 
 def _vertices_of(groom, segments: int) -> np.ndarray:

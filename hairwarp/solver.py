@@ -31,7 +31,7 @@ def forward_kinematics(model, state, control, executor=None):
         executor,
         articulated.forward_kinematics,
         model.strand_count,
-        [model.chains, control.head_xform, control.head_velocity, state.joint_q, state.joint_qd],
+        [model.chains, control.bases, state.joint_q, state.joint_qd],
         [state.seg_xform, state.vertex_positions, state.vertex_velocities],
         device=model.device,
     )
@@ -189,7 +189,7 @@ class Solver:
 
     def _integrate(self, state_in, state_out, control):
         model = self.model
-        head = [control.head_xform, control.head_velocity, control.head_acceleration, self.dt]
+        head = [control.bases, self.dt]
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
         if self.integrator == Integrator.RK4:
@@ -231,8 +231,7 @@ class Solver:
         wp.launch(
             articulated.aba_accelerations,
             dim=model.strand_count,
-            inputs=[model.chains, control.head_xform, control.head_velocity, control.head_acceleration, self.dt,
-                    int(implicit), loads, state.joint_q, state.joint_qd],
+            inputs=[model.chains, control.bases, self.dt, int(implicit), loads, state.joint_q, state.joint_qd],
             outputs=[self.scratch],
             device=model.device,
         )

@@ -39,20 +39,48 @@ class Control:
     """Animated inputs of a step; device arrays updated in place so captured graphs see new values.
 
     Attributes:
-        head_xform: world transform of the head, transform (1,); the groom's roots ride on it.
+        head_xform: world transform of the head, transform (1,); the groom's roots ride on it, and so do
+            head-attached colliders and the dense hair.
         head_velocity: (world angular velocity [rad/s], world velocity of the head origin [m/s]),
             spatial_vector (1,).
         head_acceleration: (world angular acceleration [rad/s^2], classical acceleration of the
             head origin [m/s^2]), spatial_vector (1,).
         wind: wind velocity [m/s], world, vec3 (1,); acts through the air drag.
+        bases: the frames the strands' roots ride on (``hairwarp.kernels.articulated.StrandBases``): the head
+            arrays themselves, or with ``root_frames=True`` one frame per strand, set by :meth:`set_root_frames`.
+
+    Args:
+        model: the :class:`hairwarp.Model`.
+        root_frames: give every strand its own root frame (roots bound to a deforming surface,
+            :class:`hairwarp.surface.ScalpBinding`); the frames start as the head's build pose.
     """
 
-    def __init__(self, model):
+    def __init__(self, model, *, root_frames: bool = False):
         device = model.device
         self.head_xform = wp.array([wp.transform_identity()], dtype=wp.transform, device=device)
         self.head_velocity = wp.zeros(1, dtype=wp.spatial_vector, device=device)
         self.head_acceleration = wp.zeros(1, dtype=wp.spatial_vector, device=device)
         self.wind = wp.zeros(1, dtype=wp.vec3, device=device)
+        self.strand_count = int(model.strand_count)
+        from hairwarp.kernels.articulated import StrandBases
+
+        self.bases = StrandBases()
+        if root_frames:
+            identity = np.tile(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], dtype=np.float32), (self.strand_count, 1))
+            self.bases.xform = wp.array(identity, dtype=wp.transform, device=device)
+            self.bases.velocity = wp.zeros(self.strand_count, dtype=wp.spatial_vector, device=device)
+            self.bases.acceleration = wp.zeros(self.strand_count, dtype=wp.spatial_vector, device=device)
+            self.bases.per_strand = 1
+        else:
+            self.bases.xform = self.head_xform
+            self.bases.velocity = self.head_velocity
+            self.bases.acceleration = self.head_acceleration
+            self.bases.per_strand = 0
+
+    @property
+    def root_frames(self) -> bool:
+        """Whether every strand has its own root frame (``Control(model, root_frames=True)``)."""
+        return bool(self.bases.per_strand)
 
     def set_head(self, position=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0), linear_velocity=(0.0, 0.0, 0.0),
                  angular_velocity=(0.0, 0.0, 0.0), linear_acceleration=(0.0, 0.0, 0.0),
@@ -69,6 +97,35 @@ class Control:
         """Set the head from a motion sample (``hairwarp.motion.MotionSample``)."""
         self.set_head(sample.position, sample.rotation, sample.linear_velocity, sample.angular_velocity,
                       sample.linear_acceleration, sample.angular_acceleration)
+
+    def set_root_frames(self, xforms, velocities, accelerations):
+        """Set every strand's root frame: the map from the groom's head frame to the world that strand's root rides
+        on, as the head pose does for all of them without ``root_frames``.
+
+        Args:
+            xforms: (G, 7) positions and quaternions (x, y, z, w) [m].
+            velocities: (G, 6) world angular velocity [rad/s] and world velocity of the frame's origin [m/s].
+            accelerations: (G, 6) world angular acceleration [rad/s^2] and classical acceleration of the
+                origin [m/s^2].
+
+        Raises:
+            ValueError: the control was made without ``root_frames=True``, or an array has the wrong shape or
+                non-finite values.
+        """
+        if not self.root_frames:
+            raise ValueError("this control has no per-strand root frames: make it with Control(model, "
+                             "root_frames=True)")
+        G = self.strand_count
+        for name, value, width, target in (("xforms", xforms, 7, self.bases.xform),
+                                           ("velocities", velocities, 6, self.bases.velocity),
+                                           ("accelerations", accelerations, 6, self.bases.acceleration)):
+            a = np.asarray(value, dtype=np.float32)
+            if a.shape != (G, width):
+                raise ValueError(f"set_root_frames: {name} must have shape ({G}, {width}), got {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"set_root_frames: {name} has non-finite values (strand "
+                                 f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])})")
+            target.assign(a)
 
     def set_wind(self, velocity):
         self.wind.assign(np.asarray([velocity], dtype=np.float32))

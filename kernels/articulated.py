@@ -84,6 +84,20 @@ class BodyContacts:
 
 
 @wp.struct
+class StrandBases:
+    """The moving frames the strands' roots ride on: ``per_strand`` = 0, every strand on element 0 (the head, the
+    ``Control.head_*`` arrays themselves); 1, strand ``s`` on element ``s`` (roots bound to a deforming surface,
+    ``Control.set_root_frames``). ``xform`` maps the groom's head frame to the world; ``velocity`` is (world
+    angular velocity [rad/s], world velocity of the frame's origin [m/s]); ``acceleration`` (world angular
+    acceleration [rad/s^2], classical acceleration of the origin [m/s^2])."""
+
+    xform: wp.array(dtype=wp.transform)
+    velocity: wp.array(dtype=wp.spatial_vector)
+    acceleration: wp.array(dtype=wp.spatial_vector)
+    per_strand: int
+
+
+@wp.struct
 class AbaScratch:
     """Per-segment ABA workspace: bias forces p, velocity-product accelerations c, ``D^-1 A``,
     ``D^-1 B``, ``D^-1 u`` and the joint accelerations; allocated once by the solver."""
@@ -527,9 +541,7 @@ def aba_accelerations(
     # Model:
     chains: StrandChains,
     # Control:
-    head_xform: wp.array(dtype=wp.transform),
-    head_velocity: wp.array(dtype=wp.spatial_vector),
-    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    bases: StrandBases,
     dt: wp.array(dtype=float),
     # In:
     implicit: int,
@@ -544,8 +556,9 @@ def aba_accelerations(
     With ``implicit`` != 0 it solves ``(M + hC + h^2 K) qdd = tau - bias`` as ``implicit_joints`` does.
     """
     strand = wp.tid()
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
-    aba_strand(chains, strand, dt[0], implicit, wp.transform_get_rotation(head_xform[0]), v_head, a_head, loads,
+    b = strand * bases.per_strand
+    v_head, a_head = head_body_motion(bases.xform[b], bases.velocity[b], bases.acceleration[b], chains.gravity)
+    aba_strand(chains, strand, dt[0], implicit, wp.transform_get_rotation(bases.xform[b]), v_head, a_head, loads,
                joint_q, joint_qd, scratch)
 
 
@@ -557,9 +570,7 @@ def integrate_euler(
     chains: StrandChains,
     max_rotation: float,
     # Control:
-    head_xform: wp.array(dtype=wp.transform),
-    head_velocity: wp.array(dtype=wp.spatial_vector),
-    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    bases: StrandBases,
     dt: wp.array(dtype=float),
     # State in:
     implicit: int,
@@ -590,8 +601,11 @@ def integrate_euler(
         wp.atomic_or(fault, 0, fault_in[0])
     S = chains.seg_per_strand
     h = dt[0]
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
-    aba_strand(chains, strand, h, implicit, wp.transform_get_rotation(head_xform[0]), v_head, a_head, loads,
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    V_base = bases.velocity[b]
+    v_head, a_head = head_body_motion(X_base, V_base, bases.acceleration[b], chains.gravity)
+    aba_strand(chains, strand, h, implicit, wp.transform_get_rotation(X_base), v_head, a_head, loads,
                joint_q_in, joint_qd_in, scratch)
     for k in range(S):
         i = strand * S + k
@@ -601,8 +615,8 @@ def integrate_euler(
     if contacts.enabled != 0:
         for k in range(S):
             scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for the fault check
-        body_contact_solve(chains, strand, h, implicit, head_xform[0], head_velocity[0], loads, joint_q_in,
-                           joint_qd_out, contacts, scratch)
+        body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
+                           scratch)
     for k in range(S):
         i = strand * S + k
         w = joint_qd_out[i]
@@ -612,8 +626,8 @@ def integrate_euler(
         if not wp.isfinite(q):
             wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
         joint_q_out[i] = q
-    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
-              seg_xform_out, vertex_positions_out, vertex_velocities_out)
+    fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+              vertex_velocities_out)
 
 
 @wp.kernel
@@ -624,9 +638,7 @@ def integrate_rk4(
     chains: StrandChains,
     max_rotation: float,
     # Control:
-    head_xform: wp.array(dtype=wp.transform),
-    head_velocity: wp.array(dtype=wp.spatial_vector),
-    head_acceleration: wp.array(dtype=wp.spatial_vector),
+    bases: StrandBases,
     dt: wp.array(dtype=float),
     # State in:
     loads: SegmentLoads,
@@ -660,8 +672,11 @@ def integrate_rk4(
         wp.atomic_or(fault, 0, fault_in[0])
     S = chains.seg_per_strand
     h = dt[0]
-    v_head, a_head = head_body_motion(head_xform[0], head_velocity[0], head_acceleration[0], chains.gravity)
-    head_rot = wp.transform_get_rotation(head_xform[0])
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    V_base = bases.velocity[b]
+    v_head, a_head = head_body_motion(X_base, V_base, bases.acceleration[b], chains.gravity)
+    head_rot = wp.transform_get_rotation(X_base)
     for k in range(S):
         i = strand * S + k
         rk_q[i] = joint_q_in[i]
@@ -696,15 +711,14 @@ def integrate_rk4(
     if contacts.enabled != 0:
         # Contact impulses after the update, with the explicit inertia (RK4's stages would not stay stable with
         # the stiff dampers inside them); the velocity change also moves the configuration over the step.
-        body_contact_solve(chains, strand, h, 0, head_xform[0], head_velocity[0], loads, joint_q_in, joint_qd_out,
-                           contacts, scratch)
+        body_contact_solve(chains, strand, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts, scratch)
         for k in range(S):
             i = strand * S + k
             w = joint_qd_out[i]
             flag_contact_response(rk_w[i], w, h, max_rotation, fault)
             joint_q_out[i] = wp.normalize(joint_q_out[i] * quat_exp(h * (w - rk_w[i])))
-    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q_out, joint_qd_out,
-              seg_xform_out, vertex_positions_out, vertex_velocities_out)
+    fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+              vertex_velocities_out)
 
 
 @wp.func
@@ -748,8 +762,7 @@ def forward_kinematics(
     # Model:
     chains: StrandChains,
     # Control:
-    head_xform: wp.array(dtype=wp.transform),
-    head_velocity: wp.array(dtype=wp.spatial_vector),
+    bases: StrandBases,
     # State in:
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
@@ -760,7 +773,8 @@ def forward_kinematics(
 ):
     """One thread per strand: world segment frames, vertex positions [m] and velocities [m/s]."""
     strand = tid_offset + wp.tid()
-    fk_strand(chains, strand, head_xform[0], head_velocity[0], joint_q, joint_qd, seg_xform, vertex_positions,
+    b = strand * bases.per_strand
+    fk_strand(chains, strand, bases.xform[b], bases.velocity[b], joint_q, joint_qd, seg_xform, vertex_positions,
               vertex_velocities)
 
 

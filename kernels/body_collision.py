@@ -18,7 +18,7 @@ deep inside is found whatever its depth).
 
 import warp as wp
 
-from hairwarp.kernels.articulated import StrandChains, fk_strand
+from hairwarp.kernels.articulated import StrandBases, StrandChains, fk_strand
 from hairwarp.kernels.types import ColliderKind, Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -545,6 +545,7 @@ def collide_strands(
     collider_velocity: wp.array(dtype=wp.spatial_vector),
     head_xform: wp.array(dtype=wp.transform),
     head_velocity: wp.array(dtype=wp.spatial_vector),
+    bases: StrandBases,
     dt: wp.array(dtype=float),
     # State in:
     has_previous: int,
@@ -691,9 +692,11 @@ def collide_strands(
 
     # Pass 2, root to tip: minimal rotations of the old segment frames onto the new directions (twist kept), joint
     # rotations from the world rotations; then forward kinematics of the strand, its joint velocities unchanged.
-    R_old = wp.transform_get_rotation(X_head)
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    R_old = wp.transform_get_rotation(X_base)
     R_new = R_old
-    x = wp.transform_point(X_head, chains.strand_root_pos[strand])
+    x = wp.transform_point(X_base, chains.strand_root_pos[strand])
     for k in range(S):
         i = sbase + k
         R_parent = R_new
@@ -712,4 +715,5 @@ def collide_strands(
                 wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
             R_new = R_parent * q
         x = x + wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
-    fk_strand(chains, strand, X_head, V_head, joint_q, joint_qd, seg_xform, vertex_positions, vertex_velocities)
+    fk_strand(chains, strand, X_base, bases.velocity[b], joint_q, joint_qd, seg_xform, vertex_positions,
+              vertex_velocities)

@@ -161,9 +161,15 @@ def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dev
         fault=wp.zeros(1, dtype=wp.int32, device=device))
     from hairwarp.colliders import matrix_to_transform
 
+    from hairwarp.kernels.articulated import StrandBases
+
     control = SimpleNamespace(
         head_xform=wp.array(matrix_to_transform(head)[None].astype(f32), dtype=wp.transform, device=device),
-        head_velocity=wp.array(np.asarray(head_velocity, f32)[None], dtype=wp.spatial_vector, device=device))
+        head_velocity=wp.array(np.asarray(head_velocity, f32)[None], dtype=wp.spatial_vector, device=device),
+        bases=StrandBases())
+    control.bases.xform, control.bases.velocity = control.head_xform, control.head_velocity
+    control.bases.acceleration = wp.zeros(1, dtype=wp.spatial_vector, device=device)
+    control.bases.per_strand = 0
     return model, state, control
 
 
