@@ -21,7 +21,6 @@ from hairwarp.model import Model
 from hairwarp.motion import MotionSample
 from hairwarp.solver import SimulationFault, Solver
 
-
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
 
 
@@ -112,9 +111,13 @@ class Simulation:
         sim = scene.sim
         self.scene = scene
         self.groom = scene.build_groom()
+        self.motion = scene.head_motion()
+        bound = scene.bind_surface(self.groom, self.motion.evaluate(0.0).matrix())
+        self.surface = None  # hairwarp.surface.ScalpBinding: roots on a deforming scalp
+        if bound is not None:
+            self.groom, self.surface = bound
         self.model = Model.build(self.groom, scene.strand_params(), segments=int(sim.segments),
                                  device=device or sim.device, gravity=tuple(sim.gravity))
-        self.motion = scene.head_motion()
         self.frame_dt = scene.frame_dt
         self.colliders = self._build_colliders(scene)
         collider_set = None
@@ -129,8 +132,10 @@ class Simulation:
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
                              threads=int(sim.threads) if threads is None else threads)
-        control = self.model.control()
+        control = self.model.control(root_frames=self.surface is not None)
         control.set_motion(self.motion.evaluate(0.0))
+        if self.surface is not None:
+            control.set_root_frames(*self.surface.root_frames(0.0))
         state = self.model.state()
         self.solver.forward_kinematics(state, control)
         self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
@@ -256,9 +261,13 @@ class Simulation:
                 or is_teleport(sample, self.motion.evaluate(t + self.frame_dt), *limits)):
             still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
             control.set_motion(still)
+            if self.surface is not None:
+                control.set_root_frames(*self.surface.root_frames_still(t))
             self.solver.teleport(self.stepper.state, control)
         else:
             control.set_motion(sample)
+            if self.surface is not None:
+                control.set_root_frames(*self.surface.root_frames(t))
         control.set_wind(self.scene.wind_at(t))
         if self._moving_colliders:
             self.collider_set.update(t)

@@ -224,6 +224,16 @@ def _check_groom(values, given, error):
         error("curl", f"a helix needs 2 pi curl < curl_period ({values['curl_period']:g} m), got {values['curl']:g}")
 
 
+def _check_surface(values, given, error):
+    if values["file"] is None:
+        defaults = SCHEMA["groom"].fields["surface"].fields
+        for key in ("prim", "max_distance", "interpolation"):
+            if key in given and values[key] != defaults[key].default:
+                error(key, "applies with groom.surface.file only")
+    elif values["prim"] is None:
+        error("prim", "groom.surface needs the scalp's Mesh prim path")
+
+
 def _check_keys(values, given, error):
     if "rotate_deg" in given and ("axis" in given or "angle_deg" in given):
         error("", "give the rotation as rotate_deg or as axis and angle_deg, not both")
@@ -398,6 +408,24 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "purpose": Field("str", "auto", "file, USD: the curves to read by UsdGeom purpose: guide, render (all "
                                             "but guides), all, or auto (the guides when the stage has both)",
                              choices=("auto", "guide", "render", "all")),
+            "surface": Section(
+                {
+                    "file": Field("path", None, "the stage holding the scalp mesh, relative to the scene file (unset: "
+                                                "the roots ride on the head)", suffixes=(".usd", ".usda", ".usdc",
+                                                                                          ".usdz")),
+                    "prim": Field("str", None, "the scalp's Mesh prim; its points may be time-sampled (skinned or "
+                                               "blend-shaped), its transforms animated"),
+                    "max_distance": Field("float", 0.01, "farthest a root may lie from the scalp at rest; each root "
+                                                         "moves onto its closest point there, its strand with it",
+                                          "m", range="(0, inf)"),
+                    "interpolation": Field("str", "smooth", "the scalp's points between time samples, as "
+                                                            "head.motion.interpolation",
+                                           choices=_motion.KEY_INTERPOLATIONS),
+                },
+                doc="roots bound to the triangles of an animated scalp mesh (hairwarp.surface): each root rides on "
+                    "its triangle's frame, so the hair follows a deforming scalp",
+                check=_check_surface,
+            ),
         },
         doc="the guide strands: generated on a scalp, or read from a file",
         check=_check_groom,
@@ -988,6 +1016,37 @@ class Scene:
             groom = groom.subset(np.arange(0, count, math.ceil(count / g["max_strands"])))
         return groom
 
+    def bind_surface(self, groom, head_rest=None):
+        """Bind the groom's roots to the scalp mesh of ``[groom.surface]``, or None when it has no file.
+
+        Args:
+            groom: the guide strands (``build_groom``), in the head frame.
+            head_rest: 4x4 head pose at time 0 (the groom's frame in the world), identity when None.
+
+        Returns:
+            ``(groom, binding)``: the groom with each strand moved so that its root lies on the scalp at rest, and
+            the :class:`hairwarp.surface.ScalpBinding`; or None.
+
+        Raises:
+            UsdFileError: the stage or the prim cannot be read. SurfaceError: a root is farther than
+                ``max_distance`` from the scalp.
+        """
+        from dataclasses import replace
+
+        from hairwarp.io.usd_anim import read_surface_track
+        from hairwarp.surface import ScalpBinding
+
+        cfg = self._data["groom"]["surface"]
+        if cfg["file"] is None:
+            return None
+        H = np.eye(4) if head_rest is None else np.asarray(head_rest, dtype=np.float64)
+        track, faces = read_surface_track(cfg["file"], cfg["prim"], interpolation=cfg["interpolation"])
+        roots = groom.roots() @ H[:3, :3].T + H[:3, 3]
+        binding = ScalpBinding(track, faces, roots, head_rest=H, max_distance=cfg["max_distance"],
+                               where=f"{self._label}: groom.surface ({cfg['file']}: {cfg['prim']})")
+        local = binding.offset @ H[:3, :3]  # world offsets into the head frame
+        return replace(groom, strands=[a + d for a, d in zip(groom.strands, local)]), binding
+
     def summary(self) -> str:
         """A few lines describing the scene (``hairwarp info scene.toml``)."""
         d = self._data
@@ -1005,6 +1064,9 @@ class Scene:
             cut = f", at most {g['max_strands']} strands" if g["max_strands"] else ""
             lines.append(f"groom      file {g['file']} (up {g['up_axis']}, scale {g['scale']:g}{cut}), "
                          f"{sim['segments']} segments per guide")
+        if g["surface"]["file"] is not None:
+            lines.append(f"roots      on the scalp mesh {g['surface']['prim']} of {g['surface']['file']} (each on its "
+                         f"triangle's frame)")
         lines.append(f"strands    radius {s['radius']:g} m, density {s['density']:g} kg/m^3, "
                      f"bend {s['bend_stiffness']:g} N m^2, damping {s['damping']:g} N m^2 s, drag {s['drag']:g}")
         lines.append(f"head       {h['shape']}" + (f" at {_fmt(h['center'])} radii {_fmt(h['radii'])}"

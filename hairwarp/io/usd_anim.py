@@ -6,7 +6,7 @@ import numpy as np
 
 from hairwarp.io.usd_common import UsdFileError, _open_stage, _prims, _stage_to_metres_z, _triangles
 
-__all__ = ["mesh_motion", "read_animated_collider", "read_animated_mesh"]
+__all__ = ["mesh_motion", "read_animated_collider", "read_animated_mesh", "read_surface_track"]
 
 
 # A world transform's scale, shear or mirror (the symmetric factor of its polar decomposition) is baked into the
@@ -79,6 +79,29 @@ def read_animated_mesh(path, prim_path=None):
             with time, or a point count that changes with time.
     """
     return _read_animated_mesh(path, prim_path)[:4]
+
+
+def read_surface_track(path, prim_path, *, interpolation: str = "smooth"):
+    """A Mesh prim's points in the world over time, for roots bound to a deforming scalp (``groom.surface``).
+
+    Args:
+        path: the USD file.
+        prim_path: the Mesh prim (skinned, blend-shaped or only moved: any animation of its points or transforms).
+        interpolation: of the points between time samples, as ``head.motion.interpolation``.
+
+    Returns:
+        ``(track, faces)``: a :class:`hairwarp.surface.PointTrack` of the world points [m] (Z up) at the time
+        samples of :func:`read_animated_mesh`, and the (F, 3) faces.
+
+    Raises:
+        UsdFileError: as :func:`read_animated_mesh`.
+    """
+    from hairwarp.surface import PointTrack
+
+    vertices, faces, times, matrices, _ = _read_animated_mesh(path, prim_path)
+    local = np.broadcast_to(vertices, (len(times),) + vertices.shape[-2:])
+    world = np.einsum("tij,tvj->tvi", matrices[:, :3, :3], local) + matrices[:, None, :3, 3]
+    return PointTrack(times, world, interpolation), faces
 
 
 def _rigid_world_poses(prim, time_codes, codes, c4, where):

@@ -1,0 +1,238 @@
+"""Roots bound to a deforming surface: each guide root on a triangle of an animated scalp mesh.
+
+A skinned or blend-shaped scalp stretches and slides under the hair; a rigid head frame cannot carry the roots
+then. :class:`ScalpBinding` puts each root on the closest triangle of the mesh at rest (barycentric
+coordinates, the root moved onto the surface) and gives each strand, at any time, the rigid frame of its
+triangle: origin at the root's barycentric point, axes from the triangle's first edge and its normal. A strand's
+*root frame* is the map from the groom's head frame to the world that carries the rest triangle onto the moved
+one, ``P(t) = F(t) F(0)^-1 H(0)`` (``F`` the triangle's frame, ``H(0)`` the head pose at rest), with its world
+velocity and acceleration: the step then roots every strand on its own frame (``Control.set_root_frames``) as it
+roots all of them on the head otherwise. The mesh's points are interpolated in time as keyframes are
+(:func:`hermite_tangents`), so the frames' velocities and accelerations are those of the interpolated motion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hairwarp.motion import KEY_INTERPOLATIONS, _hermite, _pchip_tangent
+
+#: Time step of the central differences that give a root frame's angular acceleration [s]; the frames' rotations
+#: are cubic within a key interval, so the difference is exact there to O(eps^2) ~ 1e-8 relative.
+_ALPHA_EPS = 1.0e-4
+
+
+class SurfaceError(ValueError):
+    """A groom cannot be bound to the surface (the message names the strand and the distance)."""
+
+
+def hermite_tangents(times: np.ndarray, values: np.ndarray, interpolation: str) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes at the start and the end of each key interval of a cubic Hermite curve through ``values``.
+
+    ``"smooth"``: Catmull-Rom tangents ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``; ``"monotone"``:
+    Fritsch-Carlson (PCHIP) per component, no overshoot; ``"linear"``: each interval's own slope. Zero at the first
+    and the last key (the curve starts and stops at rest), as :class:`hairwarp.motion.Keyframes` does.
+
+    Args:
+        times: (N,) strictly increasing [s].
+        values: (N, ...) the keyed values.
+        interpolation: one of :data:`hairwarp.motion.KEY_INTERPOLATIONS`.
+
+    Returns:
+        ``(tan0, tan1)``, (N-1, ...) each, in value units per second.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    d = np.asarray(values, dtype=np.float64)
+    h = np.diff(t).reshape((-1,) + (1,) * (d.ndim - 1))
+    slopes = np.diff(d, axis=0) / h
+    if interpolation == "linear":
+        return slopes.copy(), slopes.copy()
+    key = np.zeros_like(d)
+    if t.size > 2:
+        if interpolation == "monotone":
+            for i in range(1, t.size - 1):
+                key[i] = _pchip_tangent(slopes[i - 1], slopes[i], t[i] - t[i - 1], t[i + 1] - t[i])
+        else:
+            key[1:-1] = (d[2:] - d[:-2]) / (t[2:] - t[:-2]).reshape((-1,) + (1,) * (d.ndim - 1))
+    return key[:-1].copy(), key[1:].copy()
+
+
+class PointTrack:
+    """Points sampled at key times, interpolated by cubic Hermite curves; held before the first and after the
+    last key (zero velocity there).
+
+    Args:
+        times: (T,) strictly increasing [s].
+        points: (T, N, 3) [m].
+        interpolation: as :class:`hairwarp.motion.Keyframes`.
+    """
+
+    def __init__(self, times, points, interpolation: str = "smooth"):
+        if interpolation not in KEY_INTERPOLATIONS:
+            raise ValueError(f"unknown interpolation {interpolation!r}; choose one of {', '.join(KEY_INTERPOLATIONS)}")
+        self.times = np.asarray(times, dtype=np.float64).reshape(-1)
+        self.points = np.asarray(points, dtype=np.float64)
+        if self.points.shape[0] != self.times.size:
+            raise ValueError(f"{self.times.size} times for {self.points.shape[0]} point samples")
+        if np.any(np.diff(self.times) <= 0.0):
+            raise ValueError("point sample times must increase strictly")
+        self.interpolation = interpolation
+        if self.times.size > 1:
+            self._tan0, self._tan1 = hermite_tangents(self.times, self.points, interpolation)
+
+    def subset(self, indices) -> PointTrack:
+        """The track of the points at ``indices`` (the same curves: tangents are per point)."""
+        out = PointTrack.__new__(PointTrack)
+        out.times, out.interpolation = self.times, self.interpolation
+        out.points = self.points[:, indices]
+        if self.times.size > 1:
+            out._tan0, out._tan1 = self._tan0[:, indices], self._tan1[:, indices]
+        return out
+
+    def evaluate(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions [m], velocities [m/s] and accelerations [m/s^2] at ``t``, (N, 3) each."""
+        tk, d = self.times, self.points
+        if t <= tk[0] or t >= tk[-1]:
+            p = d[0] if t <= tk[0] else d[-1]
+            return p.copy(), np.zeros_like(p), np.zeros_like(p)
+        i = int(np.searchsorted(tk, t, side="right")) - 1
+        h = tk[i + 1] - tk[i]
+        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite((t - tk[i]) / h)
+        m0, m1 = h * self._tan0[i], h * self._tan1[i]
+        p = h00 * d[i] + h10 * m0 + h01 * d[i + 1] + h11 * m1
+        v = (d00 * d[i] + d10 * m0 + d01 * d[i + 1] + d11 * m1) / h
+        a = (e00 * d[i] + e10 * m0 + e01 * d[i + 1] + e11 * m1) / (h * h)
+        return p, v, a
+
+
+def _normalized(u: np.ndarray, ud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors of the rows of ``u`` and their time derivatives, ``(I - n n^T) u' / |u|``."""
+    length = np.linalg.norm(u, axis=1, keepdims=True)
+    n = u / length
+    nd = (ud - n * np.sum(n * ud, axis=1, keepdims=True)) / length
+    return n, nd
+
+
+def triangle_frames(p0, p1, p2, v0=None, v1=None, v2=None):
+    """Rotation matrices of triangles (columns: first edge, normal x edge, normal) and their world angular
+    velocities from the corners' velocities.
+
+    Args:
+        p0, p1, p2: (G, 3) corners [m]; v0, v1, v2: (G, 3) their velocities [m/s] (zero when None).
+
+    Returns:
+        ``(R, omega)``: (G, 3, 3) and (G, 3) [rad/s], ``omega^ = R' R^T``.
+    """
+    zero = np.zeros_like(p0)
+    v0, v1, v2 = (zero if v is None else v for v in (v0, v1, v2))
+    e1, e2 = p1 - p0, p2 - p0
+    e1d, e2d = v1 - v0, v2 - v0
+    t, td = _normalized(e1, e1d)
+    n, nd = _normalized(np.cross(e1, e2), np.cross(e1d, e2) + np.cross(e1, e2d))
+    b = np.cross(n, t)
+    bd = np.cross(nd, t) + np.cross(n, td)
+    R = np.stack([t, b, n], axis=2)
+    Rd = np.stack([td, bd, nd], axis=2)
+    W = Rd @ np.transpose(R, (0, 2, 1))
+    omega = 0.5 * np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=1)
+    return R, omega
+
+
+def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(G, 3, 3) rotation matrices to (G, 4) quaternions (x, y, z, w), w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(R).as_quat()
+    return q * np.where(q[:, 3:4] < 0.0, -1.0, 1.0)
+
+
+class ScalpBinding:
+    """Guide roots bound to the triangles of an animated mesh.
+
+    Args:
+        track: the mesh's world points over time (:class:`PointTrack`, metres).
+        faces: (F, 3) triangle vertex indices.
+        roots: (G, 3) the guide roots in the world at rest (``t = rest_time``) [m].
+        head_rest: 4x4 head pose at rest (the groom's head frame in the world), identity when None.
+        max_distance: farthest a root may lie from the surface at rest [m]; farther is a groom made for
+            another surface.
+        rest_time: the time the groom's rest shape belongs to [s].
+
+    Attributes:
+        triangle: (G,) the face each root is bound to. barycentric: (G, 3) its coordinates there.
+        offset: (G, 3) [m] what the root moved to land on the surface (the strand moves with it).
+    """
+
+    def __init__(self, track: PointTrack, faces, roots, *, head_rest=None, max_distance: float = 0.01,
+                 rest_time: float = 0.0, where: str = "groom.surface"):
+        import trimesh
+
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        roots = np.asarray(roots, dtype=np.float64).reshape(-1, 3)
+        rest, _, _ = track.evaluate(rest_time)
+        mesh = trimesh.Trimesh(vertices=rest, faces=faces, process=False)
+        closest, distance, tri = trimesh.proximity.closest_point(mesh, roots)
+        far = np.flatnonzero(distance > max_distance)
+        if far.size:
+            s = int(far[np.argmax(distance[far])])
+            raise SurfaceError(f"{where}: the root of strand {s} lies {distance[s] * 1e3:.1f} mm from the surface "
+                               f"(max_distance {max_distance * 1e3:g} mm; {far.size} of {len(roots)} roots are "
+                               f"farther): is this the groom's own scalp, in the same units and place?")
+        self.triangle = np.asarray(tri, dtype=np.int64)
+        corners = faces[self.triangle]
+        bary = trimesh.triangles.points_to_barycentric(rest[corners], closest)
+        self.barycentric = np.clip(bary, 0.0, 1.0) / np.clip(bary, 0.0, 1.0).sum(axis=1, keepdims=True)
+        # Only the bound triangles' corners are evaluated over time.
+        self._used, inverse = np.unique(corners, return_inverse=True)
+        self._corners = inverse.reshape(-1, 3)
+        self.track = track.subset(self._used)
+        self.rest_time = float(rest_time)
+        o0, R0, _, _ = self._frames_at(rest_time)
+        self.offset = o0 - roots
+        H = np.eye(4) if head_rest is None else np.asarray(head_rest, dtype=np.float64)
+        # P(t) = F(t) F(0)^-1 H(0): rotation R(t) R0^T Rh, translation o(t) + R(t) c with c = R0^T (t_h - o0)
+        self._R0T_Rh = np.transpose(R0, (0, 2, 1)) @ H[:3, :3]
+        self._c = np.einsum("gji,gj->gi", R0, H[:3, 3] - o0)
+
+    @property
+    def strand_count(self) -> int:
+        return int(self.triangle.size)
+
+    def _frames_at(self, t: float):
+        p, v, a = self.track.evaluate(t)
+        c = self._corners
+        w = self.barycentric[:, :, None]
+        o = np.sum(w * p[c], axis=1)
+        od = np.sum(w * v[c], axis=1)
+        odd = np.sum(w * a[c], axis=1)
+        R, omega = triangle_frames(p[c[:, 0]], p[c[:, 1]], p[c[:, 2]], v[c[:, 0]], v[c[:, 1]], v[c[:, 2]])
+        return o, R, omega, (od, odd)
+
+    def root_points(self, t: float) -> np.ndarray:
+        """The bound points on the surface at ``t``, (G, 3) [m]: where the roots belong."""
+        return self._frames_at(t)[0]
+
+    def root_frames(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every strand's root frame at ``t``, as :meth:`hairwarp.Control.set_root_frames` takes them.
+
+        Returns:
+            ``(xforms (G, 7), velocities (G, 6), accelerations (G, 6))``: position and quaternion (x, y, z, w) of
+            the map from the head frame to the world; world angular velocity and the velocity of its origin; world
+            angular acceleration (central difference of the angular velocity) and the origin's acceleration.
+        """
+        o, R, omega, (od, odd) = self._frames_at(t)
+        _, _, w_minus, _ = self._frames_at(t - _ALPHA_EPS)
+        _, _, w_plus, _ = self._frames_at(t + _ALPHA_EPS)
+        alpha = (w_plus - w_minus) / (2.0 * _ALPHA_EPS)
+        rot = R @ self._R0T_Rh
+        r = np.einsum("gij,gj->gi", R, self._c)  # frame origin less the bound point
+        origin = o + r
+        v_origin = od + np.cross(omega, r)
+        a_origin = odd + np.cross(alpha, r) + np.cross(omega, np.cross(omega, r))
+        xforms = np.concatenate([origin, _matrix_to_quat(rot)], axis=1)
+        return xforms, np.concatenate([omega, v_origin], axis=1), np.concatenate([alpha, a_origin], axis=1)
+
+    def root_frames_still(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`root_frames` at ``t`` with zero velocities and accelerations (a teleport's pose)."""
+        xforms, vel, acc = self.root_frames(t)
+        return xforms, np.zeros_like(vel), np.zeros_like(acc)

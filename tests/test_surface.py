@@ -1,0 +1,182 @@
+"""Roots bound to a deforming surface (``groom.surface``): the root frames against the motion they must reproduce,
+the step on per-strand frames against the step on the head, and the shipped character's sliding scalp."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _character import END, NECK_CM, SCALP_STEP, head_rotation_deg, scalp_points, scalp_rest_points
+from scipy.spatial.transform import Rotation
+
+import hairwarp as hw
+from hairwarp.surface import PointTrack, ScalpBinding, SurfaceError
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+# Y up in cm to Z up in m: (x, y, z) -> 0.01 (x, -z, y)
+Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def _sphere(radius=0.1, centre=(0.0, 0.0, 1.6)):
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    return mesh.vertices + np.asarray(centre), mesh.faces
+
+
+def _roots_on(vertices, faces, count, rng):
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    return trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 30)))[0]
+
+
+def test_root_frames_of_a_rigidly_moving_mesh_are_the_motion():
+    """A mesh carried by a rigid motion, sampled at 240 Hz: every strand's root frame is that motion (pose, angular
+    velocity, the velocity and acceleration of its origin, angular acceleration). The points are interpolated by
+    cubic Hermite curves, not by the motion's own rule: between samples their velocities agree to O(h^2) (h ~ 1 ms
+    here: 2e-4 rad/s at 4 ms, 3e-5 at 1 ms, measured), accelerations to O(h), which bounds the tolerances; the
+    times avoid the motions' ramp ends, where the accelerations have kinks."""
+    rng = np.random.default_rng(1)
+    motion = hw.motion.Compose(hw.motion.Turn(amplitude_deg=40.0, period=1.0, start=0.0, ramp=0.2,
+                                              pivot=(0.0, 0.0, 1.5)),
+                               hw.motion.Nod(amplitude_deg=20.0, period=0.7, start=0.1, ramp=0.2,
+                                             pivot=(0.0, 0.0, 1.5)))
+    vertices, faces = _sphere()
+    times = np.arange(0.0, 1.5 + 1e-9, 1.0 / 960.0)
+    world = np.array([vertices @ m[:3, :3].T + m[:3, 3] for m in (motion.evaluate(t).matrix() for t in times)])
+    roots = _roots_on(vertices, faces, 25, rng)
+    binding = ScalpBinding(PointTrack(times, world), faces, roots, head_rest=motion.evaluate(0.0).matrix())
+    assert np.abs(binding.offset).max() < 1e-12  # sampled on the surface: nothing to move
+    for t in (0.45, 0.55, 0.9, 1.21):
+        s = motion.evaluate(t)
+        xforms, vel, acc = binding.root_frames(t)
+        m = s.matrix()
+        q = Rotation.from_quat(xforms[:, 3:]).as_matrix()
+        np.testing.assert_allclose(q, np.broadcast_to(m[:3, :3], q.shape), atol=1e-5)
+        np.testing.assert_allclose(xforms[:, :3], np.broadcast_to(m[:3, 3], (25, 3)), atol=2e-5)  # 1.6 m lever
+        np.testing.assert_allclose(vel[:, :3], np.broadcast_to(s.angular_velocity, (25, 3)), atol=5e-4)
+        np.testing.assert_allclose(vel[:, 3:], np.broadcast_to(s.linear_velocity, (25, 3)), atol=1e-3)
+        scale_w = np.abs(s.angular_acceleration).max()  # 15-25 rad/s^2
+        np.testing.assert_allclose(acc[:, :3], np.broadcast_to(s.angular_acceleration, (25, 3)), atol=0.01 * scale_w)
+        scale_a = np.abs(s.linear_acceleration).max()  # 28-34 m/s^2
+        np.testing.assert_allclose(acc[:, 3:], np.broadcast_to(s.linear_acceleration, (25, 3)), atol=0.01 * scale_a)
+
+
+def test_root_frame_velocities_are_the_derivatives_of_the_frames():
+    """On a deforming mesh, the returned angular and linear velocities equal central differences of the returned
+    poses (float64; eps = 1e-5 s gives O(eps^2) truncation, well under the tolerance)."""
+    rng = np.random.default_rng(2)
+    vertices, faces = _sphere()
+    times = np.linspace(0.0, 1.0, 11)
+    wobble = [vertices + 0.01 * np.sin(3.0 * t + 7.0 * vertices[:, [1, 2, 0]]) for t in times]
+    binding = ScalpBinding(PointTrack(times, np.array(wobble)), faces, _roots_on(vertices, faces, 30, rng),
+                           max_distance=0.02)
+    eps = 1e-5
+    for t in (0.25, 0.61):
+        x, vel, _ = binding.root_frames(t)
+        xm, _, _ = binding.root_frames(t - eps)
+        xp, _, _ = binding.root_frames(t + eps)
+        rot = Rotation.from_quat(xp[:, 3:]) * Rotation.from_quat(xm[:, 3:]).inv()
+        np.testing.assert_allclose(vel[:, :3], rot.as_rotvec() / (2 * eps), atol=1e-5)
+        np.testing.assert_allclose(vel[:, 3:], (xp[:, :3] - xm[:, :3]) / (2 * eps), atol=1e-5)
+        # the bound points ride along: what the roots' velocity must be
+        p = binding.root_points(t)
+        v_root = vel[:, 3:] + np.cross(vel[:, :3], p - x[:, :3])
+        np.testing.assert_allclose(v_root, (binding.root_points(t + eps) - binding.root_points(t - eps)) / (2 * eps),
+                                   atol=1e-5)
+
+
+def test_a_root_far_from_the_surface_is_named():
+    vertices, faces = _sphere()
+    roots = vertices[:3].copy()
+    roots[1] *= 1.05  # 8 cm out
+    with pytest.raises(SurfaceError, match="strand 1 lies"):
+        ScalpBinding(PointTrack([0.0], vertices[None]), faces, roots)
+
+
+def test_per_strand_frames_at_the_head_step_the_same_bits():
+    """The default scene (links, hair contacts, the head collider: every stage that reads the roots' frame) on a
+    turning head, once on the head and once with every strand's root frame set to the head's: the same bits."""
+    from hairwarp.runner import Simulation
+
+    scene = hw.Scene.load(SCENES / "long_hair.toml", overrides=["groom.count=40", "dense.count=0",
+                                                               "head.motion.start=0.0"])
+    plain, per_strand = Simulation(scene, threads=1), Simulation(scene, threads=1)
+    G = per_strand.model.strand_count
+    control = per_strand.model.control(root_frames=True)
+    per_strand.stepper.control = control
+    head_step = per_strand._before_step
+
+    def before_step(t, ctl):
+        head_step(t, ctl)
+        ctl.set_root_frames(*(np.tile(a.numpy().astype(np.float64), (G, 1))
+                              for a in (ctl.head_xform, ctl.head_velocity, ctl.head_acceleration)))
+
+    per_strand._before_step = before_step
+    for _ in range(8):
+        plain.advance_frame()
+        per_strand.advance_frame()
+    a, b = plain.guide_curves(), per_strand.guide_curves()
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert np.abs(a[0] - plain.model.rest_vertex_positions.reshape(-1, 3)).max() > 0.01  # the hair did move
+
+
+def _scalp_world(code: float):
+    """The character's scalp in the world at a time code, from the generator and the head's authored ops (not
+    from the readers): metres, Z up."""
+    R = Rotation.from_euler("xyz", head_rotation_deg(code), degrees=True).as_matrix()
+    stage_points = scalp_points(code) @ R.T + np.asarray(NECK_CM)
+    return 0.01 * stage_points @ Y_TO_Z.T
+
+
+@pytest.mark.parametrize("frames", [24])
+def test_character_roots_stay_on_the_sliding_scalp(frames):
+    """The shipped character scene: at every frame the guide roots lie on the scalp mesh within 1e-5 m (float32 at
+    1.6 m), at the frames where the stage has a sample against the mesh built here from the generator, at the
+    others against the binding's interpolated points; and the skin's slide takes the roots centimetres away from
+    where the rigid head alone would carry them."""
+    import trimesh
+
+    from hairwarp.runner import Simulation
+
+    scene = hw.Scene.load(SCENES / "character.toml", overrides=["dense.count=0", "groom.count=40"])
+    sim = Simulation(scene)
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    rest_roots = sim.model.rest_vertex_positions.reshape(G, S + 1, 3)[:, 0]
+    _, counts, indices = scalp_rest_points()
+    tris, at = [], 0
+    for n in counts:  # fans, as a DCC splits polygons
+        tris += [(indices[at], indices[at + k], indices[at + k + 1]) for k in range(1, n - 1)]
+        at += n
+    slide = 0.0
+    for frame in range(1, frames + 1):
+        sim.advance_frame()
+        t = frame * sim.frame_dt
+        roots = sim.guide_curves()[0].reshape(G, S + 1, 3)[:, 0].astype(np.float64)
+        np.testing.assert_allclose(roots, sim.surface.root_points(t), atol=1e-5)
+        code = frame  # the scene runs at the stage's 24 time codes per second
+        if code % SCALP_STEP == 0:
+            mesh = trimesh.Trimesh(vertices=_scalp_world(code), faces=np.asarray(tris), process=False)
+            _, distance, _ = trimesh.proximity.closest_point(mesh, roots)
+            assert distance.max() < 1e-5, (frame, distance.max())
+        m = sim.head_matrix(t)
+        slide = max(slide, float(np.abs(roots - (rest_roots @ m[:3, :3].T + m[:3, 3])).max()))
+    assert slide > 0.005
+    assert END >= frames
+
+
+def test_surface_errors_through_the_cli(tmp_path):
+    """A scene whose roots are far from its surface: one line naming the strand, rc 2, nothing written."""
+    scene = tmp_path / "far.toml"
+    scene.write_text((SCENES / "character.toml").read_text().replace(
+        'scalp_center = [0.0, 0.0, 1.6]', 'scalp_center = [0.0, 0.0, 1.7]').replace(
+        'file = "character.usda"', f'file = "{SCENES / "character.usda"}"'))
+    out = tmp_path / "out" / "far.usdc"
+    proc = subprocess.run([sys.executable, "-m", "hairwarp", "run", str(scene), "-o", str(out), "--frames", "2"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "groom.surface" in lines[0] and "strand" in lines[0], proc.stderr
+    assert not out.exists()
