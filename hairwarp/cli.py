@@ -123,11 +123,11 @@ def _cmd_info(args) -> int:
 
 
 def _groom_summary(path: Path) -> str:
+    import warnings
+
     import numpy as np
 
     from hairwarp.groom import Groom
-
-    import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # the dropped strands are a line of the summary below
@@ -423,6 +423,35 @@ def _is_usd_error(exc: BaseException) -> bool:
     return tf is not None and isinstance(exc, tf.ErrorException)
 
 
+#: What Warp's native library prints on a machine without the CUDA driver, on every start (not news on a CPU).
+_NO_CUDA_DRIVER = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+
+def _init_warp_quietly(wp) -> None:
+    """``wp.init()`` with the native library's standard error caught, and given back without the missing-driver
+    warning (written by C code, past Python's ``sys.stderr`` and Warp's own quiet settings)."""
+    import tempfile
+
+    try:
+        saved = os.dup(2)
+    except OSError:
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as caught:
+        sys.stderr.flush()
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        text = caught.read().decode("utf-8", "replace")
+    kept = [line for line in text.splitlines(keepends=True) if not line.startswith(_NO_CUDA_DRIVER)]
+    if kept:
+        sys.stderr.write("".join(kept))
+
+
 def main(argv=None) -> int:
     """Run the ``hairwarp`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
 
@@ -435,6 +464,7 @@ def main(argv=None) -> int:
         wp.config.quiet = True  # Warp before 1.19
         if hasattr(wp, "LOG_ERROR"):
             wp.config.log_level = wp.LOG_ERROR
+        _init_warp_quietly(wp)
     except ImportError:
         pass
     if os.environ.get("HAIRWARP_TRACEBACK"):
