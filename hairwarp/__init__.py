@@ -35,6 +35,9 @@ _EXPORTS = {
     "Collider": "hairwarp.colliders",
     "ColliderSet": "hairwarp.colliders",
     "ColliderError": "hairwarp.colliders",
+    "StaticLinks": "hairwarp.interactions",
+    "HairContacts": "hairwarp.interactions",
+    "TriangleStrips": "hairwarp.interactions",
     # dense hair and output
     "DenseHair": "hairwarp.dense",
     "CacheWriter": "hairwarp.io.cache",
