@@ -37,10 +37,10 @@ __all__ = [
     "Y_UP_TO_Z_UP",
     "Groom",
     "GroomError",
-    "read_hair",
-    "read_tfx",
+    "read_hair",  # noqa: F822 - lazy, see __getattr__
+    "read_tfx",  # noqa: F822
     "scalp_groom",
-    "write_hair",
+    "write_hair",  # noqa: F822
 ]
 
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])

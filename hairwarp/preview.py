@@ -489,10 +489,9 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False) -> Pat
     """
     from PIL import Image
 
-    from hairwarp.runner import _Progress
-
     from hairwarp.io.usd_common import _open_stage
     from hairwarp.io.usd_inspect import read_frames
+    from hairwarp.runner import _Progress
 
     fps = _open_stage(cache_path).GetTimeCodesPerSecond() or 24.0
     data = read_frames(cache_path)

@@ -731,7 +731,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     if dense is not None:
         hermite = scene.dense.basis == "linear"
         cache_counts = dense.curve_vertex_counts(hermite)
-        dense_uv = None if guide_uv is None else np.einsum("dj,djc->dc", dense.guide_weight, guide_uv[dense.guide_index])
+        dense_uv = (None if guide_uv is None
+                    else np.einsum("dj,djc->dc", dense.guide_weight, guide_uv[dense.guide_index]))
         widths = tuple(scene.dense.width) if guide_widths is None else _dense_widths(dense, guide_widths, cache_counts)
         cache.add_curves("hair", cache_counts, widths=widths, kind="dense", basis=scene.dense.basis, root_uv=dense_uv)
     if scene.output.guides:

@@ -648,8 +648,13 @@ def integrate_euler(
     if contacts.enabled != 0:
         for k in range(S):
             scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for the fault check
-        body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
-                           scratch)
+        # linearised where the free velocities hold: the step's start, or the parts' end configuration
+        if parts == 1:
+            body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out,
+                               contacts, scratch)
+        else:
+            body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, q_free, joint_qd_out, contacts,
+                               scratch)
     for k in range(S):
         i = strand * S + k
         w = joint_qd_out[i]
@@ -703,8 +708,8 @@ def integrate_rk4(
     """One thread per strand: classical RK4 on the Lie group, as MuJoCo's ``RK4`` does.
 
     Stage configurations are ``q0 exp(c h w)``; the update is ``q0 exp(h/6 (w1 + 2w2 + 2w3 + w4))``.
-    External loads stay fixed over the step; body contacts act after it (``body_contact_solve``). Writes ``joint_q_out``, ``joint_qd_out``, the new
-    state's world frames and vertices, and fault bits.
+    External loads stay fixed over the step; body contacts act after it (``body_contact_solve``). Writes
+    ``joint_q_out``, ``joint_qd_out``, the new state's world frames and vertices, and fault bits.
     """
     strand = tid_offset + wp.tid()
     if strand == 0:

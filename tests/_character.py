@@ -99,5 +99,6 @@ def write_character_stage(path) -> None:
     body.CreateFaceVertexCountsAttr([4] * 6)
     body.CreateFaceVertexIndicesAttr([i for q in quads for i in q])
     body.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-    stage.GetRootLayer().documentation = "hairwarp character stage: a head xform that turns and nods, its sliding scalp, a torso"
+    stage.GetRootLayer().documentation = ("hairwarp character stage: a head xform that turns and nods, its sliding "
+                                          "scalp, a torso")
     stage.GetRootLayer().Save()

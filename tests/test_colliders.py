@@ -160,7 +160,6 @@ def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dev
         vertex_velocities=wp.array(vels.reshape(-1, 3).astype(f32), dtype=wp.vec3, device=device),
         fault=wp.zeros(1, dtype=wp.int32, device=device))
     from hairwarp.colliders import matrix_to_transform
-
     from hairwarp.kernels.articulated import StrandBases
 
     control = SimpleNamespace(

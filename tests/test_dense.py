@@ -331,7 +331,8 @@ def test_hermite_samples_match_scipy_cubic_hermite_spline():
     curves = np.cumsum(rng.normal(size=(D, S + 1, 3)), axis=1)
     curves32 = curves.astype(np.float32)
     out = wp.zeros(D * (M * S + 1), dtype=wp.vec3, device=DEVICE)
-    wp.launch(kernels.hermite_samples, dim=out.shape[0], inputs=[0, S, M, to_wp(curves32)], outputs=[out], device=DEVICE)
+    wp.launch(kernels.hermite_samples, dim=out.shape[0], inputs=[0, S, M, to_wp(curves32)], outputs=[out],
+              device=DEVICE)
     got = out.numpy().reshape(D, M * S + 1, 3)
     param = np.arange(M * S + 1) / M
     for d in range(D):

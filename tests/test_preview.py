@@ -3,8 +3,8 @@
 import numpy as np
 from PIL import Image
 
-from hairwarp.preview import BACKGROUND, preview_cache, render_frames
 from hairwarp.io.cache import CacheWriter
+from hairwarp.preview import BACKGROUND, preview_cache, render_frames
 
 BG_TOLERANCE = 12
 """Max per-channel difference [0-255] still counted as background (anti-aliased edges, PNG is lossless)."""
