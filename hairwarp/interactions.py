@@ -132,6 +132,10 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 #: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
 SEGMENT_MIN_CHUNK = 512
 
+#: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment: below ~2,000 segments a
+#: second thread costs more to wake than it saves).
+GATHER_MIN_CHUNK = 2048
+
 
 class StaticLinks:
     """Breakable zero-rest-length springs between each segment and its nearest segments on other strands.
@@ -297,11 +301,11 @@ class StaticLinks:
                [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total, self.b_force,
                 self.b_torque, self.b_mass],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 4])
+        # (with implicit springs, the summed masses go on to the solver's implicit mass in the same pass)
         launch(self.executor, link_kernels.link_gather, seg_count,
-               [self.seg_b_start, int(self.implicit_springs), self.b_force, self.b_torque, self.b_mass],
-               [seg_force, seg_torque, self.seg_spring_mass], device=self.device, min_chunk=SEGMENT_MIN_CHUNK)
-        if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
+               [model.seg_mass, self.seg_b_start, int(self.implicit_springs), self.b_force, self.b_torque, self.b_mass,
+                self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass], device=self.device,
+               min_chunk=GATHER_MIN_CHUNK)
 
     def break_links(self, model, state):
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only): the test that
@@ -328,11 +332,6 @@ class StaticLinks:
         """Mend every link (for a new run from the rest pose)."""
         self.link_broken.zero_()
         self.link_broken_total.zero_()
-
-
-def _add_excess_mass(model, seg_spring_mass, seg_implicit_mass, device, executor=None):
-    launch(executor, link_kernels.add_excess_mass, len(seg_spring_mass), [model.seg_mass, seg_spring_mass],
-           [seg_implicit_mass], device=device, min_chunk=SEGMENT_MIN_CHUNK)
 
 
 class TriangleStrips:
@@ -683,7 +682,7 @@ class HairContacts:
         launch(self.executor, contact_kernels.segment_bounds, len(self.seg_block_lowers),
                [S, self.threshold + self.margin, vertex_positions],
                [self.seg_lowers, self.seg_uppers, self.seg_block_lowers, self.seg_block_uppers], device=self.device,
-               min_chunk=BLOCK_MIN_CHUNK)
+               min_chunk=SEGMENT_MIN_CHUNK)
 
     def refit(self, model, state, rebuild: bool = False):
         """Fit the strip and segment BVHs to ``state``: refit (launch only; :meth:`detect` does it first), or with
@@ -831,10 +830,9 @@ class HairContacts:
                [self.entry_force, self.entry_torque, self.entry_mass], device=self.device,
                min_chunk=FORCE_MIN_CHUNK)
         launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
-               [self.seg_entry_start, self.seg_entries, self.entry_force, self.entry_torque, self.entry_mass],
-               [seg_force, seg_torque, self.seg_spring_mass], device=self.device, min_chunk=SEGMENT_MIN_CHUNK)
-        if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
+               [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,
+                self.entry_torque, self.entry_mass, self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass],
+               device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def rebuild(self):
         """Rebuild both BVHs from their current boxes (optional, e.g. once per frame after large motion)."""

@@ -14,6 +14,9 @@ from hairwarp.kernels.types import Fault, Integrator
 #: 16 strands outweigh handing a chunk to a thread (``hairwarp bench threads``).
 INTEGRATE_MIN_CHUNK = 16
 
+#: Fewest segments per chunk of the air drag (~15 ns a segment: a second thread pays from ~4,000 segments on).
+DRAG_MIN_CHUNK = 4096
+
 
 class SimulationFault(RuntimeError):
     """A simulation left its bounds; the message names the frame, the stage and what to change."""
@@ -180,7 +183,7 @@ class Solver:
                 articulated.air_drag, model.seg_count,
                 [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
                  state.vertex_velocities],
-                [self.seg_force, self.seg_torque],
+                [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
             )
         if self.links is not None:
             self.links.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)

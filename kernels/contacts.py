@@ -16,7 +16,7 @@ an equilibrium of the contacts, as it is of the links.
 
 import warp as wp
 
-from hairwarp.kernels.links import lever_scaled_mass
+from hairwarp.kernels.links import excess_mass, lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -800,24 +800,27 @@ def contact_segment_lists(
 def contact_gather(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
     tid_offset: int,
+    # Model:
+    seg_mass: wp.array(dtype=float),
+    implicit_springs: int,
     # Scratch:
     seg_entry_start: wp.array(dtype=wp.int32),
     seg_entries: wp.array(dtype=wp.int32),
     entry_force: wp.array(dtype=wp.vec3),
     entry_torque: wp.array(dtype=wp.vec3),
     entry_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_spring_mass: wp.array(dtype=float),
+    seg_implicit_mass: wp.array(dtype=float),
 ):
     """One thread per segment: add the entries ``contact_forces`` left for it (``contact_segment_lists``, in slot
-    order) to ``seg_force`` [N], ``seg_torque`` [N m] and ``seg_spring_mass`` [kg]."""
+    order) to ``seg_force`` [N] and ``seg_torque`` [N m]; with ``implicit_springs``, their masses [kg] to its
+    ``seg_spring_mass``, passed on as ``kernels.links.add_excess_mass`` does."""
     seg = tid_offset + wp.tid()
     first = seg_entry_start[seg]
     last = seg_entry_start[seg + 1]
-    if first == last:
-        return
     force = wp.vec3()
     torque = wp.vec3()
     mass = float(0.0)
@@ -826,6 +829,8 @@ def contact_gather(
         force += entry_force[e]
         torque += entry_torque[e]
         mass += entry_mass[e]
-    seg_force[seg] = seg_force[seg] + force
-    seg_torque[seg] = seg_torque[seg] + torque
-    seg_spring_mass[seg] = seg_spring_mass[seg] + mass
+    if first != last:
+        seg_force[seg] = seg_force[seg] + force
+        seg_torque[seg] = seg_torque[seg] + torque
+    if implicit_springs != 0:
+        excess_mass(seg, seg_mass, seg_spring_mass[seg] + mass, seg_spring_mass, seg_implicit_mass)

@@ -258,25 +258,26 @@ def link_gather(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
     tid_offset: int,
     # Model:
+    seg_mass: wp.array(dtype=float),
     seg_b_start: wp.array(dtype=wp.int32),
     implicit_springs: int,
     # Scratch:
     b_force: wp.array(dtype=wp.vec3),
     b_torque: wp.array(dtype=wp.vec3),
     b_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
-    seg_spring_mass: wp.array(dtype=float),
+    seg_implicit_mass: wp.array(dtype=float),
 ):
     """One thread per segment b: add the shares ``link_forces`` left for b (slots ``seg_b_start[b]`` to
-    ``seg_b_start[b + 1] - 1``, its links as side b in link order) to ``seg_force`` [N], ``seg_torque`` [N m] and,
-    with ``implicit_springs``, ``seg_spring_mass`` [kg]."""
+    ``seg_b_start[b + 1] - 1``, its links as side b in link order) to ``seg_force`` [N] and ``seg_torque`` [N m]; with
+    ``implicit_springs``, add their masses to b's ``seg_spring_mass`` [kg] and pass the sum on as
+    ``add_excess_mass`` does."""
     b = tid_offset + wp.tid()
     first = seg_b_start[b]
     last = seg_b_start[b + 1]
-    if first == last:
-        return
     force = wp.vec3()
     torque = wp.vec3()
     mass = float(0.0)
@@ -284,10 +285,21 @@ def link_gather(
         force += b_force[slot]
         torque += b_torque[slot]
         mass += b_mass[slot]
-    seg_force[b] = seg_force[b] + force
-    seg_torque[b] = seg_torque[b] + torque
+    if first != last:
+        seg_force[b] = seg_force[b] + force
+        seg_torque[b] = seg_torque[b] + torque
     if implicit_springs != 0:
-        seg_spring_mass[b] = seg_spring_mass[b] + mass
+        excess_mass(b, seg_mass, seg_spring_mass[b] + mass, seg_spring_mass, seg_implicit_mass)
+
+
+@wp.func
+def excess_mass(seg: int, seg_mass: wp.array(dtype=float), spring_mass: float, seg_spring_mass: wp.array(dtype=float),
+                seg_implicit_mass: wp.array(dtype=float)):
+    """``add_excess_mass`` for one segment whose springs sum to ``spring_mass`` [kg]."""
+    excess = spring_mass - seg_mass[seg]
+    if excess > 0.0:
+        seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess
+    seg_spring_mass[seg] = 0.0
 
 
 @wp.kernel
@@ -310,10 +322,7 @@ def add_excess_mass(
     holds ``h^2 k / m < 4`` and ``h c / m < 2``); beyond it the added mass keeps the ratio at 1.
     """
     seg = tid_offset + wp.tid()
-    excess = seg_spring_mass[seg] - seg_mass[seg]
-    if excess > 0.0:
-        seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess
-    seg_spring_mass[seg] = 0.0
+    excess_mass(seg, seg_mass, seg_spring_mass[seg], seg_spring_mass, seg_implicit_mass)
 
 
 @wp.kernel
