@@ -306,6 +306,12 @@ class HeadMotion:
     def __call__(self, t: float) -> MotionSample:
         return self.evaluate(t)
 
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(position, rotation)`` of the head frame at time ``t`` [s], as :meth:`evaluate` gives them; motions
+        that can find them without the derivatives do (the runner asks for poses around every step)."""
+        sample = self.evaluate(t)
+        return sample.position, sample.rotation
+
     @staticmethod
     def from_config(cfg: Mapping, *, rest_position=(0.0, 0.0, 0.0), pivot=None) -> HeadMotion:
         """Build a motion from a ``[head.motion]`` table.
@@ -398,6 +404,16 @@ class _PivotMotion(HeadMotion):
         """(d, dd/dt, d2d/dt2) [m], world."""
         return _ZERO3, _ZERO3, _ZERO3
 
+    def _orientation(self, t: float) -> np.ndarray:
+        """q of :meth:`_rotation`, alone."""
+        return self._rotation(t)[0]
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        t = float(t)
+        q = self._orientation(t)
+        r = quat_rotate(q, self.rest_position - self.pivot)
+        return self.pivot + self._translation(t)[0] + r, q / np.linalg.norm(q)
+
     def evaluate(self, t: float) -> MotionSample:
         t = float(t)
         q, qd, qdd = self._rotation(t)
@@ -465,6 +481,11 @@ class _AxisRotation(_Oscillation):
     def _rotation(self, t: float):
         a, ad, add = (self.amplitude * e for e in self._envelope(t))
         return _exp_derivatives(0.5 * a * self.axis, 0.5 * ad * self.axis, 0.5 * add * self.axis)
+
+    def _orientation(self, t: float) -> np.ndarray:
+        v = 0.5 * (self.amplitude * self._envelope(t)[0]) * self.axis
+        f, _, _, c = _exp_functions(float(v @ v))
+        return np.concatenate([f * v, [c]])
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(amplitude_deg={math.degrees(self.amplitude):g}, period={self.period:g}, "
