@@ -30,6 +30,7 @@ when the executor has more than one thread.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import threading
@@ -171,6 +172,7 @@ class Executor:
         self._prepared = {}
         self._lock = threading.Lock()
         self._busy = threading.Lock()
+        self._batch = None
 
     @property
     def parallel(self) -> bool:
@@ -254,6 +256,25 @@ class Executor:
         if error is not None:
             raise error
 
+    @contextlib.contextmanager
+    def batch(self):
+        """Within the block, launches through :meth:`launch` are held and run together when it ends: the chunks of
+        all of them on one wake of the threads, in launch order as threads come free. Only for launches that are
+        independent of each other (none reads what another writes), with nothing in the block reading their
+        results; one thread, a graph capture or a block within a block run each launch at once, as always."""
+        if not self.parallel or self._batch is not None or _capturing(self.device):
+            yield
+            return
+        self._batch = held = []
+        try:
+            yield
+        finally:
+            self._batch = None
+        calls = [(prep.run_chunk, c) for prep in held for c in range(len(prep.calls))]
+        self._run_indexed(len(calls), lambda i: calls[i][0](calls[i][1]))
+        for prep in held:
+            _fold(prep)
+
     def launch(self, kernel, dim: int, inputs, outputs=(), *, min_chunk: int | None = None,
                private_or=(), private_add=(), private_sum=(), chunks=None, per_chunk=None):
         """Launch ``kernel`` (first parameter ``tid_offset: int``) over ``dim`` elements.
@@ -291,18 +312,14 @@ class Executor:
             return
         for parent in prep.zero:
             parent.zero_()
+        if self._batch is not None:
+            self._batch.append(prep)
+            return
         if n == 1:
             prep.run_chunk(0)
         else:
             self._run_indexed(n, prep.run_chunk)
-        for op, dst, parts in prep.fold:
-            if op == "or":
-                dst |= np.bitwise_or.reduce(parts, axis=0)
-            elif op == "add":
-                dst += np.sum(parts, axis=0, dtype=dst.dtype)
-            else:
-                for part in parts:  # in chunk order: the same bits whichever thread ran which chunk
-                    dst += part
+        _fold(prep)
 
     def _prepare(self, kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks, per_chunk):
         """Pack the arguments of every chunk once (see :meth:`launch`)."""
@@ -358,6 +375,18 @@ class Executor:
             parent = wp.zeros((count, *array.shape), dtype=array.dtype, device=self.device)
             have = self._private[key] = (parent, [parent[c] for c in range(count)])
         return have
+
+
+def _fold(prep: _Prepared):
+    """Fold the private buffers of a prepared launch's chunks into their arrays."""
+    for op, dst, parts in prep.fold:
+        if op == "or":
+            dst |= np.bitwise_or.reduce(parts, axis=0)
+        elif op == "add":
+            dst += np.sum(parts, axis=0, dtype=dst.dtype)
+        else:
+            for part in parts:  # in chunk order: the same bits whichever thread ran which chunk
+                dst += part
 
 
 def _capturing(device) -> bool:

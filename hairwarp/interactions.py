@@ -285,6 +285,12 @@ class StaticLinks:
         would act stretched past its break length (as :meth:`break_links` applied to the previous step's end would
         have found it) and acts no more.
         """
+        self.apply_forces(model, state, dt, seg_force, seg_torque)
+        self.gather(model, seg_force, seg_torque, seg_implicit_mass)
+
+    def apply_forces(self, model, state, dt, seg_force, seg_torque):
+        """The first pass of :meth:`apply`: breaking, and each segment a's side of its links (b's shares are left
+        for :meth:`gather`). Independent of the hair contacts' and the colliders' passes."""
         if self.link_count == 0:
             return
         inputs = [
@@ -301,7 +307,13 @@ class StaticLinks:
                [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total, self.b_force,
                 self.b_torque, self.b_mass],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 4])
-        # (with implicit springs, the summed masses go on to the solver's implicit mass in the same pass)
+
+    def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
+        """The second pass of :meth:`apply`: every segment b adds its shares; with implicit springs, the summed
+        masses go on to the solver's implicit mass in the same pass."""
+        if self.link_count == 0:
+            return
+        seg_count = len(self.seg_transport)
         launch(self.executor, link_kernels.link_gather, seg_count,
                [model.seg_mass, self.seg_b_start, int(self.implicit_springs), self.b_force, self.b_torque, self.b_mass,
                 self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass], device=self.device,
@@ -817,6 +829,14 @@ class HairContacts:
             return
         if self.detect_each_step:
             self.detect(model, state)
+        self.apply_forces(model, state, dt)
+        self.gather(model, seg_force, seg_torque, seg_implicit_mass)
+
+    def apply_forces(self, model, state, dt):
+        """The first pass of :meth:`apply`, on the stored contacts (detected before): each contact's forces into its
+        entries. Independent of the links' and the colliders' passes."""
+        if not self.enabled:
+            return
         inputs = [
             model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
             self._tri_scale,
@@ -829,6 +849,11 @@ class HairContacts:
         launch(self.executor, contact_kernels.contact_forces, self.force_threads, inputs,
                [self.entry_force, self.entry_torque, self.entry_mass], device=self.device,
                min_chunk=FORCE_MIN_CHUNK)
+
+    def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
+        """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it."""
+        if not self.enabled:
+            return
         launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
                [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,
                 self.entry_torque, self.entry_mass, self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass],
