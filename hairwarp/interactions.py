@@ -523,6 +523,8 @@ class HairContacts:
 
     executor = None
     _chunk_buffers = None
+    #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
+    scatter = False
 
     @classmethod
     def build(
@@ -730,7 +732,9 @@ class HairContacts:
 
     def _segment_lists(self, model):
         """Per segment, the entries of the stored contacts that push it (one thread: a counting sort over the
-        contacts, exact and in slot order, once per detection)."""
+        contacts, exact and in slot order, once per detection; not on a GPU, where ``gather`` scatters)."""
+        if self.device.is_cuda:
+            return
         launch(self.executor, contact_kernels.contact_segment_lists, 1,
                [model.seg_per_strand, len(self._seg_cursor), self._strip_pairs, self.buffer, self._seg_cursor],
                [self.seg_entry_start, self.seg_entries], device=self.device)
@@ -851,8 +855,19 @@ class HairContacts:
                min_chunk=FORCE_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
-        """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it."""
+        """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it (on a GPU
+        every contact adds its entries to its segments with atomics, in any order)."""
         if not self.enabled:
+            return
+        if self.device.is_cuda or self.scatter:
+            launch(self.executor, contact_kernels.contact_scatter, self.capacity,
+                   [model.seg_per_strand, self._strip_pairs, self.buffer, self.entry_force, self.entry_torque,
+                    self.entry_mass], [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
+                   chunks=[(0, self.capacity)])
+            if self.implicit_springs:
+                launch(self.executor, link_kernels.add_excess_mass, len(self.seg_spring_mass),
+                       [model.seg_mass, self.seg_spring_mass], [seg_implicit_mass], device=self.device,
+                       min_chunk=SEGMENT_MIN_CHUNK)
             return
         launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
                [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,

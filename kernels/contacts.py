@@ -834,3 +834,34 @@ def contact_gather(
         seg_torque[seg] = seg_torque[seg] + torque
     if implicit_springs != 0:
         excess_mass(seg, seg_mass, seg_spring_mass[seg] + mass, seg_spring_mass, seg_implicit_mass)
+
+
+@wp.kernel
+def contact_scatter(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_spring_mass: wp.array(dtype=float),
+):
+    """One thread per buffer slot (on a GPU, where atomics are atomic and a one-thread list per detection would
+    stall): add the entries of the stored contact to its segments (``contact_segments``), in any order."""
+    slot = tid_offset + wp.tid()
+    if slot >= wp.min(contacts.counter[0], contacts.capacity):
+        return
+    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+    for e in range(4):
+        seg = segs[e]
+        if seg >= 0:
+            wp.atomic_add(seg_force, seg, entry_force[4 * slot + e])
+            wp.atomic_add(seg_torque, seg, entry_torque[4 * slot + e])
+            wp.atomic_add(seg_spring_mass, seg, entry_mass[4 * slot + e])
