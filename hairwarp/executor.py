@@ -2,20 +2,27 @@
 
 Warp runs a CPU launch on one thread, and its CPU ``atomic_add`` / ``atomic_or`` are plain read-modify-writes.
 A launch of a kernel that takes ``tid_offset: int`` as its first parameter (its thread ``i`` works on element
-``tid_offset + i``) can instead run as several launches of consecutive ranges, one per pool thread; Warp releases
-the GIL inside a CPU launch, so the chunks run at once. On CUDA, or with one thread, it is one launch, as always.
+``tid_offset + i``) can instead run as several launches of consecutive ranges, one after the other on whichever
+pool thread is free; Warp's CPU kernels run without the GIL, so the chunks run at once. On CUDA it is one launch.
 
 Results never depend on the thread count:
 
 - a kernel whose every element is written by one thread only (a strand, a segment, a dense vertex) gives the same
-  bits whatever its range, so such launches are split into ``threads`` equal ranges (no smaller than
-  ``min_chunk`` elements, below which a chunk costs more to hand to a thread than it runs);
+  bits whatever its range, so such launches are split into a few ranges per thread (no smaller than ``min_chunk``
+  elements, below which a chunk costs more to hand to a thread than it runs), taken by the threads as they come
+  free, which evens out strands of unequal cost;
 - small integer arrays that threads OR or add into (fault bits, counters) are given to each chunk as a private
   zeroed copy and folded into the real array after the chunks join (integer OR and sums are exact, so the order
   does not matter): ``private_or`` and ``private_add``;
-- stages that scatter floats (the hair contacts' forces) use :meth:`Executor.fixed_chunks`, a partition fixed by
-  the work size alone, accumulate per chunk and reduce in chunk order; stages that append to a buffer take
-  per-chunk buffers concatenated in chunk order (``HairContacts``), which is the order of one whole launch.
+- stages that scatter floats into shared arrays either gather instead (each element sums its own terms in a fixed
+  order: the links and the hair contacts, ``hairwarp.interactions``), or use :meth:`Executor.fixed_chunks`, a
+  partition fixed by the work size alone, accumulate per chunk and reduce in chunk order (``private_sum``); stages
+  that append to a buffer take per-chunk buffers concatenated in chunk order (``HairContacts``), which is the order
+  of one whole launch.
+
+A launch's arguments are packed once: the chunks' argument blocks are kept, keyed by the kernel, the size and the
+identity of every argument (the value of a number), and the next launch with the same arguments only calls the
+kernel. Warp structs are passed by their live ctypes, re-read at every launch, so a changed field is seen.
 
 A captured Warp graph replays its launches on one thread, so ``hairwarp.Stepper`` does not capture on the CPU
 when the executor has more than one thread.
@@ -23,24 +30,34 @@ when the executor has more than one thread.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
+from warp._src.codegen import Struct as _Struct
 from warp._src.context import _build_launch_bounds_from_tuple as _bounds
-from warp._src.context import invoke as _invoke
+from warp._src.context import _get_apic_capture_for_device
 from warp._src.context import pack_arg as _pack_arg
 
 #: Fewest elements per chunk of a per-strand or per-segment launch: below this, handing the chunk to another
 #: thread costs more than it saves (measured on the default scene's kernels, ``hairwarp bench threads``).
 MIN_CHUNK = 64
 
+#: Chunks per thread of a launch whose elements write only themselves: the threads take them as they come free,
+#: so a thread whose strands cost more (more contacts, longer strands) does not keep the others waiting.
+CHUNKS_PER_THREAD = 4
+
 #: Chunks of a scatter stage (a partition fixed by the work alone; see ``Executor.fixed_chunks``): enough for
 #: 8 threads, few enough that the private buffers stay small.
 SCATTER_CHUNKS = 8
+
+#: Prepared launches kept per executor (argument lists seen; a step has two, one per state parity).
+PREPARED_LIMIT = 512
+
+_NUMBERS = (int, float, bool)
 
 
 def default_threads() -> int:
@@ -61,6 +78,78 @@ def resolve_threads(threads) -> int:
     return threads
 
 
+class _Workers:
+    """``count`` OS threads, each woken by a lock of its own to run one job (the cheapest hand-off Python has)."""
+
+    def __init__(self, count: int):
+        self.count = count
+        self._jobs = [None] * count
+        self._errors = [None] * count
+        self._go = [threading.Lock() for _ in range(count)]
+        self._done = [threading.Lock() for _ in range(count)]
+        for lock in (*self._go, *self._done):
+            lock.acquire()
+        self._local = threading.local()
+        self._threads = [threading.Thread(target=self._loop, args=(i,), name=f"hairwarp-{i + 1}", daemon=True)
+                         for i in range(count)]
+        for t in self._threads:
+            t.start()
+
+    def _loop(self, i: int):
+        self._local.worker = True
+        go, done = self._go[i], self._done[i]
+        while True:
+            go.acquire()
+            job = self._jobs[i]
+            if job is None:
+                done.release()
+                return
+            try:
+                job()
+            except BaseException as e:  # handed to the caller, which waits for every worker before raising
+                self._errors[i] = e
+            self._jobs[i] = None
+            done.release()
+
+    def in_worker(self) -> bool:
+        return getattr(self._local, "worker", False)
+
+    def start(self, job, k: int):
+        """Run ``job`` on the first ``k`` workers."""
+        for i in range(k):
+            self._jobs[i] = job
+            self._go[i].release()
+
+    def join(self, k: int):
+        """Wait for the first ``k`` workers; the first error any raised, or None."""
+        error = None
+        for i in range(k):
+            self._done[i].acquire()
+            if self._errors[i] is not None:
+                error = error or self._errors[i]
+                self._errors[i] = None
+        return error
+
+    def close(self):
+        for i in range(self.count):
+            self._jobs[i] = None
+            self._go[i].release()
+        for t in self._threads:
+            t.join()
+
+
+class _Prepared:
+    """The packed chunks of one launch: an argument block per chunk, the private buffers and how they fold."""
+
+    __slots__ = ("keep", "forward", "calls", "structs", "zero", "fold")
+
+    def run_chunk(self, c: int):
+        bounds, args, block = self.calls[c]
+        for name, value in self.structs:
+            setattr(block, name, value)  # a struct's live ctype: a field set since the packing is seen
+        self.forward(bounds, args)
+
+
 class Executor:
     """Runs launches of ``tid_offset`` kernels on ``threads`` OS threads (the calling thread and a pool).
 
@@ -68,15 +157,22 @@ class Executor:
         device: the Warp device; on CUDA every launch is one launch and ``threads`` is 1.
         threads: CPU threads; None or 0: every core this process may use.
         min_chunk: fewest elements in a chunk (see :data:`MIN_CHUNK`).
+        chunks_per_thread: chunks per thread of a launch whose elements write only themselves (see
+            :data:`CHUNKS_PER_THREAD`).
     """
 
-    def __init__(self, device=None, threads=None, *, min_chunk: int = MIN_CHUNK):
+    def __init__(self, device=None, threads=None, *, min_chunk: int = MIN_CHUNK,
+                 chunks_per_thread: int = CHUNKS_PER_THREAD):
         self.device = wp.get_device(device)
         self.threads = 1 if self.device.is_cuda else resolve_threads(threads)
         self.min_chunk = max(1, int(min_chunk))
-        self._pool = None
+        self.chunks_per_thread = max(1, int(chunks_per_thread))
+        self._workers = None
         self._private = {}
+        self._prepared = {}
         self._lock = threading.Lock()
+        self._busy = threading.Lock()
+        self._batch = None
 
     @property
     def parallel(self) -> bool:
@@ -85,22 +181,28 @@ class Executor:
 
     def close(self):
         """Stop the pool's threads (a later launch starts them again)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        if self._workers is not None:
+            self._workers.close()
+            self._workers = None
 
     def __del__(self):
-        pool = getattr(self, "_pool", None)
-        if pool is not None:
-            pool.shutdown(wait=False)
+        workers = getattr(self, "_workers", None)
+        if workers is not None:
+            try:
+                workers.close()
+            except Exception:  # interpreter shutdown
+                pass
 
     # -- partitions ----------------------------------------------------------------------
 
     def chunks(self, n: int, min_chunk: int | None = None) -> list[tuple[int, int]]:
-        """``(start, count)`` of the ranges a launch of ``n`` elements runs as: at most ``threads`` of them, equal
-        to within one element, none below ``min_chunk`` (one range when ``n`` is small)."""
+        """``(start, count)`` of the ranges a launch of ``n`` elements that write only themselves runs as: up to
+        ``chunks_per_thread`` per thread, equal to within one element, none below ``min_chunk`` (one range when
+        ``n`` is small or there is one thread)."""
+        if self.threads <= 1:
+            return [(0, n)]
         m = self.min_chunk if min_chunk is None else max(1, int(min_chunk))
-        k = max(1, min(self.threads, n // m))
+        k = max(1, min(self.threads * self.chunks_per_thread, n // m))
         return _split(n, k)
 
     @staticmethod
@@ -111,39 +213,67 @@ class Executor:
 
     # -- running -------------------------------------------------------------------------
 
+    def _pool(self):
+        if self._workers is None:
+            with self._lock:
+                if self._workers is None:
+                    self._workers = _Workers(self.threads - 1)
+        return self._workers
+
     def run(self, tasks):
         """Call every function of ``tasks`` (no arguments), spread over the threads; return when all are done.
 
-        Task ``i`` runs on thread ``i % threads``; the calling thread takes its share first.
+        The threads take the tasks in order as they come free, the calling thread among them. From inside a task,
+        or while another thread runs tasks on this executor, the tasks run one after the other on the caller.
         """
         tasks = list(tasks)
-        t = min(self.threads, len(tasks))
-        if t <= 1:
-            for task in tasks:
-                task()
+        self._run_indexed(len(tasks), lambda i: tasks[i]())
+
+    def _run_indexed(self, n: int, call):
+        """``call(i)`` for every ``i < n``, on up to ``threads`` threads taking the next index as they come free."""
+        k = min(self.threads, n) - 1
+        if k <= 0 or (self._workers is not None and self._workers.in_worker()) or not self._busy.acquire(False):
+            for i in range(n):
+                call(i)
             return
-        if self._pool is None:
-            with self._lock:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(max_workers=self.threads - 1, thread_name_prefix="hairwarp")
-
-        def group(j):
-            for task in tasks[j::t]:
-                task()
-
-        futures = [self._pool.submit(group, j) for j in range(1, t)]
-        error = None
         try:
-            group(0)
-        except BaseException as e:  # wait for the others before raising: they may write the same arrays
-            error = e
-        for f in futures:
+            workers = self._pool()
+            order = iter(range(n))  # shared: next() on it is atomic under the GIL
+
+            def job():
+                for i in order:
+                    call(i)
+
+            workers.start(job, k)
+            error = None
             try:
-                f.result()
-            except BaseException as e:
-                error = error or e
+                job()
+            except BaseException as e:  # wait for the others before raising: they may write the same arrays
+                error = e
+            error = workers.join(k) or error
+        finally:
+            self._busy.release()
         if error is not None:
             raise error
+
+    @contextlib.contextmanager
+    def batch(self):
+        """Within the block, launches through :meth:`launch` are held and run together when it ends: the chunks of
+        all of them on one wake of the threads, in launch order as threads come free. Only for launches that are
+        independent of each other (none reads what another writes), with nothing in the block reading their
+        results; one thread, a graph capture or a block within a block run each launch at once, as always."""
+        if not self.parallel or self._batch is not None or _capturing(self.device):
+            yield
+            return
+        self._batch = held = []
+        try:
+            yield
+        finally:
+            self._batch = None
+        calls = [(prep.run_chunk, c) for prep in held for c in range(len(prep.calls))]
+        self._run_indexed(len(calls), lambda i: calls[i][0](calls[i][1]))
+        for prep in held:
+            _fold(prep)
 
     def launch(self, kernel, dim: int, inputs, outputs=(), *, min_chunk: int | None = None,
                private_or=(), private_add=(), private_sum=(), chunks=None, per_chunk=None):
@@ -162,73 +292,105 @@ class Executor:
             per_chunk: ``{index: [value per chunk]}``: arguments (indices as above) that differ between chunks.
         """
         args = [*inputs, *outputs]
-        if self.device.is_cuda or _capturing(self.device):
+        if self.device.is_cuda or _get_apic_capture_for_device(self.device) is not None:
             # a graph capture records launches made through wp.launch only, and replays them on one thread
             wp.launch(kernel, dim=dim, inputs=[0, *args], device=self.device)
             return
+        key = (kernel, dim, min_chunk, tuple(private_or), tuple(private_add), tuple(private_sum),
+               None if chunks is None else tuple(chunks),
+               None if not per_chunk else tuple((i, tuple(map(id, v))) for i, v in sorted(per_chunk.items())),
+               *[(a,) if a.__class__ in _NUMBERS else id(a) for a in args])
+        prep = self._prepared.get(key)
+        if prep is None:
+            prep = self._prepare(kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks,
+                                 per_chunk)
+            if len(self._prepared) >= PREPARED_LIMIT:
+                self._prepared.pop(next(iter(self._prepared)))
+            self._prepared[key] = prep
+        n = len(prep.calls)
+        if n == 0:
+            return
+        for parent in prep.zero:
+            parent.zero_()
+        if self._batch is not None:
+            self._batch.append(prep)
+            return
+        if n == 1:
+            prep.run_chunk(0)
+        else:
+            self._run_indexed(n, prep.run_chunk)
+        _fold(prep)
+
+    def _prepare(self, kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks, per_chunk):
+        """Pack the arguments of every chunk once (see :meth:`launch`)."""
+        prep = _Prepared()
+        prep.keep = (args, per_chunk)  # the key holds ids: keep the objects alive while it is used
+        prep.calls, prep.structs, prep.zero, prep.fold = [], [], [], []
         if chunks is None:
-            if not self.parallel:
-                wp.launch(kernel, dim=dim, inputs=[0, *args], device=self.device)
-                return
             chunks = self.chunks(dim, min_chunk)
         chunks = [c for c in chunks if c[1] > 0] if dim > 0 else []
         if not chunks:
-            return
-        if len(chunks) == 1 and not per_chunk:
-            start, count = chunks[0]
-            wp.launch(kernel, dim=count, inputs=[start, *args], device=self.device)
-            return
-        private = [(i, "sum") for i in private_sum]
-        if self.parallel:  # one thread at a time: the kernel's own integer read-modify-writes do not race
+            return prep
+        private = [(i, "sum") for i in private_sum] if len(chunks) > 1 else []
+        if self.parallel and len(chunks) > 1:  # one thread: the kernel's own integer read-modify-writes do not race
             private += [(i, "or") for i in private_or] + [(i, "add") for i in private_add]
         base = wp.launch(kernel, dim=chunks[0][1], inputs=[0, *args], device=self.device, record_cmd=True)
-        scratch = {i: self._private_buffers(args[i], len(chunks), i) for i, _ in private}
-        replace = dict(per_chunk or {})
-        for i, _ in private:
-            replace[i] = scratch[i]
-        packed = {i: [_pack(kernel, i + 1, v, self.device) for v in values] for i, values in replace.items()}
-        hooks, adj = base.hooks, kernel.adj.kernel_dim
-        cmds = []
-        for c, (start, count) in enumerate(chunks):
-            params = list(base.params)
-            params[0] = _bounds((count,), adj)
-            params[1] = ctypes.c_int32(start)
-            for i, values in packed.items():
-                params[i + 2] = values[c]  # params: bounds, tid_offset, then the arguments
-            cmds.append(params)
-
-        def task(c):
-            def go():
-                for i, _ in private:
-                    scratch[i][c].zero_()
-                _invoke(kernel, hooks, cmds[c], False)
-            return go
-
-        self.run(task(c) for c in range(len(cmds)))
+        replace = {i: list(v) for i, v in (per_chunk or {}).items()}
         for i, op in private:
-            dst = args[i].numpy()  # a view on the CPU
-            parts = [s.numpy() for s in scratch[i]]
-            if op == "or":
-                dst |= np.bitwise_or.reduce(parts, axis=0)
-            elif op == "add":
-                dst += np.sum(parts, axis=0, dtype=dst.dtype)
-            else:
-                for part in parts:  # in chunk order: the same bits whichever thread ran which chunk
-                    dst += part
+            parent, views = self._private_buffers(args[i], len(chunks), i)
+            replace[i] = views
+            prep.zero.append(parent)
+            prep.fold.append((op, args[i].numpy(), parent.numpy()))  # host views of CPU arrays
+        packed = {i: [_pack(kernel, i + 1, v, self.device) for v in values] for i, values in replace.items()}
+        labels = [a.label for a in kernel.adj.args]
+        fields = [(label, type(p)) for label, p in zip(labels, base.params[1:])]
+        args_struct = type("ArgsStruct", (ctypes.Structure,), {"_fields_": fields})
+        struct_args = [j for j, a in enumerate(kernel.adj.args) if isinstance(a.type, _Struct)]
+        prep.forward = base.hooks.forward
+        keep = []
+        for c, (start, count) in enumerate(chunks):
+            params = list(base.params[1:])
+            params[0] = ctypes.c_int32(start)
+            for i, values in packed.items():
+                params[i + 1] = values[c]  # params: tid_offset, then the arguments
+            block = args_struct()
+            for (label, _), value in zip(fields, params):
+                setattr(block, label, value)
+            bounds = _bounds((count,), kernel.adj.kernel_dim)
+            keep.append((bounds, block, params))
+            prep.calls.append((ctypes.byref(bounds), ctypes.byref(block), block))
+        prep.keep = (args, per_chunk, keep)
+        # structs are re-read at each launch (their live ctypes); the same for every chunk unless given per chunk
+        for j in struct_args:
+            if j - 1 in packed:
+                continue
+            prep.structs.append((labels[j], base.params[1 + j]))
+        return prep
 
     def _private_buffers(self, array, count: int, slot: int):
-        key = (array.shape, array.dtype, slot)
-        have = self._private.get(key, [])
-        while len(have) < count:
-            have.append(wp.zeros(array.shape, dtype=array.dtype, device=self.device))
-        self._private[key] = have
-        return have[:count]
+        """A zeroed ``(count, *shape)`` array for private copies of ``array`` and its ``count`` views."""
+        key = (array.shape, array.dtype, slot, count)
+        have = self._private.get(key)
+        if have is None:
+            parent = wp.zeros((count, *array.shape), dtype=array.dtype, device=self.device)
+            have = self._private[key] = (parent, [parent[c] for c in range(count)])
+        return have
+
+
+def _fold(prep: _Prepared):
+    """Fold the private buffers of a prepared launch's chunks into their arrays."""
+    for op, dst, parts in prep.fold:
+        if op == "or":
+            dst |= np.bitwise_or.reduce(parts, axis=0)
+        elif op == "add":
+            dst += np.sum(parts, axis=0, dtype=dst.dtype)
+        else:
+            for part in parts:  # in chunk order: the same bits whichever thread ran which chunk
+                dst += part
 
 
 def _capturing(device) -> bool:
     """Whether a Warp graph capture on the CPU is recording (then every launch is one recorded launch)."""
-    from warp._src.context import _get_apic_capture_for_device
-
     return _get_apic_capture_for_device(device) is not None
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from hairwarp.executor import SCATTER_CHUNKS, Executor, launch
+from hairwarp.executor import launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
 from hairwarp.kernels.types import Fault
@@ -131,6 +131,10 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 
 #: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
 SEGMENT_MIN_CHUNK = 512
+
+#: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment: below ~2,000 segments a
+#: second thread costs more to wake than it saves).
+GATHER_MIN_CHUNK = 2048
 
 
 class StaticLinks:
@@ -254,6 +258,18 @@ class StaticLinks:
         # Links by segment a (sorted so above): segment a's links are seg_link_start[a] .. seg_link_start[a + 1] - 1.
         links.seg_link_start = wp.array(np.searchsorted(a, np.arange(G * S + 1)).astype(np.int32), dtype=wp.int32,
                                         device=dev)
+        # Segment b's shares by b (in link order): link l leaves its share in slot link_b_slot[l], segment b sums
+        # slots seg_b_start[b] .. seg_b_start[b + 1] - 1 (``kernels.links.link_gather``).
+        by_b = np.argsort(b, kind="stable")
+        slot = np.empty(len(b), np.int64)
+        slot[by_b] = np.arange(len(b))
+        links.link_b_slot = wp.array(slot.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
+                                     device=dev)
+        links.seg_b_start = wp.array(np.searchsorted(b[by_b], np.arange(G * S + 1)).astype(np.int32),
+                                     dtype=wp.int32, device=dev)
+        links.b_force = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.b_torque = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.b_mass = wp.zeros(n, dtype=float, device=dev)
         return links
 
     def _transport(self, model, state):
@@ -269,23 +285,39 @@ class StaticLinks:
         would act stretched past its break length (as :meth:`break_links` applied to the previous step's end would
         have found it) and acts no more.
         """
+        self.apply_forces(model, state, dt, seg_force, seg_torque)
+        self.gather(model, seg_force, seg_torque, seg_implicit_mass)
+
+    def apply_forces(self, model, state, dt, seg_force, seg_torque):
+        """The first pass of :meth:`apply`: breaking, and each segment a's side of its links (b's shares are left
+        for :meth:`gather`). Independent of the hair contacts' and the colliders' passes."""
         if self.link_count == 0:
             return
         inputs = [
             model.seg_per_strand, model.seg_length, model.joint_stiffness, self.seg_rest_axis,
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
             self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
-            state.joint_q, state.vertex_positions, state.vertex_velocities, dt,
+            state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
         ]
         n = len(inputs)
-        # A thread adds into its own segment a and into each link's segment b, which another chunk may own: the
-        # chunks (fixed by the segment count) accumulate privately and are summed in chunk order.
-        launch(self.executor, link_kernels.link_forces, len(self.seg_transport), inputs,
-               [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total],
-               device=self.device, chunks=Executor.fixed_chunks(len(self.seg_transport), SCATTER_CHUNKS),
-               private_sum=[n, n + 1, n + 2], private_add=[n + 4])
-        if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
+        seg_count = len(self.seg_transport)
+        # A thread adds into its own segment a and leaves b's share in a slot of b's; then each segment b gathers
+        # its slots. No segment is written by two threads: the same bits however the segments are split.
+        launch(self.executor, link_kernels.link_forces, seg_count, inputs,
+               [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total, self.b_force,
+                self.b_torque, self.b_mass],
+               device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 4])
+
+    def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
+        """The second pass of :meth:`apply`: every segment b adds its shares; with implicit springs, the summed
+        masses go on to the solver's implicit mass in the same pass."""
+        if self.link_count == 0:
+            return
+        seg_count = len(self.seg_transport)
+        launch(self.executor, link_kernels.link_gather, seg_count,
+               [model.seg_mass, self.seg_b_start, int(self.implicit_springs), self.b_force, self.b_torque, self.b_mass,
+                self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass], device=self.device,
+               min_chunk=GATHER_MIN_CHUNK)
 
     def break_links(self, model, state):
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only): the test that
@@ -312,11 +344,6 @@ class StaticLinks:
         """Mend every link (for a new run from the rest pose)."""
         self.link_broken.zero_()
         self.link_broken_total.zero_()
-
-
-def _add_excess_mass(model, seg_spring_mass, seg_implicit_mass, device, executor=None):
-    launch(executor, link_kernels.add_excess_mass, len(seg_spring_mass), [model.seg_mass, seg_spring_mass],
-           [seg_implicit_mass], device=device, min_chunk=SEGMENT_MIN_CHUNK)
 
 
 class TriangleStrips:
@@ -457,6 +484,9 @@ def _root_adjacency(roots: np.ndarray, root_uv, max_edge_ratio: float) -> np.nda
 #: Fewest blocks per chunk of the bounds and detection launches (``hairwarp.executor``).
 BLOCK_MIN_CHUNK = 64
 
+#: Fewest force threads per chunk of the contact forces (each takes a run of 1/256 of the stored contacts).
+FORCE_MIN_CHUNK = 16
+
 
 class HairContacts:
     """Vertex-face (guide vertices against strips) and segment-segment contacts, with fixed-capacity buffers.
@@ -493,6 +523,8 @@ class HairContacts:
 
     executor = None
     _chunk_buffers = None
+    #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
+    scatter = False
 
     @classmethod
     def build(
@@ -625,6 +657,13 @@ class HairContacts:
         contacts.contact_w = wp.zeros(contacts.capacity, dtype=wp.vec3, device=dev)
         contacts.contact_gap = wp.zeros(contacts.capacity, dtype=float, device=dev)
         contacts.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
+        # Each contact's forces go to its entries 4 slot + e, which the segments then gather (see ``apply``).
+        contacts.entry_force = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
+        contacts.entry_torque = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
+        contacts.entry_mass = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
+        contacts.seg_entry_start = wp.zeros(G * S + 1, dtype=wp.int32, device=dev)
+        contacts.seg_entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
+        contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
         buf = contact_kernels.ContactBuffer()
@@ -657,7 +696,7 @@ class HairContacts:
         launch(self.executor, contact_kernels.segment_bounds, len(self.seg_block_lowers),
                [S, self.threshold + self.margin, vertex_positions],
                [self.seg_lowers, self.seg_uppers, self.seg_block_lowers, self.seg_block_uppers], device=self.device,
-               min_chunk=BLOCK_MIN_CHUNK)
+               min_chunk=SEGMENT_MIN_CHUNK)
 
     def refit(self, model, state, rebuild: bool = False):
         """Fit the strip and segment BVHs to ``state``: refit (launch only; :meth:`detect` does it first), or with
@@ -689,6 +728,16 @@ class HairContacts:
         self.refit(model, state, rebuild=not self.detect_each_step)
         self.detect_vertex_face(model, state)
         self.detect_segment_segment(model, state)
+        self._segment_lists(model)
+
+    def _segment_lists(self, model):
+        """Per segment, the entries of the stored contacts that push it (one thread: a counting sort over the
+        contacts, exact and in slot order, once per detection; not on a GPU, where ``gather`` scatters)."""
+        if self.device.is_cuda:
+            return
+        launch(self.executor, contact_kernels.contact_segment_lists, 1,
+               [model.seg_per_strand, len(self._seg_cursor), self._strip_pairs, self.buffer, self._seg_cursor],
+               [self.seg_entry_start, self.seg_entries], device=self.device)
 
     def detect_vertex_face(self, model, state):
         """Append the vertex-face contacts of ``state`` to the buffers (launch only; BVH refit by :meth:`refit`)."""
@@ -784,6 +833,14 @@ class HairContacts:
             return
         if self.detect_each_step:
             self.detect(model, state)
+        self.apply_forces(model, state, dt)
+        self.gather(model, seg_force, seg_torque, seg_implicit_mass)
+
+    def apply_forces(self, model, state, dt):
+        """The first pass of :meth:`apply`, on the stored contacts (detected before): each contact's forces into its
+        entries. Independent of the links' and the colliders' passes."""
+        if not self.enabled:
+            return
         inputs = [
             model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
             self._tri_scale,
@@ -791,14 +848,31 @@ class HairContacts:
             self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
             state.vertex_velocities, dt, self.buffer,
         ]
-        n = len(inputs)
-        # A contact adds to the segments of both sides: chunks fixed by the force thread count accumulate
-        # privately and are summed in chunk order.
+        # A contact leaves its forces in entries of its own, then every segment adds the entries that push it, in
+        # slot order: no element is written by two threads, so the sums are the same bits however they are split.
         launch(self.executor, contact_kernels.contact_forces, self.force_threads, inputs,
-               [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
-               chunks=Executor.fixed_chunks(self.force_threads, SCATTER_CHUNKS), private_sum=[n, n + 1, n + 2])
-        if self.implicit_springs:
-            _add_excess_mass(model, self.seg_spring_mass, seg_implicit_mass, self.device, self.executor)
+               [self.entry_force, self.entry_torque, self.entry_mass], device=self.device,
+               min_chunk=FORCE_MIN_CHUNK)
+
+    def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
+        """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it (on a GPU
+        every contact adds its entries to its segments with atomics, in any order)."""
+        if not self.enabled:
+            return
+        if self.device.is_cuda or self.scatter:
+            launch(self.executor, contact_kernels.contact_scatter, self.capacity,
+                   [model.seg_per_strand, self._strip_pairs, self.buffer, self.entry_force, self.entry_torque,
+                    self.entry_mass], [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
+                   chunks=[(0, self.capacity)])
+            if self.implicit_springs:
+                launch(self.executor, link_kernels.add_excess_mass, len(self.seg_spring_mass),
+                       [model.seg_mass, self.seg_spring_mass], [seg_implicit_mass], device=self.device,
+                       min_chunk=SEGMENT_MIN_CHUNK)
+            return
+        launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
+               [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,
+                self.entry_torque, self.entry_mass, self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass],
+               device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def rebuild(self):
         """Rebuild both BVHs from their current boxes (optional, e.g. once per frame after large motion)."""

@@ -91,12 +91,17 @@ class Stepper:
 
 
 def is_teleport(before, after, distance: float, angle_deg: float) -> bool:
-    """Whether the head jumped between two motion samples: its origin moved farther than ``distance`` [m] or it
-    turned by more than ``angle_deg``."""
-    if float(np.linalg.norm(np.asarray(after.position) - np.asarray(before.position))) > distance:
+    """Whether the head jumped between two motion samples (or ``(position, rotation)`` poses): its origin moved
+    farther than ``distance`` [m] or it turned by more than ``angle_deg``."""
+    (p0, q0), (p1, q1) = (_pose(before), _pose(after))
+    if float(np.linalg.norm(np.asarray(p1) - np.asarray(p0))) > distance:
         return True
-    cos_half = abs(float(np.dot(np.asarray(after.rotation), np.asarray(before.rotation))))
+    cos_half = abs(float(np.dot(np.asarray(q1), np.asarray(q0))))
     return 2.0 * math.degrees(math.acos(min(cos_half, 1.0))) > angle_deg
+
+
+def _pose(sample):
+    return sample if isinstance(sample, tuple) else (sample.position, sample.rotation)
 
 
 class Simulation:
@@ -257,8 +262,8 @@ class Simulation:
         limits = (float(head.teleport_distance), float(head.teleport_angle_deg))
         # A cut, or a move faster than a frame can show (the frame before this step or the one after it, since the
         # motion is known ahead): the hair rides along rigidly, at rest relative to the head, all the while.
-        if (is_teleport(self.motion.evaluate(t - self.frame_dt), sample, *limits)
-                or is_teleport(sample, self.motion.evaluate(t + self.frame_dt), *limits)):
+        if (is_teleport(self.motion.pose(t - self.frame_dt), sample, *limits)
+                or is_teleport(sample, self.motion.pose(t + self.frame_dt), *limits)):
             still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
             control.set_motion(still)
             if self.surface is not None:

@@ -14,6 +14,9 @@ from hairwarp.kernels.types import Fault, Integrator
 #: 16 strands outweigh handing a chunk to a thread (``hairwarp bench threads``).
 INTEGRATE_MIN_CHUNK = 16
 
+#: Fewest segments per chunk of the air drag (~15 ns a segment: a second thread pays from ~4,000 segments on).
+DRAG_MIN_CHUNK = 4096
+
 
 class SimulationFault(RuntimeError):
     """A simulation left its bounds; the message names the frame, the stage and what to change."""
@@ -135,10 +138,7 @@ class Solver:
         previous step does; after editing its joints call :meth:`forward_kinematics`).
         """
         self.set_dt(dt)
-        if self.has_forces:
-            self._accumulate_forces(state_in, control)
-        if self.body_contacts.enabled:
-            self.colliders.detect(self.model, state_in, control, self.dt)  # solved inside the integration
+        self._accumulate_forces(state_in, control, detect_body=self.body_contacts.enabled)
         # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
         self._integrate(state_in, state_out, control)
         if self.body_contacts.enabled:
@@ -169,8 +169,16 @@ class Solver:
         if self.body_contacts.enabled:
             self.colliders.reset_contacts()
 
-    def _accumulate_forces(self, state, control):
+    def _accumulate_forces(self, state, control, detect_body: bool = False):
+        """The external forces on the segments (drag, links, hair contacts), and with ``detect_body`` the body
+        contact candidates of the step (solved inside the integration). The first passes of the links and the
+        contacts and the body detection do not depend on each other: on several threads they run as one batch
+        of chunks (one wake of the threads, not three)."""
         model = self.model
+        if not self.has_forces:
+            if detect_body:
+                self.colliders.detect(model, state, control, self.dt)
+            return
         self.seg_force.zero_()
         self.seg_torque.zero_()
         if self.has_implicit_mass:
@@ -180,12 +188,22 @@ class Solver:
                 articulated.air_drag, model.seg_count,
                 [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
                  state.vertex_velocities],
-                [self.seg_force, self.seg_torque],
+                [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
             )
+        if self.contacts is not None and self.contacts.detect_each_step:
+            self.contacts.detect(model, state)
+        with self.executor.batch():
+            if self.links is not None:
+                self.links.apply_forces(model, state, self.dt, self.seg_force, self.seg_torque)
+            if self.contacts is not None:
+                self.contacts.apply_forces(model, state, self.dt)
+            if detect_body:
+                self.colliders.detect(model, state, control, self.dt)
+        # in this order, as one thread would: the same bits for any thread count
         if self.links is not None:
-            self.links.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+            self.links.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
         if self.contacts is not None:
-            self.contacts.apply(model, state, self.dt, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+            self.contacts.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
 
     def _integrate(self, state_in, state_out, control):
         model = self.model

@@ -16,7 +16,7 @@ an equilibrium of the contacts, as it is of the links.
 
 import warp as wp
 
-from hairwarp.kernels.links import lever_scaled_mass
+from hairwarp.kernels.links import excess_mass, lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -510,7 +510,8 @@ def vertex_face_contacts(
 
 
 @wp.func
-def add_wrench(
+def put_wrench(
+    entry: int,
     seg: int,
     seg_per_strand: int,
     point: wp.vec3,
@@ -518,18 +519,31 @@ def add_wrench(
     extra_mass: float,
     seg_length: wp.array(dtype=float),
     vertex_positions: wp.array(dtype=wp.vec3),
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    seg_spring_mass: wp.array(dtype=float),
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
 ):
-    """Add force f at a world point to a segment (torque about its origin, vertex k) and its lever-scaled implicit
-    mass."""
+    """Store in ``entry`` the force f at a world point on a segment: the force, its torque about the segment's origin
+    (vertex k) and its lever-scaled implicit mass (``contact_gather`` adds them to the segment)."""
     v = seg + seg // seg_per_strand
     origin = vertex_positions[v]
-    wp.atomic_add(seg_force, seg, f)
-    wp.atomic_add(seg_torque, seg, wp.cross(point - origin, f))
+    entry_force[entry] = f
+    entry_torque[entry] = wp.cross(point - origin, f)
     if extra_mass > 0.0:
-        wp.atomic_add(seg_spring_mass, seg, lever_scaled_mass(extra_mass, point - origin, 0.5 * seg_length[seg]))
+        entry_mass[entry] = lever_scaled_mass(extra_mass, point - origin, 0.5 * seg_length[seg])
+
+
+@wp.func
+def contact_segments(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer):
+    """The segments the contact in ``slot`` pushes, one per entry ``4 slot + e``: a vertex-face contact's vertex and
+    its face's three vertices, or a segment pair (then -1, -1); the features are fixed at detection."""
+    ia = contacts.a[slot]
+    ib = contacts.b[slot]
+    if contacts.kind[slot] == CONTACT_VERTEX_FACE:
+        i0, i1, i2 = strip_triangle(ib, seg_per_strand, strip_pairs)
+        return wp.vec4i(vertex_segment(ia, seg_per_strand), vertex_segment(i0, seg_per_strand),
+                        vertex_segment(i1, seg_per_strand), vertex_segment(i2, seg_per_strand))
+    return wp.vec4i(ia, ib, -1, -1)
 
 
 @wp.func
@@ -550,11 +564,15 @@ def contact_force(
     h: float,
     implicit_springs: int,
     contacts: ContactBuffer,
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    seg_spring_mass: wp.array(dtype=float),
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
 ):
-    """Forces of the contact in one buffer slot (see ``contact_forces``)."""
+    """Forces of the contact in one buffer slot (see ``contact_forces``), stored in its entries ``4 slot + e``."""
+    for e in range(4):
+        entry_force[4 * slot + e] = wp.vec3()
+        entry_torque[4 * slot + e] = wp.vec3()
+        entry_mass[4 * slot + e] = 0.0
     kind = contacts.kind[slot]
     ia = contacts.a[slot]
     ib = contacts.b[slot]
@@ -655,23 +673,24 @@ def contact_force(
     extra = float(0.0)
     if implicit_springs != 0:
         extra = h * h * k_eff + h * c_eff
+    e0 = 4 * slot
     if kind == CONTACT_VERTEX_FACE:
-        add_wrench(vertex_segment(ia, seg_per_strand), seg_per_strand, point, f, extra,
-                   seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
+        put_wrench(e0, vertex_segment(ia, seg_per_strand), seg_per_strand, point, f, extra, seg_length,
+                   vertex_positions, entry_force, entry_torque, entry_mass)
         # Each face vertex takes its share at its own position shifted by (point - xb): the shares then sum to
         # -f at the common point, with no net torque.
         shift = point - xb
-        add_wrench(vertex_segment(i0, seg_per_strand), seg_per_strand, vertex_positions[i0] + shift, -w[0] * f,
-                   w[0] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
-        add_wrench(vertex_segment(i1, seg_per_strand), seg_per_strand, vertex_positions[i1] + shift, -w[1] * f,
-                   w[1] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
-        add_wrench(vertex_segment(i2, seg_per_strand), seg_per_strand, vertex_positions[i2] + shift, -w[2] * f,
-                   w[2] * extra, seg_length, vertex_positions, seg_force, seg_torque, seg_spring_mass)
+        put_wrench(e0 + 1, vertex_segment(i0, seg_per_strand), seg_per_strand, vertex_positions[i0] + shift,
+                   -w[0] * f, w[0] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
+        put_wrench(e0 + 2, vertex_segment(i1, seg_per_strand), seg_per_strand, vertex_positions[i1] + shift,
+                   -w[1] * f, w[1] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
+        put_wrench(e0 + 3, vertex_segment(i2, seg_per_strand), seg_per_strand, vertex_positions[i2] + shift,
+                   -w[2] * f, w[2] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
     else:
-        add_wrench(ia, seg_per_strand, point, f, extra, seg_length, vertex_positions, seg_force, seg_torque,
-                   seg_spring_mass)
-        add_wrench(ib, seg_per_strand, point, -f, extra, seg_length, vertex_positions, seg_force, seg_torque,
-                   seg_spring_mass)
+        put_wrench(e0, ia, seg_per_strand, point, f, extra, seg_length, vertex_positions, entry_force, entry_torque,
+                   entry_mass)
+        put_wrench(e0 + 1, ib, seg_per_strand, point, -f, extra, seg_length, vertex_positions, entry_force,
+                   entry_torque, entry_mass)
 
 
 @wp.kernel
@@ -700,19 +719,19 @@ def contact_forces(
     # Scratch:
     contacts: ContactBuffer,
     # Out:
-    seg_force: wp.array(dtype=wp.vec3),
-    seg_torque: wp.array(dtype=wp.vec3),
-    seg_spring_mass: wp.array(dtype=float),
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
 ):
     """Each of ``thread_count`` threads takes every thread_count-th stored contact (``contiguous``: a run of
     consecutive ones): repulsion, normal damping and regularised Coulomb friction.
 
-    The repulsion acts below ``min(threshold, gap)`` [m]. Adds +F to side a and -F to side b (shared by
-    barycentric weight among a face's vertices) at the midpoint of the closest points (``seg_force`` [N],
-    ``seg_torque`` [N m] about segment origins, world), and, with
-    ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) to ``seg_spring_mass``, which
-    ``kernels.links.add_excess_mass`` turns into the solver's implicit mass. Friction is capped so one
-    explicit step cannot reverse the slip.
+    The repulsion acts below ``min(threshold, gap)`` [m]. +F goes to side a and -F to side b (shared by barycentric
+    weight among a face's vertices) at the midpoint of the closest points: force [N], torque [N m] about the segment's
+    origin (world) and, with ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) in the contact's entries
+    ``4 slot + e`` of ``entry_force``, ``entry_torque``, ``entry_mass`` (zero where it does not act), which
+    ``contact_gather`` adds to the segments: no two threads write one element, so the sums are the same bits however
+    the threads are split. Friction is capped so one explicit step cannot reverse the slip.
     """
     # A fixed thread count covers however many contacts this step found (the count is only on the device): on a GPU
     # thread t takes slots t, t + n, ... (neighbouring threads read neighbouring slots), on a CPU, where the threads
@@ -732,6 +751,117 @@ def contact_forces(
         contact_force(
             slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
-            vertex_positions, vertex_velocities, h, implicit_springs, contacts, seg_force, seg_torque, seg_spring_mass,
+            vertex_positions, vertex_velocities, h, implicit_springs, contacts, entry_force, entry_torque, entry_mass,
         )
         slot += stride
+
+
+@wp.kernel
+def contact_segment_lists(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    seg_count: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    seg_cursor: wp.array(dtype=wp.int32),
+    # Out:
+    seg_entry_start: wp.array(dtype=wp.int32),
+    seg_entries: wp.array(dtype=wp.int32),
+):
+    """One thread: list, per segment, the entries of the stored contacts that push it (``contact_segments``), in slot
+    order: segment s's are ``seg_entries[seg_entry_start[s]]`` to ``seg_entries[seg_entry_start[s + 1] - 1]``. A
+    counting sort over the contacts, run once per detection (its features do not change until the next)."""
+    count = wp.min(contacts.counter[0], contacts.capacity)
+    for s in range(seg_count + 1):
+        seg_entry_start[s] = 0
+    for slot in range(count):
+        segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+        for e in range(4):
+            if segs[e] >= 0:
+                seg_entry_start[segs[e] + 1] = seg_entry_start[segs[e] + 1] + 1
+    total = int(0)
+    for s in range(seg_count + 1):
+        total += seg_entry_start[s]
+        seg_entry_start[s] = total
+    for s in range(seg_count):
+        seg_cursor[s] = seg_entry_start[s]
+    for slot in range(count):
+        segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+        for e in range(4):
+            if segs[e] >= 0:
+                seg_entries[seg_cursor[segs[e]]] = 4 * slot + e
+                seg_cursor[segs[e]] = seg_cursor[segs[e]] + 1
+
+
+@wp.kernel
+def contact_gather(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_mass: wp.array(dtype=float),
+    implicit_springs: int,
+    # Scratch:
+    seg_entry_start: wp.array(dtype=wp.int32),
+    seg_entries: wp.array(dtype=wp.int32),
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_implicit_mass: wp.array(dtype=float),
+):
+    """One thread per segment: add the entries ``contact_forces`` left for it (``contact_segment_lists``, in slot
+    order) to ``seg_force`` [N] and ``seg_torque`` [N m]; with ``implicit_springs``, their masses [kg] to its
+    ``seg_spring_mass``, passed on as ``kernels.links.add_excess_mass`` does."""
+    seg = tid_offset + wp.tid()
+    first = seg_entry_start[seg]
+    last = seg_entry_start[seg + 1]
+    force = wp.vec3()
+    torque = wp.vec3()
+    mass = float(0.0)
+    for j in range(first, last):
+        e = seg_entries[j]
+        force += entry_force[e]
+        torque += entry_torque[e]
+        mass += entry_mass[e]
+    if first != last:
+        seg_force[seg] = seg_force[seg] + force
+        seg_torque[seg] = seg_torque[seg] + torque
+    if implicit_springs != 0:
+        excess_mass(seg, seg_mass, seg_spring_mass[seg] + mass, seg_spring_mass, seg_implicit_mass)
+
+
+@wp.kernel
+def contact_scatter(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    entry_force: wp.array(dtype=wp.vec3),
+    entry_torque: wp.array(dtype=wp.vec3),
+    entry_mass: wp.array(dtype=float),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_spring_mass: wp.array(dtype=float),
+):
+    """One thread per buffer slot (on a GPU, where atomics are atomic and a one-thread list per detection would
+    stall): add the entries of the stored contact to its segments (``contact_segments``), in any order."""
+    slot = tid_offset + wp.tid()
+    if slot >= wp.min(contacts.counter[0], contacts.capacity):
+        return
+    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+    for e in range(4):
+        seg = segs[e]
+        if seg >= 0:
+            wp.atomic_add(seg_force, seg, entry_force[4 * slot + e])
+            wp.atomic_add(seg_torque, seg, entry_torque[4 * slot + e])
+            wp.atomic_add(seg_spring_mass, seg, entry_mass[4 * slot + e])

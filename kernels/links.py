@@ -162,23 +162,29 @@ def link_forces(
     vertex_velocities: wp.array(dtype=wp.vec3),
     # Control:
     dt: wp.array(dtype=float),
+    link_b_slot: wp.array(dtype=wp.int32),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
     seg_spring_mass: wp.array(dtype=float),
     link_broken: wp.array(dtype=wp.int32),
     link_broken_total: wp.array(dtype=wp.int32),
+    b_force: wp.array(dtype=wp.vec3),
+    b_torque: wp.array(dtype=wp.vec3),
+    b_mass: wp.array(dtype=float),
 ):
     """One thread per segment a: the seed's spring-dampers of the links that hang their rest offset on a (links
     ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
 
     A link stretched past ``link_break_length`` [m] breaks here for good, before it acts (``link_broken[link] = 1``,
     counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links.
-    Otherwise it adds +f at x_a' to segment a (less its spin about a's axis) and -f at x_b to segment b
-    (``seg_force`` [N], ``seg_torque`` [N m] about each segment origin, world) and, with ``implicit_springs``,
-    ``h^2 k_s + h k_d`` [kg] (``link_lever_mass``) to both ``seg_spring_mass``, which ``add_excess_mass`` turns into
-    the solver's implicit mass. The thread computes a's frame, its twist-free transport (``segment_transport``) and
-    its velocity field once for all its links, and adds a's sums once.
+    Otherwise it adds +f at x_a' to segment a (less its spin about a's axis): to ``seg_force`` [N], ``seg_torque``
+    [N m] about a's origin, world, and, with ``implicit_springs``, ``h^2 k_s + h k_d`` [kg] (``link_lever_mass``) to
+    ``seg_spring_mass``, which ``add_excess_mass`` turns into the solver's implicit mass. Segment b's share (-f at
+    x_b, its lever mass) goes to slot ``link_b_slot[link]`` of ``b_force``, ``b_torque``, ``b_mass`` (zero for a
+    broken link), which ``link_gather`` adds to b: every segment is written by its own thread only, so the sums are
+    the same bits however the segments are split between CPU threads. The thread computes a's frame, its twist-free
+    transport (``segment_transport``) and its velocity field once for all its links, and adds a's sums once.
     """
     a = tid_offset + wp.tid()
     first = seg_link_start[a]
@@ -205,6 +211,10 @@ def link_forces(
     torque_a = wp.vec3()
     mass_a = float(0.0)
     for link in range(first, last):
+        slot = link_b_slot[link]
+        b_force[slot] = wp.vec3()
+        b_torque[slot] = wp.vec3()
+        b_mass[slot] = 0.0
         if link_broken[link] != 0:
             continue
         b = link_seg_b[link]
@@ -232,16 +242,64 @@ def link_forces(
         tau = wp.cross(xa - oa, f)
         force_a += f
         torque_a += tau - wp.dot(tau, axis_a) * axis_a
-        wp.atomic_add(seg_force, b, -f)
-        wp.atomic_add(seg_torque, b, wp.cross(xb - ob, -f))
+        b_force[slot] = -f
+        b_torque[slot] = wp.cross(xb - ob, -f)
         if implicit_springs != 0:
             mass_a += link_lever_mass(extra, link_stiffness, xa - oa, 0.5 * length_a, joint_stiffness[a][0])
-            wp.atomic_add(seg_spring_mass, b, link_lever_mass(extra, link_stiffness, xb - ob, 0.5 * seg_length[b],
-                                                              joint_stiffness[b][0]))
-    wp.atomic_add(seg_force, a, force_a)
-    wp.atomic_add(seg_torque, a, torque_a)
+            b_mass[slot] = link_lever_mass(extra, link_stiffness, xb - ob, 0.5 * seg_length[b], joint_stiffness[b][0])
+    seg_force[a] = seg_force[a] + force_a
+    seg_torque[a] = seg_torque[a] + torque_a
     if implicit_springs != 0:
-        wp.atomic_add(seg_spring_mass, a, mass_a)
+        seg_spring_mass[a] = seg_spring_mass[a] + mass_a
+
+
+@wp.kernel
+def link_gather(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_mass: wp.array(dtype=float),
+    seg_b_start: wp.array(dtype=wp.int32),
+    implicit_springs: int,
+    # Scratch:
+    b_force: wp.array(dtype=wp.vec3),
+    b_torque: wp.array(dtype=wp.vec3),
+    b_mass: wp.array(dtype=float),
+    seg_spring_mass: wp.array(dtype=float),
+    # Out:
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+    seg_implicit_mass: wp.array(dtype=float),
+):
+    """One thread per segment b: add the shares ``link_forces`` left for b (slots ``seg_b_start[b]`` to
+    ``seg_b_start[b + 1] - 1``, its links as side b in link order) to ``seg_force`` [N] and ``seg_torque`` [N m]; with
+    ``implicit_springs``, add their masses to b's ``seg_spring_mass`` [kg] and pass the sum on as
+    ``add_excess_mass`` does."""
+    b = tid_offset + wp.tid()
+    first = seg_b_start[b]
+    last = seg_b_start[b + 1]
+    force = wp.vec3()
+    torque = wp.vec3()
+    mass = float(0.0)
+    for slot in range(first, last):
+        force += b_force[slot]
+        torque += b_torque[slot]
+        mass += b_mass[slot]
+    if first != last:
+        seg_force[b] = seg_force[b] + force
+        seg_torque[b] = seg_torque[b] + torque
+    if implicit_springs != 0:
+        excess_mass(b, seg_mass, seg_spring_mass[b] + mass, seg_spring_mass, seg_implicit_mass)
+
+
+@wp.func
+def excess_mass(seg: int, seg_mass: wp.array(dtype=float), spring_mass: float, seg_spring_mass: wp.array(dtype=float),
+                seg_implicit_mass: wp.array(dtype=float)):
+    """``add_excess_mass`` for one segment whose springs sum to ``spring_mass`` [kg]."""
+    excess = spring_mass - seg_mass[seg]
+    if excess > 0.0:
+        seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess
+    seg_spring_mass[seg] = 0.0
 
 
 @wp.kernel
@@ -264,10 +322,7 @@ def add_excess_mass(
     holds ``h^2 k / m < 4`` and ``h c / m < 2``); beyond it the added mass keeps the ratio at 1.
     """
     seg = tid_offset + wp.tid()
-    excess = seg_spring_mass[seg] - seg_mass[seg]
-    if excess > 0.0:
-        seg_implicit_mass[seg] = seg_implicit_mass[seg] + excess
-    seg_spring_mass[seg] = 0.0
+    excess_mass(seg, seg_mass, seg_spring_mass[seg], seg_spring_mass, seg_implicit_mass)
 
 
 @wp.kernel

@@ -24,6 +24,56 @@ def _scatter(tid_offset: int, target: wp.array(dtype=wp.int32), value: wp.array(
     wp.atomic_add(count, 0, 1)
 
 
+@wp.struct
+class _Scale:
+    factor: float
+    offset: wp.array(dtype=float)
+
+
+@wp.kernel
+def _scaled(tid_offset: int, scale: _Scale, x: wp.array(dtype=float), y: wp.array(dtype=float)):
+    i = tid_offset + wp.tid()
+    y[i] = scale.factor * x[i] + scale.offset[0]
+
+
+def test_prepared_launches_follow_new_arguments_and_struct_fields():
+    """A launch's packed chunks are kept for the next launch with the same arguments: another array, another number
+    or a struct field set in between are all seen, on one thread and on several."""
+    x = wp.array(np.arange(1000, dtype=np.float32), dtype=float)
+    for threads in (1, 3):
+        ex = Executor("cpu", threads, min_chunk=10)
+        scale = _Scale()
+        scale.factor = 2.0
+        scale.offset = wp.array([1.0], dtype=float)
+        y, z = wp.zeros(1000, dtype=float), wp.zeros(1000, dtype=float)
+        ex.launch(_scaled, 1000, [scale, x], [y])
+        np.testing.assert_array_equal(y.numpy(), 2.0 * x.numpy() + 1.0)
+        ex.launch(_scaled, 1000, [scale, x], [z])  # another output array
+        np.testing.assert_array_equal(z.numpy(), y.numpy())
+        scale.factor = 3.0  # a field of the same struct
+        scale.offset = wp.array([-1.0], dtype=float)
+        ex.launch(_scaled, 1000, [scale, x], [y])
+        np.testing.assert_array_equal(y.numpy(), 3.0 * x.numpy() - 1.0)
+        ex.close()
+
+
+def test_batch_runs_independent_launches_together():
+    """Launches held in a batch run when it ends, with the results of launching them one by one."""
+    x = wp.array(np.arange(5000, dtype=np.float32), dtype=float)
+    scale = _Scale()
+    scale.factor = 0.5
+    scale.offset = wp.array([2.0], dtype=float)
+    ex = Executor("cpu", 2, min_chunk=16)
+    y, z = wp.zeros(5000, dtype=float), wp.zeros(5000, dtype=float)
+    with ex.batch():
+        ex.launch(_scaled, 5000, [scale, x], [y])
+        ex.launch(_scaled, 5000, [scale, x], [z])
+        assert not y.numpy().any() and not z.numpy().any()  # held until the block ends
+    np.testing.assert_array_equal(y.numpy(), 0.5 * x.numpy() + 2.0)
+    np.testing.assert_array_equal(z.numpy(), y.numpy())
+    ex.close()
+
+
 def test_partitions():
     ex = Executor("cpu", 3, min_chunk=10)
     assert ex.chunks(5) == [(0, 5)]  # below the break-even: one chunk

@@ -324,8 +324,8 @@ class BenchConfig:
     # dynamics
     dyn_configs: list = field(default_factory=lambda: [(100, 20), (1000, 20), (100, 50)])
     dyn_integrators: tuple = ("semi_implicit", "implicit_joints")
-    dyn_peers: tuple = ("pinocchio", "mujoco_euler", "mujoco_rollout_euler_t0", "newton_featherstone_tile",
-                        "newton_vbd")
+    dyn_peers: tuple = ("pinocchio", "pinocchio_parallel", "mujoco_euler", "mujoco_rollout_euler_t0",
+                        "mujoco_rollout_euler_threads", "newton_featherstone_tile", "newton_vbd")
     block_steps: int = 100
     blocks: int = 3
     warmup: int = 3
@@ -395,7 +395,8 @@ class BenchConfig:
             quick=True,
             device=device,
             dyn_configs=[(20, 10), (20, 20)],
-            dyn_peers=("pinocchio", "mujoco_euler", "mujoco_rollout_euler_t0"),
+            dyn_peers=("pinocchio", "pinocchio_parallel", "mujoco_euler", "mujoco_rollout_euler_t0",
+                       "mujoco_rollout_euler_threads"),
             block_steps=20,
             ours_budget_s=0.5,
             peer_budget_s=1.0,

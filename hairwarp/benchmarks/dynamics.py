@@ -9,11 +9,14 @@ import warp as wp
 
 from hairwarp.benchmarks.common import BENCH_DT, GATE, run_child
 from hairwarp.benchmarks.ours import aba_only_ms, canonical_model, profile_step, time_solver
+from hairwarp.executor import default_threads
 
 # Acceptance goals: (peer, segments the goal applies to or None for all, least ratio hairwarp / peer).
 GOALS = (
     ("pinocchio", None, 2.0),
+    ("pinocchio_parallel", 20, 2.0),
     ("mujoco_euler", 20, 5.0),
+    ("mujoco_rollout_euler_threads", 20, 5.0),
     ("mujoco_euler", 50, 15.0),
     ("newton_featherstone_tile", 20, 30.0),
     ("newton_vbd", 20, 30.0),
@@ -25,6 +28,8 @@ PEER_LABELS = {
     "mujoco_euler": "MuJoCo mj_step Euler (Python loop over N MjData)",
     "mujoco_euler_c_only": "MuJoCo mj_step Euler, C only (nstep=250 on one MjData)",
     "mujoco_rollout_euler_t0": "MuJoCo rollout Euler, 1 thread",
+    "pinocchio_parallel": "Pinocchio abaInParallel on every core (ModelPool) + batched Euler in numpy",
+    "mujoco_rollout_euler_threads": "MuJoCo rollout Euler on every core (nthread = cores)",
     "newton_featherstone_tile": "Newton SolverFeatherstone, use_tile_gemm=True",
     "newton_vbd": "Newton SolverVBD rods, 10 iterations",
 }
@@ -185,6 +190,7 @@ def suite_dynamics(cfg, log=lambda msg: None) -> dict:
                   "root_z_m": 1.0, "joint_damping_Nms_per_rad": 1e-10, "dt": BENCH_DT, "gravity": -9.81},
         "goals": [{"peer": p, "segments": s, "goal": g} for p, s, g in GOALS],
         "peer_labels": PEER_LABELS,
+        "hairwarp_threads": default_threads(),
         "configs": configs,
         "profile": profiles,
         "overhead_1x20": overhead(cfg),

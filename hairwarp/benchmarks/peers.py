@@ -65,6 +65,24 @@ def pinocchio_chain(segments: int, root=(0.0, 0.0, 0.0), length: float = STRAND_
     return model
 
 
+def integrate_spherical(q: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``pin.integrate`` of a chain of spherical joints for a batch of strands at once: ``q`` (4 S, G) quaternions
+    (x, y, z, w) per joint, ``w`` (3 S, G) rotation vectors in each joint's frame; ``q (x) exp(w)`` per joint,
+    normalised (matches ``pin.integrate`` to round-off)."""
+    S = q.shape[0] // 4
+    qq, ww = q.reshape(S, 4, -1), w.reshape(S, 3, -1)
+    theta = np.sqrt((ww * ww).sum(axis=1))
+    small = theta <= 1e-12
+    scale = np.where(small, 0.5 - theta * theta / 48.0, np.sin(0.5 * theta) / np.where(small, 1.0, theta))
+    ev, ew = ww * scale[:, None, :], np.cos(0.5 * theta)
+    qv, qw = qq[:, :3], qq[:, 3]
+    out = np.empty_like(qq)
+    out[:, :3] = qw[:, None] * ev + ew[:, None] * qv + np.cross(qv, ev, axis=1)
+    out[:, 3] = qw * ew - (qv * ev).sum(axis=1)
+    out /= np.sqrt((out * out).sum(axis=1, keepdims=True))
+    return out.reshape(4 * S, -1)
+
+
 def pinocchio_tip(model, data, q, segments: int, length: float = STRAND_LENGTH) -> np.ndarray:
     import pinocchio as pin
 
@@ -312,7 +330,34 @@ def throughput(req: dict) -> dict:
                  "aba_only_seg_steps_per_s": S / aba_s}
         finite = all(np.isfinite(x).all() for x in qs + vs)
         tip = pinocchio_tip(model, data, qs[0], S)
-    elif peer in ("mujoco_euler", "mujoco_rollout_euler_t0"):
+    elif peer == "pinocchio_parallel":
+        import pinocchio as pin
+
+        from hairwarp.executor import default_threads
+
+        threads = default_threads()
+        model = pinocchio_chain(S, (0.0, 0.0, 1.0))
+        pool = pin.ModelPool(model, threads)
+        q0 = pin.neutral(model)
+        q0[0:4] = tilt_quat_xyzw(80.0)
+        batch = {"q": np.asfortranarray(np.tile(q0[:, None], (1, G))), "v": np.zeros((model.nv, G), order="F"),
+                 "a": np.zeros((model.nv, G), order="F")}
+        aba_parallel, c = pin.abaInParallel, JOINT_DAMPING
+        setup = time.perf_counter() - t0
+
+        def step(k):
+            q, v, a = batch["q"], batch["v"], batch["a"]
+            for _ in range(k):
+                aba_parallel(threads, pool, q, v, -c * v, a)
+                v += dt * a
+                q = integrate_spherical(q, v * dt)
+            batch["q"] = q
+
+        res = time_blocks(step, **timing)
+        extra = {"threads": threads, "integrate": "numpy, batched over the strands (pin.integrate's arithmetic)"}
+        finite = bool(np.isfinite(batch["q"]).all() and np.isfinite(batch["v"]).all())
+        tip = pinocchio_tip(model, model.createData(), np.ascontiguousarray(batch["q"][:, 0]), S)
+    elif peer in ("mujoco_euler", "mujoco_rollout_euler_t0", "mujoco_rollout_euler_threads"):
         import mujoco
 
         m = mujoco.MjModel.from_xml_string(mujoco_chain_xml(S, integrator="Euler", dt=dt, damping=JOINT_DAMPING,
@@ -350,8 +395,14 @@ def throughput(req: dict) -> dict:
             x0 = np.zeros(mujoco.mj_stateSize(m, spec))
             mujoco.mj_getState(m, d, x0, spec)
             cur = [np.tile(x0, (G, 1))]
-            ro = rollout.Rollout(nthread=0)
-            datas = [mujoco.MjData(m)]
+            if peer == "mujoco_rollout_euler_threads":
+                from hairwarp.executor import default_threads
+
+                nthread = default_threads()  # MuJoCo's own pool, one MjData per thread
+            else:
+                nthread = 0  # the calling thread
+            ro = rollout.Rollout(nthread=nthread)
+            datas = [mujoco.MjData(m) for _ in range(max(1, nthread))]
             buffers = {}
             setup = time.perf_counter() - t0
 
@@ -371,7 +422,7 @@ def throughput(req: dict) -> dict:
             d.qpos[:] = cur[0][0, 1:1 + m.nq]
             finite = bool(np.isfinite(cur[0]).all())
             tip = mujoco_tip(m, d, S)
-            extra = {"nthread": 0, "nstep_per_call": 50}
+            extra = {"nthread": nthread, "nstep_per_call": 50}
     elif peer in ("newton_featherstone_tile", "newton_vbd"):
         roots = root_grid(G)
         model, step_fn, tip_fn, sync = _newton(peer, G, S, roots, 80.0, JOINT_DAMPING)

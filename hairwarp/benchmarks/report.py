@@ -15,8 +15,8 @@ CHARTS = {
     "budget": "bench_budget.png",
 }
 OURS = ("semi_implicit", "implicit_joints")
-PEER_ORDER = ("pinocchio", "pinocchio_aba_floor", "mujoco_euler", "mujoco_euler_c_only", "mujoco_rollout_euler_t0",
-              "newton_featherstone_tile", "newton_vbd")
+PEER_ORDER = ("pinocchio", "pinocchio_aba_floor", "pinocchio_parallel", "mujoco_euler", "mujoco_euler_c_only",
+              "mujoco_rollout_euler_t0", "mujoco_rollout_euler_threads", "newton_featherstone_tile", "newton_vbd")
 
 
 def _g(x, digits: int = 3) -> str:
@@ -270,7 +270,10 @@ def md_dynamics(d: dict) -> list[str]:
            "no joint springs, dt = 1 ms. Every figure below was measured in this run, on this machine, one after "
            "the other: the peers in child processes (one per peer and size, with a timeout). Protocol: one "
            "first step, 3 warm-up steps, median of 3 timed blocks of 100 steps (blocks halved to fit a time box; "
-           "`downsized`).", "",
+           "`downsized`)."
+           + (f" hairwarp's launches run on {d['hairwarp_threads']} threads (every core this process may use, "
+              "`Solver(threads=0)`; a captured graph replays on one), as do the peers marked \"every core\"; the "
+              "others run on one." if d.get("hairwarp_threads") else ""), "",
            "| method | " + " | ".join(f"{c['G']}×{c['S']}: ms/step, seg-steps/s" for c in d["configs"]) + " |",
            "|---|" + "---|" * len(d["configs"])]
     for integ in OURS:

@@ -132,7 +132,8 @@ def md_threads(data: dict) -> list[str]:
     lines = ["## Every core of the CPU (`hairwarp bench threads`)", "",
              f"N = {data['threads']} threads against 1 ({data['cores']} cores this process may use), best of "
              "interleaved rounds; goals on 2 cores: dynamics >= 1.9x, a whole frame >= 1.8x. The 1-minute load "
-             "average before and after each scene is part of the figure: the machine is shared.", "",
+             "average before and after each scene is part of the figure: the machine is shared (the suite's own "
+             "N-thread rounds add up to N to it).", "",
              "![speed-up per stage](threads.png)", ""]
     for s in data["scenes"]:
         lines += [f"### {s['scene']}: {s['guides']} guides x {s['segments']} segments, {s['substeps']} substeps "
