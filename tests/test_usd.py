@@ -497,9 +497,10 @@ def test_read_animated_mesh_points_scale_and_errors(tmp_path):
 def test_writer_timings_add_up_per_phase(tmp_path):
     with CacheWriter(tmp_path / "t.usdc", fps=24) as cache:
         cache.add_curves("c", np.full(2, 4))
-        assert cache.timings == {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0}
+        assert cache.timings == {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0, "wait": 0.0}
         for f in range(3):
             cache.write_frame(f, {"c": (_strands(2, 4, f), np.ones((8, 3)))})
+        cache.flush()  # the last frame's save is counted once its commit is done
         assert all(v > 0.0 for v in cache.timings.values())
         bad = np.ones((8, 3))
         bad[5, 1] = np.inf
@@ -711,3 +712,94 @@ def test_background_writer_dropped_without_close_ends_its_process(tmp_path):
     assert proc.poll() is not None
     stage = Usd.Stage.Open(str(tmp_path / "dropped.partial" / "dropped.usdc"))
     assert stage.GetPrimAtPath("/World/Hair/c").GetAttribute("points").GetTimeSamples() == [0.0, 1.0]
+
+
+def _root_frames(root):
+    """(first, last) frame the working root layer names, as a resumed run reads them."""
+    data = Sdf.Layer.OpenAsAnonymous(str(root)).customLayerData
+    return data["hairwarp:firstFrame"], data["hairwarp:lastFrame"]
+
+
+def test_commit_thread_commits_frames_in_order_each_complete_before_the_next(tmp_path, monkeypatch):
+    """The commit thread saves frame N while the caller goes on; frame N+1's commit starts only once N is
+    complete, and the working root is a valid cache of the frames it names after every frame."""
+    import threading
+
+    commits, overlapped = [], []
+    original = CacheWriter._commit_frame
+
+    def commit(self, frame, *args):
+        overlapped.append(threading.current_thread() is not threading.main_thread())
+        assert not commits or _root_frames(self.partial_path)[1] == commits[-1]  # the previous one is complete
+        original(self, frame, *args)
+        commits.append(frame)
+
+    monkeypatch.setattr(CacheWriter, "_commit_frame", commit)
+    path = tmp_path / "order.usdc"
+    with CacheWriter(path, fps=FPS) as cache:
+        cache.add_curves("c", np.full(2, 4))
+        for f in range(6):
+            points = _strands(2, 4, f)
+            cache.write_frame(f, {"c": (points, None)})
+            points[:] = np.nan  # the frame was copied: the caller may reuse its arrays at once
+            assert cache.last_frame in (f - 1, f) if f else cache.last_frame in (None, 0)
+            if f % 2:
+                cache.flush()
+                assert cache.last_frame == f and _root_frames(cache.partial_path) == (0, f)
+                stage = Usd.Stage.Open(str(cache.partial_path))
+                attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/c")).GetPointsAttr()
+                assert attr.GetTimeSamples() == [float(k) for k in range(f + 1)]
+                np.testing.assert_array_equal(np.asarray(attr.Get(f)), _strands(2, 4, f).astype(np.float32))
+                del stage, attr  # else the next Open finds this root layer still loaded
+    assert commits == list(range(6)) and all(overlapped)
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/c")).GetPointsAttr()
+    assert attr.GetTimeSamples() == [float(k) for k in range(6)]
+    for f in range(6):  # the Vt arrays reused every other frame held each frame's own values when it was saved
+        np.testing.assert_array_equal(np.asarray(attr.Get(f)), _strands(2, 4, f).astype(np.float32))
+
+
+@pytest.mark.parametrize("when", ["next frame", "close"])
+def test_commit_thread_failure_is_raised_in_the_caller_and_keeps_the_frames_before(tmp_path, monkeypatch, when):
+    """A full disk while the thread saves frame 2 is raised by the next write_frame (or by close) as the same
+    CacheWriteError an unthreaded save raises, again on every later call; frames 0-1 stay a valid cache."""
+    import errno
+
+    import hairwarp.io.cache_folder as cache_folder
+
+    original = cache_folder.fsync_path
+
+    def fsync(path):
+        if path.name.startswith("000002.tmp"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        original(path)
+
+    monkeypatch.setattr(cache_folder, "fsync_path", fsync)
+    path = tmp_path / "full.usdc"
+    cache = CacheWriter(path, fps=FPS)
+    cache.add_curves("c", np.full(2, 4))
+    for f in range(3):
+        cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
+    message = r"writing frame 2 to .*000002\.usdc failed: No space left on device"
+    with pytest.raises(CacheWriteError, match=message):
+        if when == "close":
+            cache.close()
+        else:
+            cache.write_frame(3, {"c": (_strands(2, 4, 3), None)})
+    assert cache.last_frame == 1 and not cache.closed
+    with pytest.raises(CacheWriteError, match=message):  # the cache takes no frame after a gap
+        cache.write_frame(4, {"c": (_strands(2, 4, 4), None)})
+    assert cache.abandon() == cache.partial_path and not path.exists()
+    assert _root_frames(cache.partial_path) == (0, 1)
+    assert sorted(p.name for p in (tmp_path / "full.partial" / "full.clips").iterdir()) == \
+        ["000000.usdc", "000001.usdc", "manifest.usdc", "topology.usdc"]
+    stage = Usd.Stage.Open(str(cache.partial_path))
+    assert UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/c")).GetPointsAttr().GetTimeSamples() == [0.0, 1.0]
+
+
+def test_unpipelined_writer_completes_each_frame_before_returning(tmp_path):
+    with CacheWriter(tmp_path / "sync.usdc", fps=FPS, pipelined=False) as cache:
+        cache.add_curves("c", np.full(2, 4))
+        for f in range(3):
+            cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
+            assert cache.last_frame == f and _root_frames(cache.partial_path) == (0, f)

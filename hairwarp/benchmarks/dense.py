@@ -355,22 +355,26 @@ def md_dense(data: dict) -> list[str]:
              f"{pipe['substeps']} substeps): **{sim_ms:.1f} ms** on {pipe['device']}. Per output frame, fastest of "
              f"{pipe['rounds']} blocks of {pipe['frames']} frames; *write* = frame time with the writer less the "
              "frame time without one (noise can make it negative); *blocked* = time the simulating thread spends in "
-             "the background writer's `write_frame`; *writer process* = extents, convert, set and save in its "
-             "process. Write < simulate: inline / background.", ""]
+             "the writer's `write_frame` (inline: checks, copy into `Vt` arrays, authoring, waiting for the previous "
+             "frame's commit, which its thread saves, fsyncs and renames while the next frame simulates; background: "
+             "checks and the copy into shared memory); *writer process* = extents, convert, set and save in the "
+             "background writer's process. Write < simulate: inline / background.", ""]
     disk = data.get("disk_write_rate")
     if disk:
         lines += [f"The disk takes {disk / 1e6:.0f} MB/s sustained (written and flushed with `fsync`): the pace of a "
                   "cache longer than the page cache holds. *Disk floor* = a frame's bytes at that pace, what no "
                   "writer can go below for such a run.", ""]
-    lines += ["| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | "
-              "background: write [ms] | blocked [ms] | writer process [ms] | disk floor [ms] | write < simulate? |",
-              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    lines += ["| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | inline: blocked [ms] | "
+              "background: write [ms] | background: blocked [ms] | writer process [ms] | disk floor [ms] | "
+              "write < simulate? |",
+              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in pipe["results"]:
         bg = r["background"]
         floor = f"{1e3 * bg['bytes_per_frame'] / disk:.0f}" if disk else "–"
         lines.append(
             f"| {r['count']:,} | {r['basis']} | {bg['bytes_per_frame'] / 1e6:.1f} | {1e3 * r['output_frame_s']:.0f} | "
-            f"{1e3 * r['inline_write_s']:.0f} | {1e3 * r['background_write_s']:.0f} | {1e3 * r['blocked_s']:.0f} | "
+            f"{1e3 * r['inline_write_s']:.0f} | {1e3 * r['inline']['blocked_s']:.0f} | "
+            f"{1e3 * r['background_write_s']:.0f} | {1e3 * r['blocked_s']:.0f} | "
             f"{1e3 * r['writer_own_s']:.0f} | {floor} | "
             f"{'yes' if r['inline_write_s'] < pipe['simulate_frame_s'] else 'no'} / "
             f"{'yes' if r['write_cheaper_than_simulate'] else 'no'} |")

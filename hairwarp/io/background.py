@@ -159,7 +159,8 @@ class BackgroundCacheWriter(CacheWriter):
         # Not waited for: the process loads usd-core (about half a second) while the caller goes on.
         self._post(("open", {"path": str(self.path), "fps": self.fps, "start_frame": self.start_frame,
                              "meters_per_unit": self.meters_per_unit, "up_axis": self.up_axis, "comment": comment,
-                             "layout": self.layout, "resume": resume, "owner": False}))
+                             "layout": self.layout, "resume": resume, "owner": False,
+                             "pipelined": False}))  # "saved" must mean the frame is complete
 
     def _died(self) -> UsdFileError:
         code = self._proc.poll() if self._proc is not None else None

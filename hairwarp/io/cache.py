@@ -10,8 +10,9 @@ Files of a finished cache ``out/tiny.usdc`` (``output.layout = "clips"``, the de
 Value clips are core USD composition, so every USD client reads the cache as one stage. While the run goes on
 all of it lives in ``out/tiny.partial/`` (see :mod:`hairwarp.io.cache_folder`): a frame's layer is written in
 memory, exported under a temporary name, fsynced and renamed into place, then the root is rewritten the same way
-to name it, before the writer returns. The root there is a valid cache of every complete frame at any moment, and
-a stopped run leaves it; :meth:`CacheWriter.close` moves the cache to the output path, replacing the old one only
+to name it. That commit runs in a thread while the caller simulates the next frame, and the next frame's commit
+starts only once it is done, so frames become complete one at a time, in order. The root there is a valid cache
+of every complete frame at any moment, and a stopped run leaves it; :meth:`CacheWriter.close` moves the cache to the output path, replacing the old one only
 then. The root is a few hundred bytes, so rewriting it per frame costs nothing, and nothing is appended to a file
 already written, so the cache grows with its frames (the crate format appended every sample again on each save).
 
@@ -23,11 +24,14 @@ the finished cache into the one file at the output path instead.
 Cost of a frame. The writer takes float32, C-contiguous (N, 3) arrays without copying them (a Z-up, metre stage);
 the time goes to the finiteness and extent checks, to building the ``Vt`` arrays that USD stores (one ``memmove``
 into a fresh array, see :func:`hairwarp.io.usd_common._vec3f`) and to the layer's export and fsync, bound by the
-disk; :attr:`CacheWriter.timings` adds them up per phase.
+disk. Only the first two are the caller's: the commit thread waits on the fsyncs, which release the GIL, while the
+simulation runs (usd-core's export holds the GIL: it overlaps the simulation's kernels, not its Python);
+:attr:`CacheWriter.timings` adds them up per phase.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -95,11 +99,14 @@ class CacheWriter:
             (:attr:`resumed_after`); the next frame written must follow it.
         owner: take the lock of the working folder and prepare it (False in a background writer's process, whose
             caller holds the lock).
+        pipelined: commit each frame (save, fsync, rename, rewrite the root) in a thread while the caller goes on
+            (see :meth:`write_frame`); False commits it before :meth:`write_frame` returns.
 
     Attributes:
-        timings: seconds spent in :meth:`write_frame` so far, per phase: ``check`` (validation, unit conversion,
-            extent), ``convert`` (numpy to ``Vt`` arrays), ``set`` (authoring the samples), ``save`` (exports,
-            fsyncs, renames).
+        timings: seconds spent writing frames so far, per phase: in the caller's :meth:`write_frame` ``check``
+            (validation, unit conversion, extent), ``convert`` (numpy to ``Vt`` arrays), ``set`` (authoring the
+            samples) and ``wait`` (for the previous frame's commit); ``save`` (exports, fsyncs, renames, the root)
+            in the commit thread, complete once :meth:`flush` or :meth:`close` returns.
         folder: the :class:`hairwarp.io.cache_folder.CacheFolder` (lock, checkpoints, what an earlier run left).
         resumed_after: the last frame of the resumed run, or None.
 
@@ -112,9 +119,11 @@ class CacheWriter:
     """Whether :meth:`write_frame` computes the extents while checking (else :meth:`_author_frame` does)."""
 
     def __init__(self, path, *, fps: float, start_frame: int = 0, meters_per_unit: float = 1.0, up_axis: str = "Z",
-                 comment: str = "", layout: str = "clips", resume: bool = False, owner: bool = True):
+                 comment: str = "", layout: str = "clips", resume: bool = False, owner: bool = True,
+                 pipelined: bool = True):
         self._setup(path, fps, start_frame, meters_per_unit, up_axis, layout, comment)
-        self.timings = {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0}
+        self.timings = {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0, "wait": 0.0}
+        self._pipelined = bool(pipelined)
         if owner:
             self.folder.acquire()
             try:
@@ -162,7 +171,12 @@ class CacheWriter:
         for row in self._conv:
             i = int(np.flatnonzero(row)[0])
             self._columns.append((i, float(row[i])))
-        self._frames: list[int] = []
+        self._frames: list[int] = []  # complete frames: on disk and named by the root (inline writer)
+        self._pending_frame: int | None = None  # the frame the commit thread is saving
+        self._commit_thread: threading.Thread | None = None
+        self._commit_error: BaseException | None = None
+        self._vt_used: dict = {}  # the Vt arrays of the last frame and of the one before, by (prim, attribute)
+        self._vt_spare: dict = {}
         # name -> {"vertex_count", "half_width" (stage units), "velocities" (True once given)}
         self._curves: dict[str, dict] = {}
         # name -> {"vertex_count", "animated"}
@@ -196,7 +210,7 @@ class CacheWriter:
         where = f"{self.path}: curves {name!r}"
         self._check_open()
         self._check_name(name, where)
-        if len(self._frames) > self._resumed_frames:
+        if self._given_count() > self._resumed_frames:
             raise UsdFileError(f"{where}: curves must be added before the first frame is written")
         if kind not in ("dense", "guides"):
             raise UsdFileError(f"{where}: kind must be 'dense' or 'guides', not {kind!r}")
@@ -247,7 +261,7 @@ class CacheWriter:
         where = f"{self.path}: mesh {name!r}"
         self._check_open()
         self._check_name(name, where)
-        if len(self._frames) > self._resumed_frames:
+        if self._given_count() > self._resumed_frames:
             raise UsdFileError(f"{where}: meshes must be added before the first frame is written")
         pts, lo, hi = self._points(points, None, where)
         faces = np.asarray(face_vertex_indices)
@@ -278,10 +292,16 @@ class CacheWriter:
 
     def write_frame(self, frame: int, curves: dict, xforms: dict | None = None, mesh_points: dict | None = None,
                     checkpoint: dict | None = None):
-        """Write one frame at time code ``frame``, complete on disk when this returns.
+        """Write one frame at time code ``frame``.
 
         Every argument is checked before anything is written: a bad frame raises :class:`UsdFileError` naming the
-        file, the prim and the frame, and leaves the cache as it was.
+        file, the prim and the frame, and leaves the cache as it was. The arrays are copied into the frame's layer
+        before this returns, so the caller may overwrite them at once. The layer is then saved, fsynced, renamed
+        into place and named in the root by a commit thread while the caller goes on (the simulation of the next
+        frame); the next call, :meth:`close`, :meth:`flush` and :meth:`abandon` wait for it first, so frames are
+        committed one at a time, in order, and the root always names complete frames only. A failed commit (a full
+        disk, an I/O error) is raised by the next of those calls (see :meth:`flush`). With ``pipelined=False``
+        the frame is complete on disk when this returns.
 
         Args:
             frame: frame number; larger than the last one written and not below ``start_frame``.
@@ -295,16 +315,16 @@ class CacheWriter:
 
         Raises:
             UsdFileError: a bad frame.
-            hairwarp.io.cache_folder.CacheWriteError: the disk is full or failed; the frames before stay complete.
+            hairwarp.io.cache_folder.CacheWriteError: the disk is full or failed, saving this frame or the one
+                before; the frames before the failed one stay complete.
         """
+        self._raise_commit_failure()
         t_start = time.perf_counter()
         prepared = self._prepare_frame(frame, curves, xforms, mesh_points)
         self.timings["check"] += time.perf_counter() - t_start
         if checkpoint is not None:
             self.folder.write_checkpoint(prepared["frame"], checkpoint)
-        self._author_frame(prepared)
-        if checkpoint is not None:
-            self.folder.prune_checkpoints(prepared["frame"])
+        self._author_frame(prepared, prune=checkpoint is not None)
         for name, _, v, _ in prepared["curves"]:
             self._curves[name]["velocities"] = v is not None
 
@@ -321,8 +341,9 @@ class CacheWriter:
         where = f"{self.path}: frame {frame}"
         if frame < self.start_frame:
             raise UsdFileError(f"{where}: frames start at {self.start_frame}")
-        if self._frames and frame <= self._frames[-1]:
-            raise UsdFileError(f"{where}: frames must increase; the last one written was {self._frames[-1]}")
+        last = self._pending_frame if self._pending_frame is not None else self.last_frame
+        if last is not None and frame <= last:
+            raise UsdFileError(f"{where}: frames must increase; the last one written was {last}")
         unknown = set(curves) - set(self._curves)
         if unknown:
             raise UsdFileError(f"{where}: unknown curves {sorted(unknown)}; add them with add_curves first")
@@ -371,12 +392,14 @@ class CacheWriter:
         return {"frame": frame, "curves": staged, "xforms": mats, "meshes": meshes}
 
 
-    def _author_frame(self, prepared: dict, converted=None) -> None:
-        """Write the layer of a prepared frame and rewrite the root to name it.
+    def _author_frame(self, prepared: dict, converted=None, prune: bool = False) -> None:
+        """Author the layer of a prepared frame, then commit it (:meth:`_commit_frame`): in the commit thread once
+        the previous frame's commit is done, or here without ``pipelined``.
 
         Args:
             prepared: what :meth:`_prepare_frame` returned.
             converted: called once the arrays have been copied into ``Vt`` arrays (the inputs are free again).
+            prune: remove the checkpoints before this frame once the root names it.
         """
         from pxr import Gf, Sdf
 
@@ -384,12 +407,22 @@ class CacheWriter:
         frame = prepared["frame"]
         if not self._topology_written:
             self._write_topology(prepared)
-        values = [(name, _vec3f(p), None if v is None else _vec3f(v),
+        # The Vt arrays of two frames ago are reused: that frame's commit is done (the one before this frame's
+        # started only after it), so nothing reads them; a fresh array costs page faults (4x the copy at 100 MB).
+        spare, used = self._vt_spare, {}
+
+        def vt(key, a):
+            used[key] = _vec3f(a, out=spare.get(key))
+            return used[key]
+
+        values = [(name, vt((name, "points"), p), None if v is None else vt((name, "velocities"), v),
                    _vec3f(_extent(*_column_bounds(p), self._half_widths[name]) if ext is None else ext))
                   for name, p, v, ext in prepared["curves"]]
-        mesh_values = {name: (_vec3f(p), _vec3f(_extent(*_column_bounds(p), 0.0) if ext is None else ext),
-                              _vec3f(_vertex_normals(p, self._mesh_faces[name])))
+        mesh_values = {name: (vt((name, "mesh"), p), _vec3f(_extent(*_column_bounds(p), 0.0) if ext is None else ext),
+                              vt((name, "normals"), _vertex_normals(p, self._mesh_faces[name])))
                        for name, (p, ext) in prepared["meshes"].items()}
+        self._vt_spare, self._vt_used = self._vt_used, used
+        del spare
         nbytes = sum(a.nbytes for _, p, v, _ in prepared["curves"] for a in (p, v) if a is not None)
         nbytes += sum(p.nbytes for p, _ in prepared["meshes"].values())
         t_converted = time.perf_counter()
@@ -414,14 +447,70 @@ class CacheWriter:
             _sample(layer, spec, "normals", types.Normal3fArray, t, normals)
         del values, mesh_values
         t_set = time.perf_counter()
-        self.folder.export_layer(layer, self.folder.frame_layer(frame), nbytes + _FRAME_OVERHEAD, f"frame {frame}")
-        del layer
-        self._frames.append(frame)
-        self._write_root()
-        t_end = time.perf_counter()
         self.timings["convert"] += t_converted - t_start
         self.timings["set"] += t_set - t_converted
-        self.timings["save"] += t_end - t_set
+        self._wait_commit()
+        held = [layer]  # the commit drops it once saved: its arrays are freed before the root is rewritten
+        del layer
+        if not self._pipelined:
+            self._commit_frame(frame, held, nbytes, prune)
+            return
+        self._pending_frame = frame
+        self._commit_thread = threading.Thread(target=self._commit_in_thread, args=(frame, held, nbytes, prune),
+                                               name=f"hairwarp cache commit {frame}")
+        self._commit_thread.start()
+
+    def _commit_frame(self, frame: int, held: list, nbytes: int, prune: bool) -> None:
+        """Save the frame layer in ``held`` (fsynced and renamed into place), then rewrite the root to name it;
+        only then is the frame complete (:attr:`last_frame`) and the checkpoints before it removed."""
+        t_start = time.perf_counter()
+        try:
+            self.folder.export_layer(held.pop(), self.folder.frame_layer(frame), nbytes + _FRAME_OVERHEAD,
+                                     f"frame {frame}")
+            self._write_root(self._frames + [frame])
+            self._frames.append(frame)
+            if prune:
+                self.folder.prune_checkpoints(frame)
+        finally:
+            held.clear()
+            self.timings["save"] += time.perf_counter() - t_start
+
+    def _commit_in_thread(self, frame: int, held: list, nbytes: int, prune: bool) -> None:
+        """The commit thread's body: any failure is kept for :meth:`_wait_commit` to raise in the caller."""
+        try:
+            self._commit_frame(frame, held, nbytes, prune)
+        except BaseException as exc:  # noqa: BLE001 - handed over to the caller's thread
+            self._commit_error = exc
+
+    def _wait_commit(self) -> None:
+        """Wait for the frame in the commit thread; raise its failure, as often as asked (a cache whose frame
+        failed takes no further frame: its root could not name them all)."""
+        thread = self._commit_thread
+        if thread is not None:
+            t_start = time.perf_counter()
+            thread.join()
+            self._commit_thread = None
+            self._pending_frame = None
+            self.timings["wait"] += time.perf_counter() - t_start
+        self._raise_commit_failure()
+
+    def _raise_commit_failure(self) -> None:
+        if self._commit_error is not None:
+            raise self._commit_error.with_traceback(None)
+
+    def _given_count(self) -> int:
+        """Frames given to :meth:`write_frame` so far (complete or being committed), resumed ones included."""
+        return len(self._frames) + (self._pending_frame is not None)
+
+    def flush(self) -> None:
+        """Wait until every frame given so far is complete on disk and named in the root.
+
+        Raises:
+            hairwarp.io.cache_folder.CacheWriteError: a frame's commit failed (raised again by every later call but
+                :meth:`abandon`); the frames before it stay complete.
+        """
+        self._check_open()
+        self._wait_commit()
 
     def _write_topology(self, first: dict) -> None:
         """Write the topology layer (every prim and its static values) and the clip manifest (the attributes the
@@ -482,17 +571,17 @@ class CacheWriter:
                                  "the cache's clip manifest")
         self._topology_written = True
 
-    def _root_layer(self, clips: dict | None, chunked: bool = False):
-        """The root layer: stage metadata, the topology sublayer, and /World's clip set ``default``."""
+    def _root_layer(self, frames: list[int], clips: dict | None, chunked: bool = False):
+        """The root layer of ``frames``: stage metadata, the topology sublayer, and /World's clip set ``default``."""
         import hairwarp
         from pxr import Sdf
 
         layer = Sdf.Layer.CreateAnonymous(f"root{self._suffix}")
         layer.documentation = self._doc
-        first = self._frames[0] if self._frames else self.start_frame
-        last = self._frames[-1] if self._frames else self.start_frame
+        first = frames[0] if frames else self.start_frame
+        last = frames[-1] if frames else self.start_frame
         data = {"creator": f"hairwarp {hairwarp.__version__}"}
-        if self._frames:
+        if frames:
             data.update(layer_markers(first, last, chunked))
         layer.customLayerData = data
         layer.pseudoRoot.SetInfo("upAxis", self.up_axis)
@@ -511,14 +600,15 @@ class CacheWriter:
             Sdf.CreatePrimInLayer(layer, ROOT_PATH).SetInfo("clips", {"default": clips})
         return layer
 
-    def _write_root(self) -> None:
-        """Rewrite the working root to name every frame layer written, through a template clip set."""
+    def _write_root(self, frames: list[int]) -> None:
+        """Rewrite the working root to name the frame layers ``frames`` (consecutive, on disk), through a template
+        clip set."""
         clips = None
-        if self._frames:
+        if frames:
             clips = {"templateAssetPath": f"./{self.folder.clips_name}/######{self._suffix}",
-                     "templateStartTime": float(self._frames[0]), "templateEndTime": float(self._frames[-1]),
+                     "templateStartTime": float(frames[0]), "templateEndTime": float(frames[-1]),
                      "templateStride": 1.0}
-        self.folder.export_layer(self._root_layer(clips), self.folder.root, 65536, "the cache's root layer")
+        self.folder.export_layer(self._root_layer(frames, clips), self.folder.root, 65536, "the cache's root layer")
 
     def _gather_small_frames(self) -> None:
         """Gather runs of consecutive frame layers smaller than :data:`CHUNK_BYTES` into one clip each, name them
@@ -553,7 +643,7 @@ class CacheWriter:
         clips = {"assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(a) for a in assets]),
                  "active": Vt.Vec2dArray(active),
                  "times": Vt.Vec2dArray([(float(frames[0]), float(frames[0])), (float(frames[-1]), float(frames[-1]))])}
-        self.folder.export_layer(self._root_layer(clips, chunked=True), self.folder.root, 65536 + 64 * len(assets),
+        self.folder.export_layer(self._root_layer(frames, clips, chunked=True), self.folder.root, 65536 + 64 * len(assets),
                                  "the cache's root layer")
         for f in frames:
             self.folder.frame_layer(f).unlink()
@@ -587,9 +677,10 @@ class CacheWriter:
         """
         if self._closed:
             return self.path
+        self._wait_commit()
         if not self._topology_written:
             self._write_topology({"curves": []})
-            self._write_root()
+            self._write_root(self._frames)
         self._finish()  # also in a background writer's process, the one that holds the layers
         self._closed = True
         return self.path
@@ -619,6 +710,10 @@ class CacheWriter:
         frame was complete and nothing is kept), the cache at ``path`` untouched, and the lock is released."""
         if self._closed:
             return None
+        try:
+            self._wait_commit()  # the frame in flight is complete or failed before the lock goes
+        except Exception:  # noqa: BLE001 - the frames before it are kept; the caller is stopping already
+            pass
         self._closed = True
         if self._owner:
             self.folder.release()

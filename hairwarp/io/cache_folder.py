@@ -29,6 +29,10 @@ from hairwarp.io.usd_common import UsdFileError, _human_bytes, usd_error_text
 
 __all__ = ["CacheBusyError", "CacheFolder", "CacheWriteError", "free_bytes"]
 
+DROP_CACHED_BYTES = 1 << 20
+"""Files at least this large leave the page cache once fsynced (smaller frame layers are read back at close, to
+be gathered into clips)."""
+
 _FRAME_KEY = "hairwarp:lastFrame"
 _FIRST_KEY = "hairwarp:firstFrame"
 _CHUNKED_KEY = "hairwarp:chunked"
@@ -53,10 +57,17 @@ def free_bytes(folder: Path) -> int:
 
 
 def fsync_path(path: Path) -> None:
-    """Flush a file or a folder's entries to the disk."""
+    """Flush a file or a folder's entries to the disk.
+
+    The page cache of a file of at least ``DROP_CACHED_BYTES`` is then released: a cache streams gigabytes it
+    will not read again during the run, and the next frame's writes reuse those pages instead of taking fresh ones
+    from the kernel (a 118 MB frame layer exported in 80-100 ms instead of 110-400 ms here).
+    """
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
+        if hasattr(os, "posix_fadvise") and os.fstat(fd).st_size >= DROP_CACHED_BYTES:
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
     finally:
         os.close(fd)
 
