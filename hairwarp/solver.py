@@ -9,7 +9,6 @@ from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated
 from hairwarp.kernels.types import Fault, Integrator
 
-
 #: Fewest strands per chunk of the integrator: one strand's ABA and contact sweeps take a few microseconds, so
 #: 16 strands outweigh handing a chunk to a thread (``hairwarp bench threads``).
 INTEGRATE_MIN_CHUNK = 16

@@ -6,9 +6,9 @@ dense strand count the interpolation of positions and velocities, their Hermite 
 from the head, the copy to the host, and :meth:`hairwarp.io.cache.CacheWriter.write_frame` of the dense curves with
 velocities into a temporary file, split by the writer into checks, ``Vt`` conversion, authoring and crate saves.
 :func:`bench_dense_pipeline` times whole frames (simulate, output, write) with no writer, the inline writer and the
-background writer (:class:`hairwarp.io.background.BackgroundCacheWriter`), which is the honest figure once the writing runs
-beside the simulation. The goal is a frame that costs less to write than to simulate. :func:`suite_dense` is
-``hairwarp bench dense``; :func:`md_dense` renders its report section.
+background writer (:class:`hairwarp.io.background.BackgroundCacheWriter`), which is the honest figure once the
+writing runs beside the simulation. The goal is a frame that costs less to write than to simulate.
+:func:`suite_dense` is ``hairwarp bench dense``; :func:`md_dense` renders its report section.
 """
 
 from __future__ import annotations
@@ -364,7 +364,8 @@ def md_dense(data: dict) -> list[str]:
         lines += [f"The disk takes {disk / 1e6:.0f} MB/s sustained (written and flushed with `fsync`): the pace of a "
                   "cache longer than the page cache holds. *Disk floor* = a frame's bytes at that pace, what no "
                   "writer can go below for such a run.", ""]
-    lines += ["| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | inline: blocked [ms] | "
+    lines += ["| strands | basis | MB/frame | sim + output, no writer [ms] | inline: write [ms] | "
+              "inline: blocked [ms] | "
               "background: write [ms] | background: blocked [ms] | writer process [ms] | disk floor [ms] | "
               "write < simulate? |",
               "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]

@@ -32,7 +32,8 @@ _LIVE_WRITERS: weakref.WeakSet = weakref.WeakSet()
 """Background writers not closed yet; their processes are stopped at interpreter exit."""
 
 _CHILD_CODE = ("import sys; sys.path[:0] = [p for p in {paths!r} if p not in sys.path]; "
-               "from hairwarp.io.background import _background_main; _background_main(int(sys.argv[1]), int(sys.argv[2])); "
+               "from hairwarp.io.background import _background_main; "
+               "_background_main(int(sys.argv[1]), int(sys.argv[2])); "
                "import os; sys.stderr.flush(); os._exit(0)")  # the cache is closed: skip the teardown of usd-core
 
 

@@ -7,14 +7,15 @@ Files of a finished cache ``out/tiny.usdc`` (``output.layout = "clips"``, the de
     out/tiny.clips/manifest.usdc         the attributes the clips animate (USD's clip manifest)
     out/tiny.clips/000000.usdc ...       the time samples, one layer per frame (or per run of small frames)
 
-Value clips are core USD composition, so every USD client reads the cache as one stage. While the run goes on
-all of it lives in ``out/tiny.partial/`` (see :mod:`hairwarp.io.cache_folder`): a frame's layer is written in
-memory, exported under a temporary name, fsynced and renamed into place, then the root is rewritten the same way
-to name it. That commit runs in a thread while the caller simulates the next frame, and the next frame's commit
-starts only once it is done, so frames become complete one at a time, in order. The root there is a valid cache
-of every complete frame at any moment, and a stopped run leaves it; :meth:`CacheWriter.close` moves the cache to the output path, replacing the old one only
-then. The root is a few hundred bytes, so rewriting it per frame costs nothing, and nothing is appended to a file
-already written, so the cache grows with its frames (the crate format appended every sample again on each save).
+Value clips are core USD composition, so every USD client reads the cache as one stage. While the run goes on all of
+it lives in ``out/tiny.partial/`` (see :mod:`hairwarp.io.cache_folder`): a frame's layer is written in memory,
+exported under a temporary name, fsynced and renamed into place, then the root is rewritten the same way to name it.
+That commit runs in a thread while the caller simulates the next frame, and the next frame's commit starts only once
+it is done, so frames become complete one at a time, in order. The root there is a valid cache of every complete
+frame at any moment, and a stopped run leaves it; :meth:`CacheWriter.close` moves the cache to the output path,
+replacing the old one only then. The root is a few hundred bytes, so rewriting it per frame costs nothing, and
+nothing is appended to a file already written, so the cache grows with its frames (the crate format appended every
+sample again on each save).
 
 Size. A crate file costs about 1.1 KiB of its own besides the samples; for frames smaller than
 ``CHUNK_BYTES`` :meth:`CacheWriter.close` gathers consecutive frame layers into one clip each, so a cache of small
@@ -411,7 +412,7 @@ class CacheWriter:
         # started only after it), so nothing reads them; a fresh array costs page faults (4x the copy at 100 MB).
         spare, used = self._vt_spare, {}
 
-        def vt(key, a):
+        def vt(key, a, spare=spare, used=used):
             used[key] = _vec3f(a, out=spare.get(key))
             return used[key]
 
@@ -573,8 +574,9 @@ class CacheWriter:
 
     def _root_layer(self, frames: list[int], clips: dict | None, chunked: bool = False):
         """The root layer of ``frames``: stage metadata, the topology sublayer, and /World's clip set ``default``."""
-        import hairwarp
         from pxr import Sdf
+
+        import hairwarp
 
         layer = Sdf.Layer.CreateAnonymous(f"root{self._suffix}")
         layer.documentation = self._doc
@@ -630,7 +632,7 @@ class CacheWriter:
                 if k == 0:
                     Sdf.CopySpec(src, ROOT_PATH, chunk, ROOT_PATH)
                     attrs = []
-                    src.Traverse(ROOT_PATH, lambda p: attrs.append(p) if p.IsPropertyPath() else None)
+                    src.Traverse(ROOT_PATH, lambda p, attrs=attrs: attrs.append(p) if p.IsPropertyPath() else None)
                     continue
                 for p in attrs:
                     for t in src.ListTimeSamplesForPath(p):
@@ -643,8 +645,8 @@ class CacheWriter:
         clips = {"assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(a) for a in assets]),
                  "active": Vt.Vec2dArray(active),
                  "times": Vt.Vec2dArray([(float(frames[0]), float(frames[0])), (float(frames[-1]), float(frames[-1]))])}
-        self.folder.export_layer(self._root_layer(frames, clips, chunked=True), self.folder.root, 65536 + 64 * len(assets),
-                                 "the cache's root layer")
+        self.folder.export_layer(self._root_layer(frames, clips, chunked=True), self.folder.root,
+                                 65536 + 64 * len(assets), "the cache's root layer")
         for f in frames:
             self.folder.frame_layer(f).unlink()
 
