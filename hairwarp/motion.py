@@ -17,8 +17,9 @@ Kinds (``HeadMotion.from_config`` builds them from a scene's ``[head.motion]`` t
   the translation, a cubic Hermite in the rotation's tangent space on the rotation (world angular
   velocity continuous at every key), zero velocity at the first and last key.
 * :class:`Compose` - one motion carried by another.
-* ``usd`` - a prim of a USD stage (a character's head xform) over its time samples, relative to its first
-  sample (``hairwarp.io.usd_anim.head_motion_from_usd``): keyframes through the samples.
+* ``usd`` - a prim of a USD stage (a character's head xform), or a joint of a UsdSkel skeleton prim, over its
+  time samples, relative to its first sample (``hairwarp.io.usd_anim.head_motion_from_usd``): keyframes
+  through the samples.
 
 Here ``tau = t - start`` and ``ramp(t)`` is the quintic smoothstep ``6x^5 - 15x^4 + 10x^3`` of
 ``x = tau / ramp``: the amplitude fades in over ``ramp`` seconds, so position, velocity and
@@ -350,12 +351,12 @@ class HeadMotion:
             "shake": {"amplitude_deg", "period", "start", "ramp", "axis"},
             "translate": {"distance", "period", "start", "ramp", "axis"},
             "keyframes": {"keys", "interpolation"},
-            "usd": {"file", "prim", "interpolation"},
+            "usd": {"file", "prim", "joint", "interpolation"},
         }[kind]
         pivot = cfg.pop("pivot", pivot)
         extra = sorted(set(cfg) - allowed)
         common = {"amplitude_deg", "period", "start", "ramp", "axis", "distance"}
-        unknown = [k for k in extra if k not in common and k not in ("keys", "interpolation", "file", "prim")]
+        unknown = [k for k in extra if k not in common and k not in ("keys", "interpolation", "file", "prim", "joint")]
         if unknown:
             raise ValueError(f"head.motion.{unknown[0]}: unknown key for a head motion")
         kw = {k: cfg[k] for k in allowed if k in cfg}
@@ -365,8 +366,13 @@ class HeadMotion:
             if "file" not in kw or "prim" not in kw:
                 raise ValueError("head.motion: kind = 'usd' needs file (a USD stage) and prim (the head's prim path)")
             from hairwarp.io.usd_anim import head_motion_from_usd
+            from hairwarp.io.usd_common import UsdFileError
 
-            return head_motion_from_usd(kw["file"], kw["prim"], interpolation=kw.get("interpolation", "smooth"))
+            try:
+                return head_motion_from_usd(kw["file"], kw["prim"], joint=kw.get("joint"),
+                                            interpolation=kw.get("interpolation", "smooth"))
+            except UsdFileError as exc:  # name the key at fault: the message says which file and prim
+                raise UsdFileError(f"head.motion.{getattr(exc, 'key', None) or 'file'}: {exc}") from None
         if kind == "keyframes":
             if "keys" not in kw:
                 raise ValueError("head.motion.keys: kind = 'keyframes' needs at least one [[head.motion.keys]] entry")

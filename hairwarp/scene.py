@@ -250,7 +250,7 @@ def _check_motion(values, given, error):
             if values[key] is None:
                 error(key, "kind = \"usd\" needs file (the stage) and prim (the head's prim path)")
     else:
-        for key in ("file", "prim"):
+        for key in ("file", "prim", "joint"):
             if values[key] is not None:
                 error(key, f"applies to kind = \"usd\" only (kind is \"{kind}\")")
     if kind == "keyframes" and not keys:
@@ -485,8 +485,13 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                     "keys": ArrayOf(_MOTION_KEY, doc="keyframes: the keys, in time order"),
                     "file": Field("path", None, "usd: the stage holding the head's animation, relative to the scene "
                                                 "file", suffixes=(".usd", ".usda", ".usdc", ".usdz")),
-                    "prim": Field("str", None, "usd: the head's prim path in that stage, e.g. /Character/Head; the "
-                                               "head moves as it does from its first time sample on"),
+                    "prim": Field("str", None, "usd: the head's prim path in that stage, e.g. /Character/Head, or "
+                                               "a Skeleton's (with joint); the head moves as it does from its first "
+                                               "time sample on"),
+                    "joint": Field("str", None, "usd, when prim is a UsdSkel Skeleton: the joint that carries the "
+                                                "head, its path as in the skeleton's joints (Hips/Spine/Neck/Head) "
+                                                "or its last name when unique; the head moves as the joint does "
+                                                "(its bound SkelAnimation, times the skeleton prim's transform)"),
                     "interpolation": Field("str", "smooth", "keyframes, usd: smooth (Catmull-Rom, C1; overshoots before a "
                                                             "jump), monotone (no overshoot, C1) or linear (constant "
                                                             "speed between keys)",

@@ -1,5 +1,5 @@
 """A small character stage written with usd-core: a head xform that turns and nods, its scalp skin sliding over
-the skull, and a body mesh.
+the skull, the same head motion on a joint of a UsdSkel skeleton, and a body mesh.
 
 Y up, centimetres, 24 time codes per second (as Maya writes them), so the readers' unit and axis conversions are
 part of what the tests check. ``scenes/character.usda`` is this stage (``write_character_stage``)."""
@@ -11,6 +11,10 @@ import math
 import numpy as np
 
 NECK_CM = (0.0, 149.0, 0.0)  # the head prim's origin, the pivot it turns about (Y up, cm)
+# The skeleton's joints and their local translations (cm): the Head joint sits at NECK_CM and turns as the head
+# prim does.
+SKEL_JOINTS = ("Hips", "Hips/Spine", "Hips/Spine/Neck", "Hips/Spine/Neck/Head")
+SKEL_OFFSETS_CM = ((0.0, 100.0, 0.0), (0.0, 25.0, 0.0), (0.0, 15.0, 0.0), (0.0, 9.0, 0.0))
 FPS = 24.0
 END = 72  # time codes: 3 s
 SCALP_CENTER_CM = (0.0, 160.0, 0.0)  # the scene's scalp ellipsoid (0, 0, 1.6) m, Z up
@@ -63,6 +67,46 @@ def scalp_points(code: float) -> np.ndarray:
     return centre + out
 
 
+def head_quaternion(code: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of the head's rotation at a time code: the rotateXYZ op's Rz Ry Rx as a quaternion."""
+    q = (1.0, 0.0, 0.0, 0.0)
+    for axis, deg in sorted(enumerate(head_rotation_deg(code)), reverse=True):  # z, then y, then x
+        h = math.radians(deg) / 2.0
+        v = [0.0, 0.0, 0.0]
+        v[axis] = math.sin(h)
+        w1, x1, y1, z1 = q
+        w2, (x2, y2, z2) = math.cos(h), v
+        q = (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+             w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
+    return tuple(0.0 if abs(c) < 1e-12 else c for c in q)  # no sin(pi) residue in the stage
+
+
+def _write_skeleton(stage) -> None:
+    """/Character/Rig (SkelRoot): Skeleton Skel, its Head joint at the neck moved by the SkelAnimation Skel/Anim."""
+    from pxr import Gf, Usd, UsdSkel, Vt
+
+    UsdSkel.Root.Define(stage, "/Character/Rig")
+    skel = UsdSkel.Skeleton.Define(stage, "/Character/Rig/Skel")
+    skel.CreateJointsAttr(list(SKEL_JOINTS))
+    rest, bind, total = [], [], Gf.Vec3d(0.0)
+    for offset in SKEL_OFFSETS_CM:
+        total += Gf.Vec3d(*offset)
+        rest.append(Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(*offset)))
+        bind.append(Gf.Matrix4d(1.0).SetTranslate(total))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray(rest))
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray(bind))
+    anim = UsdSkel.Animation.Define(stage, "/Character/Rig/Skel/Anim")
+    anim.CreateJointsAttr(list(SKEL_JOINTS))
+    anim.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(*o) for o in SKEL_OFFSETS_CM]))
+    anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1.0)] * len(SKEL_JOINTS)))
+    rotations = anim.CreateRotationsAttr()
+    still = Gf.Quatf(1.0)
+    for code in range(0, END + 1, 2):
+        w, x, y, z = head_quaternion(code)
+        rotations.Set(Vt.QuatfArray([still] * 3 + [Gf.Quatf(w, x, y, z)]), Usd.TimeCode(code))
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+
+
 def write_character_stage(path) -> None:
     from pxr import Gf, Usd, UsdGeom
 
@@ -90,6 +134,7 @@ def write_character_stage(path) -> None:
     points = scalp.CreatePointsAttr()
     for code in range(0, END + 1, SCALP_STEP):
         points.Set([Gf.Vec3f(*map(float, p)) for p in np.round(scalp_points(code), 4)], Usd.TimeCode(code))
+    _write_skeleton(stage)
     # the torso: a box 34 x 44 x 20 cm below the neck
     body = UsdGeom.Mesh.Define(stage, "/Character/Body")
     lo, hi = np.array([-17.0, 95.0, -4.0]), np.array([17.0, 139.0, 16.0])
@@ -100,5 +145,5 @@ def write_character_stage(path) -> None:
     body.CreateFaceVertexIndicesAttr([i for q in quads for i in q])
     body.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
     stage.GetRootLayer().documentation = ("hairwarp character stage: a head xform that turns and nods, its sliding "
-                                          "scalp, a torso")
+                                          "scalp, a skeleton whose Head joint does the same, a torso")
     stage.GetRootLayer().Save()

@@ -29,6 +29,28 @@ def test_head_motion_equals_the_stage_at_every_sample(tmp_path):
         np.testing.assert_allclose(motion.evaluate(code / 24.0).matrix(), expect, atol=1e-6)
 
 
+def test_skeleton_head_joint_moves_as_the_head_prim(tmp_path):
+    """The stage's skeleton carries the same head motion on its Head joint (a SkelAnimation's rotations instead of
+    a rotateXYZ op): both sources give the same world poses and the same head motion."""
+    from hairwarp.io.usd_anim import head_motion_from_usd, read_prim_motion
+
+    path = tmp_path / "character.usda"
+    write_character_stage(path)
+    times, prim_poses = read_prim_motion(path, "/Character/Head")
+    joint_times, joint_poses = read_prim_motion(path, "/Character/Rig/Skel", "Head")
+    np.testing.assert_array_equal(joint_times, times)
+    # float32 angles on one side, float32 quaternions on the other: 1e-7 of a rotation at 1.5 m
+    np.testing.assert_allclose(joint_poses, prim_poses, rtol=0, atol=1e-6)
+    by_prim = head_motion_from_usd(path, "/Character/Head")
+    by_joint = head_motion_from_usd(path, "/Character/Rig/Skel", joint="Hips/Spine/Neck/Head")
+    # the shipped scene on the joint instead of the prim
+    on_joint = hw.Scene.load(SCENES / "character.toml", overrides=["head.motion.prim='/Character/Rig/Skel'",
+                                                                   "head.motion.joint='Head'"]).head_motion()
+    for t in np.linspace(0.0, END / 24.0, 145):
+        np.testing.assert_allclose(by_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=1e-6)
+        np.testing.assert_allclose(on_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=1e-6)
+
+
 def test_shipped_character_stage_is_the_generated_one(tmp_path):
     """scenes/character.usda is what tests/_character.py writes (so the scene's input is reproducible)."""
     from pxr import Usd

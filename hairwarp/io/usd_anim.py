@@ -1,12 +1,16 @@
-"""Animated colliders from USD: a Mesh prim's world poses over time, and the rigid motion through them."""
+"""Animation from USD: a Mesh prim's world poses over time (animated colliders), and the head's motion from an
+xform prim or from a joint of a UsdSkel skeleton."""
 
 from __future__ import annotations
+
+import difflib
 
 import numpy as np
 
 from hairwarp.io.usd_common import UsdFileError, _open_stage, _prims, _stage_to_metres_z, _triangles
 
-__all__ = ["mesh_motion", "read_animated_collider", "read_animated_mesh", "read_surface_track"]
+__all__ = ["head_motion_from_usd", "mesh_motion", "read_animated_collider", "read_animated_mesh",
+           "read_prim_motion", "read_surface_track"]
 
 
 # A world transform's scale, shear or mirror (the symmetric factor of its polar decomposition) is baked into the
@@ -109,11 +113,17 @@ def _rigid_world_poses(prim, time_codes, codes, c4, where):
     constant scale/shear/mirror factored out of them (the same at every sample, else an error)."""
     from pxr import UsdGeom
 
+    usd = [np.array(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim), dtype=np.float64) for tc in time_codes]
+    return _rigid_poses(usd, codes, c4, where)
+
+
+def _rigid_poses(usd_matrices, codes, c4, where):
+    """Row-vector USD world matrices in stage units as rigid poses in metres, Z up (column convention), and the
+    constant scale/shear/mirror factored out of them (the same at every sample, else an error)."""
     c4_inv = np.linalg.inv(c4)
-    matrices = np.empty((len(time_codes), 4, 4))
+    matrices = np.empty((len(usd_matrices), 4, 4))
     scale = None
-    for i, tc in enumerate(time_codes):
-        m_usd = np.array(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim), dtype=np.float64)
+    for i, m_usd in enumerate(usd_matrices):
         # Row-vector USD matrix in stage units -> column convention in metres, Z up, acting on metre Z-up points.
         world = c4 @ m_usd.T @ c4_inv
         rot, k = _rigid_factor(world[:3, :3])
@@ -128,35 +138,128 @@ def _rigid_world_poses(prim, time_codes, codes, c4, where):
     return matrices, scale
 
 
-def read_prim_motion(path, prim_path: str):
-    """The world motion of any transformable prim (a head xform, a joint's proxy) over its time samples.
+def _keyed(key: str, message: str) -> UsdFileError:
+    """A UsdFileError about the argument ``key`` (prim, joint): a scene's reader names its ``head.motion`` key."""
+    exc = UsdFileError(message)
+    exc.key = key
+    return exc
 
-    Returns ``(times [s] (T,), matrices (T, 4, 4))``: rigid world poses in metres, Z up, column convention, read
-    at every time code where the prim or an ancestor has a transform sample (one pose at the default time when
-    none has). A constant scale is left out; one that changes with time is an error.
+
+def _names(items, most: int = 12) -> str:
+    items = list(items)
+    more = f", ... ({len(items)} in all)" if len(items) > most else ""
+    return ", ".join(items[:most]) + more
+
+
+def _find_joint(tokens: list[str], joint, where: str) -> int:
+    """Index of ``joint`` in a skeleton's ``joints``: its path token, or its last name when no other joint has it."""
+    if joint is None:
+        raise _keyed("joint", f"{where} is a Skeleton: give the joint that carries the head, one of its joints "
+                              f"({_names(tokens)})")
+    joint = str(joint).strip("/")
+    if joint in tokens:
+        return tokens.index(joint)
+    named = [i for i, t in enumerate(tokens) if t.rsplit("/", 1)[-1] == joint]
+    if len(named) == 1:
+        return named[0]
+    if named:
+        raise _keyed("joint", f"{where}: {len(named)} joints are named {joint!r}; give its path: "
+                              f"{_names(tokens[i] for i in named)}")
+    last = {t.rsplit("/", 1)[-1]: t for t in tokens}
+    close = difflib.get_close_matches(joint, list(tokens) + list(last), n=6, cutoff=0.6)
+    close = list(dict.fromkeys(last.get(c, c) for c in close))
+    hint = f"close: {_names(close)}" if close else f"its joints: {_names(tokens)}"
+    raise _keyed("joint", f"{where}: no joint {joint!r} in the skeleton ({hint})")
+
+
+def _joint_poses(stage, prim, joint, c4, where):
+    """Times [s] and rigid world poses (metres, Z up, column convention) of a skeleton's joint, the token used."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    skel = UsdSkel.Skeleton(prim)
+    tokens = [str(t) for t in (skel.GetJointsAttr().Get() or [])]
+    if not tokens:
+        raise _keyed("prim", f"{where} is a Skeleton with no joints")
+    index = _find_joint(tokens, joint, where)
+    where = f"{where} joint {tokens[index]}"
+    query = UsdSkel.Cache().GetSkelQuery(skel)
+    anim = query.GetAnimQuery() if query else None
+    codes = set(_transform_times(prim))
+    if anim:
+        codes.update(anim.GetJointTransformTimeSamples())
+    elif not codes:
+        raise _keyed("prim", f"{where}: the skeleton has no bound animation (skel:animationSource) and no "
+                             "transform samples, so the joint would stay still at its rest pose")
+    codes = sorted(codes)
+    time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
+    usd = []
+    for tc in time_codes:
+        skel_space = query.ComputeJointSkelTransforms(tc) if query else []
+        if len(skel_space) != len(tokens):
+            raise _keyed("prim", f"{where}: UsdSkel cannot compute the joints' transforms (are restTransforms "
+                                 "authored, one per joint, where the animation leaves joints out?)")
+        to_world = np.array(UsdGeom.XformCache(tc).GetLocalToWorldTransform(prim), dtype=np.float64)
+        # Row vectors: a point in the joint's frame goes to skeleton space, then to the world.
+        usd.append(np.array(skel_space[index], dtype=np.float64) @ to_world)
+    matrices, _ = _rigid_poses(usd, codes, c4, where)
+    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    return (np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)), matrices
+
+
+def read_prim_motion(path, prim_path: str, joint: str | None = None):
+    """The world motion of a transformable prim (a head xform) or of a joint of a UsdSkel skeleton prim.
+
+    Without ``joint``, the prim's own world pose is read at every time code where the prim or an ancestor has a
+    transform sample. With ``joint`` (``prim_path`` a ``Skeleton``), the pose is the joint's skeleton-space
+    transform (UsdSkel, from the skeleton's bound ``SkelAnimation`` and its ``restTransforms``) times the
+    skeleton prim's local-to-world, read at every time code of the animation's joint transforms and of the
+    prim's (and its ancestors') transforms. One pose at the default time when there is no sample.
+
+    Args:
+        path: the USD file.
+        prim_path: absolute path of the prim.
+        joint: a joint of the skeleton: its path token as in the skeleton's ``joints`` (``Hips/Spine/Neck/Head``),
+            or its last name (``Head``) when no other joint has that name.
+
+    Returns:
+        ``(times [s] (T,), matrices (T, 4, 4))``: rigid world poses in metres, Z up, column convention. A
+        constant scale is left out; one that changes with time is an error.
 
     Raises:
-        UsdFileError: missing or unreadable file, no such prim or not transformable, a changing scale.
+        UsdFileError: missing or unreadable file, no such prim or not transformable, a changing scale; a
+            skeleton without ``joint``, a joint it does not have, ``joint`` for a prim that is not a skeleton,
+            a skeleton with neither an animation nor a transform sample. The message names the file and prim;
+            ``exc.key`` is the argument at fault (``"prim"`` or ``"joint"``) where there is one.
     """
-    from pxr import Usd, UsdGeom
+    from pxr import Usd, UsdGeom, UsdSkel
 
     stage = _open_stage(path)
     prim = stage.GetPrimAtPath(prim_path) if prim_path and str(prim_path).startswith("/") else None
     if prim is None or not prim.IsValid():
-        raise UsdFileError(f"{path}: no prim {prim_path!r} (give its absolute path, e.g. /Character/Head)")
-    if not UsdGeom.Xformable(prim):
-        raise UsdFileError(f"{path}: {prim_path} is a {prim.GetTypeName() or 'typeless prim'}, not transformable")
+        raise _keyed("prim", f"{path}: no prim {prim_path!r} (give its absolute path, e.g. /Character/Head)")
+    where = f"{path}: {prim_path}"
+    kind = prim.GetTypeName() or "typeless prim"
     c4 = np.eye(4)
     c4[:3, :3] = _stage_to_metres_z(stage)
+    if prim.IsA(UsdSkel.Skeleton):
+        return _joint_poses(stage, prim, joint, c4, where)
+    if joint is not None:
+        skels = [str(p.GetPath()) for p in Usd.PrimRange(prim) if p.IsA(UsdSkel.Skeleton)]
+        hint = f"; its skeletons: {_names(skels)}" if skels else ""
+        raise _keyed("joint", f"{where} is a {kind}, not a Skeleton: a joint ({joint!r}) is read from a UsdSkel "
+                              f"Skeleton prim{hint}")
+    if not UsdGeom.Xformable(prim):
+        raise _keyed("prim", f"{where} is a {kind}, not transformable")
     codes = sorted(_transform_times(prim))
     tcps = stage.GetTimeCodesPerSecond() or 24.0
     time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
-    matrices, _ = _rigid_world_poses(prim, time_codes, codes, c4, f"{path}: {prim_path}")
+    matrices, _ = _rigid_world_poses(prim, time_codes, codes, c4, where)
     return (np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)), matrices
 
 
-def head_motion_from_usd(path, prim_path: str, *, interpolation: str = "smooth"):
-    """A head motion that follows a prim of a USD stage, relative to its first sample.
+def head_motion_from_usd(path, prim_path: str, *, joint: str | None = None, interpolation: str = "smooth"):
+    """A head motion that follows a prim of a USD stage, or a joint of a skeleton prim, relative to its first
+    sample (the poses of :func:`read_prim_motion`).
 
     The groom is built in the world at rest; the head frame there is the prim's pose at its first sample, so
     ``M_head(t) = M(t) M(t_0)^-1``: at ``t_0`` the head is at rest, and after it moves as the prim does. The
@@ -166,7 +269,7 @@ def head_motion_from_usd(path, prim_path: str, *, interpolation: str = "smooth")
     from hairwarp.colliders import matrix_to_transform
     from hairwarp.motion import Keyframes
 
-    times, matrices = read_prim_motion(path, prim_path)
+    times, matrices = read_prim_motion(path, prim_path, joint)
     first_inv = np.linalg.inv(matrices[0])
     rel = np.array([m @ first_inv for m in matrices])
     xf = np.array([matrix_to_transform(x) for x in rel]).reshape(-1, 7)
