@@ -6,6 +6,8 @@ import numpy as np
 from _character import END, NECK_CM, head_rotation_deg, write_character_stage
 from scipy.spatial.transform import Rotation
 
+import hairwarp as hw
+
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 # Y up in cm to Z up in m: (x, y, z) -> 0.01 (x, -z, y)
 Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
