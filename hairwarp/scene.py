@@ -492,9 +492,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                                 "head, its path as in the skeleton's joints (Hips/Spine/Neck/Head) "
                                                 "or its last name when unique; the head moves as the joint does "
                                                 "(its bound SkelAnimation, times the skeleton prim's transform)"),
-                    "interpolation": Field("str", "smooth", "keyframes, usd: smooth (Catmull-Rom, C1; overshoots before a "
-                                                            "jump), monotone (no overshoot, C1) or linear (constant "
-                                                            "speed between keys)",
+                    "interpolation": Field("str", "smooth",
+                                           "keyframes, usd: smooth (Catmull-Rom, C1; overshoots before a jump), "
+                                           "monotone (no overshoot, C1) or linear (constant speed between keys)",
                                            choices=_motion.KEY_INTERPOLATIONS),
                 },
                 doc="rigid motion of the head (hairwarp.motion)",
