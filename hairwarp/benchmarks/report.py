@@ -816,8 +816,9 @@ def write_report(results: dict, out: Path) -> Path:
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"
               "         # smoke run (~1 min) into out/bench-quick/", "```", "",
               "The machine is shared and noisy (the peers' study saw 10–25 % between runs of one configuration); "
-              "ratios are taken between figures of the same run. Warp's CPU kernels run on one thread, as do "
-              "Pinocchio, the MuJoCo loop and rollout with 1 thread; the second core is idle in every figure."]
+              "ratios are taken between figures of the same run. A Warp CPU launch runs on one thread; hairwarp "
+              "splits its launches over the threads of `--threads` (every core by default), and the peers marked "
+              "\"every core\" use theirs; Pinocchio, the MuJoCo loop and rollout with 1 thread run on one."]
     path = out / REPORT_NAME
     path.write_text("\n".join(lines) + "\n")
     return path
