@@ -16,7 +16,7 @@ an equilibrium of the contacts, as it is of the links.
 
 import warp as wp
 
-from hairwarp.kernels.links import excess_mass, lever_scaled_mass
+from hairwarp.kernels.links import add_gathered, lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
 wp.set_module_options({"enable_backward": False})
@@ -829,11 +829,8 @@ def contact_gather(
         force += entry_force[e]
         torque += entry_torque[e]
         mass += entry_mass[e]
-    if first != last:
-        seg_force[seg] = seg_force[seg] + force
-        seg_torque[seg] = seg_torque[seg] + torque
-    if implicit_springs != 0:
-        excess_mass(seg, seg_mass, seg_spring_mass[seg] + mass, seg_spring_mass, seg_implicit_mass)
+    add_gathered(seg, last - first, force, torque, mass, implicit_springs, seg_mass, seg_spring_mass, seg_force,
+                 seg_torque, seg_implicit_mass)
 
 
 @wp.kernel

@@ -285,11 +285,22 @@ def link_gather(
         force += b_force[slot]
         torque += b_torque[slot]
         mass += b_mass[slot]
-    if first != last:
-        seg_force[b] = seg_force[b] + force
-        seg_torque[b] = seg_torque[b] + torque
+    add_gathered(b, last - first, force, torque, mass, implicit_springs, seg_mass, seg_spring_mass, seg_force,
+                 seg_torque, seg_implicit_mass)
+
+
+@wp.func
+def add_gathered(seg: int, count: int, force: wp.vec3, torque: wp.vec3, mass: float, implicit_springs: int,
+                 seg_mass: wp.array(dtype=float), seg_spring_mass: wp.array(dtype=float),
+                 seg_force: wp.array(dtype=wp.vec3), seg_torque: wp.array(dtype=wp.vec3),
+                 seg_implicit_mass: wp.array(dtype=float)):
+    """Add what a gather summed for segment ``seg`` (``count`` entries): the force and torque to its loads, with
+    ``implicit_springs`` the spring mass to its ``seg_spring_mass``, passed on as ``add_excess_mass`` does."""
+    if count != 0:
+        seg_force[seg] = seg_force[seg] + force
+        seg_torque[seg] = seg_torque[seg] + torque
     if implicit_springs != 0:
-        excess_mass(b, seg_mass, seg_spring_mass[b] + mass, seg_spring_mass, seg_implicit_mass)
+        excess_mass(seg, seg_mass, seg_spring_mass[seg] + mass, seg_spring_mass, seg_implicit_mass)
 
 
 @wp.func
