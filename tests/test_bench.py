@@ -358,3 +358,21 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
     assert sum(sweep["counts"].values()) == 2
     assert chart_rest(rest, None, tmp_path / "rest.png").stat().st_size > 0
     assert chart_grid(sweep, tmp_path / "grid.png").stat().st_size > 0
+
+
+def test_robustness_spin_keys_turn_at_the_spin_rate():
+    """The extreme-motion suite's spin: keyframes 20 degrees apart whose interpolated head turns about z at
+    3 rev/s between the first and the last interval (Catmull-Rom on evenly spaced keys of a constant rate is that
+    rate), and whose pose at a key is the wrapped angle."""
+    import math
+
+    from hairwarp.benchmarks.robustness import spin_keys
+    from hairwarp.motion import HeadMotion
+
+    keys = spin_keys(0.2, 1.0, 3.0)
+    assert len(keys) == 55 and all(-180.0 <= k["angle_deg"] <= 180.0 for k in keys)
+    motion = HeadMotion.from_config({"kind": "keyframes", "keys": keys, "pivot": (0.0, 0.0, 1.49)})
+    for t in (0.5, 0.77, 1.0):
+        assert abs(motion.evaluate(t).angular_velocity[2] - 2.0 * math.pi * 3.0) < 1e-6
+    s = motion.evaluate(0.2 + 7.0 / 54.0)  # the 8th key: 140 degrees
+    assert abs(2.0 * math.degrees(math.atan2(s.rotation[2], s.rotation[3])) - 140.0) < 1e-6

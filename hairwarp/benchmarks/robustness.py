@@ -58,6 +58,7 @@ SIZES = {
         "conv_s": 2.0, "conv_substeps": (1, 2, 4, 8, 16), "conv_ref": 32, "conv_overrides": (),
         "fr_scenes": SCENES, "fr_frames": None,
         "teleport_after_s": 1.0, "teleport_overrides": (),
+        "extreme_s": 3.0, "extreme_overrides": (),
         "peer_s": 8.0,
     },
     "quick": {
@@ -66,6 +67,7 @@ SIZES = {
         "conv_s": 1.0, "conv_substeps": (1, 2, 4, 8), "conv_ref": 16, "conv_overrides": ("groom.max_strands=75",),
         "fr_scenes": ("tiny", "long_hair_shoulders"), "fr_frames": 30,
         "teleport_after_s": 1.0, "teleport_overrides": ("groom.max_strands=75",),
+        "extreme_s": 1.0, "extreme_overrides": ("groom.max_strands=75",),
         "peer_s": 3.0,
     },
 }
@@ -449,6 +451,54 @@ def bench_teleport(after_s: float = 1.0, overrides=(), scene_name: str = "long_h
 
 
 # ---------------------------------------------------------------------------------------------
+# 5b. extreme motion: a spinning head, a turn ten times the shipped speed
+
+SPIN_REV_S = 3.0  # spins per second
+TURN_FACTOR = 10.0  # the shipped turn's speed, times this
+
+
+def spin_keys(start: float, duration: float, revs_per_s: float) -> list[dict]:
+    """Keyframes of a head that spins about z at ``revs_per_s`` from ``start`` for ``duration`` s: a key every
+    20 degrees (consecutive keys under 180 degrees apart), the angle wrapped to (-180, 180]."""
+    step = 20.0
+    n = int(math.ceil(duration * revs_per_s * 360.0 / step))
+    keys = []
+    for i in range(n + 1):
+        angle = (i * step + 180.0) % 360.0 - 180.0
+        keys.append({"time": start + i * step / (360.0 * revs_per_s), "axis": [0.0, 0.0, 1.0], "angle_deg": angle})
+    return keys
+
+
+def bench_extreme(duration: float, overrides=(), scene_name: str = "long_hair", log=lambda m: None) -> dict:
+    """The shipped scene at its substeps, links, contacts and collider, on a head spinning at SPIN_REV_S and on its
+    turn TURN_FACTOR times faster; and each without links, contacts and the head collider (free hair). Goal: no
+    fault, no NaN."""
+    base = raw_scene(scene_name)
+    fps = float(base["sim"].get("fps", 30.0))
+    motion = dict(base["head"]["motion"])
+    spin = {"kind": "keyframes", "keys": spin_keys(0.2, duration, SPIN_REV_S), "pivot": motion.get("pivot")}
+    fast = dict(motion, period=float(motion.get("period", 1.5)) / TURN_FACTOR)
+    rows = []
+    for label, mot in ((f"spin {SPIN_REV_S:g} rev/s", spin), (f"turn {TURN_FACTOR:g}x the shipped speed", fast)):
+        for free in (False, True):
+            raw = copy.deepcopy(base)
+            raw["head"]["motion"] = {k: v for k, v in mot.items() if v is not None}
+            if free:
+                raw["head"]["shape"] = "none"
+                raw.pop("colliders", None)
+                raw.setdefault("links", {})["enabled"] = False
+                raw.setdefault("interactions", {})["enabled"] = False
+            run = run_scene(build(raw, scene_name, overrides), int(round(duration * fps)))
+            row = {"case": label, "free": free, "fault": run["fault"], "nan": run["nan"],
+                   "frames_done": run["frames_done"], "max_speed_m_s": run["max_speed"],
+                   "broken_links": run["broken_links"], "meets": run["fault"] is None and not run["nan"],
+                   "wall_s": run["wall_s"]}
+            rows.append(row)
+            log(f"extreme {label}{' (free hair)' if free else ''}: {_fault(row)}, vmax {_f(run['max_speed'])} m/s")
+    return {"scene": scene_name, "overrides": list(overrides), "duration_s": duration, "rows": rows}
+
+
+# ---------------------------------------------------------------------------------------------
 # 6. peers: MuJoCo's chain at rest on a collider (child process)
 
 PEER_SEGMENTS = 20
@@ -683,6 +733,7 @@ def suite_robustness(config, out, log=lambda m: None) -> dict:
                                                   size["conv_overrides"], log=log))
     part("frame_rate", lambda: bench_frame_rate(size["fr_scenes"], size["fr_frames"], log))
     part("teleport", lambda: bench_teleport(size["teleport_after_s"], size["teleport_overrides"], log=log))
+    part("extreme", lambda: bench_extreme(size["extreme_s"], size["extreme_overrides"], log=log))
     part("peers", lambda: bench_peers(size["peer_s"], size["rest_second"], config.peer_timeout_s))
     res["part_wall_s"] = timings
     out = Path(out)
@@ -818,6 +869,19 @@ def md_robustness(data: dict) -> list[str]:
     for r in tp["rows"]:
         td = "unset" if r["teleport_distance"] is None else f"{r['teleport_distance']:g} m"
         lines.append(f"| {r['case']} | {td} | {_fault(r)} | {_f(r['relative_tip_rms_m_s'])} | {_v(r['meets'])} |")
+    ex = data.get("extreme")
+    if ex:
+        lines += ["", "### Extreme motion", "",
+                  f"`{ex['scene']}`{' (' + ', '.join(ex['overrides']) + ')' if ex['overrides'] else ''} at its "
+                  f"substeps for {ex['duration_s']:g} s on a head spinning at {SPIN_REV_S:g} rev/s (keyframes every "
+                  f"20°) and on its turn {TURN_FACTOR:g}x faster; as shipped (links, contacts, the head collider) "
+                  "and as free hair (none of them). Goal: no fault, no NaN.", "",
+                  "| motion | hair | outcome | largest speed [m/s] | broken links | verdict |",
+                  "|---|---|---|---:|---:|---|"]
+        for r in ex["rows"]:
+            lines.append(f"| {r['case']} | {'free' if r['free'] else 'as shipped'} | {_fault(r)} | "
+                         f"{_f(r['max_speed_m_s'])} | {r['broken_links'] if r['broken_links'] is not None else '–'} | "
+                         f"{_v(r['meets'])} |")
     lines += ["", "### Peers", ""]
     mj = peers["mujoco_rest"]
     if mj.get("status") == "ok":
