@@ -605,6 +605,47 @@ def _hermite(u: float):
     return h, dh, ddh
 
 
+def hermite_tangents(times: np.ndarray, values: np.ndarray, interpolation: str) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes at the start and the end of each key interval of a cubic Hermite curve through ``values``.
+
+    ``"smooth"``: Catmull-Rom tangents ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``; ``"monotone"``:
+    Fritsch-Carlson (PCHIP) per component, no overshoot; ``"linear"``: each interval's own slope. Zero at the first
+    and the last key, so the curve starts and stops at rest.
+
+    Args:
+        times: (N,) strictly increasing [s].
+        values: (N, ...) the keyed values.
+        interpolation: one of :data:`KEY_INTERPOLATIONS`.
+
+    Returns:
+        ``(tan0, tan1)``, (N-1, ...) each, in value units per second.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    d = np.asarray(values, dtype=np.float64)
+    column = (-1,) + (1,) * (d.ndim - 1)
+    slopes = np.diff(d, axis=0) / np.diff(t).reshape(column)
+    if interpolation == "linear":
+        return slopes.copy(), slopes.copy()
+    key = np.zeros_like(d)
+    if interpolation == "monotone":
+        for i in range(1, t.size - 1):
+            key[i] = _pchip_tangent(slopes[i - 1], slopes[i], t[i] - t[i - 1], t[i + 1] - t[i])
+    elif t.size > 2:
+        key[1:-1] = (d[2:] - d[:-2]) / (t[2:] - t[:-2]).reshape(column)
+    return key[:-1].copy(), key[1:].copy()
+
+
+def hermite_interval(values, tan0, tan1, i: int, u: float, h: float):
+    """Value, first and second time derivative of the cubic Hermite curve of :func:`hermite_tangents` on key
+    interval ``i`` (length ``h`` [s]) at ``u`` in [0, 1]."""
+    d, m0, m1 = values, tan0[i], tan1[i]
+    (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
+    p = h00 * d[i] + h10 * h * m0 + h01 * d[i + 1] + h11 * h * m1
+    v = (d00 * d[i] + d10 * h * m0 + d01 * d[i + 1] + d11 * h * m1) / h
+    a = (e00 * d[i] + e10 * h * m0 + e01 * d[i + 1] + e11 * h * m1) / (h * h)
+    return p, v, a
+
+
 class Keyframes(_PivotMotion):
     """Keyed head poses; the pose holds before the first and after the last key.
 
@@ -662,15 +703,7 @@ class Keyframes(_PivotMotion):
 
         # Translation tangents at the interval ends, zero at the first and last key so the head starts and stops at
         # rest (linear: each interval's own constant slope).
-        slopes = np.diff(d, axis=0) / np.diff(t)[:, None]
-        key_tan = np.zeros_like(d)
-        for i in range(1, n - 1):
-            if interpolation == "monotone":
-                key_tan[i] = _pchip_tangent(slopes[i - 1], slopes[i], t[i] - t[i - 1], t[i + 1] - t[i])
-            else:
-                key_tan[i] = (d[i + 1] - d[i - 1]) / (t[i + 1] - t[i - 1])
-        self._tan0 = slopes.copy() if interpolation == "linear" else key_tan[:-1].copy()
-        self._tan1 = slopes.copy() if interpolation == "linear" else key_tan[1:].copy()
+        self._tan0, self._tan1 = hermite_tangents(t, d, interpolation)
 
         # Rotation: interval steps log(R_i^T R_{i+1}) and world angular velocities at the keys.
         self._delta = np.zeros((max(n - 1, 0), 3))
@@ -749,12 +782,7 @@ class Keyframes(_PivotMotion):
         i, u, h = self._locate(t)
         if u is None:
             return self.translations[i], _ZERO3, _ZERO3
-        d, m0, m1 = self.translations, self._tan0[i], self._tan1[i]
-        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
-        p = h00 * d[i] + h10 * h * m0 + h01 * d[i + 1] + h11 * h * m1
-        v = (d00 * d[i] + d10 * h * m0 + d01 * d[i + 1] + d11 * h * m1) / h
-        a = (e00 * d[i] + e10 * h * m0 + e01 * d[i + 1] + e11 * h * m1) / (h * h)
-        return p, v, a
+        return hermite_interval(self.translations, self._tan0, self._tan1, i, u, h)
 
     def _rotation(self, t: float):
         i, u, h = self._locate(t)

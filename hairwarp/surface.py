@@ -8,14 +8,15 @@ triangle: origin at the root's barycentric point, axes from the triangle's first
 one, ``P(t) = F(t) F(0)^-1 H(0)`` (``F`` the triangle's frame, ``H(0)`` the head pose at rest), with its world
 velocity and acceleration: the step then roots every strand on its own frame (``Control.set_root_frames``) as it
 roots all of them on the head otherwise. The mesh's points are interpolated in time as keyframes are
-(:func:`hermite_tangents`), so the frames' velocities and accelerations are those of the interpolated motion.
+(:func:`hairwarp.motion.hermite_tangents`), so the frames' velocities and accelerations are those of the
+interpolated motion.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from hairwarp.motion import KEY_INTERPOLATIONS, _hermite, _pchip_tangent
+from hairwarp.motion import KEY_INTERPOLATIONS, hermite_interval, hermite_tangents
 
 #: Time step of the central differences that give a root frame's angular acceleration [s]; the frames' rotations
 #: are cubic within a key interval, so the difference is exact there to O(eps^2) ~ 1e-8 relative.
@@ -24,37 +25,6 @@ _ALPHA_EPS = 1.0e-4
 
 class SurfaceError(ValueError):
     """A groom cannot be bound to the surface (the message names the strand and the distance)."""
-
-
-def hermite_tangents(times: np.ndarray, values: np.ndarray, interpolation: str) -> tuple[np.ndarray, np.ndarray]:
-    """Slopes at the start and the end of each key interval of a cubic Hermite curve through ``values``.
-
-    ``"smooth"``: Catmull-Rom tangents ``m_i = (d_{i+1} - d_{i-1}) / (t_{i+1} - t_{i-1})``; ``"monotone"``:
-    Fritsch-Carlson (PCHIP) per component, no overshoot; ``"linear"``: each interval's own slope. Zero at the first
-    and the last key (the curve starts and stops at rest), as :class:`hairwarp.motion.Keyframes` does.
-
-    Args:
-        times: (N,) strictly increasing [s].
-        values: (N, ...) the keyed values.
-        interpolation: one of :data:`hairwarp.motion.KEY_INTERPOLATIONS`.
-
-    Returns:
-        ``(tan0, tan1)``, (N-1, ...) each, in value units per second.
-    """
-    t = np.asarray(times, dtype=np.float64)
-    d = np.asarray(values, dtype=np.float64)
-    h = np.diff(t).reshape((-1,) + (1,) * (d.ndim - 1))
-    slopes = np.diff(d, axis=0) / h
-    if interpolation == "linear":
-        return slopes.copy(), slopes.copy()
-    key = np.zeros_like(d)
-    if t.size > 2:
-        if interpolation == "monotone":
-            for i in range(1, t.size - 1):
-                key[i] = _pchip_tangent(slopes[i - 1], slopes[i], t[i] - t[i - 1], t[i + 1] - t[i])
-        else:
-            key[1:-1] = (d[2:] - d[:-2]) / (t[2:] - t[:-2]).reshape((-1,) + (1,) * (d.ndim - 1))
-    return key[:-1].copy(), key[1:].copy()
 
 
 class PointTrack:
@@ -97,12 +67,7 @@ class PointTrack:
             return p.copy(), np.zeros_like(p), np.zeros_like(p)
         i = int(np.searchsorted(tk, t, side="right")) - 1
         h = tk[i + 1] - tk[i]
-        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite((t - tk[i]) / h)
-        m0, m1 = h * self._tan0[i], h * self._tan1[i]
-        p = h00 * d[i] + h10 * m0 + h01 * d[i + 1] + h11 * m1
-        v = (d00 * d[i] + d10 * m0 + d01 * d[i + 1] + d11 * m1) / h
-        a = (e00 * d[i] + e10 * m0 + e01 * d[i + 1] + e11 * m1) / (h * h)
-        return p, v, a
+        return hermite_interval(d, self._tan0, self._tan1, i, (t - tk[i]) / h, h)
 
 
 def _normalized(u: np.ndarray, ud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,18 +78,16 @@ def _normalized(u: np.ndarray, ud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n, nd
 
 
-def triangle_frames(p0, p1, p2, v0=None, v1=None, v2=None):
+def triangle_frames(p0, p1, p2, v0, v1, v2):
     """Rotation matrices of triangles (columns: first edge, normal x edge, normal) and their world angular
     velocities from the corners' velocities.
 
     Args:
-        p0, p1, p2: (G, 3) corners [m]; v0, v1, v2: (G, 3) their velocities [m/s] (zero when None).
+        p0, p1, p2: (G, 3) corners [m]; v0, v1, v2: (G, 3) their velocities [m/s].
 
     Returns:
         ``(R, omega)``: (G, 3, 3) and (G, 3) [rad/s], ``omega^ = R' R^T``.
     """
-    zero = np.zeros_like(p0)
-    v0, v1, v2 = (zero if v is None else v for v in (v0, v1, v2))
     e1, e2 = p1 - p0, p2 - p0
     e1d, e2d = v1 - v0, v2 - v0
     t, td = _normalized(e1, e1d)
@@ -193,10 +156,6 @@ class ScalpBinding:
         # P(t) = F(t) F(0)^-1 H(0): rotation R(t) R0^T Rh, translation o(t) + R(t) c with c = R0^T (t_h - o0)
         self._R0T_Rh = np.transpose(R0, (0, 2, 1)) @ H[:3, :3]
         self._c = np.einsum("gji,gj->gi", R0, H[:3, 3] - o0)
-
-    @property
-    def strand_count(self) -> int:
-        return int(self.triangle.size)
 
     def _frames_at(self, t: float):
         p, v, a = self.track.evaluate(t)
