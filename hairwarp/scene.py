@@ -370,7 +370,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "threads": Field("int", 0, "CPU threads of the launches (results are the same bits for any count); "
                                        "0: every core this process may use; ignored on CUDA", range="[0, inf)"),
             "gravity": Field("vec3", (0.0, 0.0, -9.81), "gravitational acceleration, world", "m/s^2"),
-            "max_rotation_per_step": Field("float", 1.0, "fault bound on a joint's rotation in one step", "rad",
+            "max_rotation_per_step": Field("float", 1.0, "fault bound on a joint's bend in one step", "rad",
                                            range="(0, inf)"),
             "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),
         },

@@ -60,8 +60,9 @@ class Solver:
         colliders: a :class:`hairwarp.colliders.ColliderSet`, or None.
         links: a :class:`hairwarp.interactions.StaticLinks`, or None.
         contacts: a :class:`hairwarp.interactions.HairContacts`, or None.
-        max_rotation_per_step: fault bound [rad]: a joint turning further than this in one step
-            means the step no longer resolves the motion.
+        max_rotation_per_step: fault bound [rad]: a joint bending further than this in one step (or in
+            one of the parts a step is split into where segments turn fast: at most 16) means the step no
+            longer resolves the motion.
         threads: CPU threads the launches of a step run on (:class:`hairwarp.executor.Executor`); None or 0:
             every core this process may use. Results are the same bits for any count. Ignored on CUDA.
 
@@ -305,7 +306,7 @@ class Solver:
         if bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
             stage = "dynamics (aba + integrate)"
             what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
-                    else f"a joint turned more than {self.max_rotation_per_step} rad in one step")
+                    else f"a joint bent more than {self.max_rotation_per_step} rad in one step")
             stiff = bool(np.any(self.model.joint_stiffness.numpy() > 0.0))
             if self.integrator == Integrator.SEMI_IMPLICIT and stiff:
                 advice = (f"the explicit joint springs are unstable at {step}: use integrator = \"implicit_joints\", "
@@ -318,7 +319,7 @@ class Solver:
         elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED):
             stage = "collision (body contact)"
             what = ("the body contact response produced an invalid strand" if bits & Fault.NONFINITE_COLLISION
-                    else f"the body contact response turned a joint more than {self.max_rotation_per_step} rad "
+                    else f"the body contact response bent a joint more than {self.max_rotation_per_step} rad "
                          f"in one step")
             advice = (f"a collider moved or jumped too far for the step: set head.teleport_distance for cuts and "
                       f"jumps, slow the collider, or {more} (now {step})")

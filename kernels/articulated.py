@@ -333,6 +333,13 @@ FULL_FRICTION = wp.constant(1.0)
 GYRO_GROWTH = wp.constant(0.3)
 MAX_SPLIT = wp.constant(16)
 
+#: Largest turn [rad] of a segment relative to the base in one part of a step (``integrate_euler``). The velocity
+#: products of ABA are explicit: a chain whose segments turn by about a radian in a step gains energy and blows up
+#: (a limp strand, EI 1e-7, released at one step a frame: 61 m/s by frame 11). A step whose fastest segment would
+#: turn farther is taken in ``ceil(h w / SPLIT_ROTATION)`` parts, at most MAX_SPLIT; the shipped scenes at their
+#: substeps stay below it (a strand swinging at 10 rad/s turns 0.04 rad in 4.2 ms).
+SPLIT_ROTATION = wp.constant(0.25)
+
 
 @wp.func
 def contact_projector(n: wp.vec3, beta: float):
@@ -346,6 +353,7 @@ def body_contact_solve(
     chains: StrandChains,
     strand: int,
     dt: float,
+    step_dt: float,
     implicit: int,
     X_head: wp.transform,
     V_head: wp.spatial_vector,
@@ -401,7 +409,7 @@ def body_contact_solve(
         target = float(0.0)
         beta = contacts.beta[vi]
         if wp.length_sq(n) > 0.0:
-            target = -wp.max(contacts.gap[vi], 0.0) / h
+            target = -wp.max(contacts.gap[vi], 0.0) / step_dt  # a part of a step closes its share of the gap
             if wp.dot(v - contacts.object_velocity[vi], n) < target:
                 held = 1.0
         scratch.c[i] = wp.spatial_vector(held, target, beta, 0.0, 0.0, 0.0)
@@ -526,23 +534,54 @@ def body_contact_solve(
 
 
 @wp.func
-def flag_joint(w: wp.vec3, q: wp.quat, dt: float, max_rotation: float, fault: wp.array(dtype=wp.int32)):
-    """Set fault bits for a non-finite joint state or a joint turning too far in one step (the free dynamics)."""
+def strand_turn_rate(chains: StrandChains, strand: int, joint_q: wp.array(dtype=wp.quat),
+                     joint_qd: wp.array(dtype=wp.vec3)):
+    """Largest angular speed [rad/s] of a segment of the strand relative to its base."""
+    R = wp.quat_identity()
+    omega = wp.vec3()
+    fastest = float(0.0)
+    for k in range(chains.seg_per_strand):
+        i = strand * chains.seg_per_strand + k
+        R = R * joint_q[i]
+        omega = omega + wp.quat_rotate(R, joint_qd[i])
+        fastest = wp.max(fastest, wp.length(omega))
+    return fastest
+
+
+@wp.func
+def bend_rate(w: wp.vec3):
+    """The bending part [rad/s] of a joint velocity (child frame, the segment along -z): the fault checks leave out
+    the twist about the segment's own axis. That axis carries a thin segment's smallest inertia (m r^2 / 2, 1/30
+    of the bending one at the shipped radius): contacts holding a limp strand at two vertices at one step a frame
+    set it twisting at 34 rad/s with 6e-7 J, moving no vertex."""
+    return wp.sqrt(w[0] * w[0] + w[1] * w[1])
+
+
+@wp.func
+def flag_joint(w: wp.vec3, w_start: wp.vec3, q: wp.quat, dt: float, max_rotation: float,
+               fault: wp.array(dtype=wp.int32)):
+    """Set fault bits for a non-finite joint state, or a joint that the free dynamics sped up (from ``w_start``)
+    until it bends too far in one step; speed that a contact gave it is the contact's (``flag_contact_response``)."""
     if not (wp.isfinite(w) and wp.isfinite(q)):
         wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
-    elif wp.length(w) * dt > max_rotation:
+    elif bend_rate(w) * dt > max_rotation and bend_rate(w) > bend_rate(w_start):
         wp.atomic_or(fault, 0, int(Fault.JOINT_SPEED))
 
 
 @wp.func
 def flag_contact_response(w_free: wp.vec3, w: wp.vec3, dt: float, max_rotation: float,
                           fault: wp.array(dtype=wp.int32)):
-    """Set collision fault bits when the body contact response, not the free dynamics, left the bounds."""
-    if wp.isfinite(w_free) and wp.length(w_free) * dt <= max_rotation:
+    """Set collision fault bits when the body contact response, not the free dynamics, left the bounds: a
+    non-finite velocity, or a contact that sped the joint up until it bends more than ``max_rotation`` in the step.
+    Returns 1 when it set a bit."""
+    if wp.isfinite(w_free):
         if not wp.isfinite(w):
             wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
-        elif wp.length(w) * dt > max_rotation:
+            return 1
+        elif bend_rate(w) * dt > max_rotation and bend_rate(w) > bend_rate(w_free):
             wp.atomic_or(fault, 0, int(Fault.COLLISION_SPEED))
+            return 1
+    return 0
 
 
 @wp.kernel
@@ -601,7 +640,8 @@ def integrate_euler(
     """One thread per strand: ABA, the body contacts' impulses (``body_contact_solve``, with ``contacts``
     enabled), then ``q <- q exp(h w)``: symplectic Euler ``w += h qdd`` with the springs explicit, or with
     ``implicit`` != 0 the ``implicit_joints`` integrator (joint springs and damping at the end of the step).
-    A step whose base spins fast is taken in equal parts (``GYRO_GROWTH``), the body contacts solved once after.
+    A step whose base spins fast (``GYRO_GROWTH``) or whose segments turn fast (``SPLIT_ROTATION``) is taken in
+    equal parts, each with its own body contact solve.
     Writes ``joint_q_out``, ``joint_qd_out`` [rad/s, child frame], the new state's world frames and
     vertices (forward kinematics, fused), and fault bits.
     """
@@ -616,61 +656,65 @@ def integrate_euler(
     V_base = bases.velocity[b]
     v_head, a_head = head_body_motion(X_base, V_base, bases.acceleration[b], chains.gravity)
     head_rot = wp.transform_get_rotation(X_base)
-    # A base that spins fast (GYRO_GROWTH): the step in equal parts, each an ABA and an update, the loads and the
-    # base's motion held over the step.
-    parts = int(1)
-    growth = 2.0 * h * wp.length_sq(wp.spatial_top(V_base))
-    if growth > GYRO_GROWTH:
-        parts = wp.min(int(wp.ceil(growth / GYRO_GROWTH)), MAX_SPLIT)
-    hs = h / float(parts)
-    q_free = joint_q_out  # the free configuration at the step's end, contact-free (parts > 1 only)
-    if parts == 1:
-        aba_strand(chains, strand, h, implicit, head_rot, v_head, a_head, loads, joint_q_in, joint_qd_in, scratch)
+    # A base that spins fast (GYRO_GROWTH) or segments that turn fast (SPLIT_ROTATION): the step in parts, each an
+    # ABA, the body contacts and an update, the loads and the base's motion held over the step. Each part's length
+    # comes from the velocities at its start, after the last part's contacts, so a strand that a contact sets
+    # spinning takes the rest of the step in smaller parts.
+    spin_rate = 2.0 * wp.length_sq(wp.spatial_top(V_base)) / GYRO_GROWTH  # parts per second the base asks for
+    for k in range(S):
+        i = strand * S + k
+        joint_qd_out[i] = joint_qd_in[i]
+        joint_q_out[i] = joint_q_in[i]
+    vbase = strand * (S + 1)
+    t_left = h
+    part = int(0)
+    collided = int(0)
+    while t_left > 0.0:
+        turn_rate = strand_turn_rate(chains, strand, joint_q_out, joint_qd_out) / SPLIT_ROTATION
+        parts = wp.max(wp.min(int(wp.ceil(t_left * wp.max(spin_rate, turn_rate))), MAX_SPLIT - part), 1)
         for k in range(S):
-            i = strand * S + k
-            joint_qd_out[i] = joint_qd_in[i] + h * scratch.qdd[i]
-    else:
-        for k in range(S):
-            i = strand * S + k
-            joint_qd_out[i] = joint_qd_in[i]
-            joint_q_out[i] = joint_q_in[i]
-        for _part in range(parts):
+            vertex_velocities_out[vbase + k] = joint_qd_out[strand * S + k]  # the part's start, for a retry
+        hs = float(0.0)
+        retry = int(1)
+        while retry != 0:
+            retry = 0
+            hs = t_left
+            if parts > 1:
+                hs = t_left / float(parts)
+            # free velocities: ABA at the part's start (scratch.qdd keeps them for the fault check)
             aba_strand(chains, strand, hs, implicit, head_rot, v_head, a_head, loads, joint_q_out, joint_qd_out,
                        scratch)
             for k in range(S):
                 i = strand * S + k
                 w = joint_qd_out[i] + hs * scratch.qdd[i]
                 joint_qd_out[i] = w
-                joint_q_out[i] = wp.normalize(joint_q_out[i] * quat_exp(hs * w))
-    for k in range(S):
-        i = strand * S + k
-        flag_joint(joint_qd_out[i], joint_q_in[i], hs, max_rotation, fault)
-    if contacts.enabled != 0:
+                scratch.qdd[i] = w
+            # the body contacts' impulses, linearised at the part's start
+            if contacts.enabled != 0:
+                body_contact_solve(chains, strand, hs, h, implicit, X_base, V_base, loads, joint_q_out, joint_qd_out,
+                                   contacts, scratch)
+                # contacts that set segments turning fast: the part again, shorter, so the geometry they were
+                # linearised at still holds
+                turn_rate = strand_turn_rate(chains, strand, joint_q_out, joint_qd_out) / SPLIT_ROTATION
+                needed = wp.min(int(wp.ceil(t_left * turn_rate)), MAX_SPLIT - part)
+                if needed > parts:
+                    parts = needed
+                    retry = 1
+                    for k in range(S):
+                        joint_qd_out[strand * S + k] = vertex_velocities_out[vbase + k]
+        t_left = t_left - hs
+        part += 1
         for k in range(S):
-            scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for the fault check
-        # linearised where the free velocities hold: the step's start, or the parts' end configuration
-        if parts == 1:
-            body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out,
-                               contacts, scratch)
-        else:
-            body_contact_solve(chains, strand, h, implicit, X_base, V_base, loads, q_free, joint_qd_out, contacts,
-                               scratch)
-    for k in range(S):
-        i = strand * S + k
-        w = joint_qd_out[i]
-        if contacts.enabled != 0:
-            flag_contact_response(scratch.qdd[i], w, h, max_rotation, fault)
-        q = wp.quat_identity()
-        if parts == 1:
-            q = wp.normalize(joint_q_in[i] * quat_exp(h * w))
-        elif contacts.enabled != 0:
-            # the contact's velocity change acts over the whole step, from the free configuration
-            q = wp.normalize(q_free[i] * quat_exp(h * (w - scratch.qdd[i])))
-        else:
-            q = joint_q_out[i]
-        if not wp.isfinite(q):
-            wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
-        joint_q_out[i] = q
+            i = strand * S + k
+            w = joint_qd_out[i]
+            if collided == 0:  # after a contact's fault the speeds it gave are its own, not the dynamics'
+                flag_joint(scratch.qdd[i], vertex_velocities_out[vbase + k], joint_q_out[i], hs, max_rotation, fault)
+            if contacts.enabled != 0:
+                collided = collided | flag_contact_response(scratch.qdd[i], w, hs, max_rotation, fault)
+            q = wp.normalize(joint_q_out[i] * quat_exp(hs * w))
+            if not wp.isfinite(q):
+                wp.atomic_or(fault, 0, int(Fault.NONFINITE_DYNAMICS))
+            joint_q_out[i] = q
     fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
               vertex_velocities_out)
 
@@ -749,14 +793,15 @@ def integrate_rk4(
         i = strand * S + k
         w = joint_qd_in[i] + (h / 6.0) * rk_dw[i]
         q = wp.normalize(joint_q_in[i] * quat_exp((h / 6.0) * rk_dq[i]))
-        flag_joint(w, q, h, max_rotation, fault)
+        flag_joint(w, joint_qd_in[i], q, h, max_rotation, fault)
         joint_qd_out[i] = w
         joint_q_out[i] = q
         rk_w[i] = w
     if contacts.enabled != 0:
         # Contact impulses after the update, with the explicit inertia (RK4's stages would not stay stable with
         # the stiff dampers inside them); the velocity change also moves the configuration over the step.
-        body_contact_solve(chains, strand, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts, scratch)
+        body_contact_solve(chains, strand, h, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
+                           scratch)
         for k in range(S):
             i = strand * S + k
             w = joint_qd_out[i]

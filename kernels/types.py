@@ -36,10 +36,11 @@ class Fault(enum.IntFlag):
 
     Attributes:
         NONFINITE_DYNAMICS: a joint acceleration, velocity or rotation became NaN or infinite in ABA.
-        JOINT_SPEED: a joint turned more than ``max_rotation_per_step`` radians in one step (free dynamics).
+        JOINT_SPEED: the free dynamics sped a joint up until it bends more than ``max_rotation_per_step``
+            radians in one step, or in one part of a step that turns fast (``integrate_euler``).
         NONFINITE_COLLISION: the body contact response or the push-out produced a non-finite joint or vertex.
-        COLLISION_SPEED: the body contact response turned a joint further than ``max_rotation_per_step``
-            in one step while the free dynamics alone did not.
+        COLLISION_SPEED: the body contact response sped a joint up until it bends further than
+            ``max_rotation_per_step`` in one step (or part of one).
         CONTACT_OVERFLOW: more contacts than the buffers hold; some were dropped.
     """
 

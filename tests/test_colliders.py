@@ -551,7 +551,7 @@ def test_body_contact_solve_matches_float64(beta):
     def solve(chains: art.StrandChains, dt: float, X: wp.array(dtype=wp.transform),
               V: wp.array(dtype=wp.spatial_vector), loads: art.SegmentLoads, q: wp.array(dtype=wp.quat),
               qd: wp.array(dtype=wp.vec3), contacts: art.BodyContacts, scratch: art.AbaScratch):
-        art.body_contact_solve(chains, wp.tid(), dt, 0, X[0], V[0], loads, q, qd, contacts, scratch)
+        art.body_contact_solve(chains, wp.tid(), dt, dt, 0, X[0], V[0], loads, q, qd, contacts, scratch)
 
     rng = np.random.default_rng(11)
     S, h = 6, 1.0 / 240.0

@@ -238,7 +238,7 @@ def test_a_faulting_variant_is_reported_and_the_rest_complete(tmp_path, capsys):
     assert [r["status"] for r in records] == ["ok", "ok", "fault", "fault"]
     for r in records[2:]:
         assert r["message"].startswith("simulation fault at frame 1")
-        assert "joint turned more than 0.0001 rad" in r["message"]
+        assert "joint bent more than 0.0001 rad" in r["message"]
         assert f"fault    {r['name']}: simulation fault" in captured.out
         assert (out / r["name"] / farm.MARKER).is_file()  # a fault is a result: complete, not rerun
         # the frames before the fault (frame 0) stay readable where the run left them
@@ -247,7 +247,7 @@ def test_a_faulting_variant_is_reported_and_the_rest_complete(tmp_path, capsys):
     assert all(r["frames"] == FRAMES for r in records[:2])
     assert "2 ok, 2 fault" in captured.out and (out / "sheet.png").is_file()
     md = (out / "summary.md").read_text()
-    assert "fault" in md and "joint turned more than" in md
+    assert "fault" in md and "joint bent more than" in md
 
 
 def test_batch_runs_shots_from_a_list_file(tmp_path):
