@@ -150,9 +150,7 @@ class StaticLinks:
         rest_axis: numpy float64 (L, 3), unit axis of segment a at rest, head frame; the offset follows a's axis from
             it by the least rotation (see ``kernels.links``).
         stiffness: k_s [N/m]. damping: k_d [N s/m]. break_length: |l| [m] beyond which a link breaks for good.
-        implicit_springs: whether the links add to the solver's implicit mass (the part of their ``h^2 k_s + h k_d``
-            beyond each segment's mass, see ``kernels.links.add_excess_mass``).
-        seg_spring_mass: float32 (G*S,) on the device, scratch of that sum.
+        implicit_springs: whether each link's force is solved implicitly over the step (``kernels.links.link_forces``).
         link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
         seg_rest_axis: vec3 (G*S,) on the device, every segment's rest axis; seg_transport: quat (G*S,), scratch
             of the rotations carrying rest offsets to the segments' twist-free frames
@@ -193,10 +191,10 @@ class StaticLinks:
             stiffness: spring stiffness k_s [N/m].
             damping: damping k_d [N s/m].
             break_length: a link breaks for good when |l| exceeds this [m].
-            implicit_springs: add to the solver's ``seg_implicit_mass`` the part of the links' summed
-                ``h^2 k_s + h k_d`` beyond each segment's own mass (the semi-implicit treatment that keeps stiff
-                links stable at frame-rate steps, spent only where the explicit step would not be); False leaves
-                them explicit, for comparison.
+            implicit_springs: each link's force is its backward-Euler force over the step against a bound of the
+                inverse masses at its ends (``kernels.links.link_forces``), which keeps stiff links stable at
+                frame-rate steps without adding inertia to the hair they tie; False leaves them explicit, for
+                comparison.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -251,7 +249,6 @@ class StaticLinks:
         links.link_rest_axis = wp.array(axis if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
         links.link_broken = wp.zeros(n, dtype=wp.int32, device=dev)
         links.link_broken_total = wp.zeros(1, dtype=wp.int32, device=dev)
-        links.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
         rest_axis = (p1 - p0) / length[:, None]
         links.seg_rest_axis = wp.array(rest_axis, dtype=wp.vec3, device=dev)
         links.seg_transport = wp.zeros(G * S, dtype=wp.quat, device=dev)
@@ -269,7 +266,6 @@ class StaticLinks:
                                      dtype=wp.int32, device=dev)
         links.b_force = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.b_torque = wp.zeros(n, dtype=wp.vec3, device=dev)
-        links.b_mass = wp.zeros(n, dtype=float, device=dev)
         return links
 
     def _transport(self, model, state):
@@ -294,7 +290,7 @@ class StaticLinks:
         if self.link_count == 0:
             return
         inputs = [
-            model.seg_per_strand, model.seg_length, model.joint_stiffness, self.seg_rest_axis,
+            model.seg_per_strand, model.seg_length, model.seg_mass, self.seg_rest_axis,
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
             self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
             state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
@@ -304,20 +300,17 @@ class StaticLinks:
         # A thread adds into its own segment a and leaves b's share in a slot of b's; then each segment b gathers
         # its slots. No segment is written by two threads: the same bits however the segments are split.
         launch(self.executor, link_kernels.link_forces, seg_count, inputs,
-               [seg_force, seg_torque, self.seg_spring_mass, self.link_broken, self.link_broken_total, self.b_force,
-                self.b_torque, self.b_mass],
-               device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 4])
+               [seg_force, seg_torque, self.link_broken, self.link_broken_total, self.b_force, self.b_torque],
+               device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
-        """The second pass of :meth:`apply`: every segment b adds its shares; with implicit springs, the summed
-        masses go on to the solver's implicit mass in the same pass."""
+        """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it
+        is (the links' implicit part is in their forces); it is taken so that links and contacts share the call."""
         if self.link_count == 0:
             return
         seg_count = len(self.seg_transport)
-        launch(self.executor, link_kernels.link_gather, seg_count,
-               [model.seg_mass, self.seg_b_start, int(self.implicit_springs), self.b_force, self.b_torque, self.b_mass,
-                self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass], device=self.device,
-               min_chunk=GATHER_MIN_CHUNK)
+        launch(self.executor, link_kernels.link_gather, seg_count, [self.seg_b_start, self.b_force, self.b_torque],
+               [seg_force, seg_torque], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def break_links(self, model, state):
         """Break, for good, the links of ``state`` stretched past ``break_length`` (launch only): the test that

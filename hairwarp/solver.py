@@ -102,7 +102,7 @@ class Solver:
 
         self.has_drag = model.drag > 0.0
         self.has_forces = self.has_drag or links is not None or contacts is not None
-        self.has_implicit_mass = links is not None or contacts is not None
+        self.has_implicit_mass = contacts is not None  # the hair contacts' semi-implicit inertia (links solve theirs)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
