@@ -61,9 +61,8 @@ def lever_scaled_mass(extra_mass: float, arm: wp.vec3, half_length: float) -> fl
     DESIGN §4.1 adds ``h^2 k + h c`` at the spring's point; the solver takes one mass at the centre of mass
     (L/2 from the origin). Scaled by ``(|arm| / (L/2))^2``, between 1 and ``MAX_LEVER_SCALE``, it gives at least the
     inertia about the segment's joint that the mass at a point of the segment would, so springs near a segment's tip
-    are not under-treated by up to a factor of four.
-
-    Contact points lie on their segments; a link's rest offset can reach far beyond (``link_lever_mass``).
+    are not under-treated by up to a factor of four. The hair contacts use it (their points lie on their segments);
+    links solve their springs implicitly instead (``link_forces``).
     """
     return extra_mass * wp.clamp(wp.dot(arm, arm) / (half_length * half_length), 1.0, MAX_LEVER_SCALE)
 
