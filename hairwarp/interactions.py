@@ -837,7 +837,7 @@ class HairContacts:
         inputs = [
             model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
             self._tri_scale,
-            self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity,
+            self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.alignment_cutoff,
             self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
             state.vertex_velocities, dt, self.buffer,
         ]

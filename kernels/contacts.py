@@ -536,13 +536,16 @@ def put_wrench(
 @wp.func
 def contact_segments(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer):
     """The segments the contact in ``slot`` pushes, one per entry ``4 slot + e``: a vertex-face contact's vertex and
-    its face's three vertices, or a segment pair (then -1, -1); the features are fixed at detection."""
+    its quad's two segments (the level-k segments of the strip's strands, then -1), or a segment pair (then -1, -1);
+    the features are fixed at detection."""
     ia = contacts.a[slot]
     ib = contacts.b[slot]
     if contacts.kind[slot] == CONTACT_VERTEX_FACE:
-        i0, i1, i2 = strip_triangle(ib, seg_per_strand, strip_pairs)
-        return wp.vec4i(vertex_segment(ia, seg_per_strand), vertex_segment(i0, seg_per_strand),
-                        vertex_segment(i1, seg_per_strand), vertex_segment(i2, seg_per_strand))
+        pair = ib // (2 * seg_per_strand)
+        k = ib // 2 - pair * seg_per_strand
+        ab = strip_pairs[pair]
+        return wp.vec4i(vertex_segment(ia, seg_per_strand), ab[0] * seg_per_strand + k, ab[1] * seg_per_strand + k,
+                        -1)
     return wp.vec4i(ia, ib, -1, -1)
 
 
@@ -559,6 +562,7 @@ def contact_force(
     contact_damping: float,
     contact_friction: float,
     contact_slip_velocity: float,
+    contact_alignment_cutoff: float,
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     h: float,
@@ -582,19 +586,29 @@ def contact_force(
     # Positions first: most stored pairs (detected with a margin) are beyond the threshold and stop here.
     xa = wp.vec3()
     xb = wp.vec3()
-    i0 = int(0)
-    i1 = int(0)
-    i2 = int(0)
+    qa = int(0)
+    qb = int(0)
+    corner = wp.vec4()
     va0 = int(0)
     vb0 = int(0)
     # The closest points are taken anew from the positions of this step: a pair found once per frame keeps its
     # features, but weights frozen at the detection make the force depart from the distance's gradient as the hair
-    # moves, and that pumped energy into hair at rest (tips at 5 mm/s for good; 0.1 mm/s detected every step).
+    # moves, and that pumped energy into hair at rest (tips at 5 mm/s for good; 0.1 mm/s detected every step). A
+    # vertex-face contact keeps its quad, not the triangle found at the detection: the nearer of the quad's two
+    # triangles is taken anew too, so the face point moves continuously across the diagonal. (With the triangle
+    # kept for the frame, a vertex near the diagonal of the Ratboy mohawk's strips was pushed by one triangle in a
+    # frame and the other in the next, and its strand rocked 1 mm a frame for good.)
     if kind == CONTACT_VERTEX_FACE:
-        i0, i1, i2 = strip_triangle(ib, seg_per_strand, strip_pairs)
+        qa, qb = strip_quad_origins(ib // 2, seg_per_strand, strip_pairs)
         xa = vertex_positions[ia]
-        w = closest_point_triangle(xa, vertex_positions[i0], vertex_positions[i1], vertex_positions[i2])
-        xb = w[0] * vertex_positions[i0] + w[1] * vertex_positions[i1] + w[2] * vertex_positions[i2]
+        second, wt, dsq = closest_point_quad(xa, vertex_positions[qa], vertex_positions[qb], vertex_positions[qa + 1],
+                                             vertex_positions[qb + 1])
+        # weights of the quad's corners (a_k, b_k, a_{k+1}, b_{k+1})
+        corner = wp.vec4(wt[0], wt[1], wt[2], 0.0)
+        if second != 0:
+            corner = wp.vec4(0.0, wt[0], wt[2], wt[1])
+        xb = (corner[0] * vertex_positions[qa] + corner[1] * vertex_positions[qb] + corner[2] * vertex_positions[qa + 1]
+              + corner[3] * vertex_positions[qb + 1])
     else:
         va0 = ia + ia // seg_per_strand
         vb0 = ib + ib // seg_per_strand
@@ -618,18 +632,21 @@ def contact_force(
     inv_mass_b = float(0.0)
     if kind == CONTACT_VERTEX_FACE:
         va = vertex_velocities[ia]
-        vb = w[0] * vertex_velocities[i0] + w[1] * vertex_velocities[i1] + w[2] * vertex_velocities[i2]
+        vb = (corner[0] * vertex_velocities[qa] + corner[1] * vertex_velocities[qb]
+              + corner[2] * vertex_velocities[qa + 1] + corner[3] * vertex_velocities[qb + 1])
         ta = vertex_tangent(ia, seg_per_strand, vertex_positions)
         tb = strip_face_direction(ib, seg_per_strand, strip_pairs, vertex_positions)
-        k = contact_stiffness * tri_stiffness_scale[ib]
+        # The density factor, blended from the quad's lower edge (its first triangle's) to its upper edge (its
+        # second's): continuous across the diagonal and from quad to quad.
+        quad = ib // 2
+        k = contact_stiffness * ((corner[0] + corner[1]) * tri_stiffness_scale[2 * quad]
+                                 + (corner[2] + corner[3]) * tri_stiffness_scale[2 * quad + 1])
         inv_mass_a = 1.0 / seg_mass[vertex_segment(ia, seg_per_strand)]
-        # sum w_i / m_i bounds the face point's response sum w_i^2 / m_i from above, also when two of the
-        # triangle's vertices lie on one segment, so the friction cap below stays on the safe side.
-        inv_mass_b = (
-            w[0] / seg_mass[vertex_segment(i0, seg_per_strand)]
-            + w[1] / seg_mass[vertex_segment(i1, seg_per_strand)]
-            + w[2] / seg_mass[vertex_segment(i2, seg_per_strand)]
-        )
+        # sum w_i / m_i bounds the face point's response sum w_i^2 / m_i from above, so the friction cap below stays
+        # on the safe side.
+        seg_fa = vertex_segment(qa + 1, seg_per_strand)
+        seg_fb = vertex_segment(qb + 1, seg_per_strand)
+        inv_mass_b = (corner[0] + corner[2]) / seg_mass[seg_fa] + (corner[1] + corner[3]) / seg_mass[seg_fb]
     else:
         va = wp.lerp(vertex_velocities[va0], vertex_velocities[va0 + 1], w[0])
         vb = wp.lerp(vertex_velocities[vb0], vertex_velocities[vb0 + 1], w[1])
@@ -649,7 +666,10 @@ def contact_force(
         n = wp.normalize(c)
 
     # Seed: repulsion k d (1 - |T_a . T_b|); the same factor on the normal damping so aligned hairs do not interact.
-    align = 1.0 - wp.abs(wp.dot(ta, tb))
+    # The factor falls to zero at the detection's alignment cutoff (a ~1 % change elsewhere), so a pair crossing
+    # the cutoff between two detections is not switched on or off at a finite force: on the Ratboy mohawk at rest
+    # that switch kept strands in cycles locked to the frame (tip RMS 0.83 mm/s, 0.50 with the fade).
+    align = wp.max(1.0 - wp.abs(wp.dot(ta, tb)) - contact_alignment_cutoff, 0.0) / (1.0 - contact_alignment_cutoff)
     k_eff = k * align
     c_eff = contact_damping * align
     vrel = va - vb
@@ -677,15 +697,20 @@ def contact_force(
     if kind == CONTACT_VERTEX_FACE:
         put_wrench(e0, vertex_segment(ia, seg_per_strand), seg_per_strand, point, f, extra, seg_length,
                    vertex_positions, entry_force, entry_torque, entry_mass)
-        # Each face vertex takes its share at its own position shifted by (point - xb): the shares then sum to
-        # -f at the common point, with no net torque.
+        # The face's share goes to its two segments (the quad's level-k segments, a_k a_{k+1} and b_k b_{k+1}), each
+        # at the weighted point of its two corners shifted by (point - xb): the shares sum to -f at the common point,
+        # with no net torque, and land on the same segments whichever triangle is the nearer.
         shift = point - xb
-        put_wrench(e0 + 1, vertex_segment(i0, seg_per_strand), seg_per_strand, vertex_positions[i0] + shift,
-                   -w[0] * f, w[0] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
-        put_wrench(e0 + 2, vertex_segment(i1, seg_per_strand), seg_per_strand, vertex_positions[i1] + shift,
-                   -w[1] * f, w[1] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
-        put_wrench(e0 + 3, vertex_segment(i2, seg_per_strand), seg_per_strand, vertex_positions[i2] + shift,
-                   -w[2] * f, w[2] * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
+        wa = corner[0] + corner[2]
+        wb = corner[1] + corner[3]
+        if wa > 0.0:
+            put_wrench(e0 + 1, seg_fa, seg_per_strand,
+                       (corner[0] * vertex_positions[qa] + corner[2] * vertex_positions[qa + 1]) / wa + shift, -wa * f,
+                       wa * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
+        if wb > 0.0:
+            put_wrench(e0 + 2, seg_fb, seg_per_strand,
+                       (corner[1] * vertex_positions[qb] + corner[3] * vertex_positions[qb + 1]) / wb + shift, -wb * f,
+                       wb * extra, seg_length, vertex_positions, entry_force, entry_torque, entry_mass)
     else:
         put_wrench(e0, ia, seg_per_strand, point, f, extra, seg_length, vertex_positions, entry_force, entry_torque,
                    entry_mass)
@@ -708,6 +733,7 @@ def contact_forces(
     contact_damping: float,
     contact_friction: float,
     contact_slip_velocity: float,
+    contact_alignment_cutoff: float,
     thread_count: int,
     contiguous: int,
     implicit_springs: int,
@@ -726,12 +752,12 @@ def contact_forces(
     """Each of ``thread_count`` threads takes every thread_count-th stored contact (``contiguous``: a run of
     consecutive ones): repulsion, normal damping and regularised Coulomb friction.
 
-    The repulsion acts below ``min(threshold, gap)`` [m]. +F goes to side a and -F to side b (shared by barycentric
-    weight among a face's vertices) at the midpoint of the closest points: force [N], torque [N m] about the segment's
-    origin (world) and, with ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) in the contact's entries
-    ``4 slot + e`` of ``entry_force``, ``entry_torque``, ``entry_mass`` (zero where it does not act), which
-    ``contact_gather`` adds to the segments: no two threads write one element, so the sums are the same bits however
-    the threads are split. Friction is capped so one explicit step cannot reverse the slip.
+    The repulsion acts below ``min(threshold, gap)`` [m]. +F goes to side a and -F to side b (a face's share split
+    by barycentric weight between its quad's two segments) at the midpoint of the closest points: force [N], torque
+    [N m] about the segment's origin (world) and, with ``implicit_springs``, ``h^2 k + h c`` [kg] (lever-scaled) in
+    the contact's entries ``4 slot + e`` of ``entry_force``, ``entry_torque``, ``entry_mass`` (zero where it does not
+    act), which ``contact_gather`` adds to the segments: no two threads write one element, so the sums are the same
+    bits however the threads are split. Friction is capped so one explicit step cannot reverse the slip.
     """
     # A fixed thread count covers however many contacts this step found (the count is only on the device): on a GPU
     # thread t takes slots t, t + n, ... (neighbouring threads read neighbouring slots), on a CPU, where the threads
@@ -751,7 +777,8 @@ def contact_forces(
         contact_force(
             slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
-            vertex_positions, vertex_velocities, h, implicit_springs, contacts, entry_force, entry_torque, entry_mass,
+            contact_alignment_cutoff, vertex_positions, vertex_velocities, h, implicit_springs, contacts, entry_force,
+            entry_torque, entry_mass,
         )
         slot += stride
 

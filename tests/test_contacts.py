@@ -286,7 +286,9 @@ def test_stored_pairs_with_margin():
 
 
 def test_vertex_face_closed_form_with_density_scale():
-    """A strand tip 0.8 mm in front of a strip face, crossing it at right angles: F = k0 (s0 / s) (thr - 0.8 mm)."""
+    """A strand tip 0.8 mm in front of a strip face, crossing it at right angles: F = k0 (s0 / s) (thr - 0.8 mm), the
+    density factor s0 / s blended from the quad's lower edge (10 mm) to its upper edge (8 mm) by the point's
+    weights."""
     k, S2 = 10.0, 2
     verts = _strip_scene()
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
@@ -299,7 +301,9 @@ def test_vertex_face_closed_form_with_density_scale():
     tri = found["b"][0]
     assert tri == 2  # pair (0, 1), segment 1, first triangle: its horizontal edge a_1 b_1 is 10 mm
     assert contacts.strips.tri_width[tri] == pytest.approx(0.010)
-    scale = contacts.strips.width_ref / 0.010
+    assert contacts.strips.tri_width[tri + 1] == pytest.approx(0.008)
+    w = found["w"][0].astype(np.float64)  # of (a_1, b_1, a_2)
+    scale = contacts.strips.width_ref * ((w[0] + w[1]) / 0.010 + w[2] / 0.008)
     assert scale != pytest.approx(1.0)
     expected = k * scale * (THRESHOLD - 0.0008)
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
