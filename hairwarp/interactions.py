@@ -838,8 +838,9 @@ class HairContacts:
             model.seg_per_strand, model.seg_length, model.seg_mass, self._strip_pairs,
             self._tri_scale,
             self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.alignment_cutoff,
-            self.force_threads, int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions,
-            state.vertex_velocities, dt, self.buffer,
+            self.strips.max_width if self.strips is not None else 0.0, self.force_threads,
+            int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions, state.vertex_velocities,
+            dt, self.buffer,
         ]
         # A contact leaves its forces in entries of its own, then every segment adds the entries that push it, in
         # slot order: no element is written by two threads, so the sums are the same bits however they are split.

@@ -498,8 +498,7 @@ def vertex_face_contacts(
                 ib = ab[1] * (seg_per_strand + 1) + j
                 second, w, dist_sq = closest_point_quad(p, vertex_positions[ia], vertex_positions[ib],
                                                         vertex_positions[ia + 1], vertex_positions[ib + 1])
-                if dist_sq < contact_threshold * contact_threshold and quad_feature_owned(second, w, j,
-                                                                                          seg_per_strand):
+                if dist_sq < contact_threshold * contact_threshold:
                     gap = repel_distance
                     if rest_gaps != 0:
                         rest_second, rest_w, rest_sq = closest_point_quad(
@@ -563,6 +562,7 @@ def contact_force(
     contact_friction: float,
     contact_slip_velocity: float,
     contact_alignment_cutoff: float,
+    strip_max_width: float,
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     h: float,
@@ -607,6 +607,8 @@ def contact_force(
         corner = wp.vec4(wt[0], wt[1], wt[2], 0.0)
         if second != 0:
             corner = wp.vec4(0.0, wt[0], wt[2], wt[1])
+        if not quad_feature_owned(second, wt, (ib // 2) % seg_per_strand, seg_per_strand):
+            return
         xb = (corner[0] * vertex_positions[qa] + corner[1] * vertex_positions[qb] + corner[2] * vertex_positions[qa + 1]
               + corner[3] * vertex_positions[qb + 1])
     else:
@@ -641,6 +643,11 @@ def contact_force(
         quad = ib // 2
         k = contact_stiffness * ((corner[0] + corner[1]) * tri_stiffness_scale[2 * quad]
                                  + (corner[2] + corner[3]) * tri_stiffness_scale[2 * quad + 1])
+        # A quad wider than the strips' largest width is no contact surface (``strip_bounds``); the stiffness fades
+        # out over the last quarter before it, so a quad crossing that width between detections does not switch.
+        width = wp.sqrt(wp.max(wp.length_sq(vertex_positions[qb] - vertex_positions[qa]),
+                               wp.length_sq(vertex_positions[qb + 1] - vertex_positions[qa + 1])))
+        k *= wp.clamp(4.0 * (strip_max_width - width) / strip_max_width, 0.0, 1.0)
         inv_mass_a = 1.0 / seg_mass[vertex_segment(ia, seg_per_strand)]
         # sum w_i / m_i bounds the face point's response sum w_i^2 / m_i from above, so the friction cap below stays
         # on the safe side.
@@ -734,6 +741,7 @@ def contact_forces(
     contact_friction: float,
     contact_slip_velocity: float,
     contact_alignment_cutoff: float,
+    strip_max_width: float,
     thread_count: int,
     contiguous: int,
     implicit_springs: int,
@@ -777,8 +785,8 @@ def contact_forces(
         contact_force(
             slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
-            contact_alignment_cutoff, vertex_positions, vertex_velocities, h, implicit_springs, contacts, entry_force,
-            entry_torque, entry_mass,
+            contact_alignment_cutoff, strip_max_width, vertex_positions, vertex_velocities, h, implicit_springs,
+            contacts, entry_force, entry_torque, entry_mass,
         )
         slot += stride
 

@@ -117,9 +117,10 @@ def test_detection_matches_brute_force(seed, cutoff, skip):
     assert len(expected) > 10
     assert set(got) - ambiguous == expected
 
-    # Vertex-face, per (vertex, quad): the nearer of the quad's two triangles (trimesh), if its closest point lies
-    # off both strands and below the top edge (which is the next quad's), the strip is not the vertex's own (nor,
-    # with skip, one of its root neighbours'), and the quad is no wider than the strips' max_width.
+    # Vertex-face, per (vertex, quad): the nearer of the quad's two triangles (trimesh), if the strip is not the
+    # vertex's own (nor, with skip, one of its root neighbours') and the quad is no wider than the strips' max_width.
+    # Whether the closest point belongs to the quad (off both strands, below the top edge) is the force's test, at
+    # every step, not the detection's.
     flat = moved.reshape(-1, 3)
     tris = contacts.strips.indices.numpy().reshape(-1, 3)
     pairs = contacts.strips.pairs
@@ -145,9 +146,9 @@ def test_detection_matches_brute_force(seed, cutoff, skip):
     bary = trimesh.triangles.points_to_barycentric(flat[tris[tt]], np.where(second[:, None], near[1], near[0]))
     owned = _quad_owned(bary, tt, FEATURE_TOL)
     align = 1.0 - np.abs(np.sum(_vertex_tangents(moved)[vv] * _face_directions(moved, pairs)[qq], axis=1))
-    dist = np.where(owned & (align >= cutoff) & ~parted, dist, np.inf)
-    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (owned == _quad_owned(bary, tt, FEATURE_BAND))
-    clear &= np.abs(align - cutoff) > ALIGN_BAND
+    assert (~owned & (dist < THRESHOLD)).any()  # the detection keeps pairs whose point lies on a strand
+    dist = np.where((align >= cutoff) & ~parted, dist, np.inf)
+    clear = (np.abs(dist - THRESHOLD) > BOUNDARY_BAND) & (np.abs(align - cutoff) > ALIGN_BAND)
     clear &= np.abs(d[0] - d[1]) > BOUNDARY_BAND  # which triangle is nearer
     clear &= np.abs(width - contacts.strips.max_width) > BOUNDARY_BAND
     assert parted.sum() < 0.5 * len(parted)
@@ -311,19 +312,54 @@ def test_vertex_face_closed_form_with_density_scale():
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
 
 
+def test_parting_strip_fades_out():
+    """A strip quad stretched to 7/8 of the strips' max_width pushes with half its force: the stiffness fades out
+    over the last quarter before a quad stops being a contact surface, so no force switches off between two
+    detections."""
+    k = 10.0
+    verts = _strip_scene()
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    moved = verts.copy()
+    widest = 0.875 * strips.max_width
+    moved[1, :, 0] = widest  # strand 1 moved out: every quad of the strip is 7/8 of max_width wide
+
+    def push(max_width):
+        contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+                                      segment_segment=False, skip_neighbour_strips=False, rest_gaps=False,
+                                      implicit_springs=False)
+        contacts.strips.max_width = max_width
+        force, _, _ = _apply(contacts, _model(3, 2), _state(moved))
+        assert contacts.contact_count() >= 1
+        return force
+
+    built = strips.max_width
+    faded, full = push(built), push(1.0e3)
+    assert np.abs(full).max() > 0.0
+    np.testing.assert_allclose(faded, 0.5 * full, rtol=1e-4, atol=1e-4 * np.abs(full).max())
+
+
 def test_vertex_beside_a_strand_is_a_segment_contact():
     """A tip 0.8 mm beside strand 0, outside the strip: the strip's strand edge is left to segment-segment contacts,
-    so the tip is pushed once, not once per strip triangle along that strand."""
+    so the tip is pushed once, not once per strip triangle along that strand. The strip's vertex-face pairs are
+    stored (the point may come inside the quad before the next detection) but push nothing: the forces are those
+    of the segment-segment contact alone."""
     verts = _strip_scene()
     tip = np.array([-0.0008, 0.0, -0.018])
     verts[2] = [tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip]
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
     contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16,
-                                  skip_neighbour_strips=False)
-    _apply(contacts, _model(3, 2), _state(verts))
+                                  skip_neighbour_strips=False, rest_gaps=False)
+    force, torque, mass = _apply(contacts, _model(3, 2), _state(verts))
     found = contacts.contact_list()
-    assert list(found["kind"]) == [CONTACT_SEGMENT_SEGMENT]
-    assert (found["a"][0], found["b"][0]) == (1, 5)  # strand 0's lower segment, strand 2's last segment
+    ee = found["kind"] == CONTACT_SEGMENT_SEGMENT
+    assert ee.sum() == 1 and (~ee).any()
+    assert (found["a"][ee][0], found["b"][ee][0]) == (1, 5)  # strand 0's lower segment, strand 2's last segment
+    alone = HairContacts.build(verts, None, threshold=THRESHOLD, stiffness=10.0, capacity=16, rest_gaps=False)
+    force_ee, torque_ee, mass_ee = _apply(alone, _model(3, 2), _state(verts))
+    assert np.abs(force_ee).max() > 0.0
+    np.testing.assert_array_equal(force, force_ee)
+    np.testing.assert_array_equal(torque, torque_ee)
+    np.testing.assert_array_equal(mass, mass_ee)
 
 
 @pytest.mark.parametrize("seed", [3, 4])
