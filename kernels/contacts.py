@@ -2,8 +2,13 @@
 
 Seed slides, "Dynamic interactions": pairs closer than a threshold get a repulsion ``F_s = k d (1 - |T_a . T_b|)``
 along their separation (``d`` = threshold - distance; it vanishes as hairs line up) and Coulomb friction
-``F_fric = -mu F_N v_t / |v_t|`` in the contact plane. Forces on a strip triangle are shared among its three
-vertices by barycentric weights. Detection writes fixed-capacity contact buffers; ``contact_forces`` reads them.
+``F_fric = -mu F_N v_t / |v_t|`` in the contact plane. A face's share of the force is split by the barycentric
+weights of the nearer of its quad's two triangles between the quad's two segments. Detection (once a frame, with a
+margin, or every step) writes fixed-capacity contact buffers; ``contact_forces`` reads them at every step. Whatever
+the detection decides once for the frame - the pair, its quad, its rest gap - changes no force by itself: the
+nearer triangle, whether the point belongs to the quad, the alignment factor and a parting quad's fade are taken
+anew at every step, and the last two fall to zero where the detection drops a pair. Forces that switched at the
+frame boundaries kept hair at rest rocking in cycles locked to the frame (docs/interactions.md, "At rest").
 
 Both sides of a contact receive their force at the same world point (the midpoint of the two closest points),
 so every contact is an equal and opposite pair with no net torque.
