@@ -111,15 +111,6 @@ def strip_quad_origins(quad: int, seg_per_strand: int, strip_pairs: wp.array(dty
 
 
 @wp.func
-def strip_triangle(tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i)):
-    """Vertex indices of strip triangle ``tri``: ``2q = (a_k, b_k, a_{k+1})``, ``2q + 1 = (b_k, b_{k+1}, a_{k+1})``."""
-    ia, ib = strip_quad_origins(tri // 2, seg_per_strand, strip_pairs)
-    if tri % 2 == 0:
-        return ia, ib, ia + 1
-    return ib, ib + 1, ia + 1
-
-
-@wp.func
 def strip_face_direction(
     tri: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), vertex_positions: wp.array(dtype=wp.vec3)
 ) -> wp.vec3:
@@ -585,12 +576,12 @@ def contact_force(
     kind = contacts.kind[slot]
     ia = contacts.a[slot]
     ib = contacts.b[slot]
-    w = contacts.w[slot]
     reach = wp.min(contact_threshold, contacts.gap[slot])
 
     # Positions first: most stored pairs (detected with a margin) are beyond the threshold and stop here.
     xa = wp.vec3()
     xb = wp.vec3()
+    w = wp.vec3()  # a segment pair's closest-point parameters
     qa = int(0)
     qb = int(0)
     corner = wp.vec4()
