@@ -175,6 +175,7 @@ class StaticLinks:
         damping: float,
         break_length: float,
         implicit_springs: bool = True,
+        response: bool = False,
         device=None,
     ) -> StaticLinks:
         """Link every segment to its ``neighbours`` nearest segments of other strands within ``radius``.
@@ -194,7 +195,12 @@ class StaticLinks:
             implicit_springs: each link's force is its backward-Euler force over the step against a bound of the
                 inverse masses at its ends (``kernels.links.link_forces``), which keeps stiff links stable at
                 frame-rate steps without adding inertia to the hair they tie; False leaves them explicit, for
-                comparison.
+                comparison. Not used with ``response``.
+            response: each link's force over the step is solved after the free step, inside the strands'
+                dynamics, on the relative motion of its ends (``kernels.links.link_response_gather``;
+                :class:`hairwarp.Solver` runs it), for steps of 1/80 s and longer (the scenes'
+                ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
+                free segment's, which at 2 substeps a frame softened the links tenfold.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -232,6 +238,7 @@ class StaticLinks:
         links.damping = float(damping)
         links.break_length = float(break_length)
         links.implicit_springs = bool(implicit_springs)
+        links.response = bool(response)
         links.seg_a = a.astype(np.int32)
         links.seg_b = b.astype(np.int32)
         links.frac_a = fa
@@ -266,6 +273,11 @@ class StaticLinks:
                                      dtype=wp.int32, device=dev)
         links.b_force = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.b_torque = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # the response's: each link's ends at the step's start, and the link of each of b's slots
+        links.link_point_a = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.link_point_b = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.b_slot_link = wp.array(by_b.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
+                                     device=dev)
         return links
 
     def _transport(self, model, state):
@@ -293,15 +305,28 @@ class StaticLinks:
             model.seg_per_strand, model.seg_length, model.seg_mass, self.seg_rest_axis,
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
             self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
-            state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
+            state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot, int(self.response),
         ]
         n = len(inputs)
         seg_count = len(self.seg_transport)
         # A thread adds into its own segment a and leaves b's share in a slot of b's; then each segment b gathers
         # its slots. No segment is written by two threads: the same bits however the segments are split.
         launch(self.executor, link_kernels.link_forces, seg_count, inputs,
-               [seg_force, seg_torque, self.link_broken, self.link_broken_total, self.b_force, self.b_torque],
+               [seg_force, seg_torque, self.link_broken, self.link_broken_total, self.b_force, self.b_torque,
+                self.link_point_a, self.link_point_b],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
+
+    def gather_response(self, model, state_in, state_out, dt, dampers):
+        """Add every segment's link-end dampers for the velocity response (``response``) to ``dampers`` (a
+        :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out`` and
+        the frames of ``state_in`` (launch only)."""
+        if self.link_count == 0:
+            return
+        launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
+               [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.b_slot_link, self.link_seg_a,
+                self.link_seg_b, self.stiffness, self.damping, self.link_point_a, self.link_point_b, self.link_broken,
+                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt], [dampers],
+               device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it
@@ -538,6 +563,7 @@ class HairContacts:
         skip_neighbour_strips: bool = True,
         rest_gaps: bool = True,
         implicit_springs: bool = True,
+        response: bool = False,
         device=None,
     ) -> HairContacts:
         """Allocate the segment and strip BVHs and the contact buffers.
@@ -574,7 +600,13 @@ class HairContacts:
                 weight) they burst the style and drive the strands into the body.
             implicit_springs: add to the solver's ``seg_implicit_mass`` the part of the active contacts' summed
                 ``h^2 k + h c`` beyond each segment's own mass (the semi-implicit treatment of the repulsion);
-                False leaves it explicit, for comparison.
+                False leaves it explicit, for comparison. Not used with ``response``.
+            response: solve the contacts' forces over the step after the free step, inside the strands'
+                dynamics, on the relative motion of each pair (``kernels.articulated.interaction_response``;
+                :class:`hairwarp.Solver` runs it after the free step), for steps of 1/80 s and longer (the
+                scenes' ``interactions.response = "auto"``). The semi-implicit inertia it replaces resisted every
+                acceleration of the hair, also the head's, and at one step a frame made a third of the segments of
+                ``fast_turn`` a hundred times heavier.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -619,6 +651,7 @@ class HairContacts:
         contacts.skip_neighbour_strips = bool(skip_neighbour_strips)
         contacts.rest_gaps = bool(rest_gaps)
         contacts.implicit_springs = bool(implicit_springs)
+        contacts._allocate_response(bool(response))
         seg_blocks = G * -(-S // contact_kernels.SEG_BLOCK)
         contacts.seg_lowers = wp.zeros(G * S, dtype=wp.vec3, device=dev)
         contacts.seg_uppers = wp.zeros(G * S, dtype=wp.vec3, device=dev)
@@ -673,6 +706,39 @@ class HairContacts:
             contacts._strip_pairs = contacts.strips.strip_pairs
             contacts._tri_scale = contacts.strips.tri_stiffness_scale
         return contacts
+
+    def _allocate_response(self, on: bool):
+        """The :class:`kernels.contacts.ContactResponse` the force pass leaves for the response (one-element arrays
+        when it is off)."""
+        dev, cap = self.device, self.capacity if on else 1
+        r = contact_kernels.ContactResponse()
+        r.enabled = int(on)
+        r.friction = self.friction
+        r.slip_velocity = self.slip_velocity
+        r.normal = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        r.coef = wp.zeros(cap, dtype=float, device=dev)
+        r.target = wp.zeros(cap, dtype=float, device=dev)
+        r.weights = wp.zeros(cap, dtype=wp.vec4, device=dev)
+        r.point = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
+        r.share = wp.zeros(4 * cap, dtype=float, device=dev)
+        self._response_buffer = r
+        self.response = bool(on)
+
+    def gather_response(self, model, state_in, state_out, dt, dampers):
+        """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
+        :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out`` and
+        the frames of ``state_in`` (launch only)."""
+        if not self.enabled:
+            return
+        inputs = [model.seg_per_strand, self._strip_pairs, self.buffer, self._response_buffer]
+        if self.device.is_cuda or self.scatter:
+            launch(self.executor, contact_kernels.contact_response_scatter, self.capacity,
+                   [*inputs, state_in.seg_xform, state_out.vertex_velocities, dt], [dampers],
+                   device=self.device, chunks=[(0, self.capacity)])
+        else:
+            launch(self.executor, contact_kernels.contact_response_gather, len(self._seg_cursor),
+                   [*inputs, self.seg_entry_start, self.seg_entries, state_in.seg_xform, state_out.vertex_velocities,
+                    dt], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     @property
     def enabled(self) -> bool:
@@ -840,7 +906,7 @@ class HairContacts:
             self.threshold, self.stiffness, self.damping, self.friction, self.slip_velocity, self.alignment_cutoff,
             self.strips.max_width if self.strips is not None else 0.0, self.force_threads,
             int(not self.device.is_cuda), int(self.implicit_springs), state.vertex_positions, state.vertex_velocities,
-            dt, self.buffer,
+            dt, self.buffer, self._response_buffer,
         ]
         # A contact leaves its forces in entries of its own, then every segment adds the entries that push it, in
         # slot order: no element is written by two threads, so the sums are the same bits however they are split.
@@ -850,21 +916,23 @@ class HairContacts:
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it (on a GPU
-        every contact adds its entries to its segments with atomics, in any order)."""
-        if not self.enabled:
+        every contact adds its entries to its segments with atomics, in any order). With ``response`` the forces are
+        the response's, and there is nothing to add."""
+        if not self.enabled or self.response:
             return
         if self.device.is_cuda or self.scatter:
             launch(self.executor, contact_kernels.contact_scatter, self.capacity,
                    [model.seg_per_strand, self._strip_pairs, self.buffer, self.entry_force, self.entry_torque,
                     self.entry_mass], [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
                    chunks=[(0, self.capacity)])
-            if self.implicit_springs:
+            if self.implicit_springs and not self.response:
                 launch(self.executor, link_kernels.add_excess_mass, len(self.seg_spring_mass),
                        [model.seg_mass, self.seg_spring_mass], [seg_implicit_mass], device=self.device,
                        min_chunk=SEGMENT_MIN_CHUNK)
             return
         launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
-               [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,
+               [model.seg_mass, int(self.implicit_springs and not self.response), self.seg_entry_start,
+                self.seg_entries, self.entry_force,
                 self.entry_torque, self.entry_mass, self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass],
                device=self.device, min_chunk=GATHER_MIN_CHUNK)
 

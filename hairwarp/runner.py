@@ -21,6 +21,13 @@ from hairwarp.model import Model
 from hairwarp.motion import MotionSample
 from hairwarp.solver import SimulationFault, Solver
 
+#: Shortest step [s] at which ``response = "auto"`` (links and hair contacts) solves their forces after the free step,
+#: on the relative motion of each pair (``kernels.articulated.interaction_response``): at 2 substeps of 30 fps and
+#: longer. There it keeps links whole and the hair in one piece (``fast_turn`` at 2 substeps: 13 broken links
+#: instead of 9,830), where the semi-implicit mass made a third of the segments a hundred times heavier; at the
+#: shipped 8 substeps the explicit forms settle hair at rest sooner (``docs/interactions.md``).
+AUTO_RESPONSE_DT = 1.0 / 80.0
+
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
 
 
@@ -149,6 +156,13 @@ class Simulation:
         if self.dense is not None:
             self.dense.executor = self.solver.executor
 
+    def _response(self, choice: str) -> bool:
+        """Whether links or contacts take the response after the free step (``links.response``,
+        ``interactions.response``): ``auto`` takes it at steps of ``AUTO_RESPONSE_DT`` or longer."""
+        if choice == "auto":
+            return self.scene.step_dt >= AUTO_RESPONSE_DT * (1.0 - 1e-9)
+        return choice == "step"
+
     def _build_links(self, cfg):
         if not cfg.enabled:
             return None
@@ -157,7 +171,7 @@ class Simulation:
         return StaticLinks.build(self.model.rest_vertex_positions, neighbours=int(cfg.neighbours),
                                  radius=float(cfg.radius), stiffness=float(cfg.stiffness),
                                  damping=float(cfg.damping), break_length=float(cfg.break_length),
-                                 device=self.model.device)
+                                 response=self._response(cfg.response), device=self.model.device)
 
     def _build_contacts(self, cfg):
         if not cfg.enabled:
@@ -174,7 +188,7 @@ class Simulation:
             model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
             damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
             capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
-            detect_each_step=not per_frame, device=model.device,
+            detect_each_step=not per_frame, response=self._response(cfg.response), device=model.device,
         )
 
     def _build_dense(self, cfg):

@@ -524,6 +524,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "damping": Field("float", 0.01, "spring damping k_d", "N s/m", range="[0, inf)"),
             "break_length": Field("float", 0.03, "a link stretched past this breaks for good", "m",
                                   range="(0, inf)"),
+            "response": Field("str", "auto", "link forces solved after the free step, inside the strands' dynamics, on "
+                              "the relative motion of their ends (step), or each link alone against its free "
+                              "segments' masses (link); auto: step at steps of 1/80 s or longer, else link",
+                              choices=("auto", "step", "link")),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
     ),
@@ -542,6 +546,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "margin": Field("float", 0.001, "detect = frame: pairs within threshold + margin are kept for the frame",
                             "m", range="[0, inf)"),
             "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
+            "response": Field("str", "auto", "contact forces solved after the free step, inside the strands' "
+                              "dynamics, on each pair's relative motion (step), or explicit with the semi-implicit "
+                              "mass on every motion (mass); auto: step at steps of 1/80 s or longer, else mass",
+                              choices=("auto", "step", "mass")),
         },
         doc="dynamic interactions (hairwarp.interactions.HairContacts on TriangleStrips)",
     ),

@@ -102,7 +102,19 @@ class Solver:
 
         self.has_drag = model.drag > 0.0
         self.has_forces = self.has_drag or links is not None or contacts is not None
-        self.has_implicit_mass = contacts is not None  # the hair contacts' semi-implicit inertia (links solve theirs)
+        # the hair contacts' semi-implicit inertia, where their response is not solved inside the step (links solve
+        # theirs)
+        # Links and hair contacts whose force is solved after the free step, with the body contacts, in one
+        # response (``articulated.interaction_response``); the free step then leaves the body contacts to it.
+        self.responders = [part for part in (links, contacts) if part is not None and part.response]
+        self.has_implicit_mass = contacts is not None and not contacts.response
+        m = n if self.responders else 1
+        dampers = self.dampers = articulated.InteractionResponse()
+        dampers.A = wp.zeros(m, dtype=wp.mat33, device=device)
+        dampers.B = wp.zeros(m, dtype=wp.mat33, device=device)
+        dampers.C = wp.zeros(m, dtype=wp.mat33, device=device)
+        dampers.force = wp.zeros(m, dtype=wp.vec3, device=device)
+        dampers.torque = wp.zeros(m, dtype=wp.vec3, device=device)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -118,6 +130,7 @@ class Solver:
             if stage is not None:
                 stage.executor = self.executor
         self.body_contacts = colliders.contacts if has_colliders else body_contacts(1, device, enabled=False)
+        self._no_body_contacts = body_contacts(1, device, enabled=False)  # the response's: dampers only
 
     @staticmethod
     def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
@@ -141,6 +154,8 @@ class Solver:
         self._accumulate_forces(state_in, control, detect_body=self.body_contacts.enabled)
         # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
         self._integrate(state_in, state_out, control)
+        if self.responders:
+            self._respond(state_in, state_out, control)
         if self.body_contacts.enabled:
             self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
 
@@ -168,6 +183,7 @@ class Solver:
         forward_kinematics(self.model, state, control, self.executor)
         if self.body_contacts.enabled:
             self.colliders.reset_contacts()
+
 
     def _accumulate_forces(self, state, control, detect_body: bool = False):
         """The external forces on the segments (drag, links, hair contacts), and with ``detect_body`` the body
@@ -212,17 +228,34 @@ class Solver:
                    state_out.vertex_velocities, state_out.fault]
         if self.integrator == Integrator.RK4:
             inputs = [model.chains, self.max_rotation_per_step, *head, self.loads, state_in.joint_q,
-                      state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch, self.rk_q, self.rk_w,
-                      self.rk_dq, self.rk_dw]
+                      state_in.joint_qd, state_in.fault, self.body_contacts, self.dampers, self.scratch,
+                      self.rk_q, self.rk_w, self.rk_dq, self.rk_dw]
             kernel = articulated.integrate_rk4
         else:
             implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
             inputs = [model.chains, self.max_rotation_per_step, *head, implicit, self.loads, state_in.joint_q,
-                      state_in.joint_qd, state_in.fault, self.body_contacts, self.scratch]
+                      state_in.joint_qd, state_in.fault, self.body_contacts, self.dampers, self.scratch]
             kernel = articulated.integrate_euler
         # one thread per strand; the fault bits (ORed by any strand) are private per chunk
         self.executor.launch(kernel, model.strand_count, inputs, outputs, min_chunk=INTEGRATE_MIN_CHUNK,
                              private_or=[len(inputs) + len(outputs) - 1])
+
+    def _respond(self, state_in, state_out, control):
+        """The links' and hair contacts' velocity response on the free step's result
+        (``articulated.interaction_response``)."""
+        model = self.model
+        dampers = self.dampers
+        for a in (dampers.A, dampers.B, dampers.C, dampers.force, dampers.torque):
+            a.zero_()
+        for part in self.responders:
+            part.gather_response(model, state_in, state_out, self.dt, dampers)
+        implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
+        inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
+                  state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
+        outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
+                   state_out.vertex_velocities, state_out.fault]
+        self.executor.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
+                             min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
 
     # -- tools ----------------------------------------------------------------------------
 
@@ -323,6 +356,11 @@ class Solver:
                          f"in one step")
             advice = (f"a collider moved or jumped too far for the step: set head.teleport_distance for cuts and "
                       f"jumps, slow the collider, or {more} (now {step})")
+        elif bits & Fault.INTERACTION_RESPONSE:
+            stage = "links and hair contacts (response)"
+            what = "their response after the free step changed a joint by more than half a turn, or left it non-finite"
+            advice = (f"lower links.stiffness or interactions.stiffness, {more} (now {step}), or set "
+                      f"links.response = \"link\" and interactions.response = \"mass\"")
         else:
             stage = "unknown"
             what = f"fault bits {int(bits)}"

@@ -23,6 +23,7 @@ from hairwarp.kernels.spatial import (
     rotate_symmetric,
     scale_rows,
     segment_inertia_blocks,
+    skew,
     skew_z_left,
     skew_z_right,
     transpose_scale_columns,
@@ -81,6 +82,20 @@ class BodyContacts:
     friction: wp.array(dtype=float)
     beta: wp.array(dtype=float)
     force: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class InteractionResponse:
+    """The hair interactions' dampers of a step, per segment, in its own frame about its origin (its top vertex),
+    linearised at the step's start: the blocks ``A, B, C`` of the spatial inertia ``h c P`` of its point dampers
+    [kg m^2, kg m, kg] (``kernels.contacts.contact_response_gather``), and their forces [N] and torques [N m] on the
+    free end-of-step velocities; ``interaction_response`` solves them with the strand's own inertia."""
+
+    A: wp.array(dtype=wp.mat33)
+    B: wp.array(dtype=wp.mat33)
+    C: wp.array(dtype=wp.mat33)
+    force: wp.array(dtype=wp.vec3)
+    torque: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -362,9 +377,13 @@ def body_contact_solve(
     joint_qd: wp.array(dtype=wp.vec3),
     contacts: BodyContacts,
     scratch: AbaScratch,
+    dampers: InteractionResponse,
+    with_dampers: int,
 ):
     """Body contact as part of the step: correct the free joint velocities ``joint_qd`` (in place) by impulses
-    computed with the strand's own articulated inertia.
+    computed with the strand's own articulated inertia. With ``with_dampers`` the hair interactions' dampers
+    (``InteractionResponse``) join the solve; ``interaction_response`` runs it so with ``contacts`` disabled, on the
+    dampers alone.
 
     Each vertex whose free end-of-step velocity would take it into a collider's contact layer (deeper than its
     ``gap`` allows) gets a damper ``F = -c P (v - v_target)`` toward the surface point's velocity, normal whole
@@ -404,10 +423,15 @@ def body_contact_solve(
         omega = omega + wp.quat_rotate(R, joint_qd[i])
         d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
         v = v + wp.cross(omega, d)
-        n = contacts.normal[vi]
+        n = wp.vec3()
         held = float(0.0)
         target = float(0.0)
-        beta = contacts.beta[vi]
+        beta = float(1.0)
+        warm = wp.vec3()
+        if contacts.enabled != 0:  # else only the dampers (``interaction_response`` without colliders)
+            n = contacts.normal[vi]
+            beta = contacts.beta[vi]
+            warm = contacts.force[vi]
         if wp.length_sq(n) > 0.0:
             target = -wp.max(contacts.gap[vi], 0.0) / step_dt  # a part of a step closes its share of the gap
             if wp.dot(v - contacts.object_velocity[vi], n) < target:
@@ -421,14 +445,18 @@ def body_contact_solve(
             P = contact_projector(n_b, beta)
             M = hc * P
             rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
-            F = wp.quat_rotate_inv(R, contacts.force[vi]) - c * (P * rel)
+            F = wp.quat_rotate_inv(R, warm) - c * (P * rel)
         scratch.DB[i] = M
         tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
         scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
+        if with_dampers != 0:
+            if wp.trace(dampers.C[i]) > 0.0:
+                active = 1
     if active == 0:
-        for k in range(S):
-            contacts.beta[vbase + k + 1] = 1.0
-            contacts.force[vbase + k + 1] = wp.vec3()
+        if contacts.enabled != 0:
+            for k in range(S):
+                contacts.beta[vbase + k + 1] = 1.0
+                contacts.force[vbase + k + 1] = wp.vec3()
         return
 
     # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
@@ -457,6 +485,12 @@ def body_contact_solve(
         p = scratch.p[i]
         n_ = wp.spatial_top(p) + cn
         f = wp.spatial_bottom(p) + cf
+        if with_dampers != 0:
+            A = A + dampers.A[i]
+            B = B + dampers.B[i]
+            C = C + dampers.C[i]
+            n_ = n_ - dampers.torque[i]
+            f = f - dampers.force[i]
         armature = wp.vec3()
         if implicit != 0:
             armature = dt * chains.joint_damping[i] + dt * dt * chains.joint_stiffness[i]
@@ -529,8 +563,9 @@ def body_contact_solve(
                     # tangential force meets the cone.
                     beta = wp.spatial_top(flags)[2] * limit / ftl
                     force = fn * n + (limit / ftl) * ft
-        contacts.beta[vi] = beta
-        contacts.force[vi] = force
+        if contacts.enabled != 0:
+            contacts.beta[vi] = beta
+            contacts.force[vi] = force
 
 
 @wp.func
@@ -627,6 +662,7 @@ def integrate_euler(
     joint_qd_in: wp.array(dtype=wp.vec3),
     fault_in: wp.array(dtype=wp.int32),
     contacts: BodyContacts,
+    dampers: InteractionResponse,
     # Scratch:
     scratch: AbaScratch,
     # Out:
@@ -692,7 +728,7 @@ def integrate_euler(
             # the body contacts' impulses, linearised at the part's start
             if contacts.enabled != 0:
                 body_contact_solve(chains, strand, hs, h, implicit, X_base, V_base, loads, joint_q_out, joint_qd_out,
-                                   contacts, scratch)
+                                   contacts, scratch, dampers, 0)
                 # contacts that set segments turning fast: the part again, shorter, so the geometry they were
                 # linearised at still holds
                 turn_rate = strand_turn_rate(chains, strand, joint_q_out, joint_qd_out) / SPLIT_ROTATION
@@ -719,6 +755,128 @@ def integrate_euler(
               vertex_velocities_out)
 
 
+#: Largest bend [rad] that the response after the free step (``interaction_response``) may add to a joint over a
+#: step: half a turn is no motion a step resolves. (``max_rotation_per_step``, 1 rad, bounds the free dynamics; at
+#: one step a frame a body contact that stops a vertex held by links changes its joints by more than that, and the
+#: run goes on sound.)
+RESPONSE_ROTATION = wp.constant(3.14159)
+
+
+#: Largest bend [rad] that the response after the free step (``interaction_response``) may add to a joint over a
+#: step: half a turn is no motion a step resolves. (``max_rotation_per_step``, 1 rad, bounds the free dynamics; at
+#: one step a frame a body contact that stops a vertex held by links changes its joints by more than that, and the
+#: run goes on sound.)
+RESPONSE_ROTATION = wp.constant(3.14159)
+
+
+@wp.func
+def point_damper_blocks(r: wp.vec3, M: wp.mat33):
+    """Blocks (A, B) of a point inertia ``M`` at ``r`` (a segment's frame) about the segment's origin, its C block
+    being ``M``, without the spin about the segment's own axis (local z): the vertex velocities that measure the
+    dampers' velocities do not show that spin, and a thin segment's spin inertia is tiny, so a damper that could
+    turn it would set it spinning unseen (``kernels.links`` leaves it out of the links' torque for the same
+    reason)."""
+    rx = skew(r)
+    A = -(rx * M * rx)
+    B = rx * M
+    A = wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
+    B = wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
+    return A, B
+
+
+@wp.func
+def add_damper(dampers: InteractionResponse, seg: int, A: wp.mat33, B: wp.mat33, C: wp.mat33, force: wp.vec3,
+               torque: wp.vec3):
+    """Add summed damper blocks, forces and torques (``point_damper_blocks``, ``spin_free_torque``) to segment
+    ``seg``'s ``InteractionResponse``; each segment is written by its own thread only."""
+    dampers.A[seg] = dampers.A[seg] + A
+    dampers.B[seg] = dampers.B[seg] + B
+    dampers.C[seg] = dampers.C[seg] + C
+    dampers.force[seg] = dampers.force[seg] + force
+    dampers.torque[seg] = dampers.torque[seg] + torque
+
+
+@wp.func
+def spin_free_torque(r: wp.vec3, f: wp.vec3):
+    """``r x f`` (a segment's frame) without its component about the segment's own axis (see
+    ``point_damper_blocks``)."""
+    t = wp.cross(r, f)
+    return wp.vec3(t[0], t[1], 0.0)
+
+
+@wp.kernel
+def interaction_response(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    chains: StrandChains,
+    max_rotation: float,
+    # Control:
+    bases: StrandBases,
+    dt: wp.array(dtype=float),
+    # State in:
+    implicit: int,
+    loads: SegmentLoads,
+    joint_q_in: wp.array(dtype=wp.quat),
+    dampers: InteractionResponse,
+    contacts: BodyContacts,
+    # Scratch:
+    scratch: AbaScratch,
+    # In and out: the free step's result, corrected
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: the links' and hair contacts' forces over the step, solved after the free step with the
+    strand's own inertia.
+
+    The free step took none of them. A pair's backward-Euler force over the step is ``k d - D v_n'`` for a contact
+    (``D = h k + c``) and ``k l - P u'`` for a link (``P = h k I + c n n^T``), with the pair's end-of-step velocity;
+    each strand takes its side as a damper ``2 D`` (``2 P``) toward the pair's mean velocity from the free step (the
+    spring split at its midpoint, Jacobi between strands), which acts on the pair's relative motion only: hair that
+    the head carries along is carried whatever the stiffness, where the semi-implicit mass resisted every
+    acceleration (at one step a frame it made a third of ``fast_turn``'s segments a hundred times heavier).
+    ``(M_eff + h J^T C J) dw = J^T F`` is ``body_contact_solve`` with the dampers' point inertias and forces per
+    segment (``InteractionResponse``) added, ``contacts`` disabled: one inward and one outward pass, ``M_eff`` the
+    step's own (implicit joint armature included), linearised at the step's start. Then ``w += dw``,
+    ``q <- q exp(h dw)`` and the forward kinematics of the corrected strand; the push-out after the step keeps the
+    strands out of the bodies. (Holding the body contacts of the free step in this solve too cost one step a frame
+    its stability: ``long_hair_shoulders`` faulted.)
+    """
+    strand = tid_offset + wp.tid()
+    S = chains.seg_per_strand
+    h = dt[0]
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    V_base = bases.velocity[b]
+    for k in range(S):
+        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
+    body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
+                       scratch, dampers, 1)
+    changed = int(0)
+    for k in range(S):
+        i = strand * S + k
+        w_free = scratch.qdd[i]
+        w = joint_qd_out[i]
+        dw = w - w_free
+        if wp.length_sq(dw) > 0.0:
+            changed = 1
+            q_new = wp.normalize(joint_q_out[i] * quat_exp(h * dw))
+            if not (wp.isfinite(w) and wp.isfinite(q_new)):
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            elif bend_rate(dw) * h > RESPONSE_ROTATION:
+                # the response's own change bends the joint by more than the bound in the step (a stiff contact
+                # that stops a joint may leave its outboard joints fast: that is the free motion's, not this)
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            joint_q_out[i] = q_new
+    if changed != 0:
+        fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+                  vertex_velocities_out)
+
+
 @wp.kernel
 def integrate_rk4(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
@@ -735,6 +893,7 @@ def integrate_rk4(
     joint_qd_in: wp.array(dtype=wp.vec3),
     fault_in: wp.array(dtype=wp.int32),
     contacts: BodyContacts,
+    dampers: InteractionResponse,
     # Scratch:
     scratch: AbaScratch,
     rk_q: wp.array(dtype=wp.quat),
@@ -801,7 +960,7 @@ def integrate_rk4(
         # Contact impulses after the update, with the explicit inertia (RK4's stages would not stay stable with
         # the stiff dampers inside them); the velocity change also moves the configuration over the step.
         body_contact_solve(chains, strand, h, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
-                           scratch)
+                           scratch, dampers, 0)
         for k in range(S):
             i = strand * S + k
             w = joint_qd_out[i]

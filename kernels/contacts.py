@@ -21,6 +21,7 @@ an equilibrium of the contacts, as it is of the links.
 
 import warp as wp
 
+from hairwarp.kernels.articulated import InteractionResponse, add_damper, point_damper_blocks, spin_free_torque
 from hairwarp.kernels.links import add_gathered, lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
@@ -196,6 +197,33 @@ class ContactBuffer:
     gap: wp.array(dtype=float)
     counter: wp.array(dtype=wp.int32)
     overflow: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class ContactResponse:
+    """What ``contact_force`` leaves for the step's second half, the contacts' velocity response inside the strands'
+    dynamics (``contact_response_gather``, then ``kernels.articulated.interaction_response``); ``enabled`` = 0: the
+    forces are explicit, damping included, and nothing is stored (the arrays may then hold one element).
+
+    Per slot: ``normal`` (world, unit, from side b to side a), ``coef`` ``D = h k + c`` [N s/m], the contact's
+    backward-Euler coefficient (zero: no response), ``target`` [m/s] ``k d / D``, the separation speed at which the
+    contact's force ``k d - D v_n`` falls to zero (a pair the free step sends apart faster is left alone: a contact
+    only pushes), ``weights`` the points' weights
+    (a vertex-face contact's quad corners a_k, b_k, a_k+1, b_k+1; a segment pair's (s, t, 0, 0)). Per entry
+    ``4 slot + e``, as the force's entries: the world ``point`` and the signed ``share`` (+1 side a; -1, or the
+    face's corner weights, side b; 0 none). ``friction`` and ``slip_velocity`` [m/s]: the contacts' Coulomb
+    coefficient and its regularisation."""
+
+
+    enabled: int
+    friction: float
+    slip_velocity: float
+    normal: wp.array(dtype=wp.vec3)
+    coef: wp.array(dtype=float)
+    target: wp.array(dtype=float)
+    weights: wp.array(dtype=wp.vec4)
+    point: wp.array(dtype=wp.vec3)
+    share: wp.array(dtype=float)
 
 
 @wp.func
@@ -564,6 +592,7 @@ def contact_force(
     h: float,
     implicit_springs: int,
     contacts: ContactBuffer,
+    response: ContactResponse,
     entry_force: wp.array(dtype=wp.vec3),
     entry_torque: wp.array(dtype=wp.vec3),
     entry_mass: wp.array(dtype=float),
@@ -573,6 +602,10 @@ def contact_force(
         entry_force[4 * slot + e] = wp.vec3()
         entry_torque[4 * slot + e] = wp.vec3()
         entry_mass[4 * slot + e] = 0.0
+    if response.enabled != 0:
+        response.coef[slot] = 0.0
+        for e in range(4):
+            response.share[4 * slot + e] = 0.0
     kind = contacts.kind[slot]
     ia = contacts.a[slot]
     ib = contacts.b[slot]
@@ -678,9 +711,38 @@ def contact_force(
     vrel = va - vb
     vn = wp.dot(vrel, n)
     fn = k_eff * (reach - dist) - c_eff * vn
-    if fn <= 0.0:
+    if response.enabled != 0:
+        # the contact's force is the response's, over the step (``contact_response_gather``)
+        if k_eff + c_eff > 0.0:
+            e0 = 4 * slot
+            response.normal[slot] = n
+            response.coef[slot] = h * k_eff + c_eff
+            response.target[slot] = k_eff * (reach - dist) / (h * k_eff + c_eff)
+            if kind == CONTACT_VERTEX_FACE:
+                response.weights[slot] = corner
+                response.point[e0] = 0.5 * (xa + xb)
+                response.share[e0] = 1.0
+                shift = 0.5 * (xa - xb)
+                wa = corner[0] + corner[2]
+                wb = corner[1] + corner[3]
+                if wa > 0.0:
+                    response.point[e0 + 1] = (corner[0] * vertex_positions[qa] + corner[2] * vertex_positions[qa + 1]) \
+                        / wa + shift
+                    response.share[e0 + 1] = -wa
+                if wb > 0.0:
+                    response.point[e0 + 2] = (corner[1] * vertex_positions[qb] + corner[3] * vertex_positions[qb + 1]) \
+                        / wb + shift
+                    response.share[e0 + 2] = -wb
+            else:
+                response.weights[slot] = wp.vec4(w[0], w[1], 0.0, 0.0)
+                response.point[e0] = 0.5 * (xa + xb)
+                response.share[e0] = 1.0
+                response.point[e0 + 1] = 0.5 * (xa + xb)
+                response.share[e0 + 1] = -1.0
         return
     f = fn * n
+    if fn <= 0.0:
+        return
 
     # Coulomb friction in the plane normal to the separation (the plane of the two segments, or of the face),
     # regularised near v_t = 0 and capped at the impulse that brings the pair's tangential velocity to rest.
@@ -694,7 +756,7 @@ def contact_force(
 
     point = 0.5 * (xa + xb)
     extra = float(0.0)
-    if implicit_springs != 0:
+    if implicit_springs != 0 and response.enabled == 0:
         extra = h * h * k_eff + h * c_eff
     e0 = 4 * slot
     if kind == CONTACT_VERTEX_FACE:
@@ -748,6 +810,7 @@ def contact_forces(
     dt: wp.array(dtype=float),
     # Scratch:
     contacts: ContactBuffer,
+    response: ContactResponse,
     # Out:
     entry_force: wp.array(dtype=wp.vec3),
     entry_torque: wp.array(dtype=wp.vec3),
@@ -782,7 +845,7 @@ def contact_forces(
             slot, seg_per_strand, seg_length, seg_mass, strip_pairs, tri_stiffness_scale,
             contact_threshold, contact_stiffness, contact_damping, contact_friction, contact_slip_velocity,
             contact_alignment_cutoff, strip_max_width, vertex_positions, vertex_velocities, h, implicit_springs,
-            contacts, entry_force, entry_torque, entry_mass,
+            contacts, response, entry_force, entry_torque, entry_mass,
         )
         slot += stride
 
@@ -862,6 +925,149 @@ def contact_gather(
         mass += entry_mass[e]
     add_gathered(seg, last - first, force, torque, mass, implicit_springs, seg_mass, seg_spring_mass, seg_force,
                  seg_torque, seg_implicit_mass)
+
+
+@wp.func
+def contact_relative_velocity(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
+                              contacts: ContactBuffer, response: ContactResponse,
+                              vertex_velocities: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Velocity [m/s] of side a relative to side b of the contact in ``slot``, at the points that ``contact_force``
+    took at the step's start, from ``vertex_velocities``."""
+    ia = contacts.a[slot]
+    ib = contacts.b[slot]
+    wt = response.weights[slot]
+    va = wp.vec3()
+    vb = wp.vec3()
+    if contacts.kind[slot] == CONTACT_VERTEX_FACE:
+        qa, qb = strip_quad_origins(ib // 2, seg_per_strand, strip_pairs)
+        va = vertex_velocities[ia]
+        vb = (wt[0] * vertex_velocities[qa] + wt[1] * vertex_velocities[qb] + wt[2] * vertex_velocities[qa + 1]
+              + wt[3] * vertex_velocities[qb + 1])
+    else:
+        va0 = ia + ia // seg_per_strand
+        vb0 = ib + ib // seg_per_strand
+        va = wp.lerp(vertex_velocities[va0], vertex_velocities[va0 + 1], wt[0])
+        vb = wp.lerp(vertex_velocities[vb0], vertex_velocities[vb0 + 1], wt[1])
+    return va - vb
+
+
+@wp.func
+def response_entry(entry: int, h: float, seg_xform: wp.transform, seg_per_strand: int,
+                   strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
+                   vertex_velocities: wp.array(dtype=wp.vec3)):
+    """One entry's damper on its segment, in the segment's frame at the step's start: ``(r, M, f)``, the point, the
+    point inertia [kg] (zero: none) and the force [N] on the free velocities.
+
+    The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
+    at its end; each side takes it as a damper ``2 D`` toward the pair's mean velocity (the spring split at its
+    midpoint, Jacobi between strands) on the free step's ``v_n``: ``-D (v_n - target)`` on side a and its shares on
+    side b, while positive, with the point inertia ``2 h D |share|``. A face corner's inertia takes its weight w, not
+    w^2: an upper bound, on the stable side."""
+    slot = entry // 4
+    D = response.coef[slot]
+    share = response.share[entry]
+    if D <= 0.0 or share == 0.0:
+        return wp.vec3(), wp.mat33(), wp.vec3()
+    n = response.normal[slot]
+    vrel = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, vertex_velocities)
+    vn = wp.dot(vrel, n)
+    push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
+    if push <= 0.0:
+        return wp.vec3(), wp.mat33(), wp.vec3()  # the pair leaves faster than its spring explains: no contact
+    # Coulomb friction as a damper on the tangential velocity, its coefficient the cone's over the free step's slip
+    # (regularised below slip_velocity): the damper's force, D_t |v_t'| <= D_t |v_t| <= mu f_n, stays in the cone,
+    # and a damper never reverses the slip it acts on, however many contacts share a segment.
+    vt = vrel - vn * n
+    vt_sq = wp.dot(vt, vt)
+    Dt = response.friction * push / wp.sqrt(vt_sq + response.slip_velocity * response.slip_velocity)
+    R = wp.transform_get_rotation(seg_xform)
+    nl = wp.quat_rotate_inv(R, n)
+    r = wp.quat_rotate_inv(R, response.point[entry] - wp.transform_get_translation(seg_xform))
+    a = wp.abs(share)
+    M = (2.0 * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
+    f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
+    return r, M, f
+
+
+@wp.kernel
+def contact_response_gather(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    response: ContactResponse,
+    seg_entry_start: wp.array(dtype=wp.int32),
+    seg_entries: wp.array(dtype=wp.int32),
+    # State: the step's start (frames), the free step's end (velocities)
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Control:
+    dt: wp.array(dtype=float),
+    # In and out:
+    dampers: InteractionResponse,
+):
+    """One thread per segment: add the dampers of the contacts that push it (``response_entry``, its entries in slot
+    order) to its ``InteractionResponse`` blocks, for ``kernels.articulated.interaction_response``."""
+    seg = tid_offset + wp.tid()
+    h = dt[0]
+    xf = seg_xform[seg]
+    A = wp.mat33()
+    B = wp.mat33()
+    C = wp.mat33()
+    force = wp.vec3()
+    torque = wp.vec3()
+    for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
+        r, M, f = response_entry(seg_entries[j], h, xf, seg_per_strand, strip_pairs, contacts, response,
+                                 vertex_velocities)
+        if wp.trace(M) > 0.0:
+            Ap, Bp = point_damper_blocks(r, M)
+            A += Ap
+            B += Bp
+            C += M
+            force += f
+            torque += spin_free_torque(r, f)
+    add_damper(dampers, seg, A, B, C, force, torque)
+
+
+@wp.kernel
+def contact_response_scatter(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    response: ContactResponse,
+    # State: the step's start (frames), the free step's end (velocities)
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Control:
+    dt: wp.array(dtype=float),
+    # In and out:
+    dampers: InteractionResponse,
+):
+    """One thread per buffer slot (on a GPU): ``contact_response_gather`` with atomics, in any order."""
+    slot = tid_offset + wp.tid()
+    if slot >= wp.min(contacts.counter[0], contacts.capacity):
+        return
+    h = dt[0]
+    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+    for e in range(4):
+        seg = segs[e]
+        if seg >= 0:
+            r, M, f = response_entry(4 * slot + e, h, seg_xform[seg], seg_per_strand, strip_pairs, contacts,
+                                     response, vertex_velocities)
+            if wp.trace(M) > 0.0:
+                Ap, Bp = point_damper_blocks(r, M)
+                wp.atomic_add(dampers.A, seg, Ap)
+                wp.atomic_add(dampers.B, seg, Bp)
+                wp.atomic_add(dampers.C, seg, M)
+                wp.atomic_add(dampers.force, seg, f)
+                wp.atomic_add(dampers.torque, seg, spin_free_torque(r, f))
 
 
 @wp.kernel

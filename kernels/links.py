@@ -17,6 +17,8 @@ net torque but that spin component.
 
 import warp as wp
 
+from hairwarp.kernels.articulated import InteractionResponse, add_damper, point_damper_blocks, spin_free_torque
+
 wp.set_module_options({"enable_backward": False})
 
 # Below this length [m] (well under float32 resolution of hair coordinates) the direction of l is
@@ -160,6 +162,7 @@ def link_forces(
     # Control:
     dt: wp.array(dtype=float),
     link_b_slot: wp.array(dtype=wp.int32),
+    response: int,
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -167,6 +170,8 @@ def link_forces(
     link_broken_total: wp.array(dtype=wp.int32),
     b_force: wp.array(dtype=wp.vec3),
     b_torque: wp.array(dtype=wp.vec3),
+    link_point_a: wp.array(dtype=wp.vec3),
+    link_point_b: wp.array(dtype=wp.vec3),
 ):
     """One thread per segment a: the seed's spring-dampers of the links that hang their rest offset on a (links
     ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
@@ -178,7 +183,9 @@ def link_forces(
     step, ``f = k (l - h u') - c (n . u') n`` with the end-of-step relative velocity ``u' = u + h W f``, solved per
     link: ``W`` bounds the inverse masses of the two ends (``point_inverse_mass``), so however stiff the link and
     long the step, f never exceeds what stops the ends' relative motion, and the link adds no inertia to the common
-    motion of the hair it ties. Without, f is the seed's explicit force. Segment b's share (-f at x_b) goes to slot
+    motion of the hair it ties. Without, f is the seed's explicit force. With ``response`` the link adds no force
+    here: its ends go to ``link_point_a``, ``link_point_b``, and ``link_response_gather`` solves its force over the
+    step inside the strands' dynamics. Segment b's share (-f at x_b) goes to slot
     ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link), which ``link_gather`` adds to b:
     every segment is written by its own thread only, so the sums are the same bits however the segments are split
     between CPU threads. The thread computes a's frame, its twist-free transport (``segment_transport``) and its
@@ -228,9 +235,14 @@ def link_forces(
 
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
         f = link_stiffness * l
+        if response != 0:
+            # the link's force is the response's, over the step (``link_response_gather``)
+            link_point_a[link] = xa
+            link_point_b[link] = xb
+            continue
         # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
         u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
-        if implicit_springs != 0:
+        if response == 0 and implicit_springs != 0:
             com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
             W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(b, xb - com_b, seg_mass,
                                                                                            seg_length)
@@ -242,7 +254,7 @@ def link_forces(
                 f_n = (wp.dot(f, n) - link_damping * wp.dot(u, n)) * n
                 f = f - wp.dot(f, n) * n
             f = f / (1.0 + h * hk * W) + f_n / (1.0 + h * (hk + link_damping) * W)
-        elif length > LINK_MIN_LENGTH:
+        elif response == 0 and length > LINK_MIN_LENGTH:
             n = l / length
             f = f - link_damping * wp.dot(u, n) * n
 
@@ -363,3 +375,98 @@ def link_break(
     if wp.length(xb - xa) > link_break_length:
         link_broken[link] = 1
         wp.atomic_add(link_broken_total, 0, 1)
+
+
+@wp.func
+def link_damper(link: int, side: float, seg: int, xf: wp.transform, h: float, seg_per_strand: int,
+                link_stiffness: float, link_damping: float, link_seg_a: wp.array(dtype=wp.int32),
+                link_seg_b: wp.array(dtype=wp.int32), link_point_a: wp.array(dtype=wp.vec3),
+                link_point_b: wp.array(dtype=wp.vec3), vertex_positions: wp.array(dtype=wp.vec3),
+                vertex_velocities: wp.array(dtype=wp.vec3)):
+    """One end of a link as a damper on its segment (``side`` +1: end a, -1: end b), in the segment's frame at the
+    step's start: ``(r, M, f)``, the point, the point inertia [kg] and the force [N].
+
+    The link's backward-Euler force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step
+    velocity of a's end relative to b's; each end takes it as a damper ``2 P`` toward the ends' mean velocity from
+    the free step (the spring split at its midpoint): ``k l - P u`` on a and its opposite on b, with the point
+    inertia ``2 h P``. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a frame, where a
+    segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
+    xa = link_point_a[link]
+    xb = link_point_b[link]
+    u = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, vertex_velocities, xa) - \
+        seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, vertex_velocities, xb)
+    l = xb - xa
+    length = wp.length(l)
+    P = (h * link_stiffness) * wp.identity(n=3, dtype=float)
+    if length > LINK_MIN_LENGTH:
+        n = l / length
+        P = P + link_damping * wp.outer(n, n)
+    R = wp.transform_get_rotation(xf)
+    Rm = wp.quat_to_matrix(R)
+    p = xa
+    if side < 0.0:
+        p = xb
+    r = wp.quat_rotate_inv(R, p - wp.transform_get_translation(xf))
+    M = (2.0 * h) * (wp.transpose(Rm) * P * Rm)
+    f = wp.quat_rotate_inv(R, side * (link_stiffness * l - P * u))
+    return r, M, f
+
+
+@wp.kernel
+def link_response_gather(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    seg_link_start: wp.array(dtype=wp.int32),
+    seg_b_start: wp.array(dtype=wp.int32),
+    b_slot_link: wp.array(dtype=wp.int32),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    link_stiffness: float,
+    link_damping: float,
+    # Scratch: the ends the force pass left
+    link_point_a: wp.array(dtype=wp.vec3),
+    link_point_b: wp.array(dtype=wp.vec3),
+    link_broken: wp.array(dtype=wp.int32),
+    # State: the step's start (frames, positions), the free step's end (velocities)
+    seg_xform: wp.array(dtype=wp.transform),
+    vertex_positions: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Control:
+    dt: wp.array(dtype=float),
+    # In and out:
+    dampers: InteractionResponse,
+):
+    """One thread per segment: add the dampers of its links' ends (``link_damper``; its links as side a in link
+    order, then as side b in slot order) to its ``InteractionResponse`` blocks."""
+    seg = tid_offset + wp.tid()
+    a_first = seg_link_start[seg]
+    a_last = seg_link_start[seg + 1]
+    b_first = seg_b_start[seg]
+    b_last = seg_b_start[seg + 1]
+    if a_first == a_last and b_first == b_last:
+        return
+    h = dt[0]
+    xf = seg_xform[seg]
+    A = wp.mat33()
+    B = wp.mat33()
+    C = wp.mat33()
+    force = wp.vec3()
+    torque = wp.vec3()
+    for j in range(a_first, b_last - b_first + a_last):
+        link = j
+        side = float(1.0)
+        if j >= a_last:
+            link = b_slot_link[b_first + j - a_last]
+            side = -1.0
+        if link_broken[link] == 0:
+            r, M, f = link_damper(link, side, seg, xf, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
+                                  link_seg_b, link_point_a, link_point_b, vertex_positions, vertex_velocities)
+            Ap, Bp = point_damper_blocks(r, M)
+            A += Ap
+            B += Bp
+            C += M
+            force += f
+            torque += spin_free_torque(r, f)
+    add_damper(dampers, seg, A, B, C, force, torque)

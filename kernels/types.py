@@ -42,6 +42,9 @@ class Fault(enum.IntFlag):
         COLLISION_SPEED: the body contact response sped a joint up until it bends further than
             ``max_rotation_per_step`` in one step (or part of one).
         CONTACT_OVERFLOW: more contacts than the buffers hold; some were dropped.
+        INTERACTION_RESPONSE: the response of the links, hair contacts and body contacts after the free step
+            (``interaction_response``) produced a non-finite joint, or changed a joint's velocity by more than half
+            a turn of bend over the step.
     """
 
     NONE = 0
@@ -50,6 +53,7 @@ class Fault(enum.IntFlag):
     NONFINITE_COLLISION = 4
     COLLISION_SPEED = 8
     CONTACT_OVERFLOW = 16
+    INTERACTION_RESPONSE = 32
 
 
 class ColliderKind(enum.IntEnum):

@@ -41,6 +41,13 @@ THRESHOLD = 0.002
 MASS = 2.0e-6
 
 
+def _force_law(*args, **kw):
+    """Contacts whose force pass applies the seed's law whole (``response=False``, the default): the tests of the law
+    read it there; with the response on, the force of a contact is solved after the free step (tests below)."""
+    kw.setdefault("response", False)
+    return HairContacts.build(*args, **kw)
+
+
 def _model(G_, S_, mass=MASS):
     return SimpleNamespace(
         seg_per_strand=S_,
@@ -90,7 +97,7 @@ def test_detection_matches_brute_force(seed, cutoff, skip):
     """All pairs closer than the threshold (and crossing by more than the alignment cutoff) are found, once."""
     verts, _ = _tangled(seed)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000,
                                   alignment_cutoff=cutoff, skip_neighbour_strips=skip)
     # Detect on a moved configuration: the BVHs are refit, not rebuilt.
     moved, _ = _tangled(seed + 100)
@@ -214,7 +221,7 @@ def test_repulsion_vanishes_for_parallel_segments(angle):
     vel = np.zeros_like(verts)
     vel[0] = [0.1, 0.05, 0.0]
     vel[1] = [-0.1, 0.0, 0.02]
-    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.1, friction=0.5,
+    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.1, friction=0.5,
                                   capacity=8, alignment_cutoff=0.0, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel))
     assert contacts.contact_count() == 1
@@ -222,7 +229,7 @@ def test_repulsion_vanishes_for_parallel_segments(angle):
     assert np.abs(torque).max() < 1e-6 * 10.0 * THRESHOLD * SEG_LEN
     np.testing.assert_allclose(mass, 0.0, atol=1e-12)
     # With the default cutoff such a pair is not even stored.
-    default = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, capacity=8, rest_gaps=False)
+    default = _force_law(verts, threshold=THRESHOLD, stiffness=10.0, capacity=8, rest_gaps=False)
     _apply(default, _model(2, 1), _state(verts, vel))
     assert default.contact_count() == 0
 
@@ -235,7 +242,7 @@ def test_crossing_segments_closed_form():
     verts = _pair(a0, a1, b0, b1)
     vel = np.zeros_like(verts)
     vel[1] = [0.0, -0.05, 0.0]  # b approaches a
-    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4, rest_gaps=False)
+    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel), dt=h)
     fn = k * (THRESHOLD - delta) + c * 0.05  # n = -y (from b to a); approaching adds damping
     np.testing.assert_allclose(force[0], [0.0, -fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
@@ -272,7 +279,7 @@ def test_stored_pairs_with_margin():
     k = 10.0
     a0, a1 = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, -SEG_LEN])
     far = _pair(a0, a1, [-0.003, 0.0025, -0.002], [0.003, 0.0025, -0.002])
-    contacts = HairContacts.build(far, threshold=THRESHOLD, stiffness=k, capacity=4, margin=0.001,
+    contacts = _force_law(far, threshold=THRESHOLD, stiffness=k, capacity=4, margin=0.001,
                                   detect_each_step=False, rest_gaps=False)
     model = _model(2, 1)
     contacts.detect(model, _state(far))
@@ -293,7 +300,7 @@ def test_vertex_face_closed_form_with_density_scale():
     k, S2 = 10.0, 2
     verts = _strip_scene()
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
                                   segment_segment=False, skip_neighbour_strips=False, rest_gaps=False)
     force, torque, _ = _apply(contacts, _model(3, S2), _state(verts))
     found = contacts.contact_list()
@@ -324,7 +331,7 @@ def test_parting_strip_fades_out():
     moved[1, :, 0] = widest  # strand 1 moved out: every quad of the strip is 7/8 of max_width wide
 
     def push(max_width):
-        contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+        contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
                                       segment_segment=False, skip_neighbour_strips=False, rest_gaps=False,
                                       implicit_springs=False)
         contacts.strips.max_width = max_width
@@ -347,14 +354,14 @@ def test_vertex_beside_a_strand_is_a_segment_contact():
     tip = np.array([-0.0008, 0.0, -0.018])
     verts[2] = [tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip]
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=10.0, capacity=16,
                                   skip_neighbour_strips=False, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(3, 2), _state(verts))
     found = contacts.contact_list()
     ee = found["kind"] == CONTACT_SEGMENT_SEGMENT
     assert ee.sum() == 1 and (~ee).any()
     assert (found["a"][ee][0], found["b"][ee][0]) == (1, 5)  # strand 0's lower segment, strand 2's last segment
-    alone = HairContacts.build(verts, None, threshold=THRESHOLD, stiffness=10.0, capacity=16, rest_gaps=False)
+    alone = _force_law(verts, None, threshold=THRESHOLD, stiffness=10.0, capacity=16, rest_gaps=False)
     force_ee, torque_ee, mass_ee = _apply(alone, _model(3, 2), _state(verts))
     assert np.abs(force_ee).max() > 0.0
     np.testing.assert_array_equal(force, force_ee)
@@ -367,7 +374,7 @@ def test_net_force_and_torque_vanish(seed):
     verts, rng = _tangled(seed)
     vel = rng.normal(0.0, 0.3, verts.shape)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
                                   capacity=20000, rest_gaps=False)
     force, torque, _ = _apply(contacts, _model(G, S), _state(verts, vel))
     assert contacts.contact_count() > 20
@@ -424,7 +431,7 @@ def test_friction_never_reverses_segment_pair(speed, mu):
     vel = np.zeros_like(verts)
     vel[0] = speed * slide / np.linalg.norm(slide)
     vel[1] = [0.0, -0.01, 0.0]
-    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, friction=mu,
+    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=k, damping=c, friction=mu,
                                   slip_velocity=slip, capacity=4, rest_gaps=False)
     force, vel_new = _explicit_step(contacts, verts, vel, _model(2, 1, mass), mass, h, [0, 0, 1, 1])
     n = np.array([0.0, -1.0, 0.0])
@@ -452,7 +459,7 @@ def test_friction_never_reverses_vertex_face(speed):
     vel = np.zeros_like(verts)
     vel[2] = [speed, 0.0, 0.3 * speed]  # strand 2 slides in the face's plane
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=10.0, friction=mu,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=10.0, friction=mu,
                                   capacity=16, segment_segment=False, skip_neighbour_strips=False, rest_gaps=False)
     owner = [g * S2 + max(k - 1, 0) for g in range(3) for k in range(S2 + 1)]
     _, vel_new = _explicit_step(contacts, verts, vel, _model(3, S2, mass), mass, h, owner)
@@ -478,7 +485,7 @@ def test_captured_step_follows_the_state():
     verts, rng = _tangled(3)
     vel = rng.normal(0.0, 0.3, verts.shape)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
-    contacts = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=5.0, damping=0.01, friction=0.4,
                                   capacity=20000, rest_gaps=False)
     model, state = _model(G, S), _state(verts, vel)
     n = model.seg_count
@@ -503,13 +510,13 @@ def test_overflow_sets_flags():
     verts, _ = _tangled(5)
     strips = TriangleStrips.build(verts, grid_shape=(ROWS, COLS))
     model = _model(G, S)
-    roomy = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000)
+    roomy = _force_law(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=20000)
     state = _state(verts)
     _apply(roomy, model, state)
     total = roomy.contact_count()
     assert total > 8 and not roomy.overflowed() and state.fault.numpy()[0] == 0
 
-    tight = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=8)
+    tight = _force_law(verts, strips, threshold=THRESHOLD, stiffness=1.0, capacity=8)
     _apply(tight, model, state)
     assert tight.contact_count() == total  # still counted, only the first 8 stored
     assert len(tight.contact_list()["kind"]) == 8
@@ -548,3 +555,168 @@ def test_strip_adjacency():
     assert degree.min() >= 2
     with pytest.raises(InteractionError, match="grid_shape"):
         TriangleStrips.build(verts, grid_shape=(3, 3))
+
+
+# -- the response inside the step ----------------------------------------------------------------------------------
+
+
+def _crossing_pendulums(delta, L=0.02):
+    """Two one-segment strands (ball-jointed at their roots, no joint springs, no gravity) whose midpoints cross
+    ``delta`` apart: A hangs along -z at y = -delta/2, B lies along +x at y = +delta/2, z = -L/2. Returns the Solver
+    (semi-implicit: no joint armature), its contacts, the model and its control."""
+    import hairwarp as hw
+    from hairwarp.model import Model, StrandParams
+    from hairwarp.solver import Solver
+
+    verts = np.array([[[0.0, -delta / 2, 0.0], [0.0, -delta / 2, -L]],
+                      [[-L / 2, delta / 2, -L / 2], [L / 2, delta / 2, -L / 2]]])
+    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
+                          drag=0.0)
+    model = Model.build(verts, params, segments=1, gravity=(0.0, 0.0, 0.0))
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=10.0, damping=0.01, friction=0.0,
+                                  capacity=4, rest_gaps=False, segment_segment=True, response=True)
+    solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, contacts=contacts, threads=1)
+    return solver, contacts, model, model.control()
+
+
+def _with_point_velocities(solver, model, control, point_velocity, L):
+    """A state at rest pose whose segments turn about their roots so that their midpoints move at
+    ``point_velocity[g]`` (perpendicular to the segment)."""
+    state = model.state()
+    xf = state.seg_xform.numpy()
+    w = np.zeros((model.seg_count, 3))
+    for g in range(model.strand_count):
+        R = Rotation.from_quat(xf[g, 3:7])
+        axis = R.apply([0.0, 0.0, -1.0])
+        omega = np.cross(axis * (L / 2), point_velocity[g]) / (L / 2) ** 2  # omega x r = v for v perpendicular to r
+        w[g] = R.inv().apply(omega)
+    state.joint_qd.assign(w.astype(np.float32))
+    solver.forward_kinematics(state, control)
+    return state
+
+
+def _midpoints_velocity(state, start, L):
+    """World velocities of the two midpoints from ``state``'s joint velocities in the frames of ``start`` (the
+    response is solved there; its position update then turns the segments by h dw)."""
+    xf = start.seg_xform.numpy().astype(np.float64)
+    w = state.joint_qd.numpy().astype(np.float64)
+    return np.array([Rotation.from_quat(xf[g, 3:7]).apply(np.cross(w[g], [0.0, 0.0, -L / 2])) for g in range(2)])
+
+
+@pytest.mark.parametrize("speed", [0.5, 0.0, -0.01, -0.5])
+def test_response_is_the_backward_euler_pair(speed):
+    """Two pendulums whose midpoints meet (``speed`` > 0: approaching, each at that speed): the response gives each
+    midpoint the normal velocity of the pair's backward-Euler force ``k d - D v_n'`` taken as a damper 2 D toward the
+    pair's mean velocity, with the pendulum's effective mass at its midpoint, ``I_root / (L/2)^2``, in closed form.
+    A pair that the free step sends apart faster than ``k d / D`` is left alone (a contact never pulls)."""
+    L, delta, h, k, c = 0.02, 0.001, 1.0 / 60.0, 10.0, 0.01
+    solver, contacts, model, control = _crossing_pendulums(delta, L)
+    solver.set_dt(h)
+    start = model.state()
+    free = _with_point_velocities(solver, model, control, [[0.0, speed, 0.0], [0.0, -speed, 0.0]], L)
+    contacts.detect(model, start)
+    contacts.apply_forces(model, start, solver.dt)
+    solver._respond(start, free, control)
+    v = _midpoints_velocity(free, start, L)
+
+    m = float(model.seg_mass.numpy()[0])
+    inertia = model.seg_inertia.numpy()[0].astype(np.float64)
+    m_eff = (inertia[0] + m * (L / 2) ** 2) / (L / 2) ** 2
+    D = h * k + c
+    vn = -2.0 * speed  # n from B to A is -y
+    push = k * (THRESHOLD - delta) - D * vn
+    dv = h * max(push, 0.0) / (m_eff + 2.0 * h * D)
+    # float32 state and solve: velocities to ~1e-6 relative of the speeds involved
+    tol = 1e-5 * (abs(speed) + dv) + 1e-9
+    np.testing.assert_allclose(v[0], [0.0, speed - dv, 0.0], atol=tol)
+    np.testing.assert_allclose(v[1], [0.0, -speed + dv, 0.0], atol=tol)
+    if push <= 0.0:
+        assert dv == 0.0 and np.abs(v[0, 1] - speed) <= tol
+
+
+def test_response_friction_never_reverses_the_slip():
+    """The same pendulums sliding past each other along x as they meet: the friction damper takes slip out and never
+    reverses it, and takes no more than the cone allows over the step, ``h mu f_n / m_eff`` of each midpoint."""
+    L, delta, h, mu = 0.02, 0.001, 1.0 / 60.0, 0.5
+    solver, contacts, model, control = _crossing_pendulums(delta, L)
+    contacts._response_buffer.friction = mu
+    solver.set_dt(h)
+    start = model.state()
+    for slide in (1e-4, 0.01, 1.0):
+        free = _with_point_velocities(solver, model, control, [[0.0, 0.1, 0.0], [0.0, 0.0, slide]], L)
+        contacts.detect(model, start)
+        contacts.apply_forces(model, start, solver.dt)
+        before = _midpoints_velocity(free, start, L)
+        solver._respond(start, free, control)
+        after = _midpoints_velocity(free, start, L)
+        slip_before = (before[0] - before[1])[2]
+        slip_after = (after[0] - after[1])[2]
+        assert 0.0 <= slip_after * np.sign(slip_before) <= abs(slip_before) * (1 + 1e-6)
+        assert abs(slip_after) < abs(slip_before)
+        m = float(model.seg_mass.numpy()[0])
+        inertia = model.seg_inertia.numpy()[0].astype(np.float64)
+        m_eff = (inertia[0] + m * (L / 2) ** 2) / (L / 2) ** 2
+        fn = 10.0 * (THRESHOLD - delta) + (h * 10.0 + 0.01) * 0.1
+        assert abs(after[1, 2] - before[1, 2]) <= h * mu * fn / m_eff * (1 + 1e-4)
+
+
+def test_link_response_is_the_backward_euler_pair():
+    """The same pendulums tied at their midpoints by a link (slack at rest) and moving apart along y at ``speed``
+    each: the response gives each midpoint the change of the link's backward-Euler force ``-h k u'`` taken as a
+    damper ``2 h k`` toward the pair's mean velocity, with the pendulum's effective mass at its midpoint, in closed
+    form (the damping acts along the link, which has no direction while slack)."""
+    import hairwarp as hw
+    from hairwarp.interactions import StaticLinks
+    from hairwarp.solver import Solver
+
+    L, delta, h, k, speed = 0.02, 0.001, 1.0 / 60.0, 5.0, 0.3
+    _, _, model, control = _crossing_pendulums(delta, L)
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01, stiffness=k, damping=0.01,
+                              break_length=1.0, response=True)
+    assert links.link_count == 1
+    solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, threads=1)
+    solver.set_dt(h)
+    start = model.state()
+    free = _with_point_velocities(solver, model, control, [[0.0, -speed, 0.0], [0.0, speed, 0.0]], L)
+    links.apply_forces(model, start, solver.dt, solver.seg_force, solver.seg_torque)
+    solver._respond(start, free, control)
+    v = _midpoints_velocity(free, start, L)
+
+    # The turn rates each link end answers to, and its velocity per unit of each (rows): A's end carries the rest
+    # offset (it sits on B's axis, delta off A's) and turns A about x only; B's end, on B's axis, turns B about z
+    # (along y) and about y (along z, the offset's share). Each side: (I + 2 h^2 k J J^T) dw = h J (-/+ h k u).
+    assert links.seg_a[0] == 0
+    m = float(model.seg_mass.numpy()[0])
+    inertia = model.seg_inertia.numpy()[0].astype(np.float64)
+    i_root = inertia[0] + m * (L / 2) ** 2
+    J = {0: np.array([[0.0, L / 2, delta]]), 1: np.array([[0.0, L / 2, 0.0], [0.0, 0.0, -L / 2]])}
+    rate = {0: np.array([-speed / (L / 2)]), 1: np.array([speed / (L / 2), 0.0])}
+    u = J[0].T @ rate[0] - J[1].T @ rate[1]
+    for g, side in ((0, 1.0), (1, -1.0)):
+        lhs = i_root * np.eye(len(rate[g])) + 2.0 * h * h * k * J[g] @ J[g].T
+        new_rate = rate[g] + np.linalg.solve(lhs, h * J[g] @ (-side * h * k * u))
+        np.testing.assert_allclose(v[g], J[g].T @ new_rate * [1.0, 1.0, 1.0 if g == 1 else 0.0],
+                                   atol=1e-5 * speed)
+
+
+def test_fault_names_the_response_stage():
+    """Links that stop two strands meeting at 20 m/s within one frame-rate step change their joints by more than
+    half a turn in the response: its own bit is set, not the free dynamics', and the message names the response."""
+    import hairwarp as hw
+    from hairwarp.interactions import StaticLinks
+    from hairwarp.solver import SimulationFault, Solver
+
+    L, h = 0.02, 1.0 / 30.0
+    _, _, model, control = _crossing_pendulums(0.001, L)
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01, stiffness=1.0e4, damping=0.0,
+                              break_length=1.0, response=True)
+    solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, threads=1)
+    start = _with_point_velocities(solver, model, control, [[0.0, -10.0, 0.0], [0.0, 10.0, 0.0]], L)
+    end = model.state()
+    solver.step(start, end, control, h)
+    bits = int(end.fault.numpy()[0])
+    assert bits & int(Fault.INTERACTION_RESPONSE)
+    assert not bits & int(Fault.JOINT_SPEED | Fault.COLLISION_SPEED)
+    with pytest.raises(SimulationFault, match="in links and hair contacts.*links.response") as info:
+        solver.check(end, frame=1)
+    assert info.value.stage.startswith("links and hair contacts")

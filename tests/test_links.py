@@ -160,7 +160,8 @@ def setup():
     roots, rot = _groom(rng)
     verts = _chain(roots, rot)
     # Shared by the tests, these links never break (apply breaks links as it goes); breaking tests build their own.
-    links = StaticLinks.build(verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=1.0)
+    links = StaticLinks.build(verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D, break_length=1.0,
+                              response=False)
     return SimpleNamespace(rng=rng, roots=roots, rot=rot, verts=verts, links=links, model=_model())
 
 
@@ -229,7 +230,8 @@ def test_forces_match_seed_formula_and_conserve_momentum(setup, seed, implicit):
     so the pair's torque is -l x f, which vanishes with the step: the total matches the reference's."""
     rng = np.random.default_rng(seed)
     links = setup.links if implicit else StaticLinks.build(setup.verts, neighbours=3, radius=RADIUS, stiffness=K_S,
-                                                           damping=K_D, break_length=1.0, implicit_springs=False)
+                                                           damping=K_D, break_length=1.0, implicit_springs=False,
+                                                           response=False)
     bend = Rotation.from_rotvec(rng.normal(0.0, 0.05, (G * S, 3)))
     rigid = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3))
     shift = rng.normal(0.0, 0.02, 3)
@@ -268,7 +270,7 @@ def test_damping_dissipates(setup):
     omega = _perpendicular_omega(rng, verts, 5.0)
     vel = _velocities(rng, verts, omega, 0.2)
     links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=0.0,
-                              damping=K_D, break_length=1.0)
+                              damping=K_D, break_length=1.0, response=False)
     force, torque, _ = _apply(links, setup.model, _arrays(verts, rot, vel))
     # Power of the wrenches on rigid segments: F . v_origin + tau . w.
     power = np.sum(force * vel[:, :-1].reshape(-1, 3)) + np.sum(torque * omega)
@@ -280,7 +282,7 @@ def test_breaking_follows_numpy_and_is_permanent(setup, via):
     """Links past the break length break, in ``break_links`` and in the force pass of ``apply`` alike."""
     rng = np.random.default_rng(11)
     links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=K_S,
-                              damping=K_D, break_length=0.004)
+                              damping=K_D, break_length=0.004, response=False)
     bend = Rotation.from_rotvec(rng.normal(0.0, 0.15, (G * S, 3)))
     rot = setup.rot * bend
     verts = _chain(setup.roots, rot)
@@ -316,7 +318,7 @@ def test_breaking_follows_numpy_and_is_permanent(setup, via):
 def test_captured_step_follows_the_state(setup):
     """Links captured in a graph once, replayed on a moved state, give the forces and breaks of a direct call."""
     links = StaticLinks.build(setup.verts, radius=RADIUS, stiffness=K_S,
-                              damping=K_D, break_length=0.004)
+                              damping=K_D, break_length=0.004, response=False)
     model = setup.model
     state = _arrays(setup.verts, setup.rot, np.zeros_like(setup.verts))
     force, torque, mass = wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=wp.vec3), wp.zeros(G * S, dtype=float)

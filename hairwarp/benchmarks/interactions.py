@@ -213,12 +213,15 @@ def _stability_scene(kind: str, stiffness: float, quick: bool, overrides=()):
 def run_until_fault(kind: str, stiffness: float, *, implicit: bool, quick: bool = False, device=None,
                     overrides=()) -> float | None:
     """Run a head turn (60 degrees, 0.8 s period; 60 guides of 12 segments, ``quick``, else 150) with only links or
-    only contacts (``kind``) of ``stiffness`` [N/m] at h = 1/240 s, with or without their implicit mass; return the
+    only contacts (``kind``) of ``stiffness`` [N/m] at h = 1/240 s, implicit as shipped (the links' per-link
+    backward Euler, the contacts' response inside the step) or explicit (``implicit`` False); return the
     time [s] at which it blew up (a fault, a non-finite state or a joint faster than ``BLOW_UP_SPEED``), or None if it
     ran ``0.5 s`` (``quick``) or 1.5 s stably. ``overrides``: more scene ``key=value`` strings."""
     from hairwarp.runner import Simulation
     from hairwarp.solver import SimulationFault
 
+    if not implicit:
+        overrides = [*overrides, 'interactions.response="mass"', 'links.response="link"']
     sim = Simulation(_stability_scene(kind, stiffness, quick, overrides), device=device)
     for part in (sim.links, sim.contacts):
         if part is not None:
@@ -235,7 +238,7 @@ def run_until_fault(kind: str, stiffness: float, *, implicit: bool, quick: bool 
 
 
 def bench_spring_stability(quick: bool = False, device=None, stiffness=STABILITY_STIFFNESS) -> dict:
-    """The largest stable link and contact stiffness at h = 1/240 s with the semi-implicit mass and without it.
+    """The largest stable link and contact stiffness at h = 1/240 s, implicit as shipped and explicit.
 
     Returns ``{"dt", "rows": [{"kind", "implicit", "stiffness": [...], "blow_up_s": [... or None],
     "largest_stable"}]}``; a sweep stops at its first blow-up.
@@ -276,7 +279,7 @@ def _goal_row(cost: dict, margin: float) -> dict | None:
 def suite_interactions(config, out, log=lambda message: None) -> dict:
     """The ``interactions`` suite of ``hairwarp bench``: the cost of each interaction stage per step next to the
     dynamics on the Ratboy mohawk, every guide (2,219) and the scene's own 444, in one run; the largest stable link
-    and contact stiffness with and without the semi-implicit mass; and (full runs) the picture of one frame with and
+    and contact stiffness, implicit as shipped and explicit; and (full runs) the picture of one frame with and
     without interactions (``interactions.png`` in ``out``). ``config``: a
     :class:`hairwarp.benchmarks.common.BenchConfig`."""
     from hairwarp.scene import Scene
@@ -341,7 +344,7 @@ def md_interactions(data: dict) -> list[str]:
     if st:
         lines += ["", f"Largest stable stiffness at h = {st['dt']:.4g} s (a head turn with links alone or contacts "
                       "alone; a sweep stops at its first blow-up):", "",
-                  "| springs | semi-implicit mass | largest stable [N/m] | first blow-up |", "|---|---|---|---|"]
+                  "| springs | implicit (as shipped) | largest stable [N/m] | first blow-up |", "|---|---|---|---|"]
         for r in st["rows"]:
             blown = [(k, t) for k, t in zip(r["stiffness"], r["blow_up_s"], strict=True) if t is not None]
             first = f"{blown[0][0]:g} N/m at {blown[0][1]:.2f} s" if blown else "none in the sweep"
