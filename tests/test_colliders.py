@@ -12,6 +12,7 @@ from _reference import ellipsoid_closest
 from scipy.spatial.transform import Rotation
 
 from hairwarp.colliders import Collider, ColliderError, ColliderSet, TfxMeshError, read_tfxmesh
+from hairwarp.kernels import articulated as art
 from hairwarp.kernels.types import ColliderKind, Fault
 
 # float32 coordinates of metre-sized meshes carry ~1e-7 m rounding; distances and closest points are
@@ -514,6 +515,16 @@ def resting_strand_setup(rng, friction, plane_velocity, plane_omega=(0.0, 0.0, 0
     return strands, colliders
 
 
+@wp.kernel
+def _contact_solve(chains: art.StrandChains, dt: float, X: wp.array(dtype=wp.transform),
+                   V: wp.array(dtype=wp.spatial_vector), loads: art.SegmentLoads, q: wp.array(dtype=wp.quat),
+                   qd: wp.array(dtype=wp.vec3), contacts: art.BodyContacts, scratch: art.AbaScratch,
+                   dampers: art.InteractionResponse, with_dampers: int):
+    """``body_contact_solve`` on one strand at rest pose ``q`` under a still head, correcting ``qd`` in place."""
+    art.body_contact_solve(chains, wp.tid(), dt, dt, 0, X[0], V[0], loads, q, qd, contacts, scratch, dampers,
+                           with_dampers)
+
+
 def _chain_jacobians(q, lengths):
     """Float64 maps from joint velocities (child frames, (S, 3)) to vertex velocities, segment angular
     velocities and centre-of-mass velocities of one strand rooted at the origin of a still head."""
@@ -545,14 +556,7 @@ def test_body_contact_solve_matches_float64(beta):
     (M + h c J^T P J) dw = -h c J^T P (J w - v_target), M from the segments' kinetic energy."""
     import hairwarp as hw
     from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
-    from hairwarp.kernels import articulated as art
 
-    @wp.kernel
-    def solve(chains: art.StrandChains, dt: float, X: wp.array(dtype=wp.transform),
-              V: wp.array(dtype=wp.spatial_vector), loads: art.SegmentLoads, q: wp.array(dtype=wp.quat),
-              qd: wp.array(dtype=wp.vec3), contacts: art.BodyContacts, scratch: art.AbaScratch,
-              dampers: art.InteractionResponse):
-        art.body_contact_solve(chains, wp.tid(), dt, dt, 0, X[0], V[0], loads, q, qd, contacts, scratch, dampers, 0)
 
     rng = np.random.default_rng(11)
     S, h = 6, 1.0 / 240.0
@@ -576,8 +580,8 @@ def test_body_contact_solve_matches_float64(beta):
     contacts.friction.fill_(1.0)
     X = wp.array([wp.transform_identity()], dtype=wp.transform)
     V = wp.zeros(1, dtype=wp.spatial_vector)
-    wp.launch(solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd, contacts, solver.scratch,
-                                solver.dampers])
+    wp.launch(_contact_solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd, contacts,
+                                         solver.scratch, solver.dampers, 0])
 
     m, inertia = model.seg_mass.numpy().astype(float), model.seg_inertia.numpy().astype(float)
     M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
@@ -870,7 +874,6 @@ def test_interaction_dampers_match_float64():
     spin about the segment's own axis (which the dampers leave out), M from the segments' kinetic energy."""
     import hairwarp as hw
     from hairwarp.colliders import body_contacts
-    from hairwarp.kernels import articulated as art
 
     @wp.kernel
     def fill(r: wp.array(dtype=wp.vec3), M: wp.array(dtype=wp.mat33), f: wp.array(dtype=wp.vec3),
@@ -883,12 +886,6 @@ def test_interaction_dampers_match_float64():
         dampers.force[i] = f[i]
         dampers.torque[i] = art.spin_free_torque(r[i], f[i])
 
-    @wp.kernel
-    def solve(chains: art.StrandChains, dt: float, X: wp.array(dtype=wp.transform),
-              V: wp.array(dtype=wp.spatial_vector), loads: art.SegmentLoads, q: wp.array(dtype=wp.quat),
-              qd: wp.array(dtype=wp.vec3), contacts: art.BodyContacts, scratch: art.AbaScratch,
-              dampers: art.InteractionResponse):
-        art.body_contact_solve(chains, wp.tid(), dt, dt, 0, X[0], V[0], loads, q, qd, contacts, scratch, dampers, 1)
 
     rng = np.random.default_rng(5)
     S, h = 6, 1.0 / 60.0
@@ -918,8 +915,8 @@ def test_interaction_dampers_match_float64():
     qd = wp.array(w0.astype(np.float32), dtype=wp.vec3)
     X = wp.array([wp.transform_identity()], dtype=wp.transform)
     V = wp.zeros(1, dtype=wp.spatial_vector)
-    wp.launch(solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd, body_contacts(S + 1, "cpu"),
-                                solver.scratch, dampers])
+    wp.launch(_contact_solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd,
+                                         body_contacts(S + 1, "cpu"), solver.scratch, dampers, 1])
 
     Jv, Jo, Jc, rots = _chain_jacobians(model.joint_q0.numpy().astype(float), L)
     inertia = model.seg_inertia.numpy().astype(float)
