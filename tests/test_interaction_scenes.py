@@ -294,3 +294,16 @@ def test_links_hold_at_two_steps_a_frame():
     assert broken == 0 and fine_broken == 0
     rms = float(np.sqrt(np.mean(np.sum((coarse - fine) ** 2, axis=-1))))
     assert rms < 0.025, rms
+
+
+@pytest.mark.parametrize("substeps, expected", [(1, True), (2, True), (4, False), (8, False)])
+def test_auto_response_takes_frame_rate_steps(substeps, expected):
+    """``response = "auto"`` solves the links' and contacts' forces after the free step at steps of 1/80 s and longer
+    (1 and 2 substeps of 30 fps), and keeps the finer-step forms below; "step" and "link"/"mass" force either."""
+    over = [f"sim.substeps={substeps}", "groom.count=40", "sim.segments=6", "dense.count=0", "output.preview=false"]
+    sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=over))
+    assert bool(sim.solver.responders) == expected
+    assert sim.links.response == expected and sim.contacts.response == expected
+    forced = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=[
+        *over, 'links.response="step"', 'interactions.response="mass"']))
+    assert forced.links.response and not forced.contacts.response

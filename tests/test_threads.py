@@ -127,6 +127,8 @@ def _samples(path) -> dict:
     ("long_hair.toml", ["groom.count=120", "dense.count=400"]),
     # a fast turn with links, contacts and colliders, contacts detected every step
     ("fast_turn.toml", ["groom.count=120", "interactions.detect=\"step\""]),
+    # at 2 substeps: the links' and contacts' response after the free step (response = "auto")
+    ("fast_turn.toml", ["groom.count=120", "sim.substeps=2"]),
 ])
 def test_cache_same_bits_for_any_thread_count(tmp_path, scene, overrides):
     """The cache of a run is the same, array for array, on 1, 2, 3 and 8 threads (time samples compared, not file
