@@ -925,14 +925,13 @@ class HairContacts:
                    [model.seg_per_strand, self._strip_pairs, self.buffer, self.entry_force, self.entry_torque,
                     self.entry_mass], [seg_force, seg_torque, self.seg_spring_mass], device=self.device,
                    chunks=[(0, self.capacity)])
-            if self.implicit_springs and not self.response:
+            if self.implicit_springs:
                 launch(self.executor, link_kernels.add_excess_mass, len(self.seg_spring_mass),
                        [model.seg_mass, self.seg_spring_mass], [seg_implicit_mass], device=self.device,
                        min_chunk=SEGMENT_MIN_CHUNK)
             return
         launch(self.executor, contact_kernels.contact_gather, len(self._seg_cursor),
-               [model.seg_mass, int(self.implicit_springs and not self.response), self.seg_entry_start,
-                self.seg_entries, self.entry_force,
+               [model.seg_mass, int(self.implicit_springs), self.seg_entry_start, self.seg_entries, self.entry_force,
                 self.entry_torque, self.entry_mass, self.seg_spring_mass], [seg_force, seg_torque, seg_implicit_mass],
                device=self.device, min_chunk=GATHER_MIN_CHUNK)
 

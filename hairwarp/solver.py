@@ -102,10 +102,8 @@ class Solver:
 
         self.has_drag = model.drag > 0.0
         self.has_forces = self.has_drag or links is not None or contacts is not None
-        # the hair contacts' semi-implicit inertia, where their response is not solved inside the step (links solve
-        # theirs)
-        # Links and hair contacts whose force is solved after the free step, with the body contacts, in one
-        # response (``articulated.interaction_response``); the free step then leaves the body contacts to it.
+        # Links and hair contacts whose forces are solved after the free step (``articulated.interaction_response``);
+        # the hair contacts add their semi-implicit inertia to the free step where they are not.
         self.responders = [part for part in (links, contacts) if part is not None and part.response]
         self.has_implicit_mass = contacts is not None and not contacts.response
         m = n if self.responders else 1

@@ -756,16 +756,9 @@ def integrate_euler(
 
 
 #: Largest bend [rad] that the response after the free step (``interaction_response``) may add to a joint over a
-#: step: half a turn is no motion a step resolves. (``max_rotation_per_step``, 1 rad, bounds the free dynamics; at
-#: one step a frame a body contact that stops a vertex held by links changes its joints by more than that, and the
-#: run goes on sound.)
-RESPONSE_ROTATION = wp.constant(3.14159)
-
-
-#: Largest bend [rad] that the response after the free step (``interaction_response``) may add to a joint over a
-#: step: half a turn is no motion a step resolves. (``max_rotation_per_step``, 1 rad, bounds the free dynamics; at
-#: one step a frame a body contact that stops a vertex held by links changes its joints by more than that, and the
-#: run goes on sound.)
+#: step: half a turn is no motion a step resolves. ``max_rotation_per_step`` bounds the speed the free dynamics
+#: reach; this bounds the response's own change, which stops fast pairs and may rightly be large at one step a
+#: frame.
 RESPONSE_ROTATION = wp.constant(3.14159)
 
 

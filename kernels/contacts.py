@@ -598,14 +598,15 @@ def contact_force(
     entry_mass: wp.array(dtype=float),
 ):
     """Forces of the contact in one buffer slot (see ``contact_forces``), stored in its entries ``4 slot + e``."""
-    for e in range(4):
-        entry_force[4 * slot + e] = wp.vec3()
-        entry_torque[4 * slot + e] = wp.vec3()
-        entry_mass[4 * slot + e] = 0.0
-    if response.enabled != 0:
+    if response.enabled != 0:  # the entries are not read (``HairContacts.gather`` adds nothing)
         response.coef[slot] = 0.0
         for e in range(4):
             response.share[4 * slot + e] = 0.0
+    else:
+        for e in range(4):
+            entry_force[4 * slot + e] = wp.vec3()
+            entry_torque[4 * slot + e] = wp.vec3()
+            entry_mass[4 * slot + e] = 0.0
     kind = contacts.kind[slot]
     ia = contacts.a[slot]
     ib = contacts.b[slot]

@@ -378,7 +378,7 @@ def link_break(
 
 
 @wp.func
-def link_damper(link: int, side: float, seg: int, xf: wp.transform, h: float, seg_per_strand: int,
+def link_damper(link: int, side: float, xf: wp.transform, h: float, seg_per_strand: int,
                 link_stiffness: float, link_damping: float, link_seg_a: wp.array(dtype=wp.int32),
                 link_seg_b: wp.array(dtype=wp.int32), link_point_a: wp.array(dtype=wp.vec3),
                 link_point_b: wp.array(dtype=wp.vec3), vertex_positions: wp.array(dtype=wp.vec3),
@@ -461,7 +461,7 @@ def link_response_gather(
             link = b_slot_link[b_first + j - a_last]
             side = -1.0
         if link_broken[link] == 0:
-            r, M, f = link_damper(link, side, seg, xf, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
+            r, M, f = link_damper(link, side, xf, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
                                   link_seg_b, link_point_a, link_point_b, vertex_positions, vertex_velocities)
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap

@@ -626,7 +626,8 @@ def test_response_is_the_backward_euler_pair(speed):
     vn = -2.0 * speed  # n from B to A is -y
     push = k * (THRESHOLD - delta) - D * vn
     dv = h * max(push, 0.0) / (m_eff + 2.0 * h * D)
-    # float32 state and solve: velocities to ~1e-6 relative of the speeds involved
+    # float32 state and solve (a few dozen rounded operations on the speeds, ~1e-6 relative each): 1e-5 of the
+    # speeds involved, and 1e-9 m/s for the resting case
     tol = 1e-5 * (abs(speed) + dv) + 1e-9
     np.testing.assert_allclose(v[0], [0.0, speed - dv, 0.0], atol=tol)
     np.testing.assert_allclose(v[1], [0.0, -speed + dv, 0.0], atol=tol)
@@ -651,6 +652,7 @@ def test_response_friction_never_reverses_the_slip():
         after = _midpoints_velocity(free, start, L)
         slip_before = (before[0] - before[1])[2]
         slip_after = (after[0] - after[1])[2]
+        # float32: the slip read back carries ~1e-7 relative round-off, the cone bound a few float32 products
         assert 0.0 <= slip_after * np.sign(slip_before) <= abs(slip_before) * (1 + 1e-6)
         assert abs(slip_after) < abs(slip_before)
         m = float(model.seg_mass.numpy()[0])
@@ -695,6 +697,7 @@ def test_link_response_is_the_backward_euler_pair():
     for g, side in ((0, 1.0), (1, -1.0)):
         lhs = i_root * np.eye(len(rate[g])) + 2.0 * h * h * k * J[g] @ J[g].T
         new_rate = rate[g] + np.linalg.solve(lhs, h * J[g] @ (-side * h * k * u))
+        # float32 state and solve against float64: 1e-5 of the speed (as in the contact pair above)
         np.testing.assert_allclose(v[g], J[g].T @ new_rate * [1.0, 1.0, 1.0 if g == 1 else 0.0],
                                    atol=1e-5 * speed)
 
