@@ -376,3 +376,34 @@ def test_robustness_spin_keys_turn_at_the_spin_rate():
         assert abs(motion.evaluate(t).angular_velocity[2] - 2.0 * math.pi * 3.0) < 1e-6
     s = motion.evaluate(0.2 + 7.0 / 54.0)  # the 8th key: 140 degrees
     assert abs(2.0 * math.degrees(math.atan2(s.rotation[2], s.rotation[3])) - 140.0) < 1e-6
+
+
+def test_single_layer_baseline_writes_what_the_cache_writer_writes(tmp_path):
+    """The dense suite's baseline writer (one layer saved each frame) stores the same samples as the clip-layer
+    cache: both read back with usd-core, frame by frame, bit for bit (both store the float32 points as given)."""
+    from pxr import Usd, UsdGeom
+
+    from hairwarp.benchmarks.dense import SingleLayerWriter
+    from hairwarp.io.cache import CacheWriter
+
+    rng = np.random.default_rng(3)
+    counts = np.full(5, 4)
+    frames = [rng.normal(size=(20, 3)).astype(np.float32) for _ in range(3)]
+    paths = {"single": tmp_path / "single.usdc", "clips": tmp_path / "clips.usdc"}
+    for name, cls in (("single", SingleLayerWriter), ("clips", CacheWriter)):
+        cache = cls(paths[name], fps=30.0)
+        cache.add_curves("hair", counts, widths=(1e-4, 2e-5), basis="catmullRom")
+        for f, p in enumerate(frames):
+            cache.write_frame(f, {"hair": (p, 2.0 * p)})
+        cache.close()
+    read = {}
+    for name, path in paths.items():
+        stage = Usd.Stage.Open(str(path))
+        curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/hair"))
+        read[name] = [(np.asarray(curves.GetPointsAttr().Get(f)), np.asarray(curves.GetVelocitiesAttr().Get(f)))
+                      for f in range(len(frames))]
+        assert list(curves.GetCurveVertexCountsAttr().Get()) == list(counts)
+    for (ps, vs), (pc, vc), p in zip(read["single"], read["clips"], frames):
+        np.testing.assert_array_equal(ps, p)
+        np.testing.assert_array_equal(ps, pc)
+        np.testing.assert_array_equal(vs, vc)
