@@ -25,9 +25,10 @@ the finished cache into the one file at the output path instead.
 Cost of a frame. The writer takes float32, C-contiguous (N, 3) arrays without copying them (a Z-up, metre stage);
 the time goes to the finiteness and extent checks, to building the ``Vt`` arrays that USD stores (one ``memmove``
 into a fresh array, see :func:`hairwarp.io.usd_common._vec3f`) and to the layer's export and fsync, bound by the
-disk. Only the first two are the caller's: the commit thread waits on the fsyncs, which release the GIL, while the
-simulation runs (usd-core's export holds the GIL: it overlaps the simulation's kernels, not its Python);
-:attr:`CacheWriter.timings` adds them up per phase.
+disk. The caller does the first two and the frame layer's export (usd-core's export holds the GIL; run in the
+commit thread it also took a core from the simulation's threads, 3-4 ms a frame more at 10,000 strands on 2 cores);
+the commit thread waits on the fsyncs, which release the GIL, renames and rewrites the root while the simulation
+runs. :attr:`CacheWriter.timings` adds them up per phase.
 """
 
 from __future__ import annotations
@@ -100,14 +101,15 @@ class CacheWriter:
             (:attr:`resumed_after`); the next frame written must follow it.
         owner: take the lock of the working folder and prepare it (False in a background writer's process, whose
             caller holds the lock).
-        pipelined: commit each frame (save, fsync, rename, rewrite the root) in a thread while the caller goes on
+        pipelined: commit each frame (fsync, rename, rewrite the root) in a thread while the caller goes on
             (see :meth:`write_frame`); False commits it before :meth:`write_frame` returns.
 
     Attributes:
         timings: seconds spent writing frames so far, per phase: in the caller's :meth:`write_frame` ``check``
             (validation, unit conversion, extent), ``convert`` (numpy to ``Vt`` arrays), ``set`` (authoring the
-            samples) and ``wait`` (for the previous frame's commit); ``save`` (exports, fsyncs, renames, the root)
-            in the commit thread, complete once :meth:`flush` or :meth:`close` returns.
+            samples) and ``wait`` (for the previous frame's commit); ``save`` (the frame's export in the caller, then
+            fsyncs, renames and the root in the commit thread, complete once :meth:`flush` or :meth:`close`
+            returns).
         folder: the :class:`hairwarp.io.cache_folder.CacheFolder` (lock, checkpoints, what an earlier run left).
         resumed_after: the last frame of the resumed run, or None.
 
@@ -295,14 +297,14 @@ class CacheWriter:
                     checkpoint: dict | None = None):
         """Write one frame at time code ``frame``.
 
-        Every argument is checked before anything is written: a bad frame raises :class:`UsdFileError` naming the
-        file, the prim and the frame, and leaves the cache as it was. The arrays are copied into the frame's layer
-        before this returns, so the caller may overwrite them at once. The layer is then saved, fsynced, renamed
-        into place and named in the root by a commit thread while the caller goes on (the simulation of the next
+        Every argument is checked before anything is written: a bad frame raises :class:`UsdFileError` naming the file,
+        the prim and the frame, and leaves the cache as it was. The arrays are copied into the frame's layer before this
+        returns, so the caller may overwrite them at once. The layer is exported to a temporary file here, then fsynced,
+        renamed into place and named in the root by a commit thread while the caller goes on (the simulation of the next
         frame); the next call, :meth:`close`, :meth:`flush` and :meth:`abandon` wait for it first, so frames are
-        committed one at a time, in order, and the root always names complete frames only. A failed commit (a full
-        disk, an I/O error) is raised by the next of those calls (see :meth:`flush`). With ``pipelined=False``
-        the frame is complete on disk when this returns.
+        committed one at a time, in order, and the root always names complete frames only. A failed export (a full disk,
+        an I/O error) raises here, a failed commit in the next of those calls (see :meth:`flush`). With
+        ``pipelined=False`` the frame is complete on disk when this returns.
 
         Args:
             frame: frame number; larger than the last one written and not below ``start_frame``.
@@ -394,8 +396,8 @@ class CacheWriter:
 
 
     def _author_frame(self, prepared: dict, converted=None, prune: bool = False) -> None:
-        """Author the layer of a prepared frame, then commit it (:meth:`_commit_frame`): in the commit thread once
-        the previous frame's commit is done, or here without ``pipelined``.
+        """Author the layer of a prepared frame and export it, then commit it (:meth:`_commit_frame`): in the commit
+        thread once the previous frame's commit is done, or here (export included) without ``pipelined``.
 
         Args:
             prepared: what :meth:`_prepare_frame` returned.
@@ -450,24 +452,42 @@ class CacheWriter:
         t_set = time.perf_counter()
         self.timings["convert"] += t_converted - t_start
         self.timings["set"] += t_set - t_converted
-        self._wait_commit()
-        held = [layer]  # the commit drops it once saved: its arrays are freed before the root is rewritten
-        del layer
         if not self._pipelined:
-            self._commit_frame(frame, held, nbytes, prune)
+            self._wait_commit()
+            self._commit_frame(frame, [layer], nbytes, prune)
             return
+        # The export runs here, beside the previous frame's fsyncs: it holds Python's lock anyway, and in the commit
+        # thread it would also take a core from the simulation's threads while they need both.
+        dest = self.folder.frame_layer(frame)
+        try:
+            tmp = self.folder.export_temporary(layer, dest, nbytes + _FRAME_OVERHEAD, f"frame {frame}")
+        finally:
+            del layer
+        self.timings["save"] += time.perf_counter() - t_set
+        try:
+            self._wait_commit()
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        held = [tmp]
         self._pending_frame = frame
         self._commit_thread = threading.Thread(target=self._commit_in_thread, args=(frame, held, nbytes, prune),
                                                name=f"hairwarp cache commit {frame}")
         self._commit_thread.start()
 
     def _commit_frame(self, frame: int, held: list, nbytes: int, prune: bool) -> None:
-        """Save the frame layer in ``held`` (fsynced and renamed into place), then rewrite the root to name it;
-        only then is the frame complete (:attr:`last_frame`) and the checkpoints before it removed."""
+        """Save the frame in ``held`` (its layer, or the temporary file it was exported to) fsynced and renamed into
+        place, then rewrite the root to name it; only then is the frame complete (:attr:`last_frame`) and the
+        checkpoints before it removed."""
         t_start = time.perf_counter()
+        dest, what = self.folder.frame_layer(frame), f"frame {frame}"
         try:
-            self.folder.export_layer(held.pop(), self.folder.frame_layer(frame), nbytes + _FRAME_OVERHEAD,
-                                     f"frame {frame}")
+            done = held.pop()
+            if isinstance(done, Path):
+                self.folder.commit(done, dest, what)
+            else:
+                self.folder.export_layer(done, dest, nbytes + _FRAME_OVERHEAD, what)
+            del done
             self._write_root(self._frames + [frame])
             self._frames.append(frame)
             if prune:

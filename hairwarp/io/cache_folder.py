@@ -238,7 +238,12 @@ class CacheFolder:
                                   f"{_human_bytes(free)} are free")
 
     def export_layer(self, layer, dest: Path, needed: int, what: str) -> None:
-        """Write an Sdf layer to ``dest`` atomically: a temporary name, fsync, rename, fsync of the folder.
+        """Write an Sdf layer to ``dest`` atomically: a temporary name, fsync, rename, fsync of the folder
+        (:meth:`export_temporary`, then :meth:`commit`)."""
+        self.commit(self.export_temporary(layer, dest, needed, what), dest, what)
+
+    def export_temporary(self, layer, dest: Path, needed: int, what: str) -> Path:
+        """Export an Sdf layer to the temporary name of ``dest`` (returned), not yet flushed nor in place.
 
         usd-core can crash after a crate save that ran out of space into a layer it keeps; an in-memory layer
         exported once is dropped instead, and the space is checked first.
@@ -255,9 +260,10 @@ class CacheFolder:
         if not ok:
             _discard(tmp)
             raise CacheWriteError(f"writing {what} to {dest} failed")
-        self._commit(tmp, dest, what)
+        return tmp
 
-    def _commit(self, tmp: Path, dest: Path, what: str) -> None:
+    def commit(self, tmp: Path, dest: Path, what: str) -> None:
+        """Flush ``tmp`` to the disk and rename it to ``dest``, then flush the folder's entries."""
         try:
             fsync_path(tmp)
             os.replace(tmp, dest)
@@ -277,7 +283,7 @@ class CacheFolder:
             _discard(tmp)
             raise CacheWriteError(f"writing the state after frame {frame} to {dest} failed: "
                                   f"{_os_error_text(exc)}") from None
-        self._commit(tmp, dest, f"the state after frame {frame}")
+        self.commit(tmp, dest, f"the state after frame {frame}")
 
     def read_checkpoint(self, frame: int) -> dict[str, np.ndarray]:
         with np.load(self.checkpoint_path(frame)) as data:
