@@ -347,6 +347,15 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
     assert row["ratio"] == pytest.approx(row["colliders"]["second_mm_s"] / row["no_colliders"]["second_mm_s"])
     assert isinstance(row["meets_speed"], bool) and isinstance(row["meets_ratio"], bool)
     assert set(row["resting"]) == {"vertices", "max_mm", "rms_mm"}
+    sticky = row["sticky"]
+    assert sticky["fault"] is None and sticky["frames_done"] == 60 and set(sticky["resting"]) == set(row["resting"])
+    assert sticky["ratio"] == pytest.approx(sticky["second_mm_s"] / row["no_colliders"]["second_mm_s"])
+    # the sticky run's scene really carries the friction on every collider
+    from hairwarp.benchmarks.robustness import STICKY_FRICTION, build, head_still, raw_scene
+    from hairwarp.benchmarks.robustness import sticky as make_sticky
+    scene = build(make_sticky(head_still(raw_scene("long_hair_shoulders"))), "long_hair_shoulders")
+    assert scene.head.friction == STICKY_FRICTION and scene.colliders
+    assert all(c.friction == STICKY_FRICTION for c in scene.colliders)
     # With the head still and nothing to touch, the strands only lose energy (drag, damping): the tips slow down
     # from one second to the next.
     free = row["no_colliders"]["rms_speed_per_second_mm_s"]

@@ -38,6 +38,8 @@ SCENES = ("tiny", "long_hair", "long_hair_shoulders", "fast_turn", "ratboy_mohaw
 # Goals of hair that holds up: at rest when the head is still, whole at speed, stable at frame rate.
 GOAL_REST_MM_S = 2.0  # guide tip RMS speed in the 6th second, head still [mm/s]
 GOAL_REST_RATIO = 1.2  # ... and at most this times the same scene without colliders
+# Friction of the rest suite's third run (mu = 4): a vertex that still moves there is not sliding at its cone's edge.
+STICKY_FRICTION = 0.8
 GOAL_RESTING_MM = 0.05  # largest per-frame motion of a vertex resting on a collider [mm]
 MOVING_MM = 1.0  # a tip moving more than this between the last two frames crawls in a render [mm]
 BURST_M_S = 3.0  # a vertex faster than this is a burst [m/s]
@@ -113,6 +115,15 @@ def without_colliders(raw: dict) -> dict:
     raw = copy.deepcopy(raw)
     raw.setdefault("head", {})["shape"] = "none"
     raw.pop("colliders", None)
+    return raw
+
+
+def sticky(raw: dict) -> dict:
+    """Every collider's friction (the head's and each ``[[colliders]]``'s) at :data:`STICKY_FRICTION`."""
+    raw = copy.deepcopy(raw)
+    raw.setdefault("head", {})["friction"] = STICKY_FRICTION
+    for collider in raw.get("colliders", []):
+        collider["friction"] = STICKY_FRICTION
     return raw
 
 
@@ -244,11 +255,11 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
             continue
         raw = head_still(raw_scene(name))
         row = {"scene": name, "status": "ok"}
-        for label, r in (("colliders", raw), ("no_colliders", without_colliders(raw))):
+        for label, r in (("colliders", raw), ("no_colliders", without_colliders(raw)), ("sticky", sticky(raw))):
             scene = build(r, name)
             fps = float(scene.sim.fps)
             frames = int(round(duration * fps))
-            keep = frames - int(round(fps)) if label == "colliders" else None
+            keep = frames - int(round(fps)) if label != "no_colliders" else None
             run = run_scene(scene, frames, keep_vertices_from=keep)
             speed = tip_speeds(run["tips"], 1.0 / fps)
             per_s = rms_per_second(speed, fps)
@@ -263,8 +274,12 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
             }
             if label == "colliders":
                 row["resting"] = resting_motion(run["sim"], run["vertices"])
+            elif label == "sticky":
+                row["sticky"]["resting"] = resting_motion(run["sim"], run["vertices"])
         c, n = row["colliders"]["second_mm_s"], row["no_colliders"]["second_mm_s"]
         row["ratio"] = c / n if c is not None and n else None
+        k = row["sticky"]["second_mm_s"]
+        row["sticky"]["ratio"] = k / n if k is not None and n else None
         row["meets_speed"] = c is not None and c <= GOAL_REST_MM_S
         row["meets_ratio"] = row["ratio"] is not None and row["ratio"] <= GOAL_REST_RATIO
         rmax = row["resting"]["max_mm"]
@@ -274,6 +289,7 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
             f"moving tips {_pct(row['colliders']['moving_tips_fraction'])}, resting vertices "
             f"{row['resting']['vertices']} max {_f(rmax)} mm/frame")
     return {"duration_s": duration, "second": second, "goal_mm_s": GOAL_REST_MM_S, "goal_ratio": GOAL_REST_RATIO,
+            "sticky_friction": STICKY_FRICTION,
             "goal_resting_mm": GOAL_RESTING_MM, "moving_mm": MOVING_MM, "resting_slack_m": RESTING_SLACK_M,
             "rows": rows}
 
@@ -752,6 +768,14 @@ def _f(x, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
+def _sticky(run: dict | None) -> str:
+    if not run:
+        return "–"
+    if run["fault"] or run["nan"]:
+        return _fault(run)
+    return f"{_f(run['second_mm_s'])}, {_f(run['ratio'])}, {_f(run['resting']['max_mm'])}"
+
+
 def _pct(x) -> str:
     return "–" if x is None else f"{100 * x:.0f} %"
 
@@ -782,15 +806,20 @@ def md_robustness(data: dict) -> list[str]:
              f"*Moving tips*: tips moving > {rest['moving_mm']:g} mm between the last two frames (goal 0 %: at "
              f"{GOAL_REST_MM_S:g} mm/s a tip moves {GOAL_REST_MM_S / 30:.2f} mm a frame). *Resting vertices*: "
              f"vertices (roots excluded) within a collider's contact layer (+ {1e3 * rest['resting_slack_m']:g} mm) "
-             f"in every frame of the last second; their largest motion between frames.", "",
+             f"in every frame of the last second; their largest motion between frames. *Friction "
+             f"{STICKY_FRICTION:g}*: the same run with every collider's friction at {STICKY_FRICTION:g} (mu = "
+             f"{STICKY_FRICTION / (1 - STICKY_FRICTION):g}; the scenes ship 0.3, mu = 0.43): what is left of the "
+             "motion once the hair can hardly slide over the colliders (second, ratio to no colliders, resting "
+             "vertices' largest motion).", "",
              f"![rest]({CHART_REST})", "",
              f"| scene | second {s} [mm/s] (goal ≤ {GOAL_REST_MM_S:g}) | without colliders [mm/s] | ratio (goal ≤ "
              f"{GOAL_REST_RATIO:g}×) | tips per second 1..{int(rest['duration_s'])} [mm/s] | moving tips (goal 0 %) "
-             f"| resting vertices: count, max per frame [mm] (goal < {GOAL_RESTING_MM:g}) |",
-             "|---|---:|---:|---:|---|---:|---|"]
+             f"| resting vertices: count, max per frame [mm] (goal < {GOAL_RESTING_MM:g}) "
+             f"| friction {STICKY_FRICTION:g}: second {s} [mm/s], ratio, resting max [mm] |",
+             "|---|---:|---:|---:|---|---:|---|---|"]
     for row in rest["rows"]:
         if row.get("status") != "ok":
-            lines.append(f"| `{row['scene']}` | skipped: {row.get('message')} | | | | | |")
+            lines.append(f"| `{row['scene']}` | skipped: {row.get('message')} | | | | | | |")
             continue
         c, n, rv = row["colliders"], row["no_colliders"], row["resting"]
         faults = "".join(f" ({k.replace('_', ' ')}: {_fault(row[k])})" for k in ("colliders", "no_colliders")
@@ -799,7 +828,23 @@ def md_robustness(data: dict) -> list[str]:
                      f"| {_f(n['second_mm_s'])} | {_f(row['ratio'])} {_v(row['meets_ratio'])} "
                      f"| {', '.join(_f(x, 2) for x in c['rms_speed_per_second_mm_s'])} "
                      f"| {_pct(c['moving_tips_fraction'])} {_v(c['moving_tips_fraction'] == 0)} "
-                     f"| {rv['vertices']}, {_f(rv['max_mm'])} {_v(row['meets_resting'])} |")
+                     f"| {rv['vertices']}, {_f(rv['max_mm'])} {_v(row['meets_resting'])} "
+                     f"| {_sticky(row.get('sticky'))} |")
+    ok_rows = [row for row in rest["rows"] if row.get("status") == "ok" and row.get("sticky")
+               and not (row["sticky"]["fault"] or row["sticky"]["nan"])]
+    slid = [row["scene"] for row in ok_rows if (not row["meets_ratio"] or not row["meets_resting"])
+            and (row["sticky"]["ratio"] or 0.0) <= GOAL_REST_RATIO
+            and (row["sticky"]["resting"]["max_mm"] or 0.0) < GOAL_RESTING_MM]
+    if slid:
+        lines += ["", f"- At friction {STICKY_FRICTION:g} {', '.join(f'`{x}`' for x in slid)} meet the ratio and "
+                      "resting-vertex goals they miss as shipped: the motion left there is hair sliding over the "
+                      "colliders at its friction cone's edge, as Coulomb's law lets it."]
+    worse = [row for row in ok_rows if (row["sticky"]["second_mm_s"] or 0.0) > (row["colliders"]["second_mm_s"] or 0.0)
+             * 1.5]
+    if worse:
+        lines += ["", f"- Faster at friction {STICKY_FRICTION:g} than as shipped in second {s}: " + ", ".join(
+            f"`{row['scene']}` ({_f(row['sticky']['second_mm_s'])} against {_f(row['colliders']['second_mm_s'])} "
+            "mm/s)" for row in worse) + "."]
     free = [row["scene"] for row in rest["rows"] if row.get("status") == "ok"
             and (row["no_colliders"]["second_mm_s"] or 0.0) > GOAL_REST_MM_S]
     if free:
