@@ -29,9 +29,9 @@ NOISE_S = 2e-3
 SETTLE_FRAMES = 4
 
 
-def _settled_default_scene(device, repeats: int):
-    """The default scene ``SETTLE_FRAMES`` frames in, and the median wall time of one more simulated frame:
-    ``(scene, simulation, quiet-gate record, seconds)``."""
+def _settled_default_scene(device, repeats: int, threads: int | None = None):
+    """The default scene ``SETTLE_FRAMES`` frames in (on ``threads`` CPU threads; None: every core), and the median
+    wall time of one more simulated frame: ``(scene, simulation, quiet-gate record, seconds)``."""
     import warp as wp
 
     from hairwarp.benchmarks.common import GATE
@@ -39,7 +39,7 @@ def _settled_default_scene(device, repeats: int):
     from hairwarp.scene import Scene
 
     scene = Scene.default()
-    sim = Simulation(scene, device=device)
+    sim = Simulation(scene, device=device, threads=threads)
     for _ in range(SETTLE_FRAMES):
         sim.advance_frame()
     gate = GATE.wait()
@@ -103,7 +103,7 @@ def _time_writes(folder: Path, name: str, counts: np.ndarray, widths, basis: str
 
 
 def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None, *, repeats: int | None = None,
-                      push_out: bool = True) -> dict:
+                      push_out: bool = True, threads: int | None = None) -> dict:
     """Time one output frame of dense hair, stage by stage, against one simulated frame of the default scene.
 
     Args:
@@ -134,7 +134,7 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
     def sync():
         wp.synchronize_device(device)
 
-    scene, sim, gate, simulate_s = _settled_default_scene(device, repeats)
+    scene, sim, gate, simulate_s = _settled_default_scene(device, repeats, threads)
     model = sim.model
     cfg = scene.dense
     fps = float(scene.sim.fps)
@@ -311,7 +311,8 @@ def _pipeline_block(sim, hair, folder: Path, basis: str, writer: str, frames: in
 
 
 def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"), quick: bool = False, device=None,
-                         *, frames: int | None = None, rounds: int | None = None, push_out: bool = True) -> dict:
+                         *, frames: int | None = None, rounds: int | None = None, push_out: bool = True,
+                         threads: int | None = None) -> dict:
     """End-to-end frames of the default scene with dense output: simulate, interpolate (Hermite for linear curves,
     push-out from the head), copy to the host, write, with no writer, the inline writer and the background writer.
 
@@ -339,7 +340,7 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
     device = wp.get_device(device)
     frames = int(frames or (2 if quick else 4))
     rounds = int(rounds or (1 if quick else 5))
-    scene, sim, gate, simulate_s = _settled_default_scene(device, 3 if quick else 5)
+    scene, sim, gate, simulate_s = _settled_default_scene(device, 3 if quick else 5, threads)
     model = sim.model
     cfg = scene.dense
     results = []
@@ -372,7 +373,8 @@ def bench_dense_pipeline(counts=(10_000, 100_000), bases=("catmullRom", "linear"
                 })
             del hair
     return {"device": str(device), "guides": model.strand_count, "segments": model.seg_per_strand,
-            "substeps": int(scene.sim.substeps), "simulate_frame_s": simulate_s, "frames": frames, "rounds": rounds,
+            "substeps": int(scene.sim.substeps), "threads": sim.solver.executor.threads, "simulate_frame_s": simulate_s,
+            "frames": frames, "rounds": rounds,
             "load": gate, "results": results}
 
 
@@ -398,10 +400,11 @@ def suite_dense(config, out, log=lambda message: None) -> dict:
     quick, device = bool(config.quick), config.device
     counts = (1_000,) if quick else (10_000, 100_000)
     log(f"dense: one output frame stage by stage, {', '.join(f'{n:,}' for n in counts)} strands")
-    stages = bench_dense_frame(counts=counts, quick=quick, device=device)
+    threads = int(getattr(config, "threads", 0) or 0) or None  # --threads; None: every core
+    stages = bench_dense_frame(counts=counts, quick=quick, device=device, threads=threads)
     log("dense: end-to-end frames with no writer, the background writer, the inline writer and one layer saved "
         "each frame")
-    pipeline = bench_dense_pipeline(counts=counts, quick=quick, device=device)
+    pipeline = bench_dense_pipeline(counts=counts, quick=quick, device=device, threads=threads)
     verdicts = [{k: r[k] for k in ("count", "basis", "write_cheaper_than_simulate", "writer_cheaper_than_simulate")}
                 for r in pipeline["results"]]
     log("dense: the disk's sustained write rate")
@@ -416,16 +419,17 @@ def md_dense(data: dict) -> list[str]:
     sim_ms = 1e3 * pipe["simulate_frame_s"]
     lines = ["## Dense output: writing a frame against simulating it (`hairwarp bench dense`)", "",
              f"One simulated frame of the default scene ({pipe['guides']} guides x {pipe['segments']} segments, "
-             f"{pipe['substeps']} substeps): **{sim_ms:.1f} ms** on {pipe['device']}. Per output frame, median of "
-             f"{pipe['rounds']} blocks of {pipe['frames']} frames; *write* = frame time with the writer less the "
-             "frame time without one (noise can make it negative); *blocked* = time the simulating thread spends in "
-             "the writer's `write_frame` (inline: checks, copy into `Vt` arrays, authoring, waiting for the previous "
-             "frame's commit, which its thread saves, fsyncs and renames while the next frame simulates; background: "
-             "checks and the copy into shared memory); *writer process* = extents, convert, set and save in the "
-             "background writer's process; *single layer* = the same frames into one crate layer saved after every "
-             "frame (`SingleLayerWriter`: no fsync, no frame file, no root rewrite, and no cache at all if the run "
-             "stops before its end), the baseline of what the frame layers cost. Write < simulate: inline / "
-             "background.",
+             f"{pipe['substeps']} substeps): **{sim_ms:.1f} ms** on {pipe['device']}"
+             f"{_threads_text(pipe.get('threads'))}. Per output frame, "
+             f"median of {pipe['rounds']} blocks of {pipe['frames']} frames; *write* = frame time with the "
+             "writer less the frame time without one (noise can make it negative); *blocked* = time the "
+             "simulating thread spends in the writer's `write_frame` (inline: checks, copy into `Vt` arrays, "
+             "authoring, the frame layer's export, waiting for the previous frame's commit, which its thread "
+             "fsyncs, renames and names in the root while the next frame simulates; background: checks and the "
+             "copy into shared memory); *writer process* = extents, convert, set and save in the background "
+             "writer's process; *single layer* = the same frames into one crate layer saved after every frame "
+             "(`SingleLayerWriter`: no fsync, no frame file, no root rewrite, and no cache at all if the run stops "
+             "before its end), the baseline of what the frame layers cost. Write < simulate: inline / background.",
              ""]
     disk = data.get("disk_write_rate")
     if disk:
@@ -462,6 +466,12 @@ def md_dense(data: dict) -> list[str]:
                           "fresh copies outweigh them at larger frames.")
     lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s.*"]
     return lines
+
+
+def _threads_text(threads) -> str:
+    if not threads:
+        return ""
+    return f", {threads} thread{'' if threads == 1 else 's'}"
 
 
 def bench_usd_write(counts=(10_000, 100_000), quick: bool = False, device=None, *, points_per_curve: int = 81,
