@@ -339,6 +339,10 @@ def aba_strand(
 # Coulomb coefficient of the scenes' friction f in [0, 1): mu = f / (1 - f); f = 1 holds the vertex (mu infinite).
 FULL_FRICTION = wp.constant(1.0)
 
+#: Most solves of a strand's body contacts in a step (``body_contact_solve``): each one after the first leaves out
+#: the vertices whose damper pulled in the one before.
+CONTACT_PASSES = wp.constant(4)
+
 #: Largest growth rate [1/s] of a strand's velocities that the explicit velocity terms of ABA may add in a spinning
 #: frame (``integrate_euler``). Symplectic Euler on the Coriolis term of a base spinning at Omega grows a velocity by
 #: ``sqrt(1 + 4 h^2 Omega^2)`` per step, about ``2 h Omega^2`` per second: at 3 rev/s and 8 steps a frame that is
@@ -400,6 +404,13 @@ def body_contact_solve(
     Friction is Coulomb's with the normal force of this step: a force outside the cone is cut back to it and
     the vertex's share ``beta`` is scaled so that its next step's damper meets the cone (static friction holds
     while the force stays within it). Writes ``contacts.beta`` and ``contacts.force`` of every vertex.
+
+    Contacts only push: the solve treats the held dampers as two-sided, so a pass in which a vertex's damper
+    pulls it toward the body (its neighbours' stops carried it in) is undone and the strand solved again from
+    its free velocities without that vertex; a vertex released that the solve without it takes into the body
+    faster than its gap allows is taken back for good. At most ``CONTACT_PASSES`` solves (an active set; each
+    one more inward and outward pass, on the strands that need it). Two-sided, such pulls sucked stiff strands
+    onto the head and whipped their tails (4-5 m/s at 64 segments and 240 steps a second, 0.3 m/s now).
     """
     S = chains.seg_per_strand
     vbase = strand * (S + 1)
@@ -410,162 +421,195 @@ def body_contact_solve(
     hc = contacts.stiffness * mass
     c = hc / h
 
-    # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
-    R = wp.transform_get_rotation(X_head)
-    omega = wp.spatial_top(V_head)
-    x = wp.transform_point(X_head, chains.strand_root_pos[strand])
-    v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
-    active = int(0)
-    for k in range(S):
-        i = strand * S + k
-        vi = vbase + k + 1
-        R = R * joint_q[i]
-        omega = omega + wp.quat_rotate(R, joint_qd[i])
-        d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
-        v = v + wp.cross(omega, d)
-        n = wp.vec3()
-        held = float(0.0)
-        target = float(0.0)
-        beta = float(1.0)
-        warm = wp.vec3()
-        if contacts.enabled != 0:  # else only the dampers (``interaction_response`` without colliders)
-            n = contacts.normal[vi]
-            beta = contacts.beta[vi]
-            warm = contacts.force[vi]
-        if wp.length_sq(n) > 0.0:
-            target = -wp.max(contacts.gap[vi], 0.0) / step_dt  # a part of a step closes its share of the gap
-            if wp.dot(v - contacts.object_velocity[vi], n) < target:
-                held = 1.0
-        scratch.c[i] = wp.spatial_vector(held, target, beta, 0.0, 0.0, 0.0)
-        M = wp.mat33()
-        F = wp.vec3()
-        if held > 0.0:
-            active = 1
-            n_b = wp.quat_rotate_inv(R, n)
-            P = contact_projector(n_b, beta)
-            M = hc * P
-            rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
-            F = wp.quat_rotate_inv(R, warm) - c * (P * rel)
-        scratch.DB[i] = M
-        tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
-        scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
-        if with_dampers != 0:
-            if wp.trace(dampers.C[i]) > 0.0:
+    # An active set over the contacts: a pass whose damper would pull a vertex toward the body (the solve treats
+    # the dampers as two-sided) is undone and solved again without that vertex, at most CONTACT_PASSES times.
+    for it in range(CONTACT_PASSES):
+        any_pulled = int(0)
+        # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
+        R = wp.transform_get_rotation(X_head)
+        omega = wp.spatial_top(V_head)
+        x = wp.transform_point(X_head, chains.strand_root_pos[strand])
+        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+        active = int(0)
+        for k in range(S):
+            i = strand * S + k
+            vi = vbase + k + 1
+            R = R * joint_q[i]
+            omega = omega + wp.quat_rotate(R, joint_qd[i])
+            d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
+            v = v + wp.cross(omega, d)
+            n = wp.vec3()
+            held = float(0.0)
+            target = float(0.0)
+            beta = float(1.0)
+            warm = wp.vec3()
+            released = float(0.0)
+            if it > 0:
+                released = wp.spatial_bottom(scratch.c[i])[0]
+            if contacts.enabled != 0:  # else only the dampers (``interaction_response`` without colliders)
+                n = contacts.normal[vi]
+                beta = contacts.beta[vi]
+                warm = contacts.force[vi]
+            if wp.length_sq(n) > 0.0:
+                target = -wp.max(contacts.gap[vi], 0.0) / step_dt  # a part of a step closes its share of the gap
+                if released <= 0.0 and wp.dot(v - contacts.object_velocity[vi], n) < target:
+                    held = 1.0
+            scratch.c[i] = wp.spatial_vector(held, target, beta, released, 0.0, 0.0)
+            M = wp.mat33()
+            F = wp.vec3()
+            if held > 0.0:
                 active = 1
-    if active == 0:
-        if contacts.enabled != 0:
-            for k in range(S):
-                contacts.beta[vbase + k + 1] = 1.0
-                contacts.force[vbase + k + 1] = wp.vec3()
-        return
+                n_b = wp.quat_rotate_inv(R, n)
+                P = contact_projector(n_b, beta)
+                M = hc * P
+                rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
+                F = wp.quat_rotate_inv(R, warm) - c * (P * rel)
+            scratch.DB[i] = M
+            tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
+            scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
+            if with_dampers != 0:
+                if wp.trace(dampers.C[i]) > 0.0:
+                    active = 1
+        if active == 0:
+            if contacts.enabled != 0:
+                for k in range(S):
+                    contacts.beta[vbase + k + 1] = 1.0
+                    contacts.force[vbase + k + 1] = wp.vec3()
+            return
 
-    # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
-    # springs acted in the free step; their implicit share is the armature).
-    cA = wp.mat33()
-    cB = wp.mat33()
-    cC = wp.mat33()
-    cn = wp.vec3()
-    cf = wp.vec3()
-    eye = wp.identity(n=3, dtype=float)
-    zero = wp.mat33()
-    for kk in range(S):
-        k = S - 1 - kk
-        i = strand * S + k
-        extra = float(0.0)
-        if loads.has_implicit_mass != 0:
-            extra = loads.seg_implicit_mass[i]
-        m = chains.seg_mass[i]
-        L = chains.seg_length[i]
-        A0, B0 = segment_inertia_blocks(m, L, chains.seg_inertia[i], extra)
-        M = scratch.DB[i]
-        Ac, Bc = inertia_shift_z(zero, zero, M, -L)
-        A = A0 + Ac + cA
-        B = B0 + Bc + cB
-        C = (m + extra) * eye + M + cC
-        p = scratch.p[i]
-        n_ = wp.spatial_top(p) + cn
-        f = wp.spatial_bottom(p) + cf
-        if with_dampers != 0:
-            A = A + dampers.A[i]
-            B = B + dampers.B[i]
-            C = C + dampers.C[i]
-            n_ = n_ - dampers.torque[i]
-            f = f - dampers.force[i]
-        armature = wp.vec3()
-        if implicit != 0:
-            armature = dt * chains.joint_damping[i] + dt * dt * chains.joint_stiffness[i]
-        Dinv = wp.inverse(A + wp.diag(armature))
-        DA = Dinv * A
-        DB = Dinv * B
-        Du = -(Dinv * n_)
-        scratch.DA[i] = DA
-        scratch.DB[i] = DB
-        scratch.Du[i] = Du
-        if k > 0:
+        # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
+        # springs acted in the free step; their implicit share is the armature).
+        cA = wp.mat33()
+        cB = wp.mat33()
+        cC = wp.mat33()
+        cn = wp.vec3()
+        cf = wp.vec3()
+        eye = wp.identity(n=3, dtype=float)
+        zero = wp.mat33()
+        for kk in range(S):
+            k = S - 1 - kk
+            i = strand * S + k
+            extra = float(0.0)
+            if loads.has_implicit_mass != 0:
+                extra = loads.seg_implicit_mass[i]
+            m = chains.seg_mass[i]
+            L = chains.seg_length[i]
+            A0, B0 = segment_inertia_blocks(m, L, chains.seg_inertia[i], extra)
+            M = scratch.DB[i]
+            Ac, Bc = inertia_shift_z(zero, zero, M, -L)
+            A = A0 + Ac + cA
+            B = B0 + Bc + cB
+            C = (m + extra) * eye + M + cC
+            p = scratch.p[i]
+            n_ = wp.spatial_top(p) + cn
+            f = wp.spatial_bottom(p) + cf
+            if with_dampers != 0:
+                A = A + dampers.A[i]
+                B = B + dampers.B[i]
+                C = C + dampers.C[i]
+                n_ = n_ - dampers.torque[i]
+                f = f - dampers.force[i]
+            armature = wp.vec3()
+            if implicit != 0:
+                armature = dt * chains.joint_damping[i] + dt * dt * chains.joint_stiffness[i]
+            Dinv = wp.inverse(A + wp.diag(armature))
+            DA = Dinv * A
+            DB = Dinv * B
+            Du = -(Dinv * n_)
+            scratch.DA[i] = DA
+            scratch.DB[i] = DB
+            scratch.Du[i] = Du
+            if k > 0:
+                q = joint_q[i]
+                Rm = wp.quat_to_matrix(q)
+                z = -chains.seg_length[i - 1]
+                Aa = transpose_scale_columns(DA, armature)
+                Ba = scale_rows(DB, armature)
+                Ca = C - wp.transpose(B) * DB
+                na = Rm * (n_ + A * Du)
+                fa = Rm * (f + wp.transpose(B) * Du)
+                Aa, Ba, Ca = rotate_blocks(Rm, Aa, Ba, Ca)
+                cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
+                cC = Ca
+                cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
+                cf = fa
+
+        # Outward: the velocity change dw = h qdd (the head's motion is prescribed: no change at the base), the
+        # final tip velocities, and from them each damper's force, the normal force and the friction share.
+        a_ang_p = wp.vec3()
+        a_lin_p = wp.vec3()
+        R = wp.transform_get_rotation(X_head)
+        omega = wp.spatial_top(V_head)
+        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+        for k in range(S):
+            i = strand * S + k
+            vi = vbase + k + 1
             q = joint_q[i]
-            Rm = wp.quat_to_matrix(q)
-            z = -chains.seg_length[i - 1]
-            Aa = transpose_scale_columns(DA, armature)
-            Ba = scale_rows(DB, armature)
-            Ca = C - wp.transpose(B) * DB
-            na = Rm * (n_ + A * Du)
-            fa = Rm * (f + wp.transpose(B) * Du)
-            Aa, Ba, Ca = rotate_blocks(Rm, Aa, Ba, Ca)
-            cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
-            cC = Ca
-            cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
-            cf = fa
-
-    # Outward: the velocity change dw = h qdd (the head's motion is prescribed: no change at the base), the
-    # final tip velocities, and from them each damper's force, the normal force and the friction share.
-    a_ang_p = wp.vec3()
-    a_lin_p = wp.vec3()
-    R = wp.transform_get_rotation(X_head)
-    omega = wp.spatial_top(V_head)
-    v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
-    for k in range(S):
-        i = strand * S + k
-        vi = vbase + k + 1
-        q = joint_q[i]
-        r = joint_offset(chains, strand, k, i)
-        a_ang = wp.quat_rotate_inv(q, a_ang_p)
-        a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r))
-        qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
-        a_ang_p = a_ang + qdd
-        a_lin_p = a_lin
-        w = joint_qd[i] + h * qdd
-        joint_qd[i] = w
-        R = R * q
-        omega = omega + wp.quat_rotate(R, w)
-        v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
-        flags = scratch.c[i]
-        beta = float(1.0)
-        force = wp.vec3()
-        if wp.spatial_top(flags)[0] > 0.0:
-            n = contacts.normal[vi]
-            target = wp.spatial_top(flags)[1]
-            beta = wp.spatial_top(flags)[2]
-            rel = v - contacts.object_velocity[vi] - target * n
-            force = contacts.force[vi] - c * (contact_projector(n, beta) * rel)
-            fn = wp.dot(force, n)
-            beta = 1.0
-            if fn <= 0.0:
-                force = wp.vec3()  # it pulled: the vertex leaves (it will not be held from its free velocity)
-            else:
-                ft = force - fn * n
-                ftl = wp.length(ft)
-                friction = contacts.friction[vi]
-                limit = float(0.0)
-                if friction < FULL_FRICTION:
-                    limit = friction / (1.0 - friction) * fn
-                if friction < FULL_FRICTION and ftl > limit:
-                    # Sliding: Coulomb's force, and the damper's share scaled by the excess, so the next step's
-                    # tangential force meets the cone.
-                    beta = wp.spatial_top(flags)[2] * limit / ftl
-                    force = fn * n + (limit / ftl) * ft
-        if contacts.enabled != 0:
-            contacts.beta[vi] = beta
-            contacts.force[vi] = force
+            r = joint_offset(chains, strand, k, i)
+            a_ang = wp.quat_rotate_inv(q, a_ang_p)
+            a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r))
+            qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+            a_ang_p = a_ang + qdd
+            a_lin_p = a_lin
+            w_free = joint_qd[i]
+            w = w_free + h * qdd
+            joint_qd[i] = w
+            R = R * q
+            omega = omega + wp.quat_rotate(R, w)
+            v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
+            flags = scratch.c[i]
+            beta = float(1.0)
+            force = wp.vec3()
+            state = wp.spatial_bottom(flags)[0]  # 0 may be released, 1 released, -1 taken back for good
+            if wp.spatial_top(flags)[0] > 0.0:
+                n = contacts.normal[vi]
+                target = wp.spatial_top(flags)[1]
+                beta = wp.spatial_top(flags)[2]
+                rel = v - contacts.object_velocity[vi] - target * n
+                force = contacts.force[vi] - c * (contact_projector(n, beta) * rel)
+                fn = wp.dot(force, n)
+                beta = 1.0
+                if fn <= 0.0:
+                    force = wp.vec3()  # it pulled: the vertex leaves (it will not be held from its free velocity)
+                    if state == 0.0:
+                        state = 1.0
+                        any_pulled = 1
+                else:
+                    ft = force - fn * n
+                    ftl = wp.length(ft)
+                    friction = contacts.friction[vi]
+                    limit = float(0.0)
+                    if friction < FULL_FRICTION:
+                        limit = friction / (1.0 - friction) * fn
+                    if friction < FULL_FRICTION and ftl > limit:
+                        # Sliding: Coulomb's force, and the damper's share scaled by the excess, so the next step's
+                        # tangential force meets the cone.
+                        beta = wp.spatial_top(flags)[2] * limit / ftl
+                        force = fn * n + (limit / ftl) * ft
+            elif state > 0.0:
+                # released in an earlier pass: if the solve without it now takes it into the body faster than its
+                # gap allows, it is held again, for good (no vertex goes back and forth)
+                n = contacts.normal[vi]
+                if wp.dot(v - contacts.object_velocity[vi], n) < wp.spatial_top(flags)[1]:
+                    state = -1.0
+                    any_pulled = 1
+            # kept for after the passes: the contacts' force and share, the vertices released, the free velocity
+            top = wp.spatial_top(flags)
+            scratch.c[i] = wp.spatial_vector(top[0], top[1], top[2], state, beta, 0.0)
+            scratch.Du[i] = force
+            scratch.p[i] = wp.spatial_vector(w_free, wp.vec3())
+        if any_pulled == 0:
+            break
+        if it < CONTACT_PASSES - 1:
+            # A damper pulled the vertex toward the body: contacts push only. Solve again from the free velocities
+            # without the vertices that pulled (and with those that, released, went in).
+            for k in range(S):
+                joint_qd[strand * S + k] = wp.spatial_top(scratch.p[strand * S + k])
+    if contacts.enabled != 0:
+        for k in range(S):
+            i = strand * S + k
+            contacts.beta[vbase + k + 1] = wp.spatial_bottom(scratch.c[i])[1]
+            contacts.force[vbase + k + 1] = scratch.Du[i]
 
 
 @wp.func

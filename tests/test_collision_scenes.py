@@ -452,9 +452,7 @@ def test_stiff_strands_wrap_onto_the_head_at_fine_steps():
     assert _wrap_onto_head_vmax(960.0) < WRAP_SPEED_LIMIT
 
 
-@pytest.mark.xfail(strict=True, reason="at 64 segments and 240 steps a second the tails whip to 4-5 m/s as the "
-                   "strands wrap onto the head; the whip grows with the body contact dampers' stiffness and is "
-                   "the same with the contact solve in float64 (docs/collision.md, 'Where it still fails')")
 def test_stiff_strands_wrap_onto_the_head_at_frame_steps():
-    """At 240 steps a second (8 substeps of 30 fps) the same wrap stays within free fall."""
+    """At 240 steps a second (8 substeps of 30 fps) the same wrap stays within free fall. It used to whip the tails
+    to 4-5 m/s: the contact solve, two-sided, let dampers pull vertices onto the head; contacts now only push."""
     assert _wrap_onto_head_vmax(240.0) < WRAP_SPEED_LIMIT

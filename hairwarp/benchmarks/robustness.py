@@ -836,9 +836,10 @@ def md_robustness(data: dict) -> list[str]:
             and (row["sticky"]["ratio"] or 0.0) <= GOAL_REST_RATIO
             and (row["sticky"]["resting"]["max_mm"] or 0.0) < GOAL_RESTING_MM]
     if slid:
-        lines += ["", f"- At friction {STICKY_FRICTION:g} {', '.join(f'`{x}`' for x in slid)} meet the ratio and "
-                      "resting-vertex goals they miss as shipped: the motion left there is hair sliding over the "
-                      "colliders at its friction cone's edge, as Coulomb's law lets it."]
+        lines += ["", f"- At friction {STICKY_FRICTION:g} {', '.join(f'`{x}`' for x in slid)} "
+                      f"{'meets' if len(slid) == 1 else 'meet'} the ratio and resting-vertex goals "
+                      f"{'it misses' if len(slid) == 1 else 'they miss'} as shipped: the motion left there is hair "
+                      "sliding over the colliders at its friction cone's edge, as Coulomb's law lets it."]
     worse = [row for row in ok_rows if (row["sticky"]["second_mm_s"] or 0.0) > (row["colliders"]["second_mm_s"] or 0.0)
              * 1.5]
     if worse:
