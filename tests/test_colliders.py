@@ -550,13 +550,12 @@ def _chain_jacobians(q, lengths):
     return Jv, Jo, Jc, cols[0][3]
 
 
-@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0])
-def test_body_contact_solve_matches_float64(beta):
-    """The contact impulses through the articulated inertia equal a dense float64 solve of
-    (M + h c J^T P J) dw = -h c J^T P (J w - v_target), M from the segments' kinetic energy."""
+def _six_segment_strand():
+    """A limp, weightless strand of 6 random segments (about 2 cm each along +x) for the contact solve's
+    dense checks: ``(model, solver, h, Jv, M, rng)``, Jv its float64 map from joint to vertex velocities, M its
+    float64 joint-space mass matrix from the segments' kinetic energy, rng the generator that drew it (for the
+    case's further draws)."""
     import hairwarp as hw
-    from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
-
 
     rng = np.random.default_rng(11)
     S, h = 6, 1.0 / 240.0
@@ -564,12 +563,27 @@ def test_body_contact_solve_matches_float64(beta):
     params = hw.StrandParams(bend_stiffness=0.0, damping=0.0, drag=0.0)
     model = hw.Model.build(hw.Groom.from_polylines([pts]), params, segments=S, gravity=(0.0, 0.0, 0.0))
     solver = hw.Solver(model, "semi_implicit")
+    Jv, Jo, Jc, rots = _chain_jacobians(model.joint_q0.numpy().astype(float), model.seg_length.numpy())
+    m, inertia = model.seg_mass.numpy().astype(float), model.seg_inertia.numpy().astype(float)
+    M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
+            + Jo[3 * k:3 * k + 3].T @ rots[k] @ np.diag(inertia[k]) @ rots[k].T @ Jo[3 * k:3 * k + 3]
+            for k in range(S))
+    return model, solver, h, Jv, M, rng
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0])
+def test_body_contact_solve_matches_float64(beta):
+    """The contact impulses through the articulated inertia equal a dense float64 solve of
+    (M + h c J^T P J) dw = -h c J^T P (J w - v_target), M from the segments' kinetic energy."""
+    from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
+
+    model, solver, h, Jv, M, rng = _six_segment_strand()
+    S = model.seg_per_strand
     w0 = rng.normal(size=(S, 3))
     qd = wp.array(w0.astype(np.float32), dtype=wp.vec3)
     contacts = body_contacts(S + 1, "cpu")
     held = [2, 3, 6]  # two neighbours and the tip
     v_obj = rng.normal(size=(S + 1, 3)) * 0.5
-    Jv, Jo, Jc, rots = _chain_jacobians(model.joint_q0.numpy().astype(float), model.seg_length.numpy())
     rel = (Jv @ w0.ravel()).reshape(-1, 3) - v_obj
     normals = np.zeros((S + 1, 3))
     normals[held] = -rel[held] + 0.3 * np.linalg.norm(rel[held], axis=1, keepdims=True) * rng.normal(size=(3, 3))
@@ -583,11 +597,7 @@ def test_body_contact_solve_matches_float64(beta):
     wp.launch(_contact_solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd, contacts,
                                          solver.scratch, solver.dampers, 0])
 
-    m, inertia = model.seg_mass.numpy().astype(float), model.seg_inertia.numpy().astype(float)
-    M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
-            + Jo[3 * k:3 * k + 3].T @ rots[k] @ np.diag(inertia[k]) @ rots[k].T @ Jo[3 * k:3 * k + 3]
-            for k in range(S))
-    hc = CONTACT_STIFFNESS * m.sum()
+    hc = CONTACT_STIFFNESS * model.seg_mass.numpy().astype(float).sum()
     lhs, rhs, w = M.copy(), np.zeros(3 * S), w0.ravel()
     for j in held:
         n = normals[j]
@@ -642,20 +652,11 @@ def test_body_contacts_only_push():
     """A contact damper never pulls a vertex toward the body: where the two-sided solve would, the vertex is
     released and the strand solved again from its free velocities. Against a float64 active-set solve of the
     same dampers (normal only, beta 0), a case where one of three approaching vertices would be pulled."""
-    import hairwarp as hw
     from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
-    rng = np.random.default_rng(11)
-    S, h = 6, 1.0 / 240.0
-    pts = np.cumsum(np.vstack([[0.0, 0.0, 0.0], rng.normal(size=(S, 3)) * 0.01 + [0.02, 0.0, 0.0]]), axis=0)
-    params = hw.StrandParams(bend_stiffness=0.0, damping=0.0, drag=0.0)
-    model = hw.Model.build(hw.Groom.from_polylines([pts]), params, segments=S, gravity=(0.0, 0.0, 0.0))
-    solver = hw.Solver(model, "semi_implicit")
-    Jv, Jo, Jc, rots = _chain_jacobians(model.joint_q0.numpy().astype(float), model.seg_length.numpy())
-    m, inertia = model.seg_mass.numpy().astype(float), model.seg_inertia.numpy().astype(float)
-    M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
-            + Jo[3 * k:3 * k + 3].T @ rots[k] @ np.diag(inertia[k]) @ rots[k].T @ Jo[3 * k:3 * k + 3]
-            for k in range(S))
-    hc = CONTACT_STIFFNESS * m.sum()
+
+    model, solver, h, Jv, M, _ = _six_segment_strand()
+    S = model.seg_per_strand
+    hc = CONTACT_STIFFNESS * model.seg_mass.numpy().astype(float).sum()
     held = [2, 3, 4]
     # Three neighbours approach along normals scattered about their velocities; stopping two of them carries
     # one of them into its body, so its two-sided damper would pull it back out (found among random draws: seed
