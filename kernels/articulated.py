@@ -340,7 +340,7 @@ def aba_strand(
 FULL_FRICTION = wp.constant(1.0)
 
 #: Most solves of a strand's body contacts in a step (``body_contact_solve``): each one after the first leaves out
-#: the vertices whose damper pulled in the one before.
+#: the vertices whose damper pulled in the one before, and takes back for good those released that then went in.
 CONTACT_PASSES = wp.constant(4)
 
 #: Largest growth rate [1/s] of a strand's velocities that the explicit velocity terms of ABA may add in a spinning
@@ -421,8 +421,7 @@ def body_contact_solve(
     hc = contacts.stiffness * mass
     c = hc / h
 
-    # An active set over the contacts: a pass whose damper would pull a vertex toward the body (the solve treats
-    # the dampers as two-sided) is undone and solved again without that vertex, at most CONTACT_PASSES times.
+    # An active set over the contacts (see the docstring): at most CONTACT_PASSES solves.
     for it in range(CONTACT_PASSES):
         any_pulled = int(0)
         # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
