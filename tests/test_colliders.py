@@ -550,15 +550,15 @@ def _chain_jacobians(q, lengths):
     return Jv, Jo, Jc, cols[0][3]
 
 
-def _six_segment_strand():
+def _six_segment_strand(seed: int = 11):
     """A limp, weightless strand of 6 random segments (about 2 cm each along +x) for the contact solve's
-    dense checks: ``(model, solver, h, Jv, M, rng)``, Jv its float64 map from joint to vertex velocities, M its
-    float64 joint-space mass matrix from the segments' kinetic energy, rng the generator that drew it (for the
-    case's further draws)."""
+    dense checks: ``(model, solver, Jv, Jo, rots, M, rng)``, Jv and Jo its float64 maps from joint to vertex and
+    segment angular velocities, rots the segments' rotations, M its float64 joint-space mass matrix from the
+    segments' kinetic energy, rng the generator that drew it (for the case's further draws)."""
     import hairwarp as hw
 
-    rng = np.random.default_rng(11)
-    S, h = 6, 1.0 / 240.0
+    rng = np.random.default_rng(seed)
+    S = 6
     pts = np.cumsum(np.vstack([[0.0, 0.0, 0.0], rng.normal(size=(S, 3)) * 0.01 + [0.02, 0.0, 0.0]]), axis=0)
     params = hw.StrandParams(bend_stiffness=0.0, damping=0.0, drag=0.0)
     model = hw.Model.build(hw.Groom.from_polylines([pts]), params, segments=S, gravity=(0.0, 0.0, 0.0))
@@ -568,7 +568,7 @@ def _six_segment_strand():
     M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
             + Jo[3 * k:3 * k + 3].T @ rots[k] @ np.diag(inertia[k]) @ rots[k].T @ Jo[3 * k:3 * k + 3]
             for k in range(S))
-    return model, solver, h, Jv, M, rng
+    return model, solver, Jv, Jo, rots, M, rng
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.5, 1.0])
@@ -577,8 +577,8 @@ def test_body_contact_solve_matches_float64(beta):
     (M + h c J^T P J) dw = -h c J^T P (J w - v_target), M from the segments' kinetic energy."""
     from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
 
-    model, solver, h, Jv, M, rng = _six_segment_strand()
-    S = model.seg_per_strand
+    model, solver, Jv, _, _, M, rng = _six_segment_strand()
+    S, h = model.seg_per_strand, 1.0 / 240.0
     w0 = rng.normal(size=(S, 3))
     qd = wp.array(w0.astype(np.float32), dtype=wp.vec3)
     contacts = body_contacts(S + 1, "cpu")
@@ -654,8 +654,8 @@ def test_body_contacts_only_push():
     same dampers (normal only, beta 0), a case where one of three approaching vertices would be pulled."""
     from hairwarp.colliders import CONTACT_STIFFNESS, body_contacts
 
-    model, solver, h, Jv, M, _ = _six_segment_strand()
-    S = model.seg_per_strand
+    model, solver, Jv, _, _, M, _ = _six_segment_strand()
+    S, h = model.seg_per_strand, 1.0 / 240.0
     hc = CONTACT_STIFFNESS * model.seg_mass.numpy().astype(float).sum()
     held = [2, 3, 4]
     # Three neighbours approach along normals scattered about their velocities; stopping two of them carries
@@ -958,7 +958,6 @@ def test_interaction_dampers_match_float64():
     """The response's point dampers (``point_damper_blocks``) through the articulated inertia equal a dense float64
     solve of ``(M + sum J_d^T M_d J_d) dw / h = sum J_d^T f_d``, each damper's point moving with its segment less the
     spin about the segment's own axis (which the dampers leave out), M from the segments' kinetic energy."""
-    import hairwarp as hw
     from hairwarp.colliders import body_contacts
 
     @wp.kernel
@@ -973,12 +972,8 @@ def test_interaction_dampers_match_float64():
         dampers.torque[i] = art.spin_free_torque(r[i], f[i])
 
 
-    rng = np.random.default_rng(5)
-    S, h = 6, 1.0 / 60.0
-    pts = np.cumsum(np.vstack([[0.0, 0.0, 0.0], rng.normal(size=(S, 3)) * 0.01 + [0.02, 0.0, 0.0]]), axis=0)
-    params = hw.StrandParams(bend_stiffness=0.0, damping=0.0, drag=0.0)
-    model = hw.Model.build(hw.Groom.from_polylines([pts]), params, segments=S, gravity=(0.0, 0.0, 0.0))
-    solver = hw.Solver(model, "semi_implicit")
+    model, solver, Jv, Jo, rots, M, rng = _six_segment_strand(seed=5)
+    S, h = model.seg_per_strand, 1.0 / 60.0
     L = model.seg_length.numpy().astype(float)
     m = model.seg_mass.numpy().astype(float)
     # a damper on every other segment: a point near the segment (off its axis), an SPD inertia of the order of the
@@ -1004,11 +999,6 @@ def test_interaction_dampers_match_float64():
     wp.launch(_contact_solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd,
                                          body_contacts(S + 1, "cpu"), solver.scratch, dampers, 1])
 
-    Jv, Jo, Jc, rots = _chain_jacobians(model.joint_q0.numpy().astype(float), L)
-    inertia = model.seg_inertia.numpy().astype(float)
-    M = sum(m[k] * Jc[3 * k:3 * k + 3].T @ Jc[3 * k:3 * k + 3]
-            + Jo[3 * k:3 * k + 3].T @ rots[k] @ np.diag(inertia[k]) @ rots[k].T @ Jo[3 * k:3 * k + 3]
-            for k in range(S))
     lhs, rhs = M.copy(), np.zeros(3 * S)
     for k in (1, 3, 5):
         R = rots[k]
