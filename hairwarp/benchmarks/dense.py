@@ -204,12 +204,10 @@ def bench_dense_frame(counts=(10_000, 100_000), quick: bool = False, device=None
 class SingleLayerWriter:
     """The simplest cache writer, a baseline for :class:`hairwarp.io.cache.CacheWriter`: one crate layer on disk
     whose samples grow frame by frame, saved after each (usd-core appends the new samples and rewrites the crate's
-    tables), with no fsync, no per-frame file and no root to rewrite. A run it writes is lost when it stops before
-    the end (the crate is only valid after a save) and costs the frame's page-cache writes, not the disk's."""
+    tables), with no fsync, no per-frame file and no root to rewrite. A stop or a full disk during a save can
+    leave the one file unreadable, and a frame costs its page-cache writes, not the disk's."""
 
     def __init__(self, path: Path, *, fps: float):
-        from pxr import Sdf
-
         from hairwarp.io.usd_common import _new_stage
 
         self.path = Path(path)
@@ -217,7 +215,6 @@ class SingleLayerWriter:
                                               doc="single-layer baseline")
         self._layer.timeCodesPerSecond = self._layer.framesPerSecond = float(fps)
         self._attrs: dict[str, tuple] = {}
-        self._sdf = Sdf
         self.timings = {"check": 0.0, "convert": 0.0, "set": 0.0, "save": 0.0}
 
     def add_curves(self, name: str, counts, *, widths, basis: str) -> None:
@@ -428,8 +425,9 @@ def md_dense(data: dict) -> list[str]:
              "fsyncs, renames and names in the root while the next frame simulates; background: checks and the "
              "copy into shared memory); *writer process* = extents, convert, set and save in the background "
              "writer's process; *single layer* = the same frames into one crate layer saved after every frame "
-             "(`SingleLayerWriter`: no fsync, no frame file, no root rewrite, and no cache at all if the run stops "
-             "before its end), the baseline of what the frame layers cost. Write < simulate: inline / background.",
+             "(`SingleLayerWriter`: no fsync, no frame file, no root rewrite, and a stop during a save can leave "
+             "its one file unreadable), the baseline of what the frame layers cost. Write < simulate: inline / "
+             "background.",
              ""]
     disk = data.get("disk_write_rate")
     if disk:
