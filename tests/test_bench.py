@@ -416,3 +416,30 @@ def test_single_layer_baseline_writes_what_the_cache_writer_writes(tmp_path):
         np.testing.assert_array_equal(ps, p)
         np.testing.assert_array_equal(ps, pc)
         np.testing.assert_array_equal(vs, vc)
+
+
+def test_threads_copies_throughput_of_sleeping_copies():
+    """Copies that release the GIL and take 20 ms each run at once: their share of a call is 20 ms / N."""
+    import time
+
+    from hairwarp.benchmarks.threads import _time_copies
+
+    for n in (1, 3):
+        share = _time_copies([lambda: time.sleep(0.02)] * n, 0.1)
+        # a sleep overshoots by scheduler slack (well under 5 ms here), never undershoots
+        assert 0.02 / n <= share < 0.025 / n, (n, share)
+
+
+def test_threads_report_states_goals_and_efficiency():
+    from hairwarp.benchmarks.threads import md_threads
+
+    rows = [{"stage": "dynamics (aba + integrate)", "t1_ms": 2.0, "tn_ms": 1.0, "speedup": 2.0,
+             "copies_speedup": 1.6, "efficiency": 1.25},
+            {"stage": "frame (detection, substeps, dense)", "t1_ms": 50.0, "tn_ms": 40.0, "speedup": 1.25,
+             "copies_speedup": 1.8, "efficiency": 1.25 / 1.8}]
+    scene = {"scene": "s.toml", "guides": 3, "segments": 4, "substeps": 8, "threads": 2, "rows": rows,
+             "load_before": [0.0], "load_after": [0.0]}
+    text = "\n".join(md_threads({"threads": 2, "cores": 2, "scenes": [scene]}))
+    assert "| dynamics (aba + integrate) | 2.000 | 1.000 | 2.00x | 1.60x | 125 % |" in text
+    assert "- dynamics: 2.00x (goal >= 1.9x on 2 cores: met); 2 independent copies reach 1.60x" in text
+    assert "- frame: 1.25x (goal >= 1.8x on 2 cores: not met)" in text and "keeps 69 %" in text
