@@ -23,6 +23,11 @@ class Integrator(enum.IntEnum):
             (``D + hC + h^2 K`` inside ABA); stable for stiff hair at frame-rate steps, and dissipative: with no
             damping and no drag a 0.2 m strand of 10 segments (EI 1e-4 N m^2) swinging from horizontal at
             dt = 1/240 s loses 88 % of its energy in 2 s (0.64 to 0.075 mJ), where both explicit schemes blow up.
+            A part of a step in which a segment turns more than 0.05 rad takes its velocity terms at its midpoint
+            velocity (``kernels.articulated.MIDPOINT_ROTATION``): explicit, they grew a whipping strand's energy
+            until it went NaN; so, a free strand of 12 segments set turning at 40 rad/s a joint with no damping
+            keeps 15-27 % of its 1.45 J over 1 s at dt = 1/240 s, and free hair on a head turning ten times the
+            shipped speed whips no faster at 8 substeps (10.7 m/s) than at 128 (11.5 m/s).
         RK4: classical fourth-order Runge-Kutta on the Lie group; for accuracy studies.
     """
 
