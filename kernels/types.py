@@ -27,7 +27,7 @@ class Integrator(enum.IntEnum):
             velocity (``kernels.articulated.MIDPOINT_ROTATION``): explicit, they grew a whipping strand's energy
             until it went NaN; so, a free strand of 12 segments set turning at 40 rad/s a joint with no damping
             keeps 15-27 % of its 1.45 J over 1 s at dt = 1/240 s, and free hair on a head turning ten times the
-            shipped speed whips no faster at 8 substeps (10.7 m/s) than at 128 (11.5 m/s).
+            shipped speed whips no faster at 8 substeps (10.7 m/s) than at 128 (11.2 m/s).
         RK4: classical fourth-order Runge-Kutta on the Lie group; for accuracy studies.
     """
 
