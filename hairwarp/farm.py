@@ -194,7 +194,9 @@ def run_task(task: Task) -> dict:
     from hairwarp.solver import SimulationFault
 
     scene = task.scene
-    threads = task.threads if task.threads is not None else _WORKER_THREADS
+    threads = task.threads
+    if threads is None and not _sets_threads(task.overrides):
+        threads = _WORKER_THREADS  # a run that names its own thread count keeps it
     if threads is not None:
         # a local worker has its share of the cores: the executor's default (every core) would oversubscribe them
         scene = scene.with_overrides([f"sim.threads={int(threads)}"])
@@ -531,6 +533,11 @@ def threads_per_run(cores: int, workers: int) -> int:
     return max(1, cores // max(workers, 1))
 
 
+def _sets_threads(overrides) -> bool:
+    """Whether ``overrides`` (``key=value`` strings) set ``sim.threads``."""
+    return any(o.split("=", 1)[0].strip() == "sim.threads" for o in overrides)
+
+
 def _threads_key_exists() -> bool:
     """Whether the scene schema has ``sim.threads`` (CPU threads of a run). This is the one place the engine
     decides to set it: to :func:`threads_per_run` on a local cluster, unless the wedge varies it itself."""
@@ -693,7 +700,7 @@ def _run_on_dask(pending, records, total, scheduler, workers, retries, progress,
         if engine.local and engine.cores and _threads_key_exists():
             threads = threads_per_run(engine.cores, engine.workers)
             for t in pending:
-                if not any(o.split("=", 1)[0].strip() == "sim.threads" for o in t.overrides):
+                if not _sets_threads(t.overrides):
                     t.threads = threads
         received: dict = {}
         lock = threading.Lock()

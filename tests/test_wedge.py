@@ -340,3 +340,15 @@ def test_engine_overhead_from_task_timestamps():
     assert rows["a"]["scheduling_s"] == pytest.approx(0.5) and rows["a"]["transfer_s"] == pytest.approx(0.02)
     assert rows["b"]["scheduling_s"] == pytest.approx(0.05) and rows["b"]["transfer_s"] == pytest.approx(0.5)
     assert rows["c"]["scheduling_s"] == pytest.approx(0.25) and rows["b"]["task_s"] == pytest.approx(1.95)
+
+
+def test_a_run_that_sets_its_threads_keeps_them_on_a_local_worker(tmp_path, monkeypatch):
+    # A local worker runs each task on its share of the cores, unless the task names its own thread count.
+    monkeypatch.setattr(farm, "_WORKER_THREADS", 2)
+    own, share = farm.wedge_tasks(TINY, {"sim.threads": ["1"], "sim.frames": ["1"]}, tmp_path / "own")[0], \
+        farm.wedge_tasks(TINY, {"sim.frames": ["1"]}, tmp_path / "share")[0]
+    for task, expected in ((own, 1), (share, 2)):
+        record = farm.run_task(task)
+        assert record["status"] == "ok", record
+        written = json.loads((Path(task.folder) / farm.SCENE_JSON).read_text())
+        assert written["scene"]["sim"]["threads"] == expected, (task.overrides, written["scene"]["sim"])
