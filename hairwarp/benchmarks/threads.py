@@ -156,7 +156,7 @@ def chart_threads(data: dict, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     scenes = data["scenes"]
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(scenes), figsize=(7 * len(scenes), 4.4), squeeze=False)
     for ax, s in zip(axes[0], scenes):
         names = [r["stage"] for r in s["rows"]]
         ax.barh(names, [r["speedup"] for r in s["rows"]], color="tab:blue", label="one simulation, N threads")
@@ -166,9 +166,9 @@ def chart_threads(data: dict, path: Path) -> Path:
         ax.axvline(1.0, color="k", lw=0.8)
         ax.axvline(s["threads"], color="tab:green", ls="--", lw=0.8, label=f"{s['threads']} threads: ideal")
         ax.set_xlabel(f"speed-up, {s['threads']} threads against 1")
-        ax.set_title(f"{s['scene']} ({s['guides']} x {s['segments']}), load {s['load_before'][0]}")
+        ax.set_title(f"{s['scene']} ({s['guides']} x {s['segments']}), load {s['load_before'][0]}", fontsize=10)
         ax.invert_yaxis()
-        ax.legend(loc="lower right", fontsize=8)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8, frameon=False)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
