@@ -443,3 +443,22 @@ def test_threads_report_states_goals_and_efficiency():
     assert "| dynamics (aba + integrate) | 2.000 | 1.000 | 2.00x | 1.60x | 125 % |" in text
     assert "- dynamics: 2.00x (goal >= 1.9x on 2 cores: met); 2 independent copies reach 1.60x" in text
     assert "- frame: 1.25x (goal >= 1.8x on 2 cores: not met)" in text and "keeps 69 %" in text
+
+
+def test_wedge_report_compares_workers_at_one_thread_and_the_threaded_worker():
+    from hairwarp.benchmarks.wedge import md_wedge
+
+    def run(workers, threads, wall):
+        return {"workers": workers, "threads": threads, "config": [workers, threads], "wall_s": wall,
+                "submit_to_last_result_s": wall - 2.0, "cluster_s": 2.0, "task_s_mean": 5.0, "simulate_s_mean": 4.9,
+                "engine_s_mean": 0.01, "engine_s_max": 0.02, "others_busy_cores": 0.0, "load_average_start": [0.1]}
+
+    runs = [run(1, 1, 60.0), run(2, 1, 32.0), run(1, 2, 40.0)]
+    data = {"scene": "long_hair.toml", "variants": 8, "params": {"a": [1, 2]}, "frames": 60, "frames_shipped": 90,
+            "cores": 2, "runs": runs, "all_runs": runs, "noop": {"median_s": 0.01, "max_s": 0.02, "tasks": 40},
+            "speedup": 60.0 / 32.0, "goal_speedup": 1.8, "meets": True}
+    text = "\n".join(md_wedge(data))
+    assert "**Speed-up with 2 workers: 1.88×** (goal ≥ 1.8×: met)" in text
+    assert "| 1 | 1 | 2 | **40.0** |" in text
+    assert "One worker whose runs take 2 threads each: 40.0 s, the speed of 1.50× the one-thread worker against " \
+           "1.88× for 2 workers, so a wedge fills the cores faster" in text

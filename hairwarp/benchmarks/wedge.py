@@ -1,12 +1,13 @@
 """What the Dask engine of ``hairwarp wedge`` costs and buys on this machine.
 
 :func:`suite_wedge` (``hairwarp bench wedge``) runs one 8-variant wedge of the default scene (``long_hair.toml``,
-its bend stiffness times its link stiffness, frames shortened to :data:`FRAMES`) with 1 and with 2 worker processes
-of a local cluster, each from a fresh cluster into a fresh folder, and reports the wall time of each (the goal:
-at least 1.8x faster with 2 workers on 2 cores). From the timestamps every task record carries (submitted and
-received on the client, started and ended on the worker) it takes the engine's own cost per task: the time a task
-waits for a free worker beyond the previous task's end (scheduling) plus the time its result takes back to the
-client (transfer), against the task's time on the worker. A round trip of an empty task on the same kind of
+its bend stiffness times its link stiffness, frames shortened to :data:`FRAMES`) on the :data:`CONFIGS` of a local
+cluster (1 and 2 worker processes with one thread per run, and 1 worker whose runs take every core's threads),
+each from a fresh cluster into a fresh folder, and reports the wall time of each (the goal: at least 1.8x faster
+with 2 workers than with 1 on 2 cores, one thread per run in both). From the timestamps every task record carries
+(submitted and received on the client, started and ended on the worker) it takes the engine's own cost per task:
+the time a task waits for a free worker beyond the previous task's end (scheduling) plus the time its result takes
+back to the client (transfer), against the task's time on the worker. A round trip of an empty task on the same kind of
 cluster is the floor of that cost. :func:`md_wedge` renders the report section and :func:`chart_wedge` its chart.
 """
 
@@ -25,10 +26,13 @@ minutes while what a wedge pays once (the cluster's start and close, about 2.5 s
 imports, about 1.3 s) stays small against the work, as in a real wedge of full-length runs."""
 QUICK_PARAMS = {"strands.bend_stiffness": [1e-4, 1e-3], "strands.drag": [0.01, 0.02]}
 QUICK_FRAMES = 3
-WORKERS = (1, 2)
+CONFIGS = ((1, 1), (2, 1), (1, 0))
+"""(worker processes, threads per run; 0: the engine's share, cores / workers) of the timed wedges. The first two
+measure the engine with the work per worker fixed; the third is the alternative a machine's cores also allow, one
+worker whose runs split their launches over every core."""
 ROUNDS = 3
-"""Each wedge is timed this often, the worker counts interleaved; the fastest of each counts (the machine is shared:
-the least disturbed run is the closest to what the engine does)."""
+"""Each wedge is timed this often, the configurations interleaved; the fastest of each counts (the machine is
+shared: the least disturbed run is the closest to what the engine does)."""
 GOAL_SPEEDUP = 1.8
 NOOP_TASKS = 40
 CHART = "bench_wedge.png"
@@ -66,9 +70,15 @@ def _cpu_seconds() -> tuple[float, float]:
     return busy, own.user + own.system + own.children_user + own.children_system
 
 
-def _timed_wedge(scene, params, overrides, workers: int, log) -> dict:
+def _timed_wedge(scene, params, overrides, workers: int, log, threads: int = 0) -> dict:
+    """One wedge on a fresh local cluster of ``workers`` processes; ``threads`` per run (0: the engine's share)."""
     from hairwarp import farm
     from hairwarp.benchmarks.common import GATE, load_average
+
+    if threads:
+        overrides = [*overrides, f"sim.threads={int(threads)}"]
+    else:
+        threads = farm.threads_per_run(farm.local_cores(), workers)
 
     gate = GATE.wait()
     load_start = load_average()
@@ -86,8 +96,8 @@ def _timed_wedge(scene, params, overrides, workers: int, log) -> dict:
     last_received = max(r["timing"]["t_received"] for r in records)
     rows = _overheads(records)
     engine = [row["scheduling_s"] + row["transfer_s"] for row in rows]
-    out = {"workers": workers, "tasks": len(records), "wall_s": wall, "submit_to_last_result_s": last_received -
-           first_submit, "cluster_s": wall - (last_received - first_submit),
+    out = {"workers": workers, "threads": int(threads), "tasks": len(records), "wall_s": wall,
+           "submit_to_last_result_s": last_received - first_submit, "cluster_s": wall - (last_received - first_submit),
            "task_s_mean": statistics.fmean(row["task_s"] for row in rows),
            "simulate_s_mean": statistics.fmean(row["simulate_s"] for row in rows),
            "task_s_sum": sum(row["task_s"] for row in rows),
@@ -96,9 +106,9 @@ def _timed_wedge(scene, params, overrides, workers: int, log) -> dict:
            "transfer_s_mean": statistics.fmean(row["transfer_s"] for row in rows),
            "tasks_detail": rows, "quiet_gate": gate, "load_average_start": load_start,
            "load_average_end": load_average(), "others_busy_cores": others, "own_cpu_s": own1 - own0}
-    log(f"wedge: {workers} worker(s): {wall:.1f} s for {len(records)} tasks (tasks {out['task_s_mean']:.2f} s on "
-        f"average, engine {1e3 * out['engine_s_mean']:.1f} ms per task; other programs kept {others:.2f} cores "
-        "busy meanwhile)")
+    log(f"wedge: {workers} worker(s), {threads} thread(s) a run: {wall:.1f} s for {len(records)} tasks (tasks "
+        f"{out['task_s_mean']:.2f} s on average, engine {1e3 * out['engine_s_mean']:.1f} ms per task; other "
+        f"programs kept {others:.2f} cores busy meanwhile)")
     return out
 
 
@@ -133,15 +143,15 @@ def suite_wedge(config, out, log=lambda message: None) -> dict:
     variants = 1
     for values in params.values():
         variants *= len(values)
-    log(f"wedge: {variants} variants of {Path(scene).name}, {frames} frames each, with {WORKERS} workers")
+    log(f"wedge: {variants} variants of {Path(scene).name}, {frames} frames each, (workers, threads) {CONFIGS}")
     all_runs = []
     for n in range(1 if quick else ROUNDS):
-        for w in WORKERS:
-            all_runs.append({"round": n, **_timed_wedge(scene, params, overrides, w, log)})
-    runs = [min((r for r in all_runs if r["workers"] == w), key=lambda r: r["wall_s"]) for w in WORKERS]
+        for w, t in CONFIGS:
+            all_runs.append({"round": n, "config": [w, t], **_timed_wedge(scene, params, overrides, w, log, t)})
+    runs = [min((r for r in all_runs if r["config"] == [w, t]), key=lambda r: r["wall_s"]) for w, t in CONFIGS]
     log("wedge: round trip of an empty task")
     noop = noop_round_trip()
-    speedup = runs[0]["wall_s"] / runs[-1]["wall_s"]
+    speedup = runs[0]["wall_s"] / runs[1]["wall_s"]
     data = {"scene": Path(scene).name, "variants": variants, "params": params, "frames": frames,
             "frames_shipped": int(Scene.load(scene).sim.frames), "cores": farm.local_cores(), "runs": runs,
             "all_runs": all_runs,
@@ -164,10 +174,11 @@ def chart_wedge(data: dict, path: Path) -> None:
     plt = _pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9.5, 3.6))
     runs = data["runs"]
-    xs = [str(r["workers"]) for r in runs]
+    xs = [_label(r) for r in runs]
     a.bar(xs, [r["wall_s"] for r in runs], color="#4c72b0", label="measured")
-    a.plot(xs, [runs[0]["wall_s"] / r["workers"] for r in runs], "k--", marker="o", ms=3, label="ideal (1 / workers)")
-    a.set_xlabel("worker processes")
+    a.plot(xs, [runs[0]["wall_s"] / (r["workers"] * r.get("threads", 1)) for r in runs], "k--", marker="o", ms=3,
+           label="ideal (1 / cores used)")
+    a.set_xlabel("worker processes x threads a run")
     a.set_ylabel("wall time of the wedge [s]")
     a.set_title(f"{data['variants']} variants of {data['scene']}, {data['frames']} frames: {data['speedup']:.2f}x")
     a.legend(fontsize=7)
@@ -178,13 +189,17 @@ def chart_wedge(data: dict, path: Path) -> None:
         values = [r["task_s_mean"] - r["simulate_s_mean"] if key is None else r[key] for r in runs]
         b.bar(xs, values, bottom=bottom, color=color, label=label)
         bottom = [x + v for x, v in zip(bottom, values)]
-    b.set_xlabel("worker processes")
+    b.set_xlabel("worker processes x threads a run")
     b.set_ylabel("mean per task [s]")
     b.set_title("one task: where its time goes")
     b.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def _label(run: dict) -> str:
+    return f"{run['workers']} x {run.get('threads', 1)}"
 
 
 def md_wedge(data: dict) -> list[str]:
@@ -195,32 +210,35 @@ def md_wedge(data: dict) -> list[str]:
     lines = ["## Wedges on Dask (`hairwarp bench wedge`)", "",
              f"A wedge of {data['variants']} variants of `{data['scene']}` ({keys}, every combination), frames "
              f"shortened from {data['frames_shipped']} to {data['frames']} per variant, each writing its cache, "
-             "preview and stats, run by `hairwarp.farm` on a local cluster of 1 and of 2 single-threaded worker "
-             f"processes ({data['cores']} cores usable), each from a fresh cluster into a fresh folder. *Wall* "
-             "includes starting and closing the cluster."]
+             "preview and stats, run by `hairwarp.farm` on a local cluster of 1 and of 2 worker processes with one "
+             "thread a run, and of 1 worker whose runs take every core's threads (the engine's share, "
+             f"`sim.threads` unset; {data['cores']} cores usable), each from a fresh cluster into a fresh folder. "
+             "*Wall* includes starting and closing the cluster."]
     lines += ["", f"![wedge]({CHART})", "",
-              "| round | workers | wall [s] | submit → last result [s] | cluster start + close [s] "
+              "| round | workers | threads a run | wall [s] | submit → last result [s] | cluster start + close [s] "
               "| task on a worker, mean [s] | of which simulate [s] | engine per task, mean / max [ms] "
               "| other programs during the run [cores] | load average at start |",
-              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in data.get("all_runs", runs):
         load = r.get("load_average_start")
         best = "**" if r in runs else ""
         others = r.get("others_busy_cores")
-        lines.append(f"| {r.get('round', 0) + 1} | {r['workers']} | {best}{r['wall_s']:.1f}{best} "
+        lines.append(f"| {r.get('round', 0) + 1} | {r['workers']} | {r.get('threads', 1)} "
+                     f"| {best}{r['wall_s']:.1f}{best} "
                      f"| {r['submit_to_last_result_s']:.1f} | {r['cluster_s']:.1f} | {r['task_s_mean']:.2f} "
                      f"| {r['simulate_s_mean']:.2f} | {1e3 * r['engine_s_mean']:.1f} / {1e3 * r['engine_s_max']:.1f} "
                      f"| {'–' if others is None else f'{others:.2f}'} "
                      f"| {', '.join(f'{x:g}' for x in load) if load else '–'} |")
-    lines += ["", "Bold: the fastest run of each worker count, which the speed-up and the chart use. *Other programs*: "
-              "the machine's busy CPU time during the run less this process's and its workers', per second of wall "
-              "time. The load average (over 1, 5 and 15 minutes) still holds this suite's own earlier runs."]
-    one, two = runs[0], runs[-1]
+    lines += ["", "Bold: the fastest run of each configuration, which the speed-up and the chart use. *Other "
+              "programs*: the machine's busy CPU time during the run less this process's and its workers', per "
+              "second of wall time. The load average (over 1, 5 and 15 minutes) still holds this suite's own earlier "
+              "runs."]
+    one, two = runs[0], runs[1]
     every = data.get("all_runs", runs)
     max_others = max((r.get("others_busy_cores") or 0.0) for r in every)
 
-    def spread(workers: int) -> str:
-        walls = [r["wall_s"] for r in every if r["workers"] == workers]
+    def spread(run: dict) -> str:
+        walls = [r["wall_s"] for r in every if _label(r) == _label(run)]
         return f"{100 * (max(walls) - min(walls)) / min(walls):.0f} %" if len(walls) > 1 else "– (one round)"
 
     ideal = two["cluster_s"] + (one["wall_s"] - one["cluster_s"]) / 2
@@ -237,13 +255,10 @@ def md_wedge(data: dict) -> list[str]:
               f"{1e3 * noop['median_s']:.1f} ms (median of {noop['tasks']}, max {1e3 * noop['max_s']:.1f} ms).",
               "- *Simulate* is `hairwarp.simulate` (the simulation, the cache and the preview picture); the rest of a "
               "task reads the tip travel back from the cache and writes the stats and the markers.",
-              f"- The same wedge varied between rounds by {spread(1)} with 1 worker and {spread(2)} with 2, while "
+              f"- The same wedge varied between rounds by {spread(one)} with 1 worker and {spread(two)} with 2, while "
               f"other programs took at most {max_others:.2f} cores (the cache writer also waits on the disk: it "
               "writes and flushes a layer per frame): the speed-up is good to about that much.",
-              ("- `sim.threads` is in the scene schema: each run was given cores / workers threads."
-               if data.get("threads_key") else
-               "- Warp's CPU kernels run on one thread per process, so one worker per core fills the machine; the "
-               "scene has no `sim.threads` key yet (the engine sets it to cores / workers once it has)."),
+              *_threaded(runs),
               "- The machine is shared with other work. Two workers only run twice as fast as one when nothing else "
               "needs the cores: every core-second another program takes during the 2-worker run comes out of the "
               "wedge, while the 1-worker run has a core to spare for it. Where the speed-up falls short, the "
@@ -252,3 +267,21 @@ def md_wedge(data: dict) -> list[str]:
     lines += ["", f"*Suite `wedge`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s on "
                   f"{sm.get('date')}, load average at the end {sm.get('load_average_end')}.*"]
     return lines
+
+
+def _threaded(runs: list[dict]) -> list[str]:
+    """The bullet on the one-worker wedge whose runs take every core's threads, where it was timed."""
+    threaded = [r for r in runs[2:] if r.get("threads", 1) > 1]
+    if not threaded:
+        return []
+    one, two, t = runs[0], runs[1], threaded[0]
+    if two["wall_s"] < t["wall_s"]:
+        verdict = ("so a wedge fills the cores faster with one single-threaded run per core: a run's threads share "
+                   "its serial parts and wait for each other at every launch (`hairwarp bench threads`), runs side by "
+                   "side share nothing")
+    else:
+        verdict = "so here one worker on every core's threads was the faster"
+    return [f"- One worker whose runs take {t['threads']} threads each: {t['wall_s']:.1f} s, the speed of "
+            f"{one['wall_s'] / t['wall_s']:.2f}× the one-thread worker against {one['wall_s'] / two['wall_s']:.2f}× "
+            f"for {two['workers']} workers, {verdict}. The engine gives each run cores / workers threads unless the "
+            "scene sets `sim.threads`."]
