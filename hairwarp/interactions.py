@@ -198,7 +198,7 @@ class StaticLinks:
                 comparison. Not used with ``response``.
             response: each link's force over the step is solved after the free step, inside the strands'
                 dynamics, on the relative motion of its ends (``kernels.links.link_response_gather``;
-                :class:`hairwarp.Solver` runs it), for steps of 1/80 s and longer (the scenes'
+                :class:`hairwarp.Solver` runs it), for steps of 1/220 s and longer (the scenes'
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
             device: Warp device.
@@ -603,7 +603,7 @@ class HairContacts:
                 False leaves it explicit, for comparison. Not used with ``response``.
             response: solve the contacts' forces over the step after the free step, inside the strands'
                 dynamics, on the relative motion of each pair (``kernels.articulated.interaction_response``;
-                :class:`hairwarp.Solver` runs it after the free step), for steps of 1/80 s and longer (the
+                :class:`hairwarp.Solver` runs it after the free step), for steps of 1/220 s and longer (the
                 scenes' ``interactions.response = "auto"``). The semi-implicit inertia it replaces resisted every
                 acceleration of the hair, also the head's, and at one step a frame made a third of the segments of
                 ``fast_turn`` a hundred times heavier.

@@ -22,11 +22,13 @@ from hairwarp.motion import MotionSample
 from hairwarp.solver import SimulationFault, Solver
 
 #: Shortest step [s] at which ``response = "auto"`` (links and hair contacts) solves their forces after the free step,
-#: on the relative motion of each pair (``kernels.articulated.interaction_response``): at 2 substeps of 30 fps and
-#: longer. There it keeps links whole and the hair in one piece (``fast_turn`` at 2 substeps: 13 broken links
-#: instead of 9,830), where the semi-implicit mass made a third of the segments a hundred times heavier; at the
-#: shipped 8 substeps the explicit forms settle hair at rest sooner (``docs/interactions.md``).
-AUTO_RESPONSE_DT = 1.0 / 80.0
+#: on the relative motion of each pair (``kernels.articulated.interaction_response``): at 7 substeps of 30 fps and
+#: fewer. There it keeps links whole and the hair in one piece (``fast_turn`` at 2 substeps: 13 broken links
+#: instead of 9,830), where the semi-implicit mass made a third of the segments a hundred times heavier. From 3 to
+#: 6 substeps the finer-step forms broke links by the thousand (the mohawk: 4,870, 2,583, 1,495 and 610 broken in
+#: its 2.5 s, against 168, 128, 117 and 69 with the response; ``fast_turn`` at 4: 458 against 4); at the shipped
+#: 8 substeps they settle hair at rest sooner (``docs/interactions.md``).
+AUTO_RESPONSE_DT = 1.0 / 220.0
 
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
 

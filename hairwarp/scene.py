@@ -526,7 +526,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                   range="(0, inf)"),
             "response": Field("str", "auto", "link forces solved after the free step, inside the strands' dynamics, on "
                               "the relative motion of their ends (step), or each link alone against its free "
-                              "segments' masses (link); auto: step at steps of 1/80 s or longer, else link",
+                              "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
                               choices=("auto", "step", "link")),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
@@ -548,7 +548,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
             "response": Field("str", "auto", "contact forces solved after the free step, inside the strands' "
                               "dynamics, on each pair's relative motion (step), or explicit with the semi-implicit "
-                              "mass on every motion (mass); auto: step at steps of 1/80 s or longer, else mass",
+                              "mass on every motion (mass); auto: step at steps of 1/220 s or longer, else mass",
                               choices=("auto", "step", "mass")),
         },
         doc="dynamic interactions (hairwarp.interactions.HairContacts on TriangleStrips)",

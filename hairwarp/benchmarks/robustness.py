@@ -891,7 +891,7 @@ def md_robustness(data: dict) -> list[str]:
               f"Each shipped scene with links (the scene's `[links]`; the defaults where it ships none, marked *), its "
               f"head motion and frames, at 2 and 1 substeps against {fr['reference_substeps']}: tips RMS over frames "
               f"and guides. Goals: 2 substeps no fault, no broken link, ≤ {fr['goal_2_mm']:g} mm; 1 substep (one "
-              f"step a frame) no fault, ≤ {fr['goal_1_mm']:g} mm. At 2 and 1 substeps (steps of 1/80 s or longer) the "
+              f"step a frame) no fault, ≤ {fr['goal_1_mm']:g} mm. At 2 and 1 substeps (steps of 1/220 s or longer) the "
               "links' and hair contacts' forces are solved after the free step, on each pair's relative motion "
               "(`response = \"auto\"`, docs/interactions.md).", "",
               "| scene | 2 substeps | broken links (at 16 substeps) | tips [mm] | verdict | 1 substep | broken links "
