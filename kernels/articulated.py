@@ -364,7 +364,7 @@ SPLIT_ROTATION = wp.constant(0.25)
 #: velocity by ``h w`` and lengthen it by ``sqrt(1 + h^2 w^2)``: a growth of ``h w^2 / 2`` per second that splitting
 #: the step does not stop (at SPLIT_ROTATION per part, a segment whipping at 300 rad/s grows by 4 % a millisecond).
 #: Free hair on a head turning ten times the shipped speed blew up so at 8, 16 and 32 substeps, where 128 substeps
-#: whip the tips at up to 11.5 m/s. The implicit midpoint rule keeps a turning velocity's length;
+#: whip the tips at up to 11.2-11.5 m/s. The implicit midpoint rule keeps a turning velocity's length;
 #: MIDPOINT_ITERATIONS fixed-point passes of ABA (each from the part's start velocity) approach it, and contract
 #: while ``h w`` stays below 1, which the split keeps. The shipped scenes at their substeps stay below this turn
 #: (``long_hair`` never reaches it).
