@@ -20,6 +20,17 @@ Results never depend on the thread count:
   that append to a buffer take per-chunk buffers concatenated in chunk order (``HairContacts``), which is the order
   of one whole launch.
 
+Launches that each write only their own elements and read, of what an earlier one wrote, only the same elements
+(a strand's forces, then its integration, then its push-out) can run as a *chain* (:meth:`Executor.chain`): every
+chunk runs all of them in turn on one thread, one wake of the threads for the lot instead of one per launch. The
+chunks are ranges of a unit the launches share (strands), so a per-segment launch's chunk holds the segments of
+the strands its integration's chunk holds.
+
+The chunks run in native code (``kernels.chunks``): the calling thread publishes a launch's chunks as a table and
+runs them with the pool's threads, each of which takes chunks until none is left, without the GIL. Between tables
+the pool's threads spin for :data:`SPIN_SECONDS` before they sleep, so the launches of a step find them awake:
+a parallel launch costs the caller about what one plain launch does, not a thread's wake-up.
+
 A launch's arguments are packed once: the chunks' argument blocks are kept, keyed by the kernel, the size and the
 identity of every argument (the value of a number), and the next launch with the same arguments only calls the
 kernel. Warp structs are passed by their live ctypes, re-read at every launch, so a changed field is seen.
@@ -30,10 +41,13 @@ when the executor has more than one thread.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import os
 import threading
+import time
+import weakref
 
 import numpy as np
 import warp as wp
@@ -42,17 +56,25 @@ from warp._src.context import _build_launch_bounds_from_tuple as _bounds
 from warp._src.context import _get_apic_capture_for_device
 from warp._src.context import pack_arg as _pack_arg
 
+from hairwarp.kernels.chunks import pool_call
+
 #: Fewest elements per chunk of a per-strand or per-segment launch: below this, handing the chunk to another
 #: thread costs more than it saves (measured on the default scene's kernels, ``hairwarp bench threads``).
 MIN_CHUNK = 64
 
 #: Chunks per thread of a launch whose elements write only themselves: the threads take them as they come free,
-#: so a thread whose strands cost more (more contacts, longer strands) does not keep the others waiting.
-CHUNKS_PER_THREAD = 4
+#: so a thread whose strands cost more (more contacts, longer strands) does not keep the others waiting; the last
+#: chunk leaves the others idle for at most its own time (an eighth of a thread's share).
+CHUNKS_PER_THREAD = 8
 
 #: Chunks of a scatter stage (a partition fixed by the work alone; see ``Executor.fixed_chunks``): enough for
 #: 8 threads, few enough that the private buffers stay small.
 SCATTER_CHUNKS = 8
+
+#: How long a pool thread waits for the next launch, spinning, before it sleeps [s]: longer than the host work
+#: between the launches of a step (the default scene's longest gap is about 0.15 ms), short enough that an idle
+#: pool gives its cores back at once (OpenMP's threads spin for a similar while).
+SPIN_SECONDS = 0.001
 
 #: Prepared launches kept per executor (argument lists seen; a step has two, one per state parity).
 PREPARED_LIMIT = 512
@@ -79,31 +101,47 @@ def resolve_threads(threads) -> int:
 
 
 class _Workers:
-    """``count`` OS threads, each woken by a lock of its own to run one job (the cheapest hand-off Python has)."""
+    """``count`` OS threads that serve the tables the calling thread leads (``kernels.chunks``), and run Python jobs
+    (:meth:`Executor.run`) handed to each by a lock of its own.
 
-    def __init__(self, count: int):
+    A thread is asleep (``state`` 0) on its lock or awake (1): serving, spinning between tables, or about to. The
+    leader wakes the sleeping ones before it leads a table and never waits for them: it runs every chunk no one
+    else has taken. A serving thread that finds nothing for :data:`SPIN_SECONDS`, or is parked, stores 0 and
+    sleeps again.
+    """
+
+    def __init__(self, count: int, calls, spin_seconds: float):
         self.count = count
+        self.calls = calls
+        self.control = _control_block()
+        self.state = np.zeros(count, dtype=np.int32)
         self._jobs = [None] * count
         self._errors = [None] * count
         self._go = [threading.Lock() for _ in range(count)]
         self._done = [threading.Lock() for _ in range(count)]
         for lock in (*self._go, *self._done):
             lock.acquire()
+        budget = calls.ticks(spin_seconds)
+        self._serve = [calls.serve(self.control, self.state, i, budget) for i in range(count)]
         self._local = threading.local()
         self._threads = [threading.Thread(target=self._loop, args=(i,), name=f"hairwarp-{i + 1}", daemon=True)
                          for i in range(count)]
         for t in self._threads:
             t.start()
+        _POOLS.add(self)
 
     def _loop(self, i: int):
         self._local.worker = True
-        go, done = self._go[i], self._done[i]
+        go, done, serve = self._go[i], self._done[i], self._serve[i]
         while True:
             go.acquire()
             job = self._jobs[i]
             if job is None:
                 done.release()
                 return
+            if job is _SERVE:
+                serve()  # returns once idle or parked, having stored state 0
+                continue
             try:
                 job()
             except BaseException as e:  # handed to the caller, which waits for every worker before raising
@@ -114,14 +152,33 @@ class _Workers:
     def in_worker(self) -> bool:
         return getattr(self._local, "worker", False)
 
+    def wake(self, k: int):
+        """Wake the sleeping ones of the first ``k`` threads to serve."""
+        state = self.state
+        for i in range(k):
+            if state[i] == 0:
+                state[i] = 1
+                self._jobs[i] = _SERVE
+                self._go[i].release()
+
+    def park(self):
+        """Send the serving threads to sleep and wait until they are (before Python jobs, or closing)."""
+        if not self.state.any():
+            return
+        self.control[5] = 1
+        while self.state.any():
+            time.sleep(0)
+        self.control[5] = 0
+
     def start(self, job, k: int):
-        """Run ``job`` on the first ``k`` workers."""
+        """Run the Python callable ``job`` on the first ``k`` threads (parked first)."""
+        self.park()
         for i in range(k):
             self._jobs[i] = job
             self._go[i].release()
 
     def join(self, k: int):
-        """Wait for the first ``k`` workers; the first error any raised, or None."""
+        """Wait for the first ``k`` threads' jobs; the first error any raised, or None."""
         error = None
         for i in range(k):
             self._done[i].acquire()
@@ -131,6 +188,7 @@ class _Workers:
         return error
 
     def close(self):
+        self.park()
         for i in range(self.count):
             self._jobs[i] = None
             self._go[i].release()
@@ -138,16 +196,124 @@ class _Workers:
             t.join()
 
 
+#: The job that sends a pool thread to serve tables.
+_SERVE = object()
+
+#: Every live pool: parked when the interpreter exits, so that no thread still spins in a kernel module that Warp
+#: is unloading.
+_POOLS = weakref.WeakSet()
+
+
+@atexit.register
+def _park_pools():
+    for pool in list(_POOLS):
+        pool.park()
+
+
+class _PoolCalls:
+    """``kernels.chunks.pool_call`` packed once for direct calls: its entry point, bounds and argument type."""
+
+    def __init__(self, device):
+        base = wp.launch(pool_call, dim=1, inputs=[0, 0, 0, 0, 0, 0, 0], device=device, record_cmd=True)
+        labels = [a.label for a in pool_call.adj.args]
+        self._args = type("PoolCallArgs", (ctypes.Structure,),
+                          {"_fields_": [(label, type(p)) for label, p in zip(labels, base.params[1:])]})
+        self._bounds = _bounds((1,), pool_call.adj.kernel_dim)
+        self._forward = base.hooks.forward
+        clock = np.zeros(2, dtype=np.uint64)
+        read = self._call(2, 0, 0, 0, 0, clock.ctypes.data, 0)
+        t0 = time.perf_counter()
+        read()
+        first = int(clock[0])
+        time.sleep(0.01)
+        read()
+        self.rate = (int(clock[0]) - first) / (time.perf_counter() - t0)  # clock ticks per second
+
+    def ticks(self, seconds: float) -> int:
+        """``seconds`` in clock ticks (a count of spins where the machine has no clock to read)."""
+        return max(0, int(seconds * self.rate)) if self.rate > 0 else int(seconds * 1e7)
+
+    def _call(self, mode, control, start, entries, count, state, budget):
+        block = self._args(mode, control, start, entries, count, state, budget)
+        bounds, forward = ctypes.byref(self._bounds), self._forward
+        ref = ctypes.byref(block)
+
+        def call():
+            forward(bounds, ref)
+
+        call.block = block  # kept alive with the call
+        return call
+
+    def lead(self, control, table):
+        """The calling thread's call leading ``table`` through ``control``."""
+        return self._call(0, control.ctypes.data, table.start.ctypes.data, table.entries.ctypes.data,
+                          table.task_count, 0, 0)
+
+    def serve(self, control, state, i, budget: int):
+        """Pool thread ``i``'s call: it serves ``control`` and stores 0 at ``state[i]`` when it stops."""
+        return self._call(1, control.ctypes.data, 0, 0, 0, state.ctypes.data + 4 * i, budget)
+
+
+def _control_block():
+    """A control block of ``kernels.chunks`` (eight int64)."""
+    return np.zeros(8, dtype=np.int64)
+
+
 class _Prepared:
     """The packed chunks of one launch: an argument block per chunk, the private buffers and how they fold."""
 
-    __slots__ = ("keep", "forward", "calls", "structs", "zero", "fold")
+    __slots__ = ("keep", "forward", "calls", "entries", "structs", "zero", "fold")
 
     def run_chunk(self, c: int):
         bounds, args, block = self.calls[c]
         for name, value in self.structs:
             setattr(block, name, value)  # a struct's live ctype: a field set since the packing is seen
         self.forward(bounds, args)
+
+    def load_structs(self):
+        """Copy the structs' live ctypes into every chunk's block (a field set since the packing is seen)."""
+        for name, value in self.structs:
+            for _, _, block in self.calls:
+                setattr(block, name, value)
+
+
+class _Table:
+    """Chunks of launches laid out for ``kernels.chunks``: task ``t`` runs its entries in turn; the threads take the
+    tasks in order as they come free. Holds the launches it points into."""
+
+    __slots__ = ("groups", "task_count", "start", "entries", "_leads")
+
+    def __init__(self, groups):
+        self.groups = groups
+        tasks = [[prep.entries[c] for prep in group] for group in groups for c in range(len(group[0].calls))]
+        self.task_count = len(tasks)
+        self.start = np.cumsum([0, *map(len, tasks)], dtype=np.int32)
+        self.entries = np.array([e for task in tasks for e in task], dtype=np.uint64).reshape(-1)
+        self._leads = {}
+
+    def lead(self, calls, control):
+        """Publish the table in ``control`` and run it with whoever serves that block; return when it has run."""
+        have = self._leads.get(id(control))
+        if have is None or have[0] is not control:  # kept with its control block, whose address the call holds
+            have = self._leads[id(control)] = (control, calls.lead(control, self))
+        have[1]()
+
+
+class _Chain:
+    """The launches a :meth:`Executor.chain` holds, and the chunks of its units (``scaled``: their element ranges
+    for ``m`` elements a unit, kept by the executor for the next chain over the same units)."""
+
+    __slots__ = ("units", "chunks", "preps", "_scaled")
+
+    def __init__(self, units: int, chunks, scaled: dict):
+        self.units, self.chunks, self.preps, self._scaled = units, chunks, [], scaled
+
+    def scaled(self, m: int):
+        """The chunks of a launch over ``m`` elements a unit (a tuple: part of the launch's key)."""
+        have = self._scaled.get(m)
+        if have is None:
+            have = self._scaled[m] = tuple((m * start, m * count) for start, count in self.chunks)
+        return have
 
 
 class Executor:
@@ -173,6 +339,11 @@ class Executor:
         self._lock = threading.Lock()
         self._busy = threading.Lock()
         self._batch = None
+        self._chain = None
+        self._tables = {}
+        self._calls = None
+        self._chain_chunks = {}
+        self._views = {}
 
     @property
     def parallel(self) -> bool:
@@ -193,16 +364,31 @@ class Executor:
             except Exception:  # interpreter shutdown
                 pass
 
+    def zero(self, *arrays):
+        """Zero ``arrays``: on the CPU outside a graph capture by their host views, kept (a Warp ``zero_`` costs as
+        much Python as a small launch, and a step zeroes eight arrays); else ``zero_``, which a capture records."""
+        if self.device.is_cuda or _capturing(self.device):
+            for a in arrays:
+                a.zero_()
+            return
+        views = self._views
+        for a in arrays:
+            have = views.get(id(a))
+            if have is None or have[0] is not a:
+                have = views[id(a)] = (a, a.numpy())
+            have[1].fill(0)
+
     # -- partitions ----------------------------------------------------------------------
 
-    def chunks(self, n: int, min_chunk: int | None = None) -> list[tuple[int, int]]:
+    def chunks(self, n: int, min_chunk: int | None = None, per_thread: int | None = None) -> list[tuple[int, int]]:
         """``(start, count)`` of the ranges a launch of ``n`` elements that write only themselves runs as: up to
         ``chunks_per_thread`` per thread, equal to within one element, none below ``min_chunk`` (one range when
         ``n`` is small or there is one thread)."""
         if self.threads <= 1:
             return [(0, n)]
         m = self.min_chunk if min_chunk is None else max(1, int(min_chunk))
-        k = max(1, min(self.threads * self.chunks_per_thread, n // m))
+        per_thread = self.chunks_per_thread if per_thread is None else per_thread
+        k = max(1, min(self.threads * per_thread, n // m))
         return _split(n, k)
 
     @staticmethod
@@ -217,7 +403,9 @@ class Executor:
         if self._workers is None:
             with self._lock:
                 if self._workers is None:
-                    self._workers = _Workers(self.threads - 1)
+                    # more threads than cores: a spinning thread would take a core from one with work
+                    spin = SPIN_SECONDS if self.threads <= default_threads() else 0.0
+                    self._workers = _Workers(self.threads - 1, self._pool_calls(), spin)
         return self._workers
 
     def run(self, tasks):
@@ -261,7 +449,8 @@ class Executor:
         """Within the block, launches through :meth:`launch` are held and run together when it ends: the chunks of
         all of them on one wake of the threads, in launch order as threads come free. Only for launches that are
         independent of each other (none reads what another writes), with nothing in the block reading their
-        results; one thread, a graph capture or a block within a block run each launch at once, as always."""
+        results; one thread, a graph capture or a block within a block run each launch at once, as always. A
+        :meth:`chain` in the block is one of its launches."""
         if not self.parallel or self._batch is not None or _capturing(self.device):
             yield
             return
@@ -270,10 +459,81 @@ class Executor:
             yield
         finally:
             self._batch = None
-        calls = [(prep.run_chunk, c) for prep in held for c in range(len(prep.calls))]
-        self._run_indexed(len(calls), lambda i: calls[i][0](calls[i][1]))
-        for prep in held:
-            _fold(prep)
+        self._run_groups(held)
+
+    @contextlib.contextmanager
+    def chain(self, units: int, min_chunk: int | None = None):
+        """Within the block, launches over ``units`` or a multiple of it (strands, their segments, their vertices)
+        are held and run when it ends, chunk by chunk: the threads take the chunks of :meth:`chunks` ``(units,
+        min_chunk)`` as they come free, and each runs every held launch on its chunk's elements in launch order.
+
+        Only for launches whose every element is written by its own thread and that read, of what another launch of
+        the block writes, only their own elements (those of the same units); the private reductions fold when the
+        block ends, so none may read what another folds. A launch the chain cannot take (explicit ``chunks``,
+        ``per_chunk``, ``private_sum``, or a size that is no multiple of ``units``) first runs what is held, then
+        runs alone: the launch order stands. One thread or a graph capture run each launch at once, as always.
+        """
+        if not self.parallel or self._chain is not None or _capturing(self.device):
+            yield
+            return
+        have = self._chain_chunks.get((units, min_chunk))
+        if have is None:
+            chunks = self.chunks(units, min_chunk)
+            have = self._chain_chunks[(units, min_chunk)] = (chunks, {})
+        chunks, scaled = have
+        if len(chunks) == 1:
+            yield
+            return
+        self._chain = held = _Chain(units, chunks, scaled)
+        try:
+            yield
+        finally:
+            self._chain = None
+        self._flush_chain(held)
+
+    def _flush_chain(self, chain):
+        group, chain.preps = chain.preps, []
+        if not group:
+            return
+        if self._batch is not None:
+            self._batch.append(group)
+        else:
+            self._run_groups([group])
+
+    def _run_groups(self, groups):
+        """Run groups of prepared launches with equal chunk counts, chunk ``c`` of a group running each of its
+        launches' chunk ``c`` in turn, the threads taking the chunks as they come free (``kernels.chunks``); then
+        fold their private buffers in launch order."""
+        key = tuple(tuple(map(id, group)) for group in groups)
+        table = self._tables.get(key)
+        if table is None:
+            if len(self._tables) >= PREPARED_LIMIT:
+                self._tables.pop(next(iter(self._tables)))
+            table = self._tables[key] = _Table(groups)
+        for group in groups:
+            for prep in group:
+                prep.load_structs()
+        k = min(self.threads, table.task_count) - 1
+        if k <= 0 or (self._workers is not None and self._workers.in_worker()) or not self._busy.acquire(False):
+            # on this thread alone: a control block of its own, which no pool thread serves (held through the call)
+            control = _control_block()
+            self._pool_calls().lead(control, table)()
+            del control
+        else:
+            try:
+                workers = self._pool()
+                workers.wake(k)
+                table.lead(workers.calls, workers.control)
+            finally:
+                self._busy.release()
+        for group in groups:
+            for prep in group:
+                _fold(prep)
+
+    def _pool_calls(self):
+        if self._calls is None:
+            self._calls = _PoolCalls(self.device)
+        return self._calls
 
     def launch(self, kernel, dim: int, inputs, outputs=(), *, min_chunk: int | None = None,
                private_or=(), private_add=(), private_sum=(), chunks=None, per_chunk=None):
@@ -296,6 +556,16 @@ class Executor:
             # a graph capture records launches made through wp.launch only, and replays them on one thread
             wp.launch(kernel, dim=dim, inputs=[0, *args], device=self.device)
             return
+        chain = self._chain
+        if chain is not None:
+            if chunks is None and not per_chunk and not private_sum and dim % chain.units == 0:
+                chunks = chain.scaled(dim // chain.units)
+            elif self._batch is not None:
+                raise ValueError(f"{kernel.key}: a launch a chain cannot take (explicit chunks, per_chunk, private_sum "
+                                 f"or a size of {dim}, no multiple of {chain.units}) in a chain within a batch")
+            else:
+                self._flush_chain(chain)  # what the chain holds runs first
+                chain = None
         key = (kernel, dim, min_chunk, tuple(private_or), tuple(private_add), tuple(private_sum),
                None if chunks is None else tuple(chunks),
                None if not per_chunk else tuple((i, tuple(map(id, v))) for i, v in sorted(per_chunk.items())),
@@ -311,21 +581,24 @@ class Executor:
         if n == 0:
             return
         for parent in prep.zero:
-            parent.zero_()
+            parent.fill(0)  # host views of the private buffers (CPU arrays)
+        if chain is not None:
+            chain.preps.append(prep)
+            return
         if self._batch is not None:
-            self._batch.append(prep)
+            self._batch.append([prep])
             return
         if n == 1:
             prep.run_chunk(0)
+            _fold(prep)
         else:
-            self._run_indexed(n, prep.run_chunk)
-        _fold(prep)
+            self._run_groups([[prep]])
 
     def _prepare(self, kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks, per_chunk):
         """Pack the arguments of every chunk once (see :meth:`launch`)."""
         prep = _Prepared()
         prep.keep = (args, per_chunk)  # the key holds ids: keep the objects alive while it is used
-        prep.calls, prep.structs, prep.zero, prep.fold = [], [], [], []
+        prep.calls, prep.entries, prep.structs, prep.zero, prep.fold = [], [], [], [], []
         if chunks is None:
             chunks = self.chunks(dim, min_chunk)
         chunks = [c for c in chunks if c[1] > 0] if dim > 0 else []
@@ -337,9 +610,9 @@ class Executor:
         base = wp.launch(kernel, dim=chunks[0][1], inputs=[0, *args], device=self.device, record_cmd=True)
         replace = {i: list(v) for i, v in (per_chunk or {}).items()}
         for i, op in private:
-            parent, views = self._private_buffers(args[i], len(chunks), i)
+            parent, views = self._private_buffers(args[i], len(chunks), (kernel, i))
             replace[i] = views
-            prep.zero.append(parent)
+            prep.zero.append(parent.numpy())
             prep.fold.append((op, args[i].numpy(), parent.numpy()))  # host views of CPU arrays
         packed = {i: [_pack(kernel, i + 1, v, self.device) for v in values] for i, values in replace.items()}
         labels = [a.label for a in kernel.adj.args]
@@ -347,6 +620,8 @@ class Executor:
         args_struct = type("ArgsStruct", (ctypes.Structure,), {"_fields_": fields})
         struct_args = [j for j, a in enumerate(kernel.adj.args) if isinstance(a.type, _Struct)]
         prep.forward = base.hooks.forward
+        entry_point = ctypes.cast(prep.forward, ctypes.c_void_p).value
+        prep.entries = []
         keep = []
         for c, (start, count) in enumerate(chunks):
             params = list(base.params[1:])
@@ -359,6 +634,7 @@ class Executor:
             bounds = _bounds((count,), kernel.adj.kernel_dim)
             keep.append((bounds, block, params))
             prep.calls.append((ctypes.byref(bounds), ctypes.byref(block), block))
+            prep.entries.append((entry_point, ctypes.addressof(bounds), ctypes.addressof(block)))
         prep.keep = (args, per_chunk, keep)
         # structs are re-read at each launch (their live ctypes); the same for every chunk unless given per chunk
         for j in struct_args:
@@ -367,8 +643,9 @@ class Executor:
             prep.structs.append((labels[j], base.params[1 + j]))
         return prep
 
-    def _private_buffers(self, array, count: int, slot: int):
-        """A zeroed ``(count, *shape)`` array for private copies of ``array`` and its ``count`` views."""
+    def _private_buffers(self, array, count: int, slot):
+        """A zeroed ``(count, *shape)`` array for private copies of ``array`` and its ``count`` views, one per
+        kernel and argument (``slot``): launches held together fold their own."""
         key = (array.shape, array.dtype, slot, count)
         have = self._private.get(key)
         if have is None:

@@ -9,8 +9,9 @@ from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated
 from hairwarp.kernels.types import Fault, Integrator
 
-#: Fewest strands per chunk of the integrator: one strand's ABA and contact sweeps take a few microseconds, so
-#: 16 strands outweigh handing a chunk to a thread (``hairwarp bench threads``).
+#: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
+#: ABA and contact sweeps take a few microseconds, so 16 strands outweigh a chunk's hand-off (``hairwarp bench
+#: threads``).
 INTEGRATE_MIN_CHUNK = 16
 
 #: Fewest segments per chunk of the air drag (~15 ns a segment: a second thread pays from ~4,000 segments on).
@@ -149,13 +150,19 @@ class Solver:
         previous step does; after editing its joints call :meth:`forward_kinematics`).
         """
         self.set_dt(dt)
-        self._accumulate_forces(state_in, control, detect_body=self.body_contacts.enabled)
-        # forward kinematics of state_out fused in; the fault bits of state_in (force stages included) carry over
-        self._integrate(state_in, state_out, control)
+        body = self.body_contacts.enabled
+        self._force_passes(state_in, control, detect_body=body)
+        # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
+        # chunks of strands (one wake of the threads, not four). The forward kinematics of state_out is fused in;
+        # the fault bits of state_in (force stages included) carry over.
+        with self.executor.chain(self.model.strand_count, INTEGRATE_MIN_CHUNK):
+            if self.has_forces:
+                self._gather_forces()
+            self._integrate(state_in, state_out, control)
+            if body and not self.responders:
+                self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
         if self.responders:
-            self._respond(state_in, state_out, control)
-        if self.body_contacts.enabled:
-            self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
+            self._respond(state_in, state_out, control, project=body)
 
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""
@@ -185,35 +192,44 @@ class Solver:
 
     def _accumulate_forces(self, state, control, detect_body: bool = False):
         """The external forces on the segments (drag, links, hair contacts), and with ``detect_body`` the body
-        contact candidates of the step (solved inside the integration). The first passes of the links and the
-        contacts and the body detection do not depend on each other: on several threads they run as one batch
-        of chunks (one wake of the threads, not three)."""
+        contact candidates of the step (solved inside the integration)."""
+        self._force_passes(state, control, detect_body)
+        if self.has_forces:
+            self._gather_forces()
+
+    def _force_passes(self, state, control, detect_body: bool = False):
+        """The first passes of :meth:`_accumulate_forces`: drag, the links' and contacts' own sides, the body
+        detection. These do not depend on each other, except that drag and the links add into the same segments
+        in that order: on several threads they run as one batch of chunks (one wake of the threads, not four)."""
         model = self.model
         if not self.has_forces:
             if detect_body:
                 self.colliders.detect(model, state, control, self.dt)
             return
-        self.seg_force.zero_()
-        self.seg_torque.zero_()
-        if self.has_implicit_mass:
-            self.seg_implicit_mass.zero_()
-        if self.has_drag:
-            self.executor.launch(
-                articulated.air_drag, model.seg_count,
-                [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
-                 state.vertex_velocities],
-                [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
-            )
+        ex = self.executor
+        ex.zero(self.seg_force, self.seg_torque, *([self.seg_implicit_mass] if self.has_implicit_mass else []))
         if self.contacts is not None and self.contacts.detect_each_step:
             self.contacts.detect(model, state)
-        with self.executor.batch():
-            if self.links is not None:
-                self.links.apply_forces(model, state, self.dt, self.seg_force, self.seg_torque)
+        with ex.batch():
+            with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):  # per strand: drag, then its links' side
+                if self.has_drag:
+                    ex.launch(
+                        articulated.air_drag, model.seg_count,
+                        [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
+                         state.vertex_velocities],
+                        [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
+                    )
+                if self.links is not None:
+                    self.links.apply_forces(model, state, self.dt, self.seg_force, self.seg_torque)
+                if detect_body:
+                    self.colliders.detect(model, state, control, self.dt)
             if self.contacts is not None:
                 self.contacts.apply_forces(model, state, self.dt)
-            if detect_body:
-                self.colliders.detect(model, state, control, self.dt)
-        # in this order, as one thread would: the same bits for any thread count
+
+    def _gather_forces(self):
+        """The second passes of :meth:`_accumulate_forces`: every segment adds its links' and its contacts' shares,
+        in this order, as one thread would: the same bits for any thread count."""
+        model = self.model
         if self.links is not None:
             self.links.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
         if self.contacts is not None:
@@ -238,22 +254,27 @@ class Solver:
         self.executor.launch(kernel, model.strand_count, inputs, outputs, min_chunk=INTEGRATE_MIN_CHUNK,
                              private_or=[len(inputs) + len(outputs) - 1])
 
-    def _respond(self, state_in, state_out, control):
+    def _respond(self, state_in, state_out, control, project: bool = False):
         """The links' and hair contacts' velocity response on the free step's result
-        (``articulated.interaction_response``)."""
+        (``articulated.interaction_response``), then with ``project`` the body push-out."""
         model = self.model
         dampers = self.dampers
-        for a in (dampers.A, dampers.B, dampers.C, dampers.force, dampers.torque):
-            a.zero_()
-        for part in self.responders:
-            part.gather_response(model, state_in, state_out, self.dt, dampers)
+        self.executor.zero(dampers.A, dampers.B, dampers.C, dampers.force, dampers.torque)
+        # each segment gathers its links' and its contacts' dampers (in this order, into its own blocks), reading
+        # other strands' velocities, which the response then rewrites: a chain of its own, the response another
+        with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+            for part in self.responders:
+                part.gather_response(model, state_in, state_out, self.dt, dampers)
         implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
                   state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
-        self.executor.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
-                             min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
+        with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+            self.executor.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
+                                 min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
+            if project:
+                self.colliders.project(self.model, state_out, control, self.dt, state_in)
 
     # -- tools ----------------------------------------------------------------------------
 

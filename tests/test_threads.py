@@ -74,6 +74,85 @@ def test_batch_runs_independent_launches_together():
     ex.close()
 
 
+@wp.kernel
+def _add_index(tid_offset: int, y: wp.array(dtype=float)):
+    i = tid_offset + wp.tid()
+    y[i] = y[i] * 0.5 + float(i % 13)
+
+
+@wp.kernel
+def _per_unit_sum(tid_offset: int, per: int, y: wp.array(dtype=float), out: wp.array(dtype=float)):
+    u = tid_offset + wp.tid()
+    acc = float(0.0)
+    for k in range(per):
+        acc += y[u * per + k]
+    out[u] = acc
+
+
+def test_chain_runs_each_chunk_through_every_launch_in_order():
+    """Launches in a chain, one over the elements and one over their units, run chunk by chunk: the second reads
+    what the first wrote for its own unit, and the result is numpy's, on 2, 3 and 8 threads. A launch the chain
+    cannot take (explicit chunks) runs after what the chain holds, in launch order."""
+    units, per = 203, 7
+    x0 = np.random.default_rng(2).standard_normal(units * per).astype(np.float32)
+    expect_y = x0 * np.float32(0.5) + (np.arange(units * per) % 13).astype(np.float32)
+    expect_y = expect_y * np.float32(0.5) + (np.arange(units * per) % 13).astype(np.float32)
+    for threads in (2, 3, 8):
+        ex = Executor("cpu", threads, min_chunk=4)
+        y = wp.array(x0, dtype=float)
+        out = wp.zeros(units, dtype=float)
+        with ex.chain(units, 4):
+            ex.launch(_add_index, units * per, [], [y])
+            ex.launch(_add_index, units * per, [], [y], chunks=[(0, units * per)])  # runs alone, second
+            ex.launch(_per_unit_sum, units, [per, y], [out])
+            assert not out.numpy().any()  # held until the block ends
+        np.testing.assert_array_equal(y.numpy(), expect_y)
+        sums = expect_y.reshape(units, per).astype(np.float64).sum(axis=1)
+        np.testing.assert_allclose(out.numpy(), sums, rtol=1e-5, atol=1e-5)
+        with ex.batch(), ex.chain(units, 4), pytest.raises(ValueError, match="chain within a batch"):
+            ex.launch(_add_index, units * per, [], [y], chunks=[(0, units * per)])
+        ex.close()
+
+
+def test_pool_threads_sleep_when_idle_and_every_chunk_runs():
+    """Between launches the pool's threads spin, then sleep (their state 0) once idle for ``SPIN_SECONDS``: an idle
+    simulation gives its cores back. A launch wakes them again and every chunk runs once, whichever took it."""
+    import time
+
+    from hairwarp import executor as executor_module
+
+    ex = Executor("cpu", 3, min_chunk=1)
+    n = 4096
+    count = wp.zeros(1, dtype=wp.int32)
+    target = wp.array(np.arange(n, dtype=np.int32) % 5, dtype=wp.int32)
+    value = wp.array(np.ones(n, dtype=np.float32), dtype=float)
+    for _ in range(3):
+        acc, flags = wp.zeros(5, dtype=float), wp.zeros(1, dtype=wp.int32)
+        count.zero_()
+        ex.launch(_scatter, n, [target, value], [acc, flags, count], chunks=Executor.fixed_chunks(n, 64),
+                  private_sum=[2], private_or=[3], private_add=[4])
+        assert count.numpy()[0] == n
+        np.testing.assert_array_equal(acc.numpy(), np.bincount(np.arange(n) % 5))
+        state = ex._workers.state
+        deadline = time.monotonic() + 2.0 + 100 * executor_module.SPIN_SECONDS
+        while state.any() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not state.any(), "pool threads still spinning long after the last launch"
+    ex.close()
+
+
+def test_zero_clears_host_views_and_arrays_outside_the_executor_cache():
+    ex = Executor("cpu", 2)
+    a = wp.array(np.arange(10, dtype=np.float32), dtype=float)
+    b = wp.array(np.ones((4, 3), dtype=np.float32), dtype=wp.vec3)
+    ex.zero(a, b)
+    assert not a.numpy().any() and not b.numpy().any()
+    a.assign(np.full(10, 3.0, dtype=np.float32))
+    ex.zero(a)  # the kept view sees the new values
+    assert not a.numpy().any()
+    ex.close()
+
+
 def test_partitions():
     ex = Executor("cpu", 3, min_chunk=10)
     assert ex.chunks(5) == [(0, 5)]  # below the break-even: one chunk
