@@ -130,11 +130,11 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 
 
 #: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
-SEGMENT_MIN_CHUNK = 512
+SEGMENT_MIN_CHUNK = 256
 
-#: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment: below ~2,000 segments a
-#: second thread costs more to wake than it saves).
-GATHER_MIN_CHUNK = 2048
+#: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
+#: integrator's chain, chunked by its strands).
+GATHER_MIN_CHUNK = 256
 
 
 class StaticLinks:
@@ -502,6 +502,9 @@ def _root_adjacency(roots: np.ndarray, root_uv, max_edge_ratio: float) -> np.nda
 #: Fewest blocks per chunk of the bounds and detection launches (``hairwarp.executor``).
 BLOCK_MIN_CHUNK = 64
 
+#: Chunks per thread of a detection launch: each has a contact buffer of the full capacity of its own.
+DETECT_CHUNKS_PER_THREAD = 4
+
 #: Fewest force threads per chunk of the contact forces (each takes a run of 1/256 of the stored contacts).
 FORCE_MIN_CHUNK = 16
 
@@ -839,27 +842,24 @@ class HairContacts:
         from hairwarp.executor import _capturing
 
         parallel = ex is not None and ex.parallel and not _capturing(self.device)
-        chunks = ex.chunks(dim, BLOCK_MIN_CHUNK) if parallel else [(0, dim)]
+        chunks = ex.chunks(dim, BLOCK_MIN_CHUNK, per_thread=DETECT_CHUNKS_PER_THREAD) if parallel else [(0, dim)]
         if len(chunks) == 1:
             launch(ex, kernel, dim, inputs, [self.buffer, fault], device=self.device)
             return
-        bufs, counter, overflow = self._chunk_contact_buffers(len(chunks))
+        bufs, views, counter, overflow = self._chunk_contact_buffers(len(chunks))
         counter.zero_()
         ex.launch(kernel, dim, inputs, [self.buffer, fault], chunks=chunks, per_chunk={n: bufs}, private_or=[n + 1])
         # concatenate (host views of CPU arrays: the executor runs chunks on the CPU only)
-        counts = counter.numpy()[: len(chunks)]
-        total = self.contact_counter.numpy()
+        counts, overflows, mains, total = views["counter"], views["overflow"], views["main"], views["total"]
         pos = int(total[0])
-        main = [self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap]
-        mains = [a.numpy() for a in main]
-        for c, buf in enumerate(bufs):
+        for c in range(len(chunks)):
             take = max(0, min(int(counts[c]), self.capacity - pos))
             if take:
-                for dst, src in zip(mains, (buf.kind, buf.a, buf.b, buf.w, buf.gap)):
-                    dst[pos:pos + take] = src.numpy()[:take]
+                for dst, src in zip(mains, views["chunks"][c]):
+                    dst[pos:pos + take] = src[:take]
             pos += int(counts[c])
         total[0] = pos
-        if pos > self.capacity or np.any(overflow.numpy()[: len(chunks)]):
+        if pos > self.capacity or np.any(overflows[: len(chunks)]):
             self.contact_overflow.numpy()[0] = 1
             fault.numpy()[0] |= int(Fault.CONTACT_OVERFLOW)
 
@@ -881,9 +881,13 @@ class HairContacts:
                 buf.counter = counter[c:c + 1]
                 buf.overflow = overflow[c:c + 1]
                 bufs.append(buf)
-            self._chunk_buffers = have = (bufs, counter, overflow)
-        bufs, counter, overflow = have
-        return bufs[:count], counter, overflow
+            main = [self.contact_kind, self.contact_a, self.contact_b, self.contact_w, self.contact_gap]
+            views = {"counter": counter.numpy(), "overflow": overflow.numpy(), "total": self.contact_counter.numpy(),
+                     "main": [a.numpy() for a in main],
+                     "chunks": [[a.numpy() for a in (b.kind, b.a, b.b, b.w, b.gap)] for b in bufs]}
+            self._chunk_buffers = have = (bufs, views, counter, overflow)
+        bufs, views, counter, overflow = have
+        return bufs[:count], views, counter, overflow
 
     def apply(self, model, state, dt, seg_force, seg_torque, seg_implicit_mass):
         """Detect the contacts of ``state`` (unless ``detect_each_step`` is off) and accumulate their forces into the
