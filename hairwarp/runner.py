@@ -141,6 +141,10 @@ class Simulation:
             collider_set = ColliderSet(self.colliders, self.model.device, model=self.model)
         self.collider_set = collider_set
         self._moving_colliders = any(c.attach == "world" and c.motion is not None for c in self.colliders)
+        head = scene.head
+        self._teleport_limits = (float(head.teleport_distance), float(head.teleport_angle_deg))
+        self._wind = None  # the wind last set on the control
+        self._poses = {}  # step number -> head pose, for the teleport test
         self.links = self._build_links(scene.links)
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
@@ -274,12 +278,11 @@ class Simulation:
 
     def _before_step(self, t, control):
         sample = self.motion.evaluate(t)
-        head = self.scene.head
-        limits = (float(head.teleport_distance), float(head.teleport_angle_deg))
+        limits = self._teleport_limits
         # A cut, or a move faster than a frame can show (the frame before this step or the one after it, since the
         # motion is known ahead): the hair rides along rigidly, at rest relative to the head, all the while.
-        if (is_teleport(self.motion.pose(t - self.frame_dt), sample, *limits)
-                or is_teleport(sample, self.motion.pose(t + self.frame_dt), *limits)):
+        if (is_teleport(self._pose_a_frame_from(t, -1), sample, *limits)
+                or is_teleport(sample, self._pose_a_frame_from(t, 1), *limits)):
             still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
             control.set_motion(still)
             if self.surface is not None:
@@ -289,9 +292,27 @@ class Simulation:
             control.set_motion(sample)
             if self.surface is not None:
                 control.set_root_frames(*self.surface.root_frames(t))
-        control.set_wind(self.scene.wind_at(t))
+        wind = self.scene.wind_at(t)
+        if wind != self._wind:  # a host-to-device copy: only when the wind changes
+            control.set_wind(wind)
+            self._wind = wind
         if self._moving_colliders:
             self.collider_set.update(t)
+
+    def _pose_a_frame_from(self, t: float, direction: int):
+        """The head pose a frame after (``direction`` 1) or before (-1) ``t``, for the teleport test. Each is
+        computed once: the pose a frame after a step is the one a frame before the step two frames on (kept by
+        step number; a pose costs as much as a motion sample, and keyframes take 50 us)."""
+        dt = self.stepper.dt
+        key = round(t / dt) + direction * round(self.frame_dt / dt)
+        cache = self._poses
+        pose = cache.get(key)
+        if pose is None:
+            pose = cache[key] = self.motion.pose(t + direction * self.frame_dt)
+            if len(cache) > 4 * max(1, self.stepper.substeps):
+                for old in sorted(cache)[: len(cache) // 2]:
+                    del cache[old]
+        return pose
 
     def advance_frame(self) -> Fault:
         if self.contacts is not None and not self.contacts.detect_each_step:
