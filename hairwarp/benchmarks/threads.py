@@ -32,6 +32,10 @@ def _stages(sim):
     stages = {"dynamics (aba + integrate)": lambda: solver._integrate(s0, s1, control)}
     if solver.has_forces:
         stages["forces (drag, links, hair contacts)"] = lambda: solver._accumulate_forces(s0, control)
+    if solver.responders:
+        # the response rewrites the free step's result it reads: timed with the step that makes it
+        stages["dynamics + links' and contacts' response"] = lambda: (solver._integrate(s0, s1, control),
+                                                                     solver._respond(s0, s1, control))
     if solver.body_contacts.enabled:
         stages["body contact detection"] = lambda: sim.collider_set.detect(model, s0, control, solver.dt)
         stages["body push-out"] = lambda: sim.collider_set.project(model, s1, control, solver.dt, s0)
