@@ -403,6 +403,9 @@ class ColliderSet:
         self.contacts = None
         """The per-vertex body contacts of a step (``hairwarp.kernels.articulated.BodyContacts``); made by
         ``bind``. ``contacts.force`` holds the force each collider put on each vertex in the last step [N, world]."""
+        self.start_clearance: wp.array | None = None
+        """A lower bound of each vertex's distance to the colliders at the start of the step [m], written by
+        :meth:`detect` and read by :meth:`project` (``detected``); allocated by ``bind``."""
         self.model = None
         if model is not None:
             self.bind(model)
@@ -515,6 +518,7 @@ class ColliderSet:
                 bits[:, 1:] |= np.where(inside, np.int32(1 << c), np.int32(0))
         self.vert_exempt = wp.array(bits.ravel(), dtype=wp.int32, device=self.device)
         self.contacts = body_contacts(model.vert_count, self.device, enabled=self.count > 0)
+        self.start_clearance = wp.zeros(model.vert_count if self.count > 0 else 1, dtype=float, device=self.device)
         self.model = model
 
     @property
@@ -537,7 +541,8 @@ class ColliderSet:
             model.seg_per_strand, model.seg_length, self.shapes, model.chains.gravity, self.collider_xform,
             self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
             state.vertex_positions, state.vertex_velocities, self.vert_exempt,
-        ], [c.normal, c.object_velocity, c.gap, c.friction], device=self.device, min_chunk=STRAND_MIN_CHUNK)
+        ], [c.normal, c.object_velocity, c.gap, c.friction, self.start_clearance], device=self.device,
+               min_chunk=STRAND_MIN_CHUNK)
 
     def reset_contacts(self):
         """Forget the contacts' friction history (after a teleport)."""
@@ -550,7 +555,7 @@ class ColliderSet:
         if self.model is not model:
             raise RuntimeError("ColliderSet: call bind(model) with this model first (at setup)")
 
-    def project(self, model, state, control, dt_array, state_in=None):
+    def project(self, model, state, control, dt_array, state_in=None, *, detected: bool = False):
         """Push the strands of ``state`` that ended the step inside a collider back out, in place, positions only
         (one launch; none without colliders).
 
@@ -563,6 +568,9 @@ class ColliderSet:
             state_in: the state the step started from; its ``vertex_positions`` give the swept test each
                 vertex's path over the step. Without it the start is estimated from the velocities, which
                 fails for vertices that turn through large angles in one step.
+            detected: :meth:`detect` ran on ``state_in`` for this step (``Solver.step`` does): vertices whose
+                path over the step stayed farther from every collider than the detection found skip their
+                queries. Only with ``state_in``.
         """
         from hairwarp.kernels.body_collision import collide_strands
 
@@ -573,7 +581,7 @@ class ColliderSet:
             model.chains, int(self.swept), self.shapes, self.collider_xform, self.collider_velocity, control.head_xform,
             control.head_velocity, control.bases, dt_array,
             int(state_in is not None), self._no_previous if state_in is None else state_in.vertex_positions,
-            self.vert_exempt,
+            int(detected and state_in is not None), self.start_clearance, self.vert_exempt,
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
             state.fault,
         ]

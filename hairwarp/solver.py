@@ -160,7 +160,8 @@ class Solver:
                 self._gather_forces()
             self._integrate(state_in, state_out, control)
             if body and not self.responders:
-                self.colliders.project(self.model, state_out, control, self.dt, state_in)  # state_in: swept test
+                # state_in: the swept test, from the detection's distances at the start
+                self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
         if self.responders:
             self._respond(state_in, state_out, control, project=body)
 
@@ -274,7 +275,7 @@ class Solver:
             self.executor.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
                                  min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
             if project:
-                self.colliders.project(self.model, state_out, control, self.dt, state_in)
+                self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
 
     # -- tools ----------------------------------------------------------------------------
 

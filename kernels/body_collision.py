@@ -473,6 +473,7 @@ def detect_body_contacts(
     contact_object_velocity: wp.array(dtype=wp.vec3),
     contact_gap: wp.array(dtype=float),
     contact_friction: wp.array(dtype=float),
+    start_clearance: wp.array(dtype=float),
 ):
     """One thread per strand: the body contact candidates of vertices 1..S for the step about to be taken.
 
@@ -481,9 +482,12 @@ def detect_body_contacts(
     Control holds) less the layer is at most its speed relative to the surface times ``h``, plus what gravity
     adds over the step, twice over. Writes the outward ``contact_normal`` (world; zero: none), the surface
     point's velocity at the step's end ``contact_object_velocity`` [m/s], ``contact_gap`` [m] (the start
-    distance less the layer thickness) and the collider's ``contact_friction``; ``articulated.body_contact_solve``
-    decides from the free velocities which of them hold. Vertices inside a collider at rest (exempt) are no
-    candidates of it. Signed distances are 1-Lipschitz, so a vertex far from every collider skips the queries.
+    distance less the layer thickness), the collider's ``contact_friction`` and ``start_clearance`` [m], a lower
+    bound of the vertex's distance to every collider it is not exempt from at its start point (``collide_strands``
+    lets the vertices that the step cannot have taken near a collider skip their queries);
+    ``articulated.body_contact_solve`` decides from the free velocities which of them hold. Vertices inside a
+    collider at rest (exempt) are no candidates of it. Signed distances are 1-Lipschitz, so a vertex far from
+    every collider skips the queries.
     """
     strand = tid_offset + wp.tid()
     S = seg_per_strand
@@ -500,6 +504,7 @@ def detect_body_contacts(
         v = vertex_velocities[vi]
         bound = clearance - seg_length[sbase + k - 1] - LIPSCHITZ_SLOP
         clearance = float(UNBOUNDED)
+        at_start = float(UNBOUNDED)
         best = float(UNBOUNDED)
         normal = wp.vec3()
         v_best = wp.vec3()
@@ -512,13 +517,20 @@ def detect_body_contacts(
             v_object = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), x - origin)
             reach = 2.0 * (h * wp.length(v - v_object) + fall) + LIPSCHITZ_SLOP
             start = x + h * v_object
-            if bound - h * wp.length(v_object) >= thickness + reach:
-                clearance = wp.min(clearance, bound - h * wp.length(v_object))
+            shift = h * wp.length(v_object)
+            if bound - shift >= thickness + reach:
+                clearance = wp.min(clearance, bound)
+                at_start = wp.min(at_start, bound - shift)
                 continue
             if c < MAX_EXEMPT_COLLIDERS and (exempt & (1 << c)) != 0:
+                # no distance known to this collider: the next vertex queries
+                clearance = float(-UNBOUNDED)
+                at_start = float(-UNBOUNDED)
                 continue
             s = shape_surface(shapes, c, wp.transform_point(wp.transform_inverse(X), start), thickness + reach, 0)
-            clearance = wp.min(clearance, s.distance)
+            # ``clearance`` bounds the distance at the vertex (the next one's bound), ``at_start`` at its start point
+            clearance = wp.min(clearance, s.distance - shift)
+            at_start = wp.min(at_start, s.distance)
             if s.found == 0 or s.distance >= thickness + reach or s.distance >= best:
                 continue
             best = s.distance
@@ -527,6 +539,7 @@ def detect_body_contacts(
             v_best = wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), point - origin)
             friction = shapes.friction[c]
             contact_gap[vi] = s.distance - thickness
+        start_clearance[vi] = at_start
         contact_normal[vi] = normal
         contact_object_velocity[vi] = v_best
         contact_friction[vi] = friction
@@ -550,6 +563,8 @@ def collide_strands(
     # State in:
     has_previous: int,
     previous_positions: wp.array(dtype=wp.vec3),
+    detected: int,
+    start_clearance: wp.array(dtype=float),
     # Scratch:
     vert_exempt: wp.array(dtype=wp.int32),
     # Out (read and updated in place):
@@ -567,6 +582,10 @@ def collide_strands(
     strand gets new ``joint_q`` (minimal rotations onto the new segment directions, twist kept), ``seg_xform``,
     ``vertex_positions`` [m] and the ``vertex_velocities`` [m/s] of its unchanged ``joint_qd`` [rad/s] at the
     new configuration. A strand clear of every collider is not written.
+
+    With ``detected`` (and the step's start given), ``start_clearance`` holds what ``detect_body_contacts`` found
+    of each vertex's distance at the start of its path: a path shorter than that less the layer cannot have met
+    the collider, and the vertex skips its queries (at rest or in slow motion, most of them).
     """
     strand = tid_offset + wp.tid()
     S = chains.seg_per_strand
@@ -628,15 +647,20 @@ def collide_strands(
                     start = start + h * (wp.spatial_bottom(vel) + wp.cross(wp.spatial_top(vel), start - origin))
                 x_before = wp.transform_point(X_inv, start)
                 reach = wp.length(x_local - x_before)
-            if bound >= thickness + reach:
+            # From the detection at the path's start (the same point, the same pose): signed distances are
+            # 1-Lipschitz, so none along the path is below this.
+            path_bound = float(-UNBOUNDED)
+            if sweep != 0 and detected != 0 and has_previous != 0 and exempt == 0 and pushed == 0:
+                path_bound = start_clearance[vi] - reach - LIPSCHITZ_SLOP
+            if bound >= thickness + reach or path_bound >= thickness:
                 exempt_new = exempt_new & ~bit
-                clearance = wp.min(clearance, bound)
+                clearance = wp.min(clearance, wp.max(bound, path_bound))
                 continue
             # Reach just past the layer: wider queries cost more near finely meshed surfaces than the rays they
             # would save (measured: 3x on a 20k-triangle head under combed hair).
             max_dist = thickness + LIPSCHITZ_SLOP
             outside_known = int(0)
-            if bound > -max_dist:
+            if wp.max(bound, path_bound) > -max_dist:
                 outside_known = 1
             s = shape_surface(shapes, c, x_local, max_dist, outside_known)
             if (exempt_new & bit) != 0:

@@ -929,6 +929,51 @@ def test_solver_steps_with_moving_head(device):
         np.testing.assert_array_equal(getattr(replayed, key).numpy(), getattr(eager, key).numpy())
 
 
+@pytest.mark.parametrize("subdivisions", [None, 3], ids=["analytic", "mesh"])
+def test_push_out_skips_only_what_cannot_have_met_a_collider(subdivisions, monkeypatch):
+    """The push-out lets a vertex skip its queries when the detection at the step's start found it farther from
+    the colliders than its path over the step (``detected``). Against a solver whose push-out queries every
+    vertex it cannot bound along its own strand: the same bits on a head nodding fast into its hair and a
+    shoulder plane, with pushes happening (the free step leaves the contacts to the push-out)."""
+    import hairwarp as hw
+
+    radii = (0.085, 0.1, 0.11)
+    groom = hw.scalp_groom(40, 0.25, points=11, scalp_center=(0.0, 0.0, 0.0), scalp_radii=radii, seed=5)
+    results = []
+    project = ColliderSet.project
+    for skip in (True, False):
+        if not skip:
+            monkeypatch.setattr(ColliderSet, "project",
+                                lambda self, *a, detected=False, **k: project(self, *a, detected=False, **k))
+        model = hw.Model.build(groom, segments=10, device="cpu")
+        head = Collider.ellipsoid((0.0, 0.0, 0.0), radii, subdivisions, thickness=1e-3, friction=0.3)
+        shoulders = Collider.plane(point=(0.0, 0.0, -0.14), thickness=1e-3, friction=0.3)
+        colliders = ColliderSet([head, shoulders], "cpu", model=model)
+        solver = hw.Solver(model, colliders=colliders, threads=1)
+        solver.body_contacts = solver._no_body_contacts  # the free step ignores the colliders: the push-out works
+        control = model.control()
+        states = [model.state(), model.state()]
+        dt, omega = 1.0 / 240.0, 6.0
+        solver.set_dt(dt)
+        pushed = 0
+        for step in range(40):
+            w = omega * np.cos(2.0 * step * dt)
+            angle = omega * np.sin(2.0 * step * dt) / 2.0
+            control.set_head(rotation=(np.sin(angle / 2), 0.0, 0.0, np.cos(angle / 2)), angular_velocity=(w, 0, 0))
+            solver._force_passes(states[0], control, detect_body=True)
+            solver._integrate(states[0], states[1], control)
+            free = states[1].vertex_positions.numpy().copy()
+            colliders.project(model, states[1], control, solver.dt, states[0], detected=True)
+            pushed += int(np.any(states[1].vertex_positions.numpy() != free, axis=1).sum())
+            states.reverse()
+        assert states[0].fault.numpy()[0] == 0
+        results.append((pushed, {k: getattr(states[0], k).numpy() for k in ("joint_q", "vertex_positions", "fault")}))
+    (pushed, skipping), (pushed_all, querying) = results
+    assert pushed > 0 and pushed == pushed_all
+    for key in skipping:
+        np.testing.assert_array_equal(skipping[key], querying[key])
+
+
 def test_fault_names_the_collision_stage():
     """A collider that hits the hair faster than a step resolves trips the contact response's own bit, and the
     message names collision with collision advice, not the dynamics."""
