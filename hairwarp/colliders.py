@@ -581,7 +581,7 @@ class ColliderSet:
             model.chains, int(self.swept), self.shapes, self.collider_xform, self.collider_velocity, control.head_xform,
             control.head_velocity, control.bases, dt_array,
             int(state_in is not None), self._no_previous if state_in is None else state_in.vertex_positions,
-            int(detected and state_in is not None), self.start_clearance, self.vert_exempt,
+            int(detected), self.start_clearance, self.vert_exempt,
             state.joint_q, state.joint_qd, state.seg_xform, state.vertex_positions, state.vertex_velocities,
             state.fault,
         ]

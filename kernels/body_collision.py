@@ -585,7 +585,7 @@ def collide_strands(
 
     With ``detected`` (and the step's start given), ``start_clearance`` holds what ``detect_body_contacts`` found
     of each vertex's distance at the start of its path: a path shorter than that less the layer cannot have met
-    the collider, and the vertex skips its queries (at rest or in slow motion, most of them).
+    the collider, and the vertex skips its queries.
     """
     strand = tid_offset + wp.tid()
     S = chains.seg_per_strand
