@@ -692,6 +692,8 @@ class HairContacts:
         contacts.entry_mass = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
         contacts.seg_entry_start = wp.zeros(G * S + 1, dtype=wp.int32, device=dev)
         contacts.seg_entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
+        # without the lists (a GPU), the response's scatter counts one contact a segment (``response_entry``)
+        contacts._one_count = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -735,8 +737,9 @@ class HairContacts:
             return
         inputs = [model.seg_per_strand, self._strip_pairs, self.buffer, self._response_buffer]
         if self.device.is_cuda or self.scatter:
+            counts = self.seg_entry_start if not self.device.is_cuda else self._one_count
             launch(self.executor, contact_kernels.contact_response_scatter, self.capacity,
-                   [*inputs, state_in.seg_xform, state_out.vertex_velocities, dt], [dampers],
+                   [*inputs, counts, state_in.seg_xform, state_out.vertex_velocities, dt], [dampers],
                    device=self.device, chunks=[(0, self.capacity)])
         else:
             launch(self.executor, contact_kernels.contact_response_gather, len(self._seg_cursor),

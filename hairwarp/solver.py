@@ -114,6 +114,9 @@ class Solver:
         dampers.C = wp.zeros(m, dtype=wp.mat33, device=device)
         dampers.force = wp.zeros(m, dtype=wp.vec3, device=device)
         dampers.torque = wp.zeros(m, dtype=wp.vec3, device=device)
+        dampers.phi_a = wp.zeros(m, dtype=wp.mat33, device=device)
+        dampers.phi_b = wp.zeros(m, dtype=wp.mat33, device=device)
+        dampers.phi_c = wp.zeros(m, dtype=wp.mat33, device=device)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -260,13 +263,17 @@ class Solver:
         (``articulated.interaction_response``), then with ``project`` the body push-out."""
         model = self.model
         dampers = self.dampers
+        implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         self.executor.zero(dampers.A, dampers.B, dampers.C, dampers.force, dampers.torque)
+        # every strand's inverse inertia at the step's start, which each pair reads at both its ends
+        self.executor.launch(articulated.strand_inverse_inertia, model.strand_count,
+                             [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
+                             min_chunk=INTEGRATE_MIN_CHUNK)
         # each segment gathers its links' and its contacts' dampers (in this order, into its own blocks), reading
         # other strands' velocities, which the response then rewrites: a chain of its own, the response another
         with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
             for part in self.responders:
                 part.gather_response(model, state_in, state_out, self.dt, dampers)
-        implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
                   state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,

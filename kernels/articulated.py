@@ -89,13 +89,20 @@ class InteractionResponse:
     """The hair interactions' dampers of a step, per segment, in its own frame about its origin (its top vertex),
     linearised at the step's start: the blocks ``A, B, C`` of the spatial inertia ``h c P`` of its point dampers
     [kg m^2, kg m, kg] (``kernels.contacts.contact_response_gather``), and their forces [N] and torques [N m] on the
-    free end-of-step velocities; ``interaction_response`` solves them with the strand's own inertia."""
+    free end-of-step velocities; ``interaction_response`` solves them with the strand's own inertia. ``phi_a``,
+    ``phi_b``, ``phi_c``: each segment's inverse inertia in its strand at the step's start, from which a pair's
+    dampers take the effective mass of each of its ends (``articulated_inverse_mass``, ``split_factor``)."""
 
     A: wp.array(dtype=wp.mat33)
     B: wp.array(dtype=wp.mat33)
     C: wp.array(dtype=wp.mat33)
     force: wp.array(dtype=wp.vec3)
     torque: wp.array(dtype=wp.vec3)
+    # each segment's inverse spatial inertia within its strand (``strand_inverse_inertia``), blocks
+    # [[phi_a, phi_b], [phi_b^T, phi_c]] in its own frame about its origin [1/(kg m^2), 1/(kg m), 1/kg]
+    phi_a: wp.array(dtype=wp.mat33)
+    phi_b: wp.array(dtype=wp.mat33)
+    phi_c: wp.array(dtype=wp.mat33)
 
 
 @wp.struct
@@ -865,6 +872,150 @@ def spin_free_torque(r: wp.vec3, f: wp.vec3):
     ``point_damper_blocks``)."""
     t = wp.cross(r, f)
     return wp.vec3(t[0], t[1], 0.0)
+
+
+# Largest ratio of a pair's summed inverse masses to one end's (``split_factor``): an end this much heavier than
+# the other barely moves, and a larger point inertia only costs float32 digits in the solve.
+MAX_SPLIT_FACTOR = wp.constant(1.0e3)
+
+
+@wp.func
+def articulated_inverse_mass(dampers: InteractionResponse, seg: int, xf: wp.transform, p: wp.vec3, e: wp.vec3):
+    """Inverse mass [1/kg] that the world point ``p`` of segment ``seg`` (frame ``xf``) shows along the world unit
+    vector ``e``, its strand free to answer: ``f^T Phi f`` with ``f = (r x e, e)`` the spatial force of a unit
+    force at the point, ``Phi`` the segment's inverse inertia (``strand_inverse_inertia``)."""
+    R = wp.transform_get_rotation(xf)
+    r = wp.quat_rotate_inv(R, p - wp.transform_get_translation(xf))
+    el = wp.quat_rotate_inv(R, e)
+    t = wp.cross(r, el)
+    return wp.dot(t, dampers.phi_a[seg] * t) + 2.0 * wp.dot(t, dampers.phi_b[seg] * el) + wp.dot(
+        el, dampers.phi_c[seg] * el)
+
+
+@wp.func
+def split_factor(own: float, other: float):
+    """How much of a pair's damper one end takes as its point inertia, ``(W_own + W_other) / W_own`` (its inverse
+    mass ``own``, the other end's ``other``), so that each end, solved alone with its own strand, gets the pair's
+    backward-Euler force.
+
+    Two ends of effective masses m_a, m_b joined by a damper ``P`` (the pair's force ``F - P u'``, ``u'`` their
+    relative velocity at the step's end) are solved exactly, one at a time, by a damper ``P (m_a + m_b) / m_b`` on
+    a toward their centre-of-mass velocity (and the same on b with the masses swapped): the force on the free
+    velocities is the pair's own, ``F - P u``, and only the point inertia depends on the masses. With equal masses
+    that is ``2 P`` toward the mean. With unequal ones ``2 P`` is wrong both ways: it shoves the heavy end (a point
+    near a strand's root, where the whole strand turns on a short lever) with the force the light end never takes
+    back, which put energy into limp hair at one step a frame (strand-pair ends' masses differ by orders of
+    magnitude there), and it stiffens the light one."""
+    if own <= 0.0:
+        return MAX_SPLIT_FACTOR
+    return wp.clamp((own + other) / own, 1.0, MAX_SPLIT_FACTOR)
+
+
+@wp.func
+def shared_inverse_mass(own: float, other: float, pairs: float):
+    """The other end's inverse mass as one end's pair takes it when the other end's segment has ``pairs`` pairs:
+    ``other`` times a share of them that grows from none, for ends of equal mass, to all, for an other end twice
+    as light as this one or lighter (mass splitting where it is needed).
+
+    Solved one strand at a time, a heavy end (a point near a root, which turns its whole strand on a short lever)
+    tied to a light one takes the pair's force that the light end, with its other pairs, can only take once:
+    every heavy neighbour of a light segment shoved it with the whole force, which put energy into limp hair at
+    one step a frame. Seen through its share of the light end's mass, each heavy end takes its share. Between
+    ends of like masses the split is not needed, and a whole split would make a dense lattice of links answer a
+    stretch by a fraction of what it is (at 2 steps a frame ``fast_turn`` broke 43 links instead of 3)."""
+    blend = float(0.0)
+    if own > 0.0:
+        blend = wp.clamp(other / own - 1.0, 0.0, 1.0)
+    return other * (1.0 + (wp.max(pairs, 1.0) - 1.0) * blend)
+
+
+@wp.kernel
+def strand_inverse_inertia(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    chains: StrandChains,
+    # Control:
+    dt: wp.array(dtype=float),
+    # State in:
+    implicit: int,
+    loads: SegmentLoads,
+    joint_q: wp.array(dtype=wp.quat),
+    # Out: ``phi_a``, ``phi_b``, ``phi_c`` (the inward pass keeps ``D^-1``, ``D^-1 A``, ``D^-1 B`` there meanwhile)
+    dampers: InteractionResponse,
+):
+    """One thread per strand: each segment's inverse spatial inertia ``Phi`` within its strand [blocks in its own
+    frame about its origin], the head's motion prescribed: the spatial acceleration of the segment under a spatial
+    force on it alone is ``Phi f``. It is what the response solve's matrix, without the dampers, shows at each
+    segment: the implicit joint armature and the interaction springs' masses are in it.
+
+    The articulated inertias come from the inward pass (as ``aba_backward_pass``, inertias only); then outward,
+    ``Phi_i = Psi^T X Phi_p X^T Psi + S D^-1 S^T`` with ``Psi = 1 - U D^-1 S^T`` and ``Phi`` of the head zero
+    (the recursion of the operational-space inverse inertia, Featherstone, RBDA section 7.3 and Wensing et al. 2012):
+    O(S), one more inward and outward pass. A force on the child moves the parent through the joint by what the
+    child's articulated inertia passes on, ``X^T Psi f``; the child's acceleration is the parent's carried over
+    (projected by ``Psi^T``) plus the joint's own answer ``S D^-1 S^T f``."""
+    strand = tid_offset + wp.tid()
+    S = chains.seg_per_strand
+    h = dt[0]
+    cA = wp.mat33()
+    cB = wp.mat33()
+    cC = wp.mat33()
+    eye = wp.identity(n=3, dtype=float)
+    for kk in range(S):
+        k = S - 1 - kk
+        i = strand * S + k
+        extra = float(0.0)
+        if loads.has_implicit_mass != 0:
+            extra = loads.seg_implicit_mass[i]
+        m = chains.seg_mass[i]
+        A0, B0 = segment_inertia_blocks(m, chains.seg_length[i], chains.seg_inertia[i], extra)
+        A = A0 + cA
+        B = B0 + cB
+        C = (m + extra) * eye + cC
+        armature = wp.vec3()
+        if implicit != 0:
+            armature = h * chains.joint_damping[i] + h * h * chains.joint_stiffness[i]
+        Dinv = wp.inverse(A + wp.diag(armature))
+        DA = Dinv * A
+        DB = Dinv * B
+        dampers.phi_a[i] = Dinv
+        dampers.phi_b[i] = DA
+        dampers.phi_c[i] = DB
+        if k > 0:
+            # I^a = I^A - U D^-1 U^T, as aba_backward_pass's armature branch (its general form)
+            Rm = wp.quat_to_matrix(joint_q[i])
+            Aa, Ba, Ca = rotate_blocks(Rm, transpose_scale_columns(DA, armature), scale_rows(DB, armature),
+                                       C - wp.transpose(B) * DB)
+            cA, cB = inertia_shift_z(Aa, Ba, Ca, -chains.seg_length[i - 1])
+            cC = Ca
+    Pa = wp.mat33()
+    Pb = wp.mat33()
+    Pc = wp.mat33()
+    for k in range(S):
+        i = strand * S + k
+        Dinv = dampers.phi_a[i]
+        E = eye - wp.transpose(dampers.phi_b[i])  # I - A D^-1
+        G = -wp.transpose(dampers.phi_c[i])  # -B^T D^-1
+        if k > 0:
+            # the parent's Phi in this segment's frame: X Phi X^T, X = [[R^T, 0], [-R^T [r]x, R^T]], r the joint's
+            # place in the parent
+            Rm = wp.quat_to_matrix(joint_q[i])
+            Rt = wp.transpose(Rm)
+            rx = skew(wp.vec3(0.0, 0.0, -chains.seg_length[i - 1]))
+            Q = Pb + Pa * rx
+            P22 = Rt * (Pc + wp.transpose(Pb) * rx - rx * Q) * Rm
+            P12 = Rt * Q * Rm
+            P11 = Rt * Pa * Rm
+            T2 = wp.transpose(P12) * E + P22 * G
+            Pa = wp.transpose(E) * (P11 * E + P12 * G) + wp.transpose(G) * T2 + Dinv
+            Pb = wp.transpose(E) * P12 + wp.transpose(G) * P22
+            Pc = P22
+        else:
+            Pa = Dinv
+        dampers.phi_a[i] = Pa
+        dampers.phi_b[i] = Pb
+        dampers.phi_c[i] = Pc
 
 
 @wp.kernel

@@ -21,7 +21,15 @@ an equilibrium of the contacts, as it is of the links.
 
 import warp as wp
 
-from hairwarp.kernels.articulated import InteractionResponse, add_damper, point_damper_blocks, spin_free_torque
+from hairwarp.kernels.articulated import (
+    InteractionResponse,
+    add_damper,
+    articulated_inverse_mass,
+    point_damper_blocks,
+    shared_inverse_mass,
+    spin_free_torque,
+    split_factor,
+)
 from hairwarp.kernels.links import add_gathered, lever_scaled_mass
 from hairwarp.kernels.types import Fault
 
@@ -953,23 +961,50 @@ def contact_relative_velocity(slot: int, seg_per_strand: int, strip_pairs: wp.ar
 
 
 @wp.func
-def response_entry(entry: int, h: float, seg_xform: wp.transform, seg_per_strand: int,
+def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.transform), seg_per_strand: int,
                    strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
-                   vertex_velocities: wp.array(dtype=wp.vec3)):
-    """One entry's damper on its segment, in the segment's frame at the step's start: ``(r, M, f)``, the point, the
-    point inertia [kg] (zero: none) and the force [N] on the free velocities.
+                   seg_entry_start: wp.array(dtype=wp.int32), vertex_velocities: wp.array(dtype=wp.vec3),
+                   dampers: InteractionResponse):
+    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f)``, the
+    point, the point inertia [kg] (zero: none) and the force [N] on the free velocities.
 
     The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
-    at its end; each side takes it as a damper ``2 D`` toward the pair's mean velocity (the spring split at its
-    midpoint, Jacobi between strands) on the free step's ``v_n``: ``-D (v_n - target)`` on side a and its shares on
-    side b, while positive, with the point inertia ``2 h D |share|``. A face corner's inertia takes its weight w, not
-    w^2: an upper bound, on the stable side."""
+    at its end; each side takes it as a damper ``s D`` toward the pair's centre-of-mass velocity (Jacobi between
+    strands) on the free step's ``v_n``: ``-D (v_n - target)`` on side a and its shares on side b, while positive,
+    with the point inertia ``s h D |share|``. ``s`` is the side's ``split_factor`` of the two sides' effective
+    masses along the normal, from their strands' inertia (``articulated_inverse_mass``; a face point's, its
+    corners' segments' by their weights squared): 2 for equal sides. A face corner's inertia takes its weight w,
+    not w^2: an upper bound, on the stable side."""
     slot = entry // 4
     D = response.coef[slot]
     share = response.share[entry]
     if D <= 0.0 or share == 0.0:
         return wp.vec3(), wp.mat33(), wp.vec3()
     n = response.normal[slot]
+    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+    w_a = float(0.0)  # inverse masses of the two sides
+    w_b = float(0.0)
+    shared_a = float(0.0)  # ... each segment's times the contacts it has (``seg_entry_start``, when given)
+    shared_b = float(0.0)
+    for e in range(3):
+        other = segs[e]
+        weight = response.share[4 * slot + e]
+        if other >= 0 and weight != 0.0:
+            w = weight * weight * articulated_inverse_mass(dampers, other, seg_xform[other],
+                                                           response.point[4 * slot + e], n)
+            count = float(1.0)
+            if seg_entry_start.shape[0] > other + 1:
+                count = float(seg_entry_start[other + 1] - seg_entry_start[other])
+            if weight > 0.0:
+                w_a += w
+                shared_a += count * w
+            else:
+                w_b += w
+                shared_b += count * w
+    # the other side's pairs: its segments' contacts, weighted by their shares of its inverse mass
+    s = split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30)))
+    if share > 0.0:
+        s = split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30)))
     vrel = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, vertex_velocities)
     vn = wp.dot(vrel, n)
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
@@ -981,11 +1016,12 @@ def response_entry(entry: int, h: float, seg_xform: wp.transform, seg_per_strand
     vt = vrel - vn * n
     vt_sq = wp.dot(vt, vt)
     Dt = response.friction * push / wp.sqrt(vt_sq + response.slip_velocity * response.slip_velocity)
-    R = wp.transform_get_rotation(seg_xform)
+    xf = seg_xform[seg]
+    R = wp.transform_get_rotation(xf)
     nl = wp.quat_rotate_inv(R, n)
-    r = wp.quat_rotate_inv(R, response.point[entry] - wp.transform_get_translation(seg_xform))
+    r = wp.quat_rotate_inv(R, response.point[entry] - wp.transform_get_translation(xf))
     a = wp.abs(share)
-    M = (2.0 * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
+    M = (s * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
     f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
     return r, M, f
 
@@ -1014,15 +1050,14 @@ def contact_response_gather(
     order) to its ``InteractionResponse`` blocks, for ``kernels.articulated.interaction_response``."""
     seg = tid_offset + wp.tid()
     h = dt[0]
-    xf = seg_xform[seg]
     A = wp.mat33()
     B = wp.mat33()
     C = wp.mat33()
     force = wp.vec3()
     torque = wp.vec3()
     for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
-        r, M, f = response_entry(seg_entries[j], h, xf, seg_per_strand, strip_pairs, contacts, response,
-                                 vertex_velocities)
+        r, M, f = response_entry(seg_entries[j], h, seg, seg_xform, seg_per_strand, strip_pairs, contacts, response,
+                                 seg_entry_start, vertex_velocities, dampers)
         if wp.trace(M) > 0.0:
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
@@ -1043,6 +1078,7 @@ def contact_response_scatter(
     # Scratch:
     contacts: ContactBuffer,
     response: ContactResponse,
+    seg_entry_start: wp.array(dtype=wp.int32),
     # State: the step's start (frames), the free step's end (velocities)
     seg_xform: wp.array(dtype=wp.transform),
     vertex_velocities: wp.array(dtype=wp.vec3),
@@ -1051,7 +1087,8 @@ def contact_response_scatter(
     # In and out:
     dampers: InteractionResponse,
 ):
-    """One thread per buffer slot (on a GPU): ``contact_response_gather`` with atomics, in any order."""
+    """One thread per buffer slot (on a GPU): ``contact_response_gather`` with atomics, in any order;
+    ``seg_entry_start`` as the gather's when the lists are built, else one element (each segment's mass unshared)."""
     slot = tid_offset + wp.tid()
     if slot >= wp.min(contacts.counter[0], contacts.capacity):
         return
@@ -1060,8 +1097,8 @@ def contact_response_scatter(
     for e in range(4):
         seg = segs[e]
         if seg >= 0:
-            r, M, f = response_entry(4 * slot + e, h, seg_xform[seg], seg_per_strand, strip_pairs, contacts,
-                                     response, vertex_velocities)
+            r, M, f = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
+                                     response, seg_entry_start, vertex_velocities, dampers)
             if wp.trace(M) > 0.0:
                 Ap, Bp = point_damper_blocks(r, M)
                 wp.atomic_add(dampers.A, seg, Ap)

@@ -17,7 +17,15 @@ net torque but that spin component.
 
 import warp as wp
 
-from hairwarp.kernels.articulated import InteractionResponse, add_damper, point_damper_blocks, spin_free_torque
+from hairwarp.kernels.articulated import (
+    InteractionResponse,
+    add_damper,
+    articulated_inverse_mass,
+    point_damper_blocks,
+    shared_inverse_mass,
+    spin_free_torque,
+    split_factor,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -378,37 +386,58 @@ def link_break(
 
 
 @wp.func
-def link_damper(link: int, side: float, xf: wp.transform, h: float, seg_per_strand: int,
-                link_stiffness: float, link_damping: float, link_seg_a: wp.array(dtype=wp.int32),
-                link_seg_b: wp.array(dtype=wp.int32), link_point_a: wp.array(dtype=wp.vec3),
-                link_point_b: wp.array(dtype=wp.vec3), vertex_positions: wp.array(dtype=wp.vec3),
-                vertex_velocities: wp.array(dtype=wp.vec3)):
+def link_damper(link: int, side: float, h: float, seg_per_strand: int, link_stiffness: float, link_damping: float,
+                link_seg_a: wp.array(dtype=wp.int32), link_seg_b: wp.array(dtype=wp.int32),
+                link_point_a: wp.array(dtype=wp.vec3), link_point_b: wp.array(dtype=wp.vec3),
+                seg_link_start: wp.array(dtype=wp.int32), seg_b_start: wp.array(dtype=wp.int32),
+                seg_xform: wp.array(dtype=wp.transform), vertex_positions: wp.array(dtype=wp.vec3),
+                vertex_velocities: wp.array(dtype=wp.vec3), dampers: InteractionResponse):
     """One end of a link as a damper on its segment (``side`` +1: end a, -1: end b), in the segment's frame at the
     step's start: ``(r, M, f)``, the point, the point inertia [kg] and the force [N].
 
     The link's backward-Euler force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step
-    velocity of a's end relative to b's; each end takes it as a damper ``2 P`` toward the ends' mean velocity from
-    the free step (the spring split at its midpoint): ``k l - P u`` on a and its opposite on b, with the point
-    inertia ``2 h P``. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a frame, where a
-    segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
+    velocity of a's end relative to b's; each end takes it as a damper ``s P`` toward the ends' centre-of-mass
+    velocity from the free step: ``k l - P u`` on a and its opposite on b, with the point inertia ``s h P``. ``s`` is
+    the end's ``split_factor``: its own inverse mass along that force against the other end's, from their strands'
+    inertia (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the lighter
+    (``shared_inverse_mass``). 2 between ends of equal mass, as the spring split at its midpoint. (Applied in the
+    free step instead, ``k l`` kicked the hair apart at one step a frame, where a segment's half-dozen links are far
+    stiffer than its mass allows explicitly.)"""
+    a = link_seg_a[link]
+    b = link_seg_b[link]
     xa = link_point_a[link]
     xb = link_point_b[link]
-    u = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, vertex_velocities, xa) - \
-        seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, vertex_velocities, xb)
+    u = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa) - \
+        seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
     l = xb - xa
     length = wp.length(l)
     P = (h * link_stiffness) * wp.identity(n=3, dtype=float)
     if length > LINK_MIN_LENGTH:
         n = l / length
         P = P + link_damping * wp.outer(n, n)
+    force = link_stiffness * l - P * u
+    e = wp.vec3(1.0, 0.0, 0.0)
+    if wp.length_sq(force) > 0.0:
+        e = wp.normalize(force)
+    own = a
+    p = xa
+    other = b
+    q = xb
+    if side < 0.0:
+        own = b
+        p = xb
+        other = a
+        q = xa
+    xf = seg_xform[own]
+    pairs = seg_link_start[other + 1] - seg_link_start[other] + seg_b_start[other + 1] - seg_b_start[other]
+    w_own = articulated_inverse_mass(dampers, own, xf, p, e)
+    s = split_factor(w_own, shared_inverse_mass(w_own, articulated_inverse_mass(dampers, other, seg_xform[other], q,
+                                                                                 e), float(pairs)))
     R = wp.transform_get_rotation(xf)
     Rm = wp.quat_to_matrix(R)
-    p = xa
-    if side < 0.0:
-        p = xb
     r = wp.quat_rotate_inv(R, p - wp.transform_get_translation(xf))
-    M = (2.0 * h) * (wp.transpose(Rm) * P * Rm)
-    f = wp.quat_rotate_inv(R, side * (link_stiffness * l - P * u))
+    M = (s * h) * (wp.transpose(Rm) * P * Rm)
+    f = wp.quat_rotate_inv(R, side * force)
     return r, M, f
 
 
@@ -448,7 +477,6 @@ def link_response_gather(
     if a_first == a_last and b_first == b_last:
         return
     h = dt[0]
-    xf = seg_xform[seg]
     A = wp.mat33()
     B = wp.mat33()
     C = wp.mat33()
@@ -461,8 +489,9 @@ def link_response_gather(
             link = b_slot_link[b_first + j - a_last]
             side = -1.0
         if link_broken[link] == 0:
-            r, M, f = link_damper(link, side, xf, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
-                                  link_seg_b, link_point_a, link_point_b, vertex_positions, vertex_velocities)
+            r, M, f = link_damper(link, side, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
+                                  link_seg_b, link_point_a, link_point_b, seg_link_start, seg_b_start, seg_xform,
+                                  vertex_positions, vertex_velocities, dampers)
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
             B += Bp

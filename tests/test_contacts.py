@@ -635,6 +635,57 @@ def test_response_is_the_backward_euler_pair(speed):
         assert dv == 0.0 and np.abs(v[0, 1] - speed) <= tol
 
 
+def test_response_of_unequal_ends_is_the_backward_euler_pair():
+    """A short pendulum meets a three times longer one at both midpoints (effective masses 1 : 3): each side, solved
+    with its own strand alone, takes the pair's backward-Euler force ``(k d - D v_n) / (1 + h D (1/m_a + 1/m_b))``
+    exactly, equal and opposite, with the effective masses ``I_root / lever^2`` in closed form. Split as a damper
+    2 D toward the unweighted mean (the rule for equal ends), the short one took 1.5x the force the long one gave
+    back: momentum, and energy, from nowhere."""
+    import hairwarp as hw
+    from hairwarp.model import Model, StrandParams
+    from hairwarp.solver import Solver
+
+    L, Lb, delta, h, k, c, speed = 0.02, 0.06, 0.001, 1.0 / 30.0, 10.0, 0.01, 0.3
+    verts = [np.array([[0.0, -delta / 2, 0.0], [0.0, -delta / 2, -L]]),
+             np.array([[-Lb / 2, delta / 2, -L / 2], [Lb / 2, delta / 2, -L / 2]])]
+    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
+                          drag=0.0)
+    model = Model.build(verts, params, segments=1, gravity=(0.0, 0.0, 0.0))
+    contacts = HairContacts.build(verts, threshold=THRESHOLD, stiffness=k, damping=c, friction=0.0, capacity=4,
+                                  rest_gaps=False, segment_segment=True, response=True)
+    solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, contacts=contacts, threads=1)
+    control = model.control()
+    solver.set_dt(h)
+    start = model.state()
+    free = model.state()
+    xf = start.seg_xform.numpy()
+    levers = (L / 2, Lb / 2)
+    w = np.zeros((2, 3))
+    for g, v in enumerate(([0.0, speed, 0.0], [0.0, -speed, 0.0])):  # the midpoints approach, each at speed
+        R = Rotation.from_quat(xf[g, 3:7])
+        r = R.apply([0.0, 0.0, -levers[g]])
+        w[g] = R.inv().apply(np.cross(r, v) / levers[g] ** 2)
+    free.joint_qd.assign(w.astype(np.float32))
+    solver.forward_kinematics(free, control)
+    contacts.detect(model, start)
+    contacts.apply_forces(model, start, solver.dt)
+    solver._respond(start, free, control)
+    w = free.joint_qd.numpy().astype(np.float64)
+    v = [Rotation.from_quat(xf[g, 3:7]).apply(np.cross(w[g], [0.0, 0.0, -levers[g]])) for g in range(2)]
+
+    m = model.seg_mass.numpy().astype(np.float64)
+    inertia = model.seg_inertia.numpy().astype(np.float64)
+    inv_mass = [levers[g] ** 2 / (inertia[g, 0] + m[g] * levers[g] ** 2) for g in range(2)]
+    assert 2.9 < inv_mass[0] / inv_mass[1] < 3.1
+    D = h * k + c
+    push = k * (THRESHOLD - delta) + D * 2.0 * speed
+    F = push / (1.0 + h * D * (inv_mass[0] + inv_mass[1]))
+    # float32 state and solve: 1e-5 of the speeds involved (as for the equal pair above)
+    tol = 1e-5 * speed
+    np.testing.assert_allclose(v[0], [0.0, speed - h * inv_mass[0] * F, 0.0], atol=tol)
+    np.testing.assert_allclose(v[1], [0.0, -speed + h * inv_mass[1] * F, 0.0], atol=tol)
+
+
 def test_response_friction_never_reverses_the_slip():
     """The same pendulums sliding past each other along x as they meet: the friction damper takes slip out and never
     reverses it, and takes no more than the cone allows over the step, ``h mu f_n / m_eff`` of each midpoint."""
@@ -665,8 +716,8 @@ def test_response_friction_never_reverses_the_slip():
 def test_link_response_is_the_backward_euler_pair():
     """The same pendulums tied at their midpoints by a link (slack at rest) and moving apart along y at ``speed``
     each: the response gives each midpoint the change of the link's backward-Euler force ``-h k u'`` taken as a
-    damper ``2 h k`` toward the pair's mean velocity, with the pendulum's effective mass at its midpoint, in closed
-    form (the damping acts along the link, which has no direction while slack)."""
+    damper ``s h k`` toward the pair's centre-of-mass velocity, with the pendulum's effective mass at its midpoint,
+    in closed form (the damping acts along the link, which has no direction while slack)."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
     from hairwarp.solver import Solver
@@ -694,8 +745,21 @@ def test_link_response_is_the_backward_euler_pair():
     J = {0: np.array([[0.0, L / 2, delta]]), 1: np.array([[0.0, L / 2, 0.0], [0.0, 0.0, -L / 2]])}
     rate = {0: np.array([-speed / (L / 2)]), 1: np.array([speed / (L / 2), 0.0])}
     u = J[0].T @ rate[0] - J[1].T @ rate[1]
+    # Each end's damper is s h k, s = (W_a + W_b) / W_own (``split_factor``): the ends' inverse masses along the
+    # link's force -h k u, ``[r]x^T I^-1 [r]x`` with the pendulum's inertia about its root (A along -z, B along +x,
+    # spin about its own axis) and r from root to end. A's end lies off A's axis, where u's small z component meets
+    # A nearly rigid: s is 1.99 and 2.01, not 2.
+    e = -u / np.linalg.norm(u)
+    i_spin = inertia[2]
+    inertia_world = {0: np.diag([i_root, i_root, i_spin]), 1: np.diag([i_spin, i_root, i_root])}
+    r_end = {0: np.array([0.0, delta, -L / 2]), 1: np.array([L / 2, 0.0, 0.0])}
+    W = {}
+    for g in (0, 1):
+        rx = np.cross(np.eye(3), r_end[g])  # rows e_i x r: rx @ f = r x f
+        W[g] = e @ (rx.T @ np.linalg.inv(inertia_world[g]) @ rx) @ e
     for g, side in ((0, 1.0), (1, -1.0)):
-        lhs = i_root * np.eye(len(rate[g])) + 2.0 * h * h * k * J[g] @ J[g].T
+        split = (W[0] + W[1]) / W[g]
+        lhs = i_root * np.eye(len(rate[g])) + split * h * h * k * J[g] @ J[g].T
         new_rate = rate[g] + np.linalg.solve(lhs, h * J[g] @ (-side * h * k * u))
         # float32 state and solve against float64: 1e-5 of the speed (as in the contact pair above)
         np.testing.assert_allclose(v[g], J[g].T @ new_rate * [1.0, 1.0, 1.0 if g == 1 else 0.0],
