@@ -1002,9 +1002,9 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
                 w_b += w
                 shared_b += count * w
     # the other side's pairs: its segments' contacts, weighted by their shares of its inverse mass
-    s = split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30)))
+    s = split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30), h * D))
     if share > 0.0:
-        s = split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30)))
+        s = split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30), h * D))
     vrel = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, vertex_velocities)
     vn = wp.dot(vrel, n)
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities

@@ -399,10 +399,10 @@ def link_damper(link: int, side: float, h: float, seg_per_strand: int, link_stif
     velocity of a's end relative to b's; each end takes it as a damper ``s P`` toward the ends' centre-of-mass
     velocity from the free step: ``k l - P u`` on a and its opposite on b, with the point inertia ``s h P``. ``s`` is
     the end's ``split_factor``: its own inverse mass along that force against the other end's, from their strands'
-    inertia (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the lighter
-    (``shared_inverse_mass``). 2 between ends of equal mass, as the spring split at its midpoint. (Applied in the
-    free step instead, ``k l`` kicked the hair apart at one step a frame, where a segment's half-dozen links are far
-    stiffer than its mass allows explicitly.)"""
+    inertia (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the
+    lighter and the link holds it over the step (``shared_inverse_mass``). 2 between ends of equal mass, as the
+    spring split at its midpoint. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a
+    frame, where a segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
     a = link_seg_a[link]
     b = link_seg_b[link]
     xa = link_point_a[link]
@@ -431,8 +431,9 @@ def link_damper(link: int, side: float, h: float, seg_per_strand: int, link_stif
     xf = seg_xform[own]
     pairs = seg_link_start[other + 1] - seg_link_start[other] + seg_b_start[other + 1] - seg_b_start[other]
     w_own = articulated_inverse_mass(dampers, own, xf, p, e)
+    stiffness = h * wp.dot(e, P * e)  # the pair's damper over the step along its force [kg]
     s = split_factor(w_own, shared_inverse_mass(w_own, articulated_inverse_mass(dampers, other, seg_xform[other], q,
-                                                                                 e), float(pairs)))
+                                                                                 e), float(pairs), stiffness))
     R = wp.transform_get_rotation(xf)
     Rm = wp.quat_to_matrix(R)
     r = wp.quat_rotate_inv(R, p - wp.transform_get_translation(xf))
