@@ -206,6 +206,31 @@ def aba_forward_pass1(
 
 
 @wp.func
+def segment_articulated_blocks(chains: StrandChains, loads: SegmentLoads, i: int, cA: wp.mat33, cB: wp.mat33,
+                               cC: wp.mat33):
+    """Blocks (A, B, C) of segment ``i``'s articulated inertia about its origin, its own frame: the segment (with
+    the interaction springs' semi-implicit mass at its centre of mass) and its child's passed-on blocks."""
+    extra = float(0.0)
+    if loads.has_implicit_mass != 0:
+        extra = loads.seg_implicit_mass[i]
+    m = chains.seg_mass[i]
+    A0, B0 = segment_inertia_blocks(m, chains.seg_length[i], chains.seg_inertia[i], extra)
+    return A0 + cA, B0 + cB, (m + extra) * wp.identity(n=3, dtype=float) + cC
+
+
+@wp.func
+def blocks_to_parent(Rm: wp.mat33, DA: wp.mat33, DB: wp.mat33, armature: wp.vec3, B: wp.mat33, C: wp.mat33,
+                     z: float):
+    """What a segment's articulated inertia passes to its parent through its spherical joint, ``I^A - U D^-1 U^T``
+    (``D = A + diag(armature)``; ``DA``, ``DB`` = ``D^-1 A``, ``D^-1 B``), rotated into the parent's frame
+    (``Rm``) and shifted to its origin from the joint at ``(0, 0, z)``: the blocks (cA, cB, cC)."""
+    Aa, Ba, Ca = rotate_blocks(Rm, transpose_scale_columns(DA, armature), scale_rows(DB, armature),
+                               C - wp.transpose(B) * DB)
+    cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
+    return cA, cB, Ca
+
+
+@wp.func
 def aba_backward_pass(
     chains: StrandChains,
     strand: int,
@@ -227,18 +252,10 @@ def aba_backward_pass(
     cC = wp.mat33()
     cn = wp.vec3()
     cf = wp.vec3()
-    eye = wp.identity(n=3, dtype=float)
     for kk in range(S):
         k = S - 1 - kk
         i = strand * S + k
-        extra = float(0.0)
-        if loads.has_implicit_mass != 0:
-            extra = loads.seg_implicit_mass[i]
-        m = chains.seg_mass[i]
-        A0, B0 = segment_inertia_blocks(m, chains.seg_length[i], chains.seg_inertia[i], extra)
-        A = A0 + cA
-        B = B0 + cB
-        C = (m + extra) * eye + cC
+        A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
         p = scratch.p[i]
         n = wp.spatial_top(p) + cn
         f = wp.spatial_bottom(p) + cf
@@ -541,14 +558,9 @@ def body_contact_solve(
                 q = joint_q[i]
                 Rm = wp.quat_to_matrix(q)
                 z = -chains.seg_length[i - 1]
-                Aa = transpose_scale_columns(DA, armature)
-                Ba = scale_rows(DB, armature)
-                Ca = C - wp.transpose(B) * DB
                 na = Rm * (n_ + A * Du)
                 fa = Rm * (f + wp.transpose(B) * Du)
-                Aa, Ba, Ca = rotate_blocks(Rm, Aa, Ba, Ca)
-                cA, cB = inertia_shift_z(Aa, Ba, Ca, z)
-                cC = Ca
+                cA, cB, cC = blocks_to_parent(Rm, DA, DB, armature, B, C, z)
                 cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
                 cf = fa
 
@@ -974,14 +986,7 @@ def strand_inverse_inertia(
     for kk in range(S):
         k = S - 1 - kk
         i = strand * S + k
-        extra = float(0.0)
-        if loads.has_implicit_mass != 0:
-            extra = loads.seg_implicit_mass[i]
-        m = chains.seg_mass[i]
-        A0, B0 = segment_inertia_blocks(m, chains.seg_length[i], chains.seg_inertia[i], extra)
-        A = A0 + cA
-        B = B0 + cB
-        C = (m + extra) * eye + cC
+        A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
         armature = wp.vec3()
         if implicit != 0:
             armature = h * chains.joint_damping[i] + h * h * chains.joint_stiffness[i]
@@ -992,12 +997,8 @@ def strand_inverse_inertia(
         dampers.phi_b[i] = DA
         dampers.phi_c[i] = DB
         if k > 0:
-            # I^a = I^A - U D^-1 U^T, as aba_backward_pass's armature branch (its general form)
-            Rm = wp.quat_to_matrix(joint_q[i])
-            Aa, Ba, Ca = rotate_blocks(Rm, transpose_scale_columns(DA, armature), scale_rows(DB, armature),
-                                       C - wp.transpose(B) * DB)
-            cA, cB = inertia_shift_z(Aa, Ba, Ca, -chains.seg_length[i - 1])
-            cC = Ca
+            cA, cB, cC = blocks_to_parent(wp.quat_to_matrix(joint_q[i]), DA, DB, armature, B, C,
+                                          -chains.seg_length[i - 1])
     Pa = wp.mat33()
     Pb = wp.mat33()
     Pc = wp.mat33()
