@@ -276,6 +276,8 @@ class StaticLinks:
         # the response's: each link's ends at the step's start, and the link of each of b's slots
         links.link_point_a = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.link_point_b = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.link_force = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.link_split = wp.zeros(n, dtype=wp.vec2, device=dev)
         links.b_slot_link = wp.array(by_b.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
                                      device=dev)
         return links
@@ -316,17 +318,28 @@ class StaticLinks:
                 self.link_point_a, self.link_point_b],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
 
+    def prepare_response(self, model, state_in, state_out, dt, dampers):
+        """Each link's force on the free step's end velocities (``state_out``) and its ends' split factors, from
+        the strands' inverse inertias in ``dampers`` (``link_response_split``; launch only): what
+        :meth:`gather_response` reads at both ends."""
+        if self.link_count == 0:
+            return
+        launch(self.executor, link_kernels.link_response_split, self.link_count,
+               [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.link_seg_a, self.link_seg_b,
+                self.stiffness, self.damping, self.link_point_a, self.link_point_b, self.link_broken,
+                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt, dampers],
+               [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+
     def gather_response(self, model, state_in, state_out, dt, dampers):
         """Add every segment's link-end dampers for the velocity response (``response``) to ``dampers`` (a
-        :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out`` and
-        the frames of ``state_in`` (launch only)."""
+        :class:`kernels.articulated.InteractionResponse`), from :meth:`prepare_response` and the frames of
+        ``state_in`` (launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
-               [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.b_slot_link, self.link_seg_a,
-                self.link_seg_b, self.stiffness, self.damping, self.link_point_a, self.link_point_b, self.link_broken,
-                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt], [dampers],
-               device=self.device, min_chunk=GATHER_MIN_CHUNK)
+               [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
+                self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
+                state_in.seg_xform, dt], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it
@@ -726,20 +739,30 @@ class HairContacts:
         r.weights = wp.zeros(cap, dtype=wp.vec4, device=dev)
         r.point = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
         r.share = wp.zeros(4 * cap, dtype=float, device=dev)
+        r.split = wp.zeros(cap, dtype=wp.vec2, device=dev)
         self._response_buffer = r
         self.response = bool(on)
 
+    def prepare_response(self, model, state_in, state_out, dt, dampers):
+        """Each contact's split factors of its two sides, from the strands' inverse inertias in ``dampers``
+        (``contact_response_split``; launch only): what :meth:`gather_response` reads."""
+        if not self.enabled:
+            return
+        counts = self._one_count if self.device.is_cuda else self.seg_entry_start  # no lists on a GPU
+        launch(self.executor, contact_kernels.contact_response_split, self.capacity,
+               [model.seg_per_strand, self._strip_pairs, self.buffer, counts, state_in.seg_xform, dt, dampers],
+               [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+
     def gather_response(self, model, state_in, state_out, dt, dampers):
         """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
-        :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out`` and
-        the frames of ``state_in`` (launch only)."""
+        :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out``, the
+        frames of ``state_in`` and :meth:`prepare_response` (launch only)."""
         if not self.enabled:
             return
         inputs = [model.seg_per_strand, self._strip_pairs, self.buffer, self._response_buffer]
         if self.device.is_cuda or self.scatter:
-            counts = self.seg_entry_start if not self.device.is_cuda else self._one_count
             launch(self.executor, contact_kernels.contact_response_scatter, self.capacity,
-                   [*inputs, counts, state_in.seg_xform, state_out.vertex_velocities, dt], [dampers],
+                   [*inputs, state_in.seg_xform, state_out.vertex_velocities, dt], [dampers],
                    device=self.device, chunks=[(0, self.capacity)])
         else:
             launch(self.executor, contact_kernels.contact_response_gather, len(self._seg_cursor),

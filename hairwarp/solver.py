@@ -269,6 +269,8 @@ class Solver:
         self.executor.launch(articulated.strand_inverse_inertia, model.strand_count,
                              [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
                              min_chunk=INTEGRATE_MIN_CHUNK)
+        for part in self.responders:
+            part.prepare_response(model, state_in, state_out, self.dt, dampers)
         # each segment gathers its links' and its contacts' dampers (in this order, into its own blocks), reading
         # other strands' velocities, which the response then rewrites: a chain of its own, the response another
         with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):

@@ -220,7 +220,8 @@ class ContactResponse:
     (a vertex-face contact's quad corners a_k, b_k, a_k+1, b_k+1; a segment pair's (s, t, 0, 0)). Per entry
     ``4 slot + e``, as the force's entries: the world ``point`` and the signed ``share`` (+1 side a; -1, or the
     face's corner weights, side b; 0 none). ``friction`` and ``slip_velocity`` [m/s]: the contacts' Coulomb
-    coefficient and its regularisation."""
+    coefficient and its regularisation. ``split``: the two sides' split factors of the step's response
+    (``contact_response_split``)."""
 
 
     enabled: int
@@ -232,6 +233,7 @@ class ContactResponse:
     weights: wp.array(dtype=wp.vec4)
     point: wp.array(dtype=wp.vec3)
     share: wp.array(dtype=float)
+    split: wp.array(dtype=wp.vec2)
 
 
 @wp.func
@@ -963,48 +965,25 @@ def contact_relative_velocity(slot: int, seg_per_strand: int, strip_pairs: wp.ar
 @wp.func
 def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.transform), seg_per_strand: int,
                    strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
-                   seg_entry_start: wp.array(dtype=wp.int32), vertex_velocities: wp.array(dtype=wp.vec3),
-                   dampers: InteractionResponse):
+                   vertex_velocities: wp.array(dtype=wp.vec3)):
     """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f)``, the
     point, the point inertia [kg] (zero: none) and the force [N] on the free velocities.
 
     The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
     at its end; each side takes it as a damper ``s D`` toward the pair's centre-of-mass velocity (Jacobi between
     strands) on the free step's ``v_n``: ``-D (v_n - target)`` on side a and its shares on side b, while positive,
-    with the point inertia ``s h D |share|``. ``s`` is the side's ``split_factor`` of the two sides' effective
-    masses along the normal, from their strands' inertia (``articulated_inverse_mass``; a face point's, its
-    corners' segments' by their weights squared): 2 for equal sides. A face corner's inertia takes its weight w,
-    not w^2: an upper bound, on the stable side."""
+    with the point inertia ``s h D |share|``, ``s`` the side's split factor (``contact_response_split``). A face
+    corner's inertia takes its weight w, not w^2: an upper bound, on the stable side."""
     slot = entry // 4
     D = response.coef[slot]
     share = response.share[entry]
     if D <= 0.0 or share == 0.0:
         return wp.vec3(), wp.mat33(), wp.vec3()
     n = response.normal[slot]
-    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
-    w_a = float(0.0)  # inverse masses of the two sides
-    w_b = float(0.0)
-    shared_a = float(0.0)  # ... each segment's times the contacts it has (``seg_entry_start``, when given)
-    shared_b = float(0.0)
-    for e in range(3):
-        other = segs[e]
-        weight = response.share[4 * slot + e]
-        if other >= 0 and weight != 0.0:
-            w = weight * weight * articulated_inverse_mass(dampers, other, seg_xform[other],
-                                                           response.point[4 * slot + e], n)
-            count = float(1.0)
-            if seg_entry_start.shape[0] > other + 1:
-                count = float(seg_entry_start[other + 1] - seg_entry_start[other])
-            if weight > 0.0:
-                w_a += w
-                shared_a += count * w
-            else:
-                w_b += w
-                shared_b += count * w
-    # the other side's pairs: its segments' contacts, weighted by their shares of its inverse mass
-    s = split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30), h * D))
+    split = response.split[slot]
+    s = split[1]
     if share > 0.0:
-        s = split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30), h * D))
+        s = split[0]
     vrel = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, vertex_velocities)
     vn = wp.dot(vrel, n)
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
@@ -1024,6 +1003,63 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     M = (s * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
     f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
     return r, M, f
+
+
+@wp.kernel
+def contact_response_split(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    # Scratch:
+    contacts: ContactBuffer,
+    seg_entry_start: wp.array(dtype=wp.int32),
+    # State: the step's start (frames)
+    seg_xform: wp.array(dtype=wp.transform),
+    # Control:
+    dt: wp.array(dtype=float),
+    dampers: InteractionResponse,
+    # In and out:
+    response: ContactResponse,
+):
+    """One thread per buffer slot: the split factors ``(s_a, s_b)`` of the contact's two sides (``response.split``),
+    from their effective masses along the normal in their strands (``articulated_inverse_mass``; a face point's, its
+    corners' segments' by their weights squared): ``split_factor``, the other side's inverse mass shared among its
+    segments' contacts where it is the lighter and the contact holds it (``shared_inverse_mass``; counts from
+    ``seg_entry_start`` when it holds the segments' lists, one contact a segment where it has one element). 2 for
+    equal sides."""
+    slot = tid_offset + wp.tid()
+    if slot >= wp.min(contacts.counter[0], contacts.capacity):
+        return
+    D = response.coef[slot]
+    if D <= 0.0:
+        return
+    n = response.normal[slot]
+    segs = contact_segments(slot, seg_per_strand, strip_pairs, contacts)
+    w_a = float(0.0)  # inverse masses of the two sides
+    w_b = float(0.0)
+    shared_a = float(0.0)  # ... each segment's times the contacts it has
+    shared_b = float(0.0)
+    for e in range(3):
+        other = segs[e]
+        weight = response.share[4 * slot + e]
+        if other >= 0 and weight != 0.0:
+            w = weight * weight * articulated_inverse_mass(dampers, other, seg_xform[other],
+                                                           response.point[4 * slot + e], n)
+            count = float(1.0)
+            if seg_entry_start.shape[0] > other + 1:
+                count = float(seg_entry_start[other + 1] - seg_entry_start[other])
+            if weight > 0.0:
+                w_a += w
+                shared_a += count * w
+            else:
+                w_b += w
+                shared_b += count * w
+    stiffness = dt[0] * D
+    response.split[slot] = wp.vec2(
+        split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30), stiffness)),
+        split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30), stiffness)))
 
 
 @wp.kernel
@@ -1057,7 +1093,7 @@ def contact_response_gather(
     torque = wp.vec3()
     for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
         r, M, f = response_entry(seg_entries[j], h, seg, seg_xform, seg_per_strand, strip_pairs, contacts, response,
-                                 seg_entry_start, vertex_velocities, dampers)
+                                 vertex_velocities)
         if wp.trace(M) > 0.0:
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
@@ -1078,7 +1114,6 @@ def contact_response_scatter(
     # Scratch:
     contacts: ContactBuffer,
     response: ContactResponse,
-    seg_entry_start: wp.array(dtype=wp.int32),
     # State: the step's start (frames), the free step's end (velocities)
     seg_xform: wp.array(dtype=wp.transform),
     vertex_velocities: wp.array(dtype=wp.vec3),
@@ -1087,8 +1122,7 @@ def contact_response_scatter(
     # In and out:
     dampers: InteractionResponse,
 ):
-    """One thread per buffer slot (on a GPU): ``contact_response_gather`` with atomics, in any order;
-    ``seg_entry_start`` as the gather's when the lists are built, else one element (each segment's mass unshared)."""
+    """One thread per buffer slot (on a GPU): ``contact_response_gather`` with atomics, in any order."""
     slot = tid_offset + wp.tid()
     if slot >= wp.min(contacts.counter[0], contacts.capacity):
         return
@@ -1098,7 +1132,7 @@ def contact_response_scatter(
         seg = segs[e]
         if seg >= 0:
             r, M, f = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
-                                     response, seg_entry_start, vertex_velocities, dampers)
+                                     response, vertex_velocities)
             if wp.trace(M) > 0.0:
                 Ap, Bp = point_damper_blocks(r, M)
                 wp.atomic_add(dampers.A, seg, Ap)

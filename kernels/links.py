@@ -386,71 +386,25 @@ def link_break(
 
 
 @wp.func
-def link_damper(link: int, side: float, h: float, seg_per_strand: int, link_stiffness: float, link_damping: float,
-                link_seg_a: wp.array(dtype=wp.int32), link_seg_b: wp.array(dtype=wp.int32),
-                link_point_a: wp.array(dtype=wp.vec3), link_point_b: wp.array(dtype=wp.vec3),
-                seg_link_start: wp.array(dtype=wp.int32), seg_b_start: wp.array(dtype=wp.int32),
-                seg_xform: wp.array(dtype=wp.transform), vertex_positions: wp.array(dtype=wp.vec3),
-                vertex_velocities: wp.array(dtype=wp.vec3), dampers: InteractionResponse):
-    """One end of a link as a damper on its segment (``side`` +1: end a, -1: end b), in the segment's frame at the
-    step's start: ``(r, M, f)``, the point, the point inertia [kg] and the force [N].
-
-    The link's backward-Euler force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step
-    velocity of a's end relative to b's; each end takes it as a damper ``s P`` toward the ends' centre-of-mass
-    velocity from the free step: ``k l - P u`` on a and its opposite on b, with the point inertia ``s h P``. ``s`` is
-    the end's ``split_factor``: its own inverse mass along that force against the other end's, from their strands'
-    inertia (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the
-    lighter and the link holds it over the step (``shared_inverse_mass``). 2 between ends of equal mass, as the
-    spring split at its midpoint. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a
-    frame, where a segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
-    a = link_seg_a[link]
-    b = link_seg_b[link]
-    xa = link_point_a[link]
-    xb = link_point_b[link]
-    u = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa) - \
-        seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
-    l = xb - xa
-    length = wp.length(l)
+def link_damping_matrix(h: float, link_stiffness: float, link_damping: float, l: wp.vec3):
+    """The link's backward-Euler damper over the step, ``P = h k I + c n n^T`` [N s/m] (``n`` along ``l``; no
+    damping term while the link has no direction)."""
     P = (h * link_stiffness) * wp.identity(n=3, dtype=float)
+    length = wp.length(l)
     if length > LINK_MIN_LENGTH:
         n = l / length
         P = P + link_damping * wp.outer(n, n)
-    force = link_stiffness * l - P * u
-    e = wp.vec3(1.0, 0.0, 0.0)
-    if wp.length_sq(force) > 0.0:
-        e = wp.normalize(force)
-    own = a
-    p = xa
-    other = b
-    q = xb
-    if side < 0.0:
-        own = b
-        p = xb
-        other = a
-        q = xa
-    xf = seg_xform[own]
-    pairs = seg_link_start[other + 1] - seg_link_start[other] + seg_b_start[other + 1] - seg_b_start[other]
-    w_own = articulated_inverse_mass(dampers, own, xf, p, e)
-    stiffness = h * wp.dot(e, P * e)  # the pair's damper over the step along its force [kg]
-    s = split_factor(w_own, shared_inverse_mass(w_own, articulated_inverse_mass(dampers, other, seg_xform[other], q,
-                                                                                 e), float(pairs), stiffness))
-    R = wp.transform_get_rotation(xf)
-    Rm = wp.quat_to_matrix(R)
-    r = wp.quat_rotate_inv(R, p - wp.transform_get_translation(xf))
-    M = (s * h) * (wp.transpose(Rm) * P * Rm)
-    f = wp.quat_rotate_inv(R, side * force)
-    return r, M, f
+    return P
 
 
 @wp.kernel
-def link_response_gather(
+def link_response_split(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
     tid_offset: int,
     # Model:
     seg_per_strand: int,
     seg_link_start: wp.array(dtype=wp.int32),
     seg_b_start: wp.array(dtype=wp.int32),
-    b_slot_link: wp.array(dtype=wp.int32),
     link_seg_a: wp.array(dtype=wp.int32),
     link_seg_b: wp.array(dtype=wp.int32),
     link_stiffness: float,
@@ -465,11 +419,74 @@ def link_response_gather(
     vertex_velocities: wp.array(dtype=wp.vec3),
     # Control:
     dt: wp.array(dtype=float),
+    dampers: InteractionResponse,
+    # Out:
+    link_force: wp.array(dtype=wp.vec3),
+    link_split: wp.array(dtype=wp.vec2),
+):
+    """One thread per link: its backward-Euler force on the free velocities, ``k l - P u`` [N, world, on end a], and
+    the split factors of its two ends (``split_factor``), for ``link_response_gather``.
+
+    The link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of
+    a's end relative to b's; each end takes it as a damper ``s P`` toward the ends' centre-of-mass velocity from the
+    free step: ``k l - P u`` on a and its opposite on b, with the point inertia ``s h P``. ``s`` is the end's
+    ``split_factor``: its own inverse mass along that force against the other end's, from their strands' inertia
+    (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the lighter and the
+    link holds it over the step (``shared_inverse_mass``). 2 between ends of equal mass, as the spring split at its
+    midpoint. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a frame, where a
+    segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
+    link = tid_offset + wp.tid()
+    if link_broken[link] != 0:
+        return
+    h = dt[0]
+    a = link_seg_a[link]
+    b = link_seg_b[link]
+    xa = link_point_a[link]
+    xb = link_point_b[link]
+    u = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa) - \
+        seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+    l = xb - xa
+    P = link_damping_matrix(h, link_stiffness, link_damping, l)
+    force = link_stiffness * l - P * u
+    e = wp.vec3(1.0, 0.0, 0.0)
+    if wp.length_sq(force) > 0.0:
+        e = wp.normalize(force)
+    stiffness = h * wp.dot(e, P * e)  # the link's damper over the step along its force [kg]
+    w_a = articulated_inverse_mass(dampers, a, seg_xform[a], xa, e)
+    w_b = articulated_inverse_mass(dampers, b, seg_xform[b], xb, e)
+    pairs_a = seg_link_start[a + 1] - seg_link_start[a] + seg_b_start[a + 1] - seg_b_start[a]
+    pairs_b = seg_link_start[b + 1] - seg_link_start[b] + seg_b_start[b + 1] - seg_b_start[b]
+    link_force[link] = force
+    link_split[link] = wp.vec2(split_factor(w_a, shared_inverse_mass(w_a, w_b, float(pairs_b), stiffness)),
+                               split_factor(w_b, shared_inverse_mass(w_b, w_a, float(pairs_a), stiffness)))
+
+
+@wp.kernel
+def link_response_gather(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_link_start: wp.array(dtype=wp.int32),
+    seg_b_start: wp.array(dtype=wp.int32),
+    b_slot_link: wp.array(dtype=wp.int32),
+    link_stiffness: float,
+    link_damping: float,
+    # Scratch: the ends the force pass left, the forces and split factors of ``link_response_split``
+    link_point_a: wp.array(dtype=wp.vec3),
+    link_point_b: wp.array(dtype=wp.vec3),
+    link_broken: wp.array(dtype=wp.int32),
+    link_force: wp.array(dtype=wp.vec3),
+    link_split: wp.array(dtype=wp.vec2),
+    # State: the step's start (frames)
+    seg_xform: wp.array(dtype=wp.transform),
+    # Control:
+    dt: wp.array(dtype=float),
     # In and out:
     dampers: InteractionResponse,
 ):
-    """One thread per segment: add the dampers of its links' ends (``link_damper``; its links as side a in link
-    order, then as side b in slot order) to its ``InteractionResponse`` blocks."""
+    """One thread per segment: add the dampers of its links' ends to its ``InteractionResponse`` blocks (its links
+    as side a in link order, then as side b in slot order), in its frame at the step's start: at the end's point,
+    the point inertia ``s h P`` and the force ``+-(k l - P u)`` (``link_response_split``)."""
     seg = tid_offset + wp.tid()
     a_first = seg_link_start[seg]
     a_last = seg_link_start[seg + 1]
@@ -478,6 +495,10 @@ def link_response_gather(
     if a_first == a_last and b_first == b_last:
         return
     h = dt[0]
+    xf = seg_xform[seg]
+    R = wp.transform_get_rotation(xf)
+    Rm = wp.quat_to_matrix(R)
+    origin = wp.transform_get_translation(xf)
     A = wp.mat33()
     B = wp.mat33()
     C = wp.mat33()
@@ -490,9 +511,18 @@ def link_response_gather(
             link = b_slot_link[b_first + j - a_last]
             side = -1.0
         if link_broken[link] == 0:
-            r, M, f = link_damper(link, side, h, seg_per_strand, link_stiffness, link_damping, link_seg_a,
-                                  link_seg_b, link_point_a, link_point_b, seg_link_start, seg_b_start, seg_xform,
-                                  vertex_positions, vertex_velocities, dampers)
+            xa = link_point_a[link]
+            xb = link_point_b[link]
+            P = link_damping_matrix(h, link_stiffness, link_damping, xb - xa)
+            split = link_split[link]
+            p = xa
+            s = split[0]
+            if side < 0.0:
+                p = xb
+                s = split[1]
+            r = wp.quat_rotate_inv(R, p - origin)
+            M = (s * h) * (wp.transpose(Rm) * P * Rm)
+            f = wp.quat_rotate_inv(R, side * link_force[link])
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
             B += Bp
