@@ -705,7 +705,7 @@ class HairContacts:
         contacts.entry_mass = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
         contacts.seg_entry_start = wp.zeros(G * S + 1, dtype=wp.int32, device=dev)
         contacts.seg_entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
-        # without the lists (a GPU), the response's scatter counts one contact a segment (``response_entry``)
+        # without the lists (a GPU), the response's split counts one contact a segment (``contact_response_split``)
         contacts._one_count = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)

@@ -219,6 +219,15 @@ def segment_articulated_blocks(chains: StrandChains, loads: SegmentLoads, i: int
 
 
 @wp.func
+def joint_armature(chains: StrandChains, i: int, h: float, implicit: int):
+    """The implicit joints' armature ``h C + h^2 K`` of joint ``i`` [kg m^2] (zero without ``implicit``): what
+    taking its springs and dampers at the end of a step of ``h`` seconds adds to the joint's inertia."""
+    if implicit != 0:
+        return h * chains.joint_damping[i] + h * h * chains.joint_stiffness[i]
+    return wp.vec3()
+
+
+@wp.func
 def blocks_to_parent(Rm: wp.mat33, DA: wp.mat33, DB: wp.mat33, armature: wp.vec3, B: wp.mat33, C: wp.mat33,
                      z: float):
     """What a segment's articulated inertia passes to its parent through its spherical joint, ``I^A - U D^-1 U^T``
@@ -544,9 +553,7 @@ def body_contact_solve(
                 C = C + dampers.C[i]
                 n_ = n_ - dampers.torque[i]
                 f = f - dampers.force[i]
-            armature = wp.vec3()
-            if implicit != 0:
-                armature = dt * chains.joint_damping[i] + dt * dt * chains.joint_stiffness[i]
+            armature = joint_armature(chains, i, dt, implicit)
             Dinv = wp.inverse(A + wp.diag(armature))
             DA = Dinv * A
             DB = Dinv * B
@@ -987,9 +994,7 @@ def strand_inverse_inertia(
         k = S - 1 - kk
         i = strand * S + k
         A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
-        armature = wp.vec3()
-        if implicit != 0:
-            armature = h * chains.joint_damping[i] + h * h * chains.joint_stiffness[i]
+        armature = joint_armature(chains, i, h, implicit)
         Dinv = wp.inverse(A + wp.diag(armature))
         DA = Dinv * A
         DB = Dinv * B
