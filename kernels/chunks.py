@@ -12,8 +12,11 @@ table, and the threads run it without the GIL:
   awake.
 
 A thread takes the next task with a compare-and-swap on one 64-bit word that holds the table's generation and its
-next task, so a thread still looking at a finished table can never take a task of the next one. Tasks are taken in
-table order as threads come free; a task runs its entries in turn (a chain's launches on one chunk).
+next task. The leader seals that word (its task half all ones) before it writes a new table's fields and opens it
+after: a thread that read the spent word of the last table and then the new table's count would otherwise claim
+with the old word, run a task of the new table twice and count it done twice, so that the leader could return while
+a task still ran (one launch in 50 on two threads, found by ``tests/test_threads.py``). Tasks are taken in table
+order as threads come free; a task runs its entries in turn (a chain's launches on one chunk).
 
 Control block (int64): ``[0]`` generation << 32 | next task, ``[1]`` tasks done, ``[2]`` task_start, ``[3]``
 entries, ``[4]`` task count, ``[5]`` park (serving threads go to sleep). The table: ``task_start`` (task count + 1
@@ -33,6 +36,7 @@ CLOCK = wp.constant(2)
 _POOL = """
 #if !defined(__CUDA_ARCH__)
     typedef void (*entry_point)(void*, void*);
+    const long long SEALED = 0xffffffffLL;  // the next-task half of a word while its table is being published
     long long* c = (long long*)control;
     unsigned long long spins = 0;
 #if defined(__x86_64__) || defined(__i386__)
@@ -51,6 +55,10 @@ _POOL = """
     }
     if (mode == 0) {
         const long long generation = ((__atomic_load_n(&c[0], __ATOMIC_RELAXED) >> 32) + 1) & 0xffffffffLL;
+        // Seal first: a thread that read the last table's spent word and then this table's larger count must not
+        // claim with that word; sealed, its claim fails (and the fence keeps the seal ahead of the fields).
+        __atomic_store_n(&c[0], (generation << 32) | SEALED, __ATOMIC_RELAXED);
+        __atomic_thread_fence(__ATOMIC_RELEASE);
         __atomic_store_n(&c[2], (long long)task_start, __ATOMIC_RELAXED);
         __atomic_store_n(&c[3], (long long)entries, __ATOMIC_RELAXED);
         __atomic_store_n(&c[4], (long long)task_count, __ATOMIC_RELAXED);
@@ -66,6 +74,7 @@ _POOL = """
             // the table's fields as published with this word; used only if the word still holds this generation
             const int* start = (const int*)__atomic_load_n(&c[2], __ATOMIC_RELAXED);
             const unsigned long long* entry = (const unsigned long long*)__atomic_load_n(&c[3], __ATOMIC_RELAXED);
+            __atomic_thread_fence(__ATOMIC_ACQUIRE);  // fields read from a later table: the claim below sees its seal
             if (__atomic_compare_exchange_n(&c[0], &word, word + 1, false, __ATOMIC_ACQ_REL, __ATOMIC_RELAXED)) {
                 for (int k = start[t]; k < start[t + 1]; ++k)
                     ((entry_point)entry[3 * k])((void*)entry[3 * k + 1], (void*)entry[3 * k + 2]);
