@@ -132,9 +132,35 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 #: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
 SEGMENT_MIN_CHUNK = 256
 
+#: Gauss-Seidel sweeps of the links' response per step (``StaticLinks.build``).
+DEFAULT_SWEEPS = 2
+
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
+
+
+def strand_colors(strand_a, strand_b, strand_count: int) -> np.ndarray:
+    """A colour per strand such that no two strands joined by a pair (``strand_a[i]``, ``strand_b[i]``) share one:
+    greedy, the strands with the most partners first (Welsh and Powell), ties by index, so the colours are fixed by
+    the pairs alone. A scalp's links make a near-planar graph of strands: 6 to 9 colours on the shipped scenes."""
+    strand_a = np.asarray(strand_a, dtype=np.int64)
+    strand_b = np.asarray(strand_b, dtype=np.int64)
+    pairs = np.unique(np.sort(np.stack([strand_a, strand_b], axis=1), axis=1), axis=0) if len(strand_a) else \
+        np.zeros((0, 2), np.int64)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    start = np.searchsorted(both[:, 0], np.arange(strand_count + 1))
+    degree = np.diff(start)
+    colors = np.full(strand_count, -1, dtype=np.int32)
+    for g in np.lexsort((np.arange(strand_count), -degree)):
+        taken = set(colors[both[start[g]:start[g + 1], 1]].tolist())
+        c = 0
+        while c in taken:
+            c += 1
+        colors[g] = c
+    return colors
 
 
 class StaticLinks:
@@ -176,6 +202,7 @@ class StaticLinks:
         break_length: float,
         implicit_springs: bool = True,
         response: bool = False,
+        sweeps: int = DEFAULT_SWEEPS,
         device=None,
     ) -> StaticLinks:
         """Link every segment to its ``neighbours`` nearest segments of other strands within ``radius``.
@@ -197,10 +224,13 @@ class StaticLinks:
                 frame-rate steps without adding inertia to the hair they tie; False leaves them explicit, for
                 comparison. Not used with ``response``.
             response: each link's force over the step is solved after the free step, inside the strands'
-                dynamics, on the relative motion of its ends (``kernels.links.link_response_gather``;
+                dynamics, on the relative motion of its ends (``kernels.links.link_sweep``;
                 :class:`hairwarp.Solver` runs it), for steps of 1/220 s and longer (the scenes'
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
+            sweeps: with ``response``, block Gauss-Seidel sweeps over the strands' colours per step
+                (``kernels.links.link_sweep``): each strand is solved with the strands it is linked to held at their
+                latest velocities; more sweeps converge toward the whole lattice's backward-Euler step.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -213,6 +243,8 @@ class StaticLinks:
                 raise InteractionError(f"{name} must be >= 0, got {value}")
         if int(neighbours) < 1:
             raise InteractionError(f"neighbours must be >= 1, got {neighbours}")
+        if int(sweeps) < 1:
+            raise InteractionError(f"sweeps must be >= 1, got {sweeps}")
         p0 = verts[:, :-1].reshape(-1, 3)
         p1 = verts[:, 1:].reshape(-1, 3)
         pairs = _nearest_segment_pairs(p0, p1, np.repeat(np.arange(G), S), int(neighbours), float(radius))
@@ -276,10 +308,17 @@ class StaticLinks:
         # the response's: each link's ends at the step's start, and the link of each of b's slots
         links.link_point_a = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.link_point_b = wp.zeros(n, dtype=wp.vec3, device=dev)
-        links.link_force = wp.zeros(n, dtype=wp.vec3, device=dev)
-        links.link_split = wp.zeros(n, dtype=wp.vec2, device=dev)
         links.b_slot_link = wp.array(by_b.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
                                      device=dev)
+        links.link_force = wp.zeros(n, dtype=wp.vec3, device=dev)
+        links.link_split = wp.zeros(n, dtype=wp.vec2, device=dev)
+        # the response's sweeps: strands coloured so that no two of a colour are linked
+        links.sweeps = int(sweeps)
+        links.strand_colors = strand_colors(a // S, b // S, G)
+        order = np.lexsort((np.arange(G), links.strand_colors)).astype(np.int32)
+        links.color_strands = wp.array(order, dtype=wp.int32, device=dev)
+        bounds = np.searchsorted(links.strand_colors[order], np.arange(links.strand_colors.max(initial=0) + 2))
+        links.color_views = [links.color_strands[int(lo):int(hi)] for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
         return links
 
     def _transport(self, model, state):
@@ -330,16 +369,16 @@ class StaticLinks:
                 state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt, dampers],
                [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
-    def gather_response(self, model, state_in, state_out, dt, dampers):
-        """Add every segment's link-end dampers for the velocity response (``response``) to ``dampers`` (a
-        :class:`kernels.articulated.InteractionResponse`), from :meth:`prepare_response` and the frames of
-        ``state_in`` (launch only)."""
+    def gather_response(self, model, state_in, state_out, dt, held, dampers):
+        """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``
+        (a :class:`kernels.articulated.InteractionResponse`): the hair contacts' from ``held`` and its link ends',
+        from :meth:`prepare_response` and the frames of ``state_in`` (launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
                 self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
-                state_in.seg_xform, dt], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                state_in.seg_xform, dt, held], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it

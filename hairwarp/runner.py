@@ -177,7 +177,8 @@ class Simulation:
         return StaticLinks.build(self.model.rest_vertex_positions, neighbours=int(cfg.neighbours),
                                  radius=float(cfg.radius), stiffness=float(cfg.stiffness),
                                  damping=float(cfg.damping), break_length=float(cfg.break_length),
-                                 response=self._response(cfg.response), device=self.model.device)
+                                 response=self._response(cfg.response), sweeps=int(cfg.sweeps),
+                                 device=self.model.device)
 
     def _build_contacts(self, cfg):
         if not cfg.enabled:

@@ -528,6 +528,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                               "the relative motion of their ends (step), or each link alone against its free "
                               "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
                               choices=("auto", "step", "link")),
+            "sweeps": Field("int", 2, "with the step response, at steps up to 1/45 s: Gauss-Seidel sweeps over "
+                            "the strands after the first pass; more hold a dense lattice of links nearer its "
+                            "backward-Euler step, each costs about one more response solve", range="[1, 64]"),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
     ),

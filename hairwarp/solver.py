@@ -7,6 +7,7 @@ import warp as wp
 
 from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated
+from hairwarp.kernels import links as link_kernels
 from hairwarp.kernels.types import Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
@@ -117,6 +118,20 @@ class Solver:
         dampers.phi_a = wp.zeros(m, dtype=wp.mat33, device=device)
         dampers.phi_b = wp.zeros(m, dtype=wp.mat33, device=device)
         dampers.phi_c = wp.zeros(m, dtype=wp.mat33, device=device)
+        # the links' Gauss-Seidel sweeps (``links.link_sweep``): the free step's result each sweep starts from, and
+        # the hair contacts' dampers, held through the sweeps (the inverse inertias shared)
+        self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
+        if self.link_sweeps:
+            self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
+            self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
+            self.free_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
+            self.answered_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
+            held = self.held = articulated.InteractionResponse()
+            for name in ("A", "B", "C"):
+                setattr(held, name, wp.zeros(n, dtype=wp.mat33, device=device))
+            held.force = wp.zeros(n, dtype=wp.vec3, device=device)
+            held.torque = wp.zeros(n, dtype=wp.vec3, device=device)
+            held.phi_a, held.phi_b, held.phi_c = dampers.phi_a, dampers.phi_b, dampers.phi_c
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -259,32 +274,69 @@ class Solver:
                              private_or=[len(inputs) + len(outputs) - 1])
 
     def _respond(self, state_in, state_out, control, project: bool = False):
-        """The links' and hair contacts' velocity response on the free step's result
-        (``articulated.interaction_response``), then with ``project`` the body push-out."""
-        model = self.model
-        dampers = self.dampers
+        """The links' and hair contacts' velocity response on the free step's result, then with ``project`` the body
+        push-out.
+
+        First every strand answers every pair at once (Jacobi between strands; ``articulated.interaction_response``):
+        each pair's end takes the pair's backward-Euler damper split by the two ends' inverse inertias in their
+        strands (``articulated.strand_inverse_inertia``, ``prepare_response``), which is exact for a lone pair. With
+        links, Gauss-Seidel sweeps over the strands' colours follow (``links.link_sweep``): each colour's strands
+        answer their links again, the strands they are linked to held at their latest answer, the hair contacts'
+        dampers held as the first pass had them."""
+        model, ex = self.model, self.executor
         implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
-        self.executor.zero(dampers.A, dampers.B, dampers.C, dampers.force, dampers.torque)
+        links = self.links if self.link_sweeps else None
+        dampers = self.dampers
+        held = self.held if links is not None else dampers  # the hair contacts' dampers
+        ex.zero(held.A, held.B, held.C, held.force, held.torque)
         # every strand's inverse inertia at the step's start, which each pair reads at both its ends
-        self.executor.launch(articulated.strand_inverse_inertia, model.strand_count,
-                             [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
-                             min_chunk=INTEGRATE_MIN_CHUNK)
+        ex.launch(articulated.strand_inverse_inertia, model.strand_count,
+                  [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
+                  min_chunk=INTEGRATE_MIN_CHUNK)
         for part in self.responders:
             part.prepare_response(model, state_in, state_out, self.dt, dampers)
-        # each segment gathers its links' and its contacts' dampers (in this order, into its own blocks), reading
+        contacts = self.contacts if self.contacts is not None and self.contacts.response else None
+        # each segment gathers its contacts' and its links' dampers (in this order, into its own blocks), reading
         # other strands' velocities, which the response then rewrites: a chain of its own, the response another
-        with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
-            for part in self.responders:
-                part.gather_response(model, state_in, state_out, self.dt, dampers)
-        inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
-                  state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
+        with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+            if contacts is not None:
+                contacts.gather_response(model, state_in, state_out, self.dt, held)
+            if links is not None:
+                links.gather_response(model, state_in, state_out, self.dt, held, dampers)
+                ex.launch(link_kernels.sweep_start, model.strand_count,
+                          [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
+                          [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
+                          min_chunk=INTEGRATE_MIN_CHUNK)
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
-        with self.executor.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
-            self.executor.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
-                                 min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
-            if project:
-                self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
+        inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
+                  state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
+        with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+            ex.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
+                      min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
+            if links is not None:
+                ex.launch(link_kernels.sweep_answer, model.strand_count,
+                          [model.seg_per_strand, state_in.seg_xform, state_in.vertex_positions, state_out.joint_qd,
+                           self.free_qd, self.free_velocities], [self.answered_velocities],
+                          min_chunk=INTEGRATE_MIN_CHUNK)
+            elif project:
+                self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
+        if links is None:
+            return
+        inputs = [model.chains, self.max_rotation_per_step, links.seg_link_start, links.seg_b_start,
+                  links.b_slot_link, links.link_seg_a, links.link_seg_b, links.stiffness, links.damping,
+                  links.link_point_a, links.link_point_b, links.link_broken, control.bases, self.dt, implicit,
+                  self.loads, state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q,
+                  self.free_qd, self.free_velocities, self.answered_velocities, held, self._no_body_contacts,
+                  dampers, self.scratch]
+        fault = len(inputs) + len(outputs)  # the fault bits' index, behind the colour's strands
+        for _ in range(links.sweeps):
+            for strands in links.color_views:
+                ex.launch(link_kernels.link_sweep, len(strands), [strands, *inputs], outputs,
+                          min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
+        if project:
+            with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+                self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
 
     # -- tools ----------------------------------------------------------------------------
 

@@ -1033,6 +1033,59 @@ def strand_inverse_inertia(
         dampers.phi_c[i] = Pc
 
 
+@wp.func
+def respond_strand(
+    chains: StrandChains,
+    strand: int,
+    max_rotation: float,
+    bases: StrandBases,
+    h: float,
+    implicit: int,
+    loads: SegmentLoads,
+    joint_q_in: wp.array(dtype=wp.quat),
+    dampers: InteractionResponse,
+    contacts: BodyContacts,
+    scratch: AbaScratch,
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+    always_fk: int,
+):
+    """``interaction_response`` for one strand, on the free step's result in the ``_out`` arrays; with
+    ``always_fk`` its world quantities are recomputed even when the dampers change nothing (a sweep that starts
+    again from the free step, ``kernels.links.link_sweep``)."""
+    S = chains.seg_per_strand
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    V_base = bases.velocity[b]
+    for k in range(S):
+        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
+    body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
+                       scratch, dampers, 1)
+    changed = always_fk
+    for k in range(S):
+        i = strand * S + k
+        w_free = scratch.qdd[i]
+        w = joint_qd_out[i]
+        dw = w - w_free
+        if wp.length_sq(dw) > 0.0:
+            changed = 1
+            q_new = wp.normalize(joint_q_out[i] * quat_exp(h * dw))
+            if not (wp.isfinite(w) and wp.isfinite(q_new)):
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            elif bend_rate(dw) * h > RESPONSE_ROTATION:
+                # the response's own change bends the joint by more than the bound in the step (a stiff contact
+                # that stops a joint may leave its outboard joints fast: that is the free motion's, not this)
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            joint_q_out[i] = q_new
+    if changed != 0:
+        fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+                  vertex_velocities_out)
+
+
 @wp.kernel
 def interaction_response(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
@@ -1075,35 +1128,9 @@ def interaction_response(
     strands out of the bodies. (Holding the body contacts of the free step in this solve too cost one step a frame
     its stability: ``long_hair_shoulders`` faulted.)
     """
-    strand = tid_offset + wp.tid()
-    S = chains.seg_per_strand
-    h = dt[0]
-    b = strand * bases.per_strand
-    X_base = bases.xform[b]
-    V_base = bases.velocity[b]
-    for k in range(S):
-        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
-    body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
-                       scratch, dampers, 1)
-    changed = int(0)
-    for k in range(S):
-        i = strand * S + k
-        w_free = scratch.qdd[i]
-        w = joint_qd_out[i]
-        dw = w - w_free
-        if wp.length_sq(dw) > 0.0:
-            changed = 1
-            q_new = wp.normalize(joint_q_out[i] * quat_exp(h * dw))
-            if not (wp.isfinite(w) and wp.isfinite(q_new)):
-                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
-            elif bend_rate(dw) * h > RESPONSE_ROTATION:
-                # the response's own change bends the joint by more than the bound in the step (a stiff contact
-                # that stops a joint may leave its outboard joints fast: that is the free motion's, not this)
-                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
-            joint_q_out[i] = q_new
-    if changed != 0:
-        fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
-                  vertex_velocities_out)
+    respond_strand(chains, tid_offset + wp.tid(), max_rotation, bases, dt[0], implicit, loads, joint_q_in, dampers,
+                   contacts, scratch, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+                   vertex_velocities_out, fault, 0)
 
 
 @wp.kernel

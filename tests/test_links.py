@@ -190,6 +190,28 @@ def test_builder_links_nearest_segments(setup):
     np.testing.assert_allclose(np.linalg.norm(xb - xa, axis=1), dist[links.seg_a, links.seg_b], atol=1e-12)
 
 
+def test_strand_colours_part_every_link(setup):
+    """The sweeps' colours (``strand_colors``): no link joins two strands of one colour, every strand has one, the
+    views hold each strand once in colour order, and the colours follow from the links alone (built again, the
+    same)."""
+    links = setup.links
+    colors = links.strand_colors
+    a, b = links.seg_a // S, links.seg_b // S
+    assert len(colors) == G and colors.min() == 0
+    assert not np.any(colors[a] == colors[b])
+    # greedy: a strand takes the smallest colour its linked strands leave free, so each colour below its own is
+    # taken by one of them
+    for g in range(G):
+        partners = set(b[a == g]) | set(a[b == g])
+        assert set(range(colors[g])) <= {int(colors[p]) for p in partners}
+    views = [v.numpy() for v in links.color_views]
+    assert sorted(np.concatenate(views).tolist()) == list(range(G))
+    assert [int(colors[v[0]]) for v in views] == list(range(len(views)))
+    again = StaticLinks.build(setup.verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=K_D,
+                              break_length=1.0, response=True)
+    np.testing.assert_array_equal(again.strand_colors, colors)
+
+
 def test_rest_pose_is_slack(setup):
     """At rest every link has zero length, so no force, to float32 round-off."""
     state = _arrays(setup.verts, setup.rot, np.zeros_like(setup.verts))
