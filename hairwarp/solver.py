@@ -6,8 +6,7 @@ import numpy as np
 import warp as wp
 
 from hairwarp.executor import Executor, launch
-from hairwarp.kernels import articulated
-from hairwarp.kernels import links as link_kernels
+from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels.types import Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
@@ -303,7 +302,7 @@ class Solver:
                 contacts.gather_response(model, state_in, state_out, self.dt, held)
             if links is not None:
                 links.gather_response(model, state_in, state_out, self.dt, held, dampers)
-                ex.launch(link_kernels.sweep_start, model.strand_count,
+                ex.launch(sweeps.sweep_start, model.strand_count,
                           [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
                           [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
                           min_chunk=INTEGRATE_MIN_CHUNK)
@@ -315,7 +314,7 @@ class Solver:
             ex.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
                       min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
             if links is not None:
-                ex.launch(link_kernels.sweep_answer, model.strand_count,
+                ex.launch(sweeps.sweep_answer, model.strand_count,
                           [model.seg_per_strand, state_in.seg_xform, state_in.vertex_positions, state_out.joint_qd,
                            self.free_qd, self.free_velocities], [self.answered_velocities],
                           min_chunk=INTEGRATE_MIN_CHUNK)
@@ -332,7 +331,7 @@ class Solver:
         fault = len(inputs) + len(outputs)  # the fault bits' index, behind the colour's strands
         for _ in range(links.sweeps):
             for strands in links.color_views:
-                ex.launch(link_kernels.link_sweep, len(strands), [strands, *inputs], outputs,
+                ex.launch(sweeps.link_sweep, len(strands), [strands, *inputs], outputs,
                           min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):

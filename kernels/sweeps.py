@@ -1,0 +1,223 @@
+"""The links' Gauss-Seidel sweeps between strands, after the response's first pass
+(``hairwarp.Solver``; docs/interactions.md, "Links solved by sweeps").
+
+The strands are coloured so that no two of a colour share a link (``hairwarp.interactions.strand_colors``); a sweep
+solves the colours in turn, each colour's strands at once, one thread each (``link_sweep``). Every strand is solved
+again from its free step with its partners held at their latest answer, read linearised at the step's start
+(``answer``).
+"""
+
+import warp as wp
+
+from hairwarp.kernels.articulated import (
+    AbaScratch,
+    BodyContacts,
+    InteractionResponse,
+    SegmentLoads,
+    StrandBases,
+    StrandChains,
+    point_damper_blocks,
+    respond_strand,
+    spin_free_torque,
+)
+from hairwarp.kernels.links import link_damping_matrix, seg_point_velocity
+
+wp.set_module_options({"enable_backward": False})
+
+# Longest step [s] at which the links' sweeps run (``link_sweep``); at longer steps every strand keeps the first,
+# Jacobi pass's answer. The sweeps converge the lattice's step linearised at its start; at one step a frame (1/30 s)
+# limp hair (EI 1e-7) on that answer burst (3.5-16 m/s at 16-64 segments against 1.6-2.0 with the first pass
+# alone), while at 2 steps a frame it holds best with them (64 segments: 2.0 m/s against 3.4).
+SWEEP_MAX_STEP = wp.constant(1.0 / 45.0)
+
+
+@wp.func
+def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
+           vertex_positions_in: wp.array(dtype=wp.vec3), joint_qd: wp.array(dtype=wp.vec3),
+           free_qd: wp.array(dtype=wp.vec3), free_velocities: wp.array(dtype=wp.vec3),
+           answered_velocities: wp.array(dtype=wp.vec3)):
+    """What the strand's neighbours see of its answer ``joint_qd`` (``link_sweep``): its free vertex velocities plus
+    the change of its joint velocities carried by the frames of the step's start, as the response solve takes it
+    (``J(q_start) dw``). The end-of-step velocities would show the neighbours the whole motion turned through the
+    step, a coupling that no longer mirrors their own: with it the sweeps diverged on a stiff lattice at 2 steps a
+    frame."""
+    vbase = strand * (S + 1)
+    dv = wp.vec3()
+    dw = wp.vec3()
+    for k in range(S):
+        i = strand * S + k
+        dw = dw + wp.quat_rotate(wp.transform_get_rotation(seg_xform_in[i]), joint_qd[i] - free_qd[i])
+        dv = dv + wp.cross(dw, vertex_positions_in[vbase + k + 1] - vertex_positions_in[vbase + k])
+        answered_velocities[vbase + k + 1] = free_velocities[vbase + k + 1] + dv
+
+
+@wp.kernel
+def sweep_answer(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    seg_per_strand: int,
+    # State: the step's start; the answer; the free step's
+    seg_xform_in: wp.array(dtype=wp.transform),
+    vertex_positions_in: wp.array(dtype=wp.vec3),
+    joint_qd: wp.array(dtype=wp.vec3),
+    free_qd: wp.array(dtype=wp.vec3),
+    free_velocities: wp.array(dtype=wp.vec3),
+    # Out:
+    answered_velocities: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: ``answer`` for the response every strand gave at once (the sweeps' start)."""
+    answer(tid_offset + wp.tid(), seg_per_strand, seg_xform_in, vertex_positions_in, joint_qd, free_qd,
+           free_velocities, answered_velocities)
+
+
+@wp.kernel
+def sweep_start(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    seg_per_strand: int,
+    # The free step's result:
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Out: what every sweep starts from (``link_sweep``)
+    free_q: wp.array(dtype=wp.quat),
+    free_qd: wp.array(dtype=wp.vec3),
+    free_velocities: wp.array(dtype=wp.vec3),
+    answered_velocities: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: keep the free step's joints and vertex velocities for the sweeps (a launch, so a
+    captured step copies them too)."""
+    strand = tid_offset + wp.tid()
+    S = seg_per_strand
+    for k in range(S):
+        i = strand * S + k
+        free_q[i] = joint_q[i]
+        free_qd[i] = joint_qd[i]
+    for k in range(S + 1):
+        v = strand * (S + 1) + k
+        free_velocities[v] = vertex_velocities[v]
+        answered_velocities[v] = vertex_velocities[v]
+
+
+@wp.kernel
+def link_sweep(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # The strands of one colour (no two of them linked):
+    color_strands: wp.array(dtype=wp.int32),
+    # Model:
+    chains: StrandChains,
+    max_rotation: float,
+    seg_link_start: wp.array(dtype=wp.int32),
+    seg_b_start: wp.array(dtype=wp.int32),
+    b_slot_link: wp.array(dtype=wp.int32),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    link_stiffness: float,
+    link_damping: float,
+    # Scratch: the ends the force pass left
+    link_point_a: wp.array(dtype=wp.vec3),
+    link_point_b: wp.array(dtype=wp.vec3),
+    link_broken: wp.array(dtype=wp.int32),
+    # Control:
+    bases: StrandBases,
+    dt: wp.array(dtype=float),
+    # State: the step's start; the free step's end
+    implicit: int,
+    loads: SegmentLoads,
+    joint_q_in: wp.array(dtype=wp.quat),
+    seg_xform_in: wp.array(dtype=wp.transform),
+    vertex_positions_in: wp.array(dtype=wp.vec3),
+    free_q: wp.array(dtype=wp.quat),
+    free_qd: wp.array(dtype=wp.vec3),
+    free_velocities: wp.array(dtype=wp.vec3),
+    # In and out: the vertex velocities of each strand's latest answer, linearised at the step's start
+    answered_velocities: wp.array(dtype=wp.vec3),
+    # The hair contacts' dampers (held through the sweeps as the first pass had them), and body contacts (disabled)
+    held: InteractionResponse,
+    contacts: BodyContacts,
+    # Scratch:
+    dampers: InteractionResponse,
+    scratch: AbaScratch,
+    # Out: the strand answered, from the free step's result
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand of one colour: the strand's answer to its links' backward-Euler forces over the step, the
+    strands it is linked to held at their latest answer (block Gauss-Seidel between strands).
+
+    A link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of a's
+    end relative to b's. Solving strand i alone with every other strand held, its end of each link takes the
+    damper ``h P`` (the pair's whole point inertia) and the force ``+-(k l) - P (v_own - v_other)``, ``v_own`` its
+    end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
+    (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else the first
+    pass's). The hair contacts' dampers stay as the first pass had them (``held``). The strand is then solved from
+    its free step (``respond_strand``) and its answer published (``answer``). A colour's strands share no link, so
+    they are solved at once, and each sees what the earlier colours gave: every sweep lowers the links' implicit
+    step's error in its energy norm (the step's matrix is symmetric positive definite), so unlike Jacobi between
+    strands it cannot overshoot, whatever the ends' masses; more sweeps converge to the backward-Euler answer of
+    the whole lattice. At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first pass's answer."""
+    strand = color_strands[tid_offset + wp.tid()]
+    S = chains.seg_per_strand
+    h = dt[0]
+    if h > SWEEP_MAX_STEP:
+        return  # keeps the first pass's answer
+    for k in range(S):
+        seg = strand * S + k
+        joint_q_out[seg] = free_q[seg]
+        joint_qd_out[seg] = free_qd[seg]
+        A = held.A[seg]
+        B = held.B[seg]
+        C = held.C[seg]
+        force = held.force[seg]
+        torque = held.torque[seg]
+        a_first = seg_link_start[seg]
+        a_last = seg_link_start[seg + 1]
+        b_first = seg_b_start[seg]
+        b_last = seg_b_start[seg + 1]
+        if a_first != a_last or b_first != b_last:
+            xf = seg_xform_in[seg]
+            R = wp.transform_get_rotation(xf)
+            Rm = wp.quat_to_matrix(R)
+            origin = wp.transform_get_translation(xf)
+            for j in range(a_first, b_last - b_first + a_last):
+                link = j
+                side = float(1.0)
+                if j >= a_last:
+                    link = b_slot_link[b_first + j - a_last]
+                    side = -1.0
+                if link_broken[link] == 0:
+                    xa = link_point_a[link]
+                    xb = link_point_b[link]
+                    p = xa
+                    q = xb
+                    other = link_seg_b[link]
+                    if side < 0.0:
+                        p = xb
+                        q = xa
+                        other = link_seg_a[link]
+                    l = xb - xa
+                    P = link_damping_matrix(h, link_stiffness, link_damping, l)
+                    u = seg_point_velocity(seg, S, vertex_positions_in, free_velocities, p) - seg_point_velocity(
+                        other, S, vertex_positions_in, answered_velocities, q)
+                    r = wp.quat_rotate_inv(R, p - origin)
+                    M = h * (wp.transpose(Rm) * P * Rm)
+                    f = wp.quat_rotate_inv(R, side * link_stiffness * l - P * u)
+                    Ap, Bp = point_damper_blocks(r, M)
+                    A += Ap
+                    B += Bp
+                    C += M
+                    force += f
+                    torque += spin_free_torque(r, f)
+        dampers.A[seg] = A
+        dampers.B[seg] = B
+        dampers.C[seg] = C
+        dampers.force[seg] = force
+        dampers.torque[seg] = torque
+    respond_strand(chains, strand, max_rotation, bases, h, implicit, loads, joint_q_in, dampers, contacts, scratch,
+                   joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
+    answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd_out, free_qd, free_velocities, answered_velocities)
