@@ -329,8 +329,10 @@ class Solver:
                   self.free_qd, self.free_velocities, self.answered_velocities, held, self._no_body_contacts,
                   dampers, self.scratch]
         fault = len(inputs) + len(outputs)  # the fault bits' index, behind the colour's strands
-        for _ in range(links.sweeps):
-            for strands in links.color_views:
+        # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
+        # at every step, and hair at rest on a body crept)
+        for sweep in range(links.sweeps):
+            for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):
                 ex.launch(sweeps.link_sweep, len(strands), [strands, *inputs], outputs,
                           min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
         if project:

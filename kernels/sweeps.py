@@ -2,7 +2,8 @@
 (``hairwarp.Solver``; docs/interactions.md, "Links solved by sweeps").
 
 The strands are coloured so that no two of a colour share a link (``hairwarp.interactions.strand_colors``); a sweep
-solves the colours in turn, each colour's strands at once, one thread each (``link_sweep``). Every strand is solved
+solves the colours in turn, each colour's strands at once, one thread each (``link_sweep``), the next sweep the
+colours in the opposite order (symmetric Gauss-Seidel). Every strand is solved
 again from its free step with its partners held at their latest answer, read linearised at the step's start
 (``answer``).
 """
