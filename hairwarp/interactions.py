@@ -369,16 +369,17 @@ class StaticLinks:
                 state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt, dampers],
                [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
-    def gather_response(self, model, state_in, state_out, dt, held, dampers):
+    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept):
         """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``
         (a :class:`kernels.articulated.InteractionResponse`): the hair contacts' from ``held`` and its link ends',
-        from :meth:`prepare_response` and the frames of ``state_in`` (launch only)."""
+        from :meth:`prepare_response` and the frames of ``state_in``; the blocks of the sweeps' dampers (split factor
+        1) in ``swept`` (launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
                 self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
-                state_in.seg_xform, dt, held], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                state_in.seg_xform, dt, held], [dampers, swept], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it

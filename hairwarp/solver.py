@@ -131,6 +131,13 @@ class Solver:
             held.force = wp.zeros(n, dtype=wp.vec3, device=device)
             held.torque = wp.zeros(n, dtype=wp.vec3, device=device)
             held.phi_a, held.phi_b, held.phi_c = dampers.phi_a, dampers.phi_b, dampers.phi_c
+            # the sweeps' dampers: the links' with split factor 1 and the hair contacts', the same every sweep
+            swept = self.swept = articulated.InteractionResponse()
+            for name in ("A", "B", "C"):
+                setattr(swept, name, wp.zeros(n, dtype=wp.mat33, device=device))
+            swept.force = wp.zeros(n, dtype=wp.vec3, device=device)
+            swept.torque = wp.zeros(n, dtype=wp.vec3, device=device)
+            swept.phi_a, swept.phi_b, swept.phi_c = dampers.phi_a, dampers.phi_b, dampers.phi_c
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -301,7 +308,7 @@ class Solver:
             if contacts is not None:
                 contacts.gather_response(model, state_in, state_out, self.dt, held)
             if links is not None:
-                links.gather_response(model, state_in, state_out, self.dt, held, dampers)
+                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept)
                 ex.launch(sweeps.sweep_start, model.strand_count,
                           [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
                           [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
@@ -327,7 +334,7 @@ class Solver:
                   links.link_point_a, links.link_point_b, links.link_broken, control.bases, self.dt, implicit,
                   self.loads, state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q,
                   self.free_qd, self.free_velocities, self.answered_velocities, held, self._no_body_contacts,
-                  dampers, self.scratch]
+                  self.swept, self.scratch]
         fault = len(inputs) + len(outputs)  # the fault bits' index, behind the colour's strands
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
         # at every step, and hair at rest on a body crept)

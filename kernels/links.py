@@ -485,11 +485,13 @@ def link_response_gather(
     held: InteractionResponse,
     # Out:
     dampers: InteractionResponse,
+    sweep_blocks: InteractionResponse,
 ):
     """One thread per segment: its ``InteractionResponse`` blocks are the hair contacts' (``held``) and the dampers of
     its links' ends (its links as side a in link order, then as side b in slot order), in its frame at the step's
     start: at the end's point, the point inertia ``s h P`` and the force ``+-(k l - P u)``
-    (``link_response_split``)."""
+    (``link_response_split``). The blocks of the sweeps' dampers go to ``sweep_blocks`` (``A``, ``B``, ``C``): the
+    same with split factor 1, which every sweep of the step reads (``kernels.sweeps.link_sweep``)."""
     seg = tid_offset + wp.tid()
     a_first = seg_link_start[seg]
     a_last = seg_link_start[seg + 1]
@@ -500,6 +502,12 @@ def link_response_gather(
     dampers.C[seg] = held.C[seg]
     dampers.force[seg] = held.force[seg]
     dampers.torque[seg] = held.torque[seg]
+    A1 = held.A[seg]
+    B1 = held.B[seg]
+    C1 = held.C[seg]
+    sweep_blocks.A[seg] = A1
+    sweep_blocks.B[seg] = B1
+    sweep_blocks.C[seg] = C1
     if a_first == a_last and b_first == b_last:
         return
     h = dt[0]
@@ -529,12 +537,21 @@ def link_response_gather(
                 p = xb
                 s = split[1]
             r = wp.quat_rotate_inv(R, p - origin)
-            M = (s * h) * (wp.transpose(Rm) * P * Rm)
+            P_local = wp.transpose(Rm) * P * Rm
+            M = (s * h) * P_local
             f = wp.quat_rotate_inv(R, side * link_force[link])
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
             B += Bp
             C += M
+            M1 = h * P_local
+            Ap1, Bp1 = point_damper_blocks(r, M1)
+            A1 += Ap1
+            B1 += Bp1
+            C1 += M1
             force += f
             torque += spin_free_torque(r, f)
+    sweep_blocks.A[seg] = A1
+    sweep_blocks.B[seg] = B1
+    sweep_blocks.C[seg] = C1
     add_damper(dampers, seg, A, B, C, force, torque)

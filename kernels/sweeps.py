@@ -17,7 +17,6 @@ from hairwarp.kernels.articulated import (
     SegmentLoads,
     StrandBases,
     StrandChains,
-    point_damper_blocks,
     respond_strand,
     spin_free_torque,
 )
@@ -137,8 +136,10 @@ def link_sweep(
     # The hair contacts' dampers (held through the sweeps as the first pass had them), and body contacts (disabled)
     held: InteractionResponse,
     contacts: BodyContacts,
-    # Scratch:
+    # The sweeps' dampers: their blocks, the same every sweep (``kernels.links.link_response_gather``); their forces,
+    # written here
     dampers: InteractionResponse,
+    # Scratch:
     scratch: AbaScratch,
     # Out: the strand answered, from the free step's result
     joint_q_out: wp.array(dtype=wp.quat),
@@ -171,9 +172,6 @@ def link_sweep(
         seg = strand * S + k
         joint_q_out[seg] = free_q[seg]
         joint_qd_out[seg] = free_qd[seg]
-        A = held.A[seg]
-        B = held.B[seg]
-        C = held.C[seg]
         force = held.force[seg]
         torque = held.torque[seg]
         a_first = seg_link_start[seg]
@@ -183,7 +181,6 @@ def link_sweep(
         if a_first != a_last or b_first != b_last:
             xf = seg_xform_in[seg]
             R = wp.transform_get_rotation(xf)
-            Rm = wp.quat_to_matrix(R)
             origin = wp.transform_get_translation(xf)
             for j in range(a_first, b_last - b_first + a_last):
                 link = j
@@ -206,17 +203,9 @@ def link_sweep(
                     u = seg_point_velocity(seg, S, vertex_positions_in, free_velocities, p) - seg_point_velocity(
                         other, S, vertex_positions_in, answered_velocities, q)
                     r = wp.quat_rotate_inv(R, p - origin)
-                    M = h * (wp.transpose(Rm) * P * Rm)
                     f = wp.quat_rotate_inv(R, side * link_stiffness * l - P * u)
-                    Ap, Bp = point_damper_blocks(r, M)
-                    A += Ap
-                    B += Bp
-                    C += M
                     force += f
                     torque += spin_free_torque(r, f)
-        dampers.A[seg] = A
-        dampers.B[seg] = B
-        dampers.C[seg] = C
         dampers.force[seg] = force
         dampers.torque[seg] = torque
     respond_strand(chains, strand, max_rotation, bases, h, implicit, loads, joint_q_in, dampers, contacts, scratch,
