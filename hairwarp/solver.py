@@ -40,6 +40,19 @@ def forward_kinematics(model, state, control, executor=None):
     )
 
 
+def _dampers(n: int, device, inverse_inertias=None) -> articulated.InteractionResponse:
+    """Zeroed damper arrays for ``n`` segments; the inverse inertias those of ``inverse_inertias`` (shared), or new."""
+    d = articulated.InteractionResponse()
+    for name in ("A", "B", "C"):
+        setattr(d, name, wp.zeros(n, dtype=wp.mat33, device=device))
+    d.force = wp.zeros(n, dtype=wp.vec3, device=device)
+    d.torque = wp.zeros(n, dtype=wp.vec3, device=device)
+    for name in ("phi_a", "phi_b", "phi_c"):
+        setattr(d, name, getattr(inverse_inertias, name) if inverse_inertias is not None else
+                wp.zeros(n, dtype=wp.mat33, device=device))
+    return d
+
+
 def _integrator(value) -> Integrator:
     if isinstance(value, Integrator):
         return value
@@ -108,36 +121,18 @@ class Solver:
         self.responders = [part for part in (links, contacts) if part is not None and part.response]
         self.has_implicit_mass = contacts is not None and not contacts.response
         m = n if self.responders else 1
-        dampers = self.dampers = articulated.InteractionResponse()
-        dampers.A = wp.zeros(m, dtype=wp.mat33, device=device)
-        dampers.B = wp.zeros(m, dtype=wp.mat33, device=device)
-        dampers.C = wp.zeros(m, dtype=wp.mat33, device=device)
-        dampers.force = wp.zeros(m, dtype=wp.vec3, device=device)
-        dampers.torque = wp.zeros(m, dtype=wp.vec3, device=device)
-        dampers.phi_a = wp.zeros(m, dtype=wp.mat33, device=device)
-        dampers.phi_b = wp.zeros(m, dtype=wp.mat33, device=device)
-        dampers.phi_c = wp.zeros(m, dtype=wp.mat33, device=device)
-        # the links' Gauss-Seidel sweeps (``links.link_sweep``): the free step's result each sweep starts from, and
-        # the hair contacts' dampers, held through the sweeps (the inverse inertias shared)
+        dampers = self.dampers = _dampers(m, device)
+        # the links' Gauss-Seidel sweeps (``sweeps.link_sweep``): the free step's result each sweep starts from; the
+        # hair contacts' dampers, held through the sweeps; the sweeps' dampers (the links' with split factor 1 and the
+        # contacts', their blocks the same in every sweep); the inverse inertias shared
         self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
             self.free_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
             self.answered_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
-            held = self.held = articulated.InteractionResponse()
-            for name in ("A", "B", "C"):
-                setattr(held, name, wp.zeros(n, dtype=wp.mat33, device=device))
-            held.force = wp.zeros(n, dtype=wp.vec3, device=device)
-            held.torque = wp.zeros(n, dtype=wp.vec3, device=device)
-            held.phi_a, held.phi_b, held.phi_c = dampers.phi_a, dampers.phi_b, dampers.phi_c
-            # the sweeps' dampers: the links' with split factor 1 and the hair contacts', the same every sweep
-            swept = self.swept = articulated.InteractionResponse()
-            for name in ("A", "B", "C"):
-                setattr(swept, name, wp.zeros(n, dtype=wp.mat33, device=device))
-            swept.force = wp.zeros(n, dtype=wp.vec3, device=device)
-            swept.torque = wp.zeros(n, dtype=wp.vec3, device=device)
-            swept.phi_a, swept.phi_b, swept.phi_c = dampers.phi_a, dampers.phi_b, dampers.phi_c
+            self.held = _dampers(n, device, dampers)
+            self.swept = _dampers(n, device, dampers)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)

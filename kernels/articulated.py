@@ -1117,8 +1117,9 @@ def interaction_response(
 
     The free step took none of them. A pair's backward-Euler force over the step is ``k d - D v_n'`` for a contact
     (``D = h k + c``) and ``k l - P u'`` for a link (``P = h k I + c n n^T``), with the pair's end-of-step velocity;
-    each strand takes its side as a damper ``2 D`` (``2 P``) toward the pair's mean velocity from the free step (the
-    spring split at its midpoint, Jacobi between strands), which acts on the pair's relative motion only: hair that
+    each strand takes its side as a damper ``s D`` (``s P``) toward the pair's centre-of-mass velocity from the free
+    step (Jacobi between strands; ``s`` the side's ``split_factor``, 2 for ends of equal mass), which acts on the
+    pair's relative motion only: hair that
     the head carries along is carried whatever the stiffness, where the semi-implicit mass resisted every
     acceleration (at one step a frame it made a third of ``fast_turn``'s segments a hundred times heavier).
     ``(M_eff + h J^T C J) dw = J^T F`` is ``body_contact_solve`` with the dampers' point inertias and forces per
@@ -1126,7 +1127,8 @@ def interaction_response(
     step's own (implicit joint armature included), linearised at the step's start. Then ``w += dw``,
     ``q <- q exp(h dw)`` and the forward kinematics of the corrected strand; the push-out after the step keeps the
     strands out of the bodies. (Holding the body contacts of the free step in this solve too cost one step a frame
-    its stability: ``long_hair_shoulders`` faulted.)
+    its stability: ``long_hair_shoulders`` faulted.) With links, this is the first pass; Gauss-Seidel sweeps over the
+    strands follow (``kernels.sweeps``).
     """
     respond_strand(chains, tid_offset + wp.tid(), max_rotation, bases, dt[0], implicit, loads, joint_q_in, dampers,
                    contacts, scratch, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
