@@ -85,8 +85,8 @@ def sweep_start(
     free_velocities: wp.array(dtype=wp.vec3),
     answered_velocities: wp.array(dtype=wp.vec3),
 ):
-    """One thread per strand: keep the free step's joints and vertex velocities for the sweeps (a launch, so a
-    captured step copies them too)."""
+    """One thread per strand: keep the free step's joints and vertex velocities for the sweeps, and start their
+    answers from the free step's velocities (one launch the executor splits over the threads)."""
     strand = tid_offset + wp.tid()
     S = seg_per_strand
     for k in range(S):

@@ -830,6 +830,44 @@ def test_link_sweeps_take_out_what_the_first_pass_puts_into_a_lattice(k):
     assert ratio[64] <= ratio[8] * (1 + 1e-5) and ratio[8] <= ratio[2] * (1 + 1e-5) and ratio[2] <= ratio[1], ratio
 
 
+def test_captured_step_with_link_sweeps_replays_the_eager_step():
+    """A step with the links' sweeps captured in a Warp graph on the CPU (one thread) and replayed gives the eager
+    step's bits, with what the sweeps keep between their launches spoilt before the replay: nothing of the step
+    happens on the host, and the colours' launches are fixed."""
+    from hairwarp.interactions import StaticLinks
+    from hairwarp.model import Model, StrandParams
+    from hairwarp.solver import Solver
+
+    roots = np.array([[c * 0.004, r * 0.004, 0.0] for r in range(3) for c in range(4)])
+    dirs = np.array([0.0, 0.0, -1.0]) + np.random.default_rng(11).uniform(-0.35, 0.35, (12, 3)) * [1.0, 1.0, 0.0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=1e-6, damping=0.0, drag=0.0)
+    model = Model.build(np.stack([roots, roots + 0.01 * dirs, roots + 0.02 * dirs], axis=1), params, segments=2)
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006, stiffness=5.0, damping=0.01,
+                              break_length=1.0, response=True, sweeps=2)
+    solver = Solver(model, "implicit_joints", links=links, threads=1)
+    assert solver.link_sweeps and len(links.color_views) > 1
+    control = model.control()
+    start = model.state()
+    start.joint_qd.assign(np.random.default_rng(3).normal(0.0, 1.0, (model.seg_count, 3)).astype(np.float32))
+    solver.forward_kinematics(start, control)
+    h = 1.0 / 60.0
+    eager, replayed = model.state(), model.state()
+    solver.step(start, eager, control, h)
+    with wp.ScopedCapture(device=model.device) as capture:
+        solver.step(start, replayed, control, h)
+    replayed.joint_q.zero_()
+    replayed.joint_qd.zero_()
+    # what the sweeps keep between their launches, spoilt: the replay must make it again
+    for a in (solver.free_q, solver.free_qd, solver.free_velocities, solver.answered_velocities, solver.swept.force,
+              solver.swept.C, solver.dampers.C):
+        a.fill_(1.0)
+    wp.capture_launch(capture.graph)
+    assert not np.array_equal(eager.joint_qd.numpy(), start.joint_qd.numpy())  # the step did something
+    for key in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
+        np.testing.assert_array_equal(getattr(replayed, key).numpy(), getattr(eager, key).numpy())
+
+
 def test_fault_names_the_response_stage():
     """Links that stop two strands meeting at 20 m/s within one frame-rate step change their joints by more than
     half a turn in the response: its own bit is set, not the free dynamics', and the message names the response."""
