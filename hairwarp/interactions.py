@@ -185,6 +185,9 @@ class StaticLinks:
             ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``.
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
+        sweeps: the response's Gauss-Seidel sweeps per step (``build``). strand_colors: numpy int32 (G,), each
+            strand's colour, no two linked strands sharing one (:func:`strand_colors`); color_strands: int32 (G,)
+            on the device, the strands by colour; color_views: a view of ``color_strands`` per colour, in order.
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the links), or None.
     """
 
@@ -224,12 +227,12 @@ class StaticLinks:
                 frame-rate steps without adding inertia to the hair they tie; False leaves them explicit, for
                 comparison. Not used with ``response``.
             response: each link's force over the step is solved after the free step, inside the strands'
-                dynamics, on the relative motion of its ends (``kernels.links.link_sweep``;
+                dynamics, on the relative motion of its ends (``kernels.links.link_response_gather``;
                 :class:`hairwarp.Solver` runs it), for steps of 1/220 s and longer (the scenes'
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
             sweeps: with ``response``, block Gauss-Seidel sweeps over the strands' colours per step
-                (``kernels.links.link_sweep``): each strand is solved with the strands it is linked to held at their
+                (``kernels.sweeps.link_sweep``): each strand is solved with the strands it is linked to held at their
                 latest velocities; more sweeps converge toward the whole lattice's backward-Euler step.
             device: Warp device.
         """

@@ -281,7 +281,7 @@ class Solver:
         First every strand answers every pair at once (Jacobi between strands; ``articulated.interaction_response``):
         each pair's end takes the pair's backward-Euler damper split by the two ends' inverse inertias in their
         strands (``articulated.strand_inverse_inertia``, ``prepare_response``), which is exact for a lone pair. With
-        links, Gauss-Seidel sweeps over the strands' colours follow (``links.link_sweep``): each colour's strands
+        links, Gauss-Seidel sweeps over the strands' colours follow (``sweeps.link_sweep``): each colour's strands
         answer their links again, the strands they are linked to held at their latest answer, the hair contacts'
         dampers held as the first pass had them."""
         model, ex = self.model, self.executor

@@ -1056,7 +1056,7 @@ def respond_strand(
 ):
     """``interaction_response`` for one strand, on the free step's result in the ``_out`` arrays; with
     ``always_fk`` its world quantities are recomputed even when the dampers change nothing (a sweep that starts
-    again from the free step, ``kernels.links.link_sweep``)."""
+    again from the free step, ``kernels.sweeps.link_sweep``)."""
     S = chains.seg_per_strand
     b = strand * bases.per_strand
     X_base = bases.xform[b]

@@ -192,7 +192,7 @@ def link_forces(
     link: ``W`` bounds the inverse masses of the two ends (``point_inverse_mass``), so however stiff the link and
     long the step, f never exceeds what stops the ends' relative motion, and the link adds no inertia to the common
     motion of the hair it ties. Without, f is the seed's explicit force. With ``response`` the link adds no force
-    here: its ends go to ``link_point_a``, ``link_point_b``, and ``link_sweep`` solves its force over the
+    here: its ends go to ``link_point_a``, ``link_point_b``, and the response solves its force over the
     step inside the strands' dynamics. Segment b's share (-f at x_b) goes to slot
     ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link), which ``link_gather`` adds to b:
     every segment is written by its own thread only, so the sums are the same bits however the segments are split
@@ -244,7 +244,7 @@ def link_forces(
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
         f = link_stiffness * l
         if response != 0:
-            # the link's force is the response's, over the step (``link_sweep``)
+            # the link's force is the response's, over the step (``link_response_gather``, ``kernels.sweeps``)
             link_point_a[link] = xa
             link_point_b[link] = xb
             continue
