@@ -133,6 +133,9 @@ class Solver:
             self.answered_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
             self.held = _dampers(n, device, dampers)
             self.swept = _dampers(n, device, dampers)
+            factors = self.factors = articulated.DamperFactors()
+            for name in ("Dinv", "A", "B"):
+                setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -324,18 +327,17 @@ class Solver:
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
         if links is None:
             return
-        inputs = [model.chains, self.max_rotation_per_step, links.seg_link_start, links.seg_b_start,
-                  links.b_slot_link, links.link_seg_a, links.link_seg_b, links.stiffness, links.damping,
-                  links.link_point_a, links.link_point_b, links.link_broken, control.bases, self.dt, implicit,
-                  self.loads, state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q,
-                  self.free_qd, self.free_velocities, self.answered_velocities, held, self._no_body_contacts,
-                  self.swept, self.scratch]
-        fault = len(inputs) + len(outputs)  # the fault bits' index, behind the colour's strands
+        inputs = [model.chains, links.seg_link_start, links.seg_b_start, links.b_slot_link, links.link_seg_a,
+                  links.link_seg_b, links.stiffness, links.damping, links.link_point_a, links.link_point_b,
+                  links.link_broken, control.bases, self.dt, implicit, self.loads, state_in.joint_q,
+                  state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd, self.free_velocities,
+                  self.answered_velocities, held, self.swept, self.scratch, self.factors]
+        fault = len(inputs) + 1 + len(outputs)  # the fault bits' index, behind the colour's strands and ``reuse``
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
-        # at every step, and hair at rest on a body crept)
+        # at every step, and hair at rest on a body crept); every sweep after the first solves the same matrices
         for sweep in range(links.sweeps):
             for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):
-                ex.launch(sweeps.link_sweep, len(strands), [strands, *inputs], outputs,
+                ex.launch(sweeps.link_sweep, len(strands), [strands, *inputs, int(sweep > 0)], outputs,
                           min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):

@@ -132,6 +132,17 @@ class AbaScratch:
     qdd: wp.array(dtype=wp.vec3)
 
 
+@wp.struct
+class DamperFactors:
+    """Per segment, what the inward pass of a solve with dampers makes of the strand's matrix (``damper_solve``):
+    ``D^-1`` and the articulated blocks ``A``, ``B`` (dampers and children included), kept for later solves of the
+    same matrix with other forces."""
+
+    Dinv: wp.array(dtype=wp.mat33)
+    A: wp.array(dtype=wp.mat33)
+    B: wp.array(dtype=wp.mat33)
+
+
 @wp.func
 def head_body_motion(head_xform: wp.transform, head_velocity: wp.spatial_vector, head_acceleration: wp.spatial_vector,
                      gravity: wp.vec3):
@@ -1034,6 +1045,123 @@ def strand_inverse_inertia(
 
 
 @wp.func
+def damper_solve(
+    chains: StrandChains,
+    strand: int,
+    h: float,
+    implicit: int,
+    loads: SegmentLoads,
+    joint_q: wp.array(dtype=wp.quat),
+    joint_qd: wp.array(dtype=wp.vec3),
+    scratch: AbaScratch,
+    dampers: InteractionResponse,
+    factors: DamperFactors,
+    reuse: int,
+):
+    """``body_contact_solve`` without body contacts, the same bits: ``(M_eff + h J^T C J) dw = J^T F`` with the
+    dampers' point inertias and forces, ``joint_qd`` corrected in place. Its inward pass keeps the matrix's factors
+    (``factors``; ``D^-1 A``, ``D^-1 B`` in ``scratch``); with ``reuse`` it reads them instead, for the same
+    matrix with other forces (the links' sweeps after their first: O(S) vector work, no 3 x 3 inverse or block
+    product)."""
+    S = chains.seg_per_strand
+    cA = wp.mat33()
+    cB = wp.mat33()
+    cC = wp.mat33()
+    cn = wp.vec3()
+    cf = wp.vec3()
+    for kk in range(S):
+        k = S - 1 - kk
+        i = strand * S + k
+        n_ = cn - dampers.torque[i]
+        f = cf - dampers.force[i]
+        A = wp.mat33()
+        B = wp.mat33()
+        Dinv = wp.mat33()
+        if reuse == 0:
+            A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
+            A = A + dampers.A[i]
+            B = B + dampers.B[i]
+            C = C + dampers.C[i]
+            armature = joint_armature(chains, i, h, implicit)
+            Dinv = wp.inverse(A + wp.diag(armature))
+            DA = Dinv * A
+            DB = Dinv * B
+            scratch.DA[i] = DA
+            scratch.DB[i] = DB
+            factors.Dinv[i] = Dinv
+            factors.A[i] = A
+            factors.B[i] = B
+            if k > 0:
+                cA, cB, cC = blocks_to_parent(wp.quat_to_matrix(joint_q[i]), DA, DB, armature, B, C,
+                                              -chains.seg_length[i - 1])
+        else:
+            Dinv = factors.Dinv[i]
+            A = factors.A[i]
+            B = factors.B[i]
+        Du = -(Dinv * n_)
+        scratch.Du[i] = Du
+        if k > 0:
+            Rm = wp.quat_to_matrix(joint_q[i])
+            z = -chains.seg_length[i - 1]
+            na = Rm * (n_ + A * Du)
+            fa = Rm * (f + wp.transpose(B) * Du)
+            cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
+            cf = fa
+    a_ang_p = wp.vec3()
+    a_lin_p = wp.vec3()
+    for k in range(S):
+        i = strand * S + k
+        q = joint_q[i]
+        r = joint_offset(chains, strand, k, i)
+        a_ang = wp.quat_rotate_inv(q, a_ang_p)
+        a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r))
+        qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+        a_ang_p = a_ang + qdd
+        a_lin_p = a_lin
+        joint_qd[i] = joint_qd[i] + h * qdd
+
+
+@wp.func
+def finish_response(
+    chains: StrandChains,
+    strand: int,
+    X_base: wp.transform,
+    V_base: wp.spatial_vector,
+    h: float,
+    scratch: AbaScratch,
+    joint_q_out: wp.array(dtype=wp.quat),
+    joint_qd_out: wp.array(dtype=wp.vec3),
+    seg_xform_out: wp.array(dtype=wp.transform),
+    vertex_positions_out: wp.array(dtype=wp.vec3),
+    vertex_velocities_out: wp.array(dtype=wp.vec3),
+    fault: wp.array(dtype=wp.int32),
+    always_fk: int,
+):
+    """The end of ``respond_strand``: ``q <- q exp(h dw)`` with ``dw`` the answer's change of the free velocities
+    (kept in ``scratch.qdd``), the response's fault checks, and the forward kinematics of the strand."""
+    S = chains.seg_per_strand
+    changed = always_fk
+    for k in range(S):
+        i = strand * S + k
+        w_free = scratch.qdd[i]
+        w = joint_qd_out[i]
+        dw = w - w_free
+        if wp.length_sq(dw) > 0.0:
+            changed = 1
+            q_new = wp.normalize(joint_q_out[i] * quat_exp(h * dw))
+            if not (wp.isfinite(w) and wp.isfinite(q_new)):
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            elif bend_rate(dw) * h > RESPONSE_ROTATION:
+                # the response's own change bends the joint by more than the bound in the step (a stiff contact
+                # that stops a joint may leave its outboard joints fast: that is the free motion's, not this)
+                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
+            joint_q_out[i] = q_new
+    if changed != 0:
+        fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
+                  vertex_velocities_out)
+
+
+@wp.func
 def respond_strand(
     chains: StrandChains,
     strand: int,
@@ -1065,25 +1193,8 @@ def respond_strand(
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
     body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
                        scratch, dampers, 1)
-    changed = always_fk
-    for k in range(S):
-        i = strand * S + k
-        w_free = scratch.qdd[i]
-        w = joint_qd_out[i]
-        dw = w - w_free
-        if wp.length_sq(dw) > 0.0:
-            changed = 1
-            q_new = wp.normalize(joint_q_out[i] * quat_exp(h * dw))
-            if not (wp.isfinite(w) and wp.isfinite(q_new)):
-                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
-            elif bend_rate(dw) * h > RESPONSE_ROTATION:
-                # the response's own change bends the joint by more than the bound in the step (a stiff contact
-                # that stops a joint may leave its outboard joints fast: that is the free motion's, not this)
-                wp.atomic_or(fault, 0, int(Fault.INTERACTION_RESPONSE))
-            joint_q_out[i] = q_new
-    if changed != 0:
-        fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
-                  vertex_velocities_out)
+    finish_response(chains, strand, X_base, V_base, h, scratch, joint_q_out, joint_qd_out, seg_xform_out,
+                    vertex_positions_out, vertex_velocities_out, fault, always_fk)
 
 
 @wp.kernel

@@ -12,12 +12,13 @@ import warp as wp
 
 from hairwarp.kernels.articulated import (
     AbaScratch,
-    BodyContacts,
+    DamperFactors,
     InteractionResponse,
     SegmentLoads,
     StrandBases,
     StrandChains,
-    respond_strand,
+    damper_solve,
+    finish_response,
     spin_free_torque,
 )
 from hairwarp.kernels.links import link_damping_matrix, seg_point_velocity
@@ -107,7 +108,6 @@ def link_sweep(
     color_strands: wp.array(dtype=wp.int32),
     # Model:
     chains: StrandChains,
-    max_rotation: float,
     seg_link_start: wp.array(dtype=wp.int32),
     seg_b_start: wp.array(dtype=wp.int32),
     b_slot_link: wp.array(dtype=wp.int32),
@@ -133,14 +133,16 @@ def link_sweep(
     free_velocities: wp.array(dtype=wp.vec3),
     # In and out: the vertex velocities of each strand's latest answer, linearised at the step's start
     answered_velocities: wp.array(dtype=wp.vec3),
-    # The hair contacts' dampers (held through the sweeps as the first pass had them), and body contacts (disabled)
+    # The hair contacts' dampers (held through the sweeps as the first pass had them)
     held: InteractionResponse,
-    contacts: BodyContacts,
     # The sweeps' dampers: their blocks, the same every sweep (``kernels.links.link_response_gather``); their forces,
     # written here
     dampers: InteractionResponse,
-    # Scratch:
+    # Scratch: with ``reuse`` (every sweep of a step after its first) the factors of the strand's matrix that the
+    # first made
     scratch: AbaScratch,
+    factors: DamperFactors,
+    reuse: int,
     # Out: the strand answered, from the free step's result
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
@@ -208,6 +210,11 @@ def link_sweep(
                     torque += spin_free_torque(r, f)
         dampers.force[seg] = force
         dampers.torque[seg] = torque
-    respond_strand(chains, strand, max_rotation, bases, h, implicit, loads, joint_q_in, dampers, contacts, scratch,
-                   joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
+    # the strand's answer from its free step (``respond_strand`` with the factors of the step's first sweep kept)
+    for k in range(S):
+        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
+    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse)
+    b = strand * bases.per_strand
+    finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
+                    seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
     answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd_out, free_qd, free_velocities, answered_velocities)
