@@ -251,6 +251,37 @@ def blocks_to_parent(Rm: wp.mat33, DA: wp.mat33, DB: wp.mat33, armature: wp.vec3
 
 
 @wp.func
+def factor_joint(chains: StrandChains, i: int, k: int, h: float, implicit: int, joint_q: wp.array(dtype=wp.quat),
+                 A: wp.mat33, B: wp.mat33, C: wp.mat33):
+    """Segment ``i`` (``k``-th of its strand) in an inward pass, its articulated blocks ``A``, ``B``, ``C`` given:
+    ``D^-1`` (``D = A + diag(armature)``, the implicit joints' armature), ``D^-1 A``, ``D^-1 B``, and the blocks it
+    passes to its parent (``blocks_to_parent``; zero for a root segment)."""
+    armature = joint_armature(chains, i, h, implicit)
+    Dinv = wp.inverse(A + wp.diag(armature))
+    DA = Dinv * A
+    DB = Dinv * B
+    cA = wp.mat33()
+    cB = wp.mat33()
+    cC = wp.mat33()
+    if k > 0:
+        cA, cB, cC = blocks_to_parent(wp.quat_to_matrix(joint_q[i]), DA, DB, armature, B, C,
+                                      -chains.seg_length[i - 1])
+    return Dinv, DA, DB, cA, cB, cC
+
+
+@wp.func
+def bias_to_parent(chains: StrandChains, i: int, joint_q: wp.array(dtype=wp.quat), A: wp.mat33, B: wp.mat33,
+                   Du: wp.vec3, n_: wp.vec3, f: wp.vec3):
+    """The bias force (torque ``n_``, force ``f``) that segment ``i`` passes to its parent in an inward pass, its
+    joint's answer ``Du`` given: rotated into the parent's frame and moved to its origin."""
+    Rm = wp.quat_to_matrix(joint_q[i])
+    z = -chains.seg_length[i - 1]
+    na = Rm * (n_ + A * Du)
+    fa = Rm * (f + wp.transpose(B) * Du)
+    return na + wp.cross(wp.vec3(0.0, 0.0, z), fa), fa
+
+
+@wp.func
 def aba_backward_pass(
     chains: StrandChains,
     strand: int,
@@ -564,23 +595,13 @@ def body_contact_solve(
                 C = C + dampers.C[i]
                 n_ = n_ - dampers.torque[i]
                 f = f - dampers.force[i]
-            armature = joint_armature(chains, i, dt, implicit)
-            Dinv = wp.inverse(A + wp.diag(armature))
-            DA = Dinv * A
-            DB = Dinv * B
+            Dinv, DA, DB, cA, cB, cC = factor_joint(chains, i, k, dt, implicit, joint_q, A, B, C)
             Du = -(Dinv * n_)
             scratch.DA[i] = DA
             scratch.DB[i] = DB
             scratch.Du[i] = Du
             if k > 0:
-                q = joint_q[i]
-                Rm = wp.quat_to_matrix(q)
-                z = -chains.seg_length[i - 1]
-                na = Rm * (n_ + A * Du)
-                fa = Rm * (f + wp.transpose(B) * Du)
-                cA, cB, cC = blocks_to_parent(Rm, DA, DB, armature, B, C, z)
-                cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
-                cf = fa
+                cn, cf = bias_to_parent(chains, i, joint_q, A, B, Du, n_, f)
 
         # Outward: the velocity change dw = h qdd (the head's motion is prescribed: no change at the base), the
         # final tip velocities, and from them each damper's force, the normal force and the friction share.
@@ -1005,16 +1026,10 @@ def strand_inverse_inertia(
         k = S - 1 - kk
         i = strand * S + k
         A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
-        armature = joint_armature(chains, i, h, implicit)
-        Dinv = wp.inverse(A + wp.diag(armature))
-        DA = Dinv * A
-        DB = Dinv * B
+        Dinv, DA, DB, cA, cB, cC = factor_joint(chains, i, k, h, implicit, joint_q, A, B, C)
         dampers.phi_a[i] = Dinv
         dampers.phi_b[i] = DA
         dampers.phi_c[i] = DB
-        if k > 0:
-            cA, cB, cC = blocks_to_parent(wp.quat_to_matrix(joint_q[i]), DA, DB, armature, B, C,
-                                          -chains.seg_length[i - 1])
     Pa = wp.mat33()
     Pb = wp.mat33()
     Pc = wp.mat33()
@@ -1082,18 +1097,12 @@ def damper_solve(
             A = A + dampers.A[i]
             B = B + dampers.B[i]
             C = C + dampers.C[i]
-            armature = joint_armature(chains, i, h, implicit)
-            Dinv = wp.inverse(A + wp.diag(armature))
-            DA = Dinv * A
-            DB = Dinv * B
+            Dinv, DA, DB, cA, cB, cC = factor_joint(chains, i, k, h, implicit, joint_q, A, B, C)
             scratch.DA[i] = DA
             scratch.DB[i] = DB
             factors.Dinv[i] = Dinv
             factors.A[i] = A
             factors.B[i] = B
-            if k > 0:
-                cA, cB, cC = blocks_to_parent(wp.quat_to_matrix(joint_q[i]), DA, DB, armature, B, C,
-                                              -chains.seg_length[i - 1])
         else:
             Dinv = factors.Dinv[i]
             A = factors.A[i]
@@ -1101,12 +1110,7 @@ def damper_solve(
         Du = -(Dinv * n_)
         scratch.Du[i] = Du
         if k > 0:
-            Rm = wp.quat_to_matrix(joint_q[i])
-            z = -chains.seg_length[i - 1]
-            na = Rm * (n_ + A * Du)
-            fa = Rm * (f + wp.transpose(B) * Du)
-            cn = na + wp.cross(wp.vec3(0.0, 0.0, z), fa)
-            cf = fa
+            cn, cf = bias_to_parent(chains, i, joint_q, A, B, Du, n_, f)
     a_ang_p = wp.vec3()
     a_lin_p = wp.vec3()
     for k in range(S):
