@@ -1141,7 +1141,8 @@ def finish_response(
     fault: wp.array(dtype=wp.int32),
     always_fk: int,
 ):
-    """The end of ``respond_strand``: ``q <- q exp(h dw)`` with ``dw`` the answer's change of the free velocities
+    """The end of a strand's response (``interaction_response``, ``kernels.sweeps.link_sweep``):
+    ``q <- q exp(h dw)`` with ``dw`` the answer's change of the free velocities
     (kept in ``scratch.qdd``), the response's fault checks, and the forward kinematics of the strand."""
     S = chains.seg_per_strand
     changed = always_fk
@@ -1163,42 +1164,6 @@ def finish_response(
     if changed != 0:
         fk_strand(chains, strand, X_base, V_base, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
                   vertex_velocities_out)
-
-
-@wp.func
-def respond_strand(
-    chains: StrandChains,
-    strand: int,
-    max_rotation: float,
-    bases: StrandBases,
-    h: float,
-    implicit: int,
-    loads: SegmentLoads,
-    joint_q_in: wp.array(dtype=wp.quat),
-    dampers: InteractionResponse,
-    contacts: BodyContacts,
-    scratch: AbaScratch,
-    joint_q_out: wp.array(dtype=wp.quat),
-    joint_qd_out: wp.array(dtype=wp.vec3),
-    seg_xform_out: wp.array(dtype=wp.transform),
-    vertex_positions_out: wp.array(dtype=wp.vec3),
-    vertex_velocities_out: wp.array(dtype=wp.vec3),
-    fault: wp.array(dtype=wp.int32),
-    always_fk: int,
-):
-    """``interaction_response`` for one strand, on the free step's result in the ``_out`` arrays; with
-    ``always_fk`` its world quantities are recomputed even when the dampers change nothing (a sweep that starts
-    again from the free step, ``kernels.sweeps.link_sweep``)."""
-    S = chains.seg_per_strand
-    b = strand * bases.per_strand
-    X_base = bases.xform[b]
-    V_base = bases.velocity[b]
-    for k in range(S):
-        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
-    body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
-                       scratch, dampers, 1)
-    finish_response(chains, strand, X_base, V_base, h, scratch, joint_q_out, joint_qd_out, seg_xform_out,
-                    vertex_positions_out, vertex_velocities_out, fault, always_fk)
 
 
 @wp.kernel
@@ -1245,9 +1210,18 @@ def interaction_response(
     its stability: ``long_hair_shoulders`` faulted.) With links, this is the first pass; Gauss-Seidel sweeps over the
     strands follow (``kernels.sweeps``).
     """
-    respond_strand(chains, tid_offset + wp.tid(), max_rotation, bases, dt[0], implicit, loads, joint_q_in, dampers,
-                   contacts, scratch, joint_q_out, joint_qd_out, seg_xform_out, vertex_positions_out,
-                   vertex_velocities_out, fault, 0)
+    strand = tid_offset + wp.tid()
+    S = chains.seg_per_strand
+    h = dt[0]
+    b = strand * bases.per_strand
+    X_base = bases.xform[b]
+    V_base = bases.velocity[b]
+    for k in range(S):
+        scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
+    body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
+                       scratch, dampers, 1)
+    finish_response(chains, strand, X_base, V_base, h, scratch, joint_q_out, joint_qd_out, seg_xform_out,
+                    vertex_positions_out, vertex_velocities_out, fault, 0)
 
 
 @wp.kernel

@@ -160,11 +160,12 @@ def link_sweep(
     end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
     (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else the first
     pass's). The hair contacts' dampers stay as the first pass had them (``held``). The strand is then solved from
-    its free step (``respond_strand``) and its answer published (``answer``). A colour's strands share no link, so
-    they are solved at once, and each sees what the earlier colours gave: every sweep lowers the links' implicit
-    step's error in its energy norm (the step's matrix is symmetric positive definite), so unlike Jacobi between
-    strands it cannot overshoot, whatever the ends' masses; more sweeps converge to the backward-Euler answer of
-    the whole lattice. At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first pass's answer."""
+    its free step (``damper_solve``, ``finish_response``) and its answer published (``answer``). A colour's strands
+    share no link, so they are solved at once, and each sees what the earlier colours gave: every sweep lowers the
+    links' implicit step's error in its energy norm (the step's matrix is symmetric positive definite), so unlike
+    Jacobi between strands it cannot overshoot, whatever the ends' masses; more sweeps converge to the
+    backward-Euler answer of the whole lattice. At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first
+    pass's answer."""
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]
@@ -210,7 +211,7 @@ def link_sweep(
                     torque += spin_free_torque(r, f)
         dampers.force[seg] = force
         dampers.torque[seg] = torque
-    # the strand's answer from its free step (``respond_strand`` with the factors of the step's first sweep kept)
+    # the strand's answer from its free step, with the factors of the step's first sweep kept
     for k in range(S):
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
     damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse)
