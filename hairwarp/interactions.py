@@ -23,6 +23,8 @@ state)`` itself (e.g. at the first substep of a frame) and each step only evalua
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -132,8 +134,16 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 #: Fewest segments (or blocks, vertices) per chunk of the cheap per-element launches (``hairwarp.executor``).
 SEGMENT_MIN_CHUNK = 256
 
-#: Gauss-Seidel sweeps of the links' response per step (``StaticLinks.build``).
+#: Gauss-Seidel sweeps of the links' response per step (``StaticLinks.build``), at steps up to
+#: :data:`SWEEP_REFERENCE_STEP`; longer steps take proportionally more (``StaticLinks.sweeps_at``).
 DEFAULT_SWEEPS = 2
+
+#: The step [s] up to which a step takes ``sweeps`` sweeps; a step k times as long takes ceil(k) times as many, so
+#: a second of simulation gets the same sweeps whatever the substeps. At 2 steps a frame (1/60 s) the Ratboy
+#: mohawk, its links and hair contacts solved by 2 sweeps, settled 20-40 mm below its 16-substep run and broke 315
+#: links in its turns and shake (25 at 16 substeps); with 8 it breaks 23. Limp hair (EI 1e-7, 64 segments) at
+#: 2 steps a frame burst on 2 or 4 sweeps (4.2 and 3.4 m/s at its tips as it falls onto itself) and holds on 8.
+SWEEP_REFERENCE_STEP = 1.0 / 240.0
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
@@ -320,6 +330,7 @@ class StaticLinks:
         links.strand_colors = strand_colors(a // S, b // S, G)
         order = np.lexsort((np.arange(G), links.strand_colors)).astype(np.int32)
         links.color_strands = wp.array(order, dtype=wp.int32, device=dev)
+        links.strand_color_array = wp.array(links.strand_colors.astype(np.int32), dtype=wp.int32, device=dev)
         bounds = np.searchsorted(links.strand_colors[order], np.arange(links.strand_colors.max(initial=0) + 2))
         links.color_views = [links.color_strands[int(lo):int(hi)] for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
         return links
@@ -372,17 +383,23 @@ class StaticLinks:
                 state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt, dampers],
                [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
-    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept):
+    def sweeps_at(self, dt: float) -> int:
+        """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to :data:`SWEEP_REFERENCE_STEP`, in
+        proportion beyond (rounded up)."""
+        return max(self.sweeps, math.ceil(self.sweeps * float(dt) / SWEEP_REFERENCE_STEP - 1e-9))
+
+    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept, contacts_swept: bool = False):
         """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``
         (a :class:`kernels.articulated.InteractionResponse`): the hair contacts' from ``held`` and its link ends',
         from :meth:`prepare_response` and the frames of ``state_in``; the blocks of the sweeps' dampers (split factor
-        1) in ``swept`` (launch only)."""
+        1) in ``swept``, added to the hair contacts' there with ``contacts_swept`` (launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
                 self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
-                state_in.seg_xform, dt, held], [dampers, swept], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                state_in.seg_xform, dt, held, int(contacts_swept)], [dampers, swept], device=self.device,
+               min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it
@@ -796,10 +813,11 @@ class HairContacts:
                [model.seg_per_strand, self._strip_pairs, self.buffer, counts, state_in.seg_xform, dt, dampers],
                [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
-    def gather_response(self, model, state_in, state_out, dt, dampers):
+    def gather_response(self, model, state_in, state_out, dt, dampers, swept=None):
         """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
         :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out``, the
-        frames of ``state_in`` and :meth:`prepare_response` (launch only)."""
+        frames of ``state_in`` and :meth:`prepare_response`; with ``swept``, store the blocks of the same dampers
+        whole there, for the links' sweeps (:attr:`sweeps_contacts`; launch only)."""
         if not self.enabled:
             return
         inputs = [model.seg_per_strand, self._strip_pairs, self.buffer, self._response_buffer]
@@ -810,7 +828,19 @@ class HairContacts:
         else:
             launch(self.executor, contact_kernels.contact_response_gather, len(self._seg_cursor),
                    [*inputs, self.seg_entry_start, self.seg_entries, state_in.seg_xform, state_out.vertex_velocities,
-                    dt], [dampers], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                    dt, int(swept is not None)], [dampers, swept if swept is not None else dampers], device=self.device,
+                   min_chunk=GATHER_MIN_CHUNK)
+
+    @property
+    def sweeps_contacts(self) -> bool:
+        """Whether the links' sweeps solve these contacts too (``kernels.contacts.sweep_entry_force``), which needs each
+        segment's list of contacts: on the CPU (where ``gather_response`` gathers); a GPU holds them as the first pass
+        had them."""
+        return self.enabled and self.response and not (self.device.is_cuda or self.scatter)
+
+    def sweep_inputs(self) -> list:
+        """What ``kernels.sweeps.link_sweep`` reads of the contacts (after its ``contacts_swept`` flag)."""
+        return [self._strip_pairs, self.buffer, self._response_buffer, self.seg_entry_start, self.seg_entries]
 
     @property
     def enabled(self) -> bool:

@@ -7,6 +7,7 @@ import warp as wp
 
 from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated, sweeps
+from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels.types import Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
@@ -131,6 +132,8 @@ class Solver:
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
             self.free_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
             self.answered_velocities = wp.zeros(model.vert_count, dtype=wp.vec3, device=device)
+            # the answers as each sweep leaves them, read by the next for strands of one colour (by parity)
+            self.answered_sweeps = [wp.zeros(model.vert_count, dtype=wp.vec3, device=device) for _ in range(2)]
             self.held = _dampers(n, device, dampers)
             self.swept = _dampers(n, device, dampers)
             factors = self.factors = articulated.DamperFactors()
@@ -152,6 +155,10 @@ class Solver:
                 stage.executor = self.executor
         self.body_contacts = colliders.contacts if has_colliders else body_contacts(1, device, enabled=False)
         self._no_body_contacts = body_contacts(1, device, enabled=False)  # the response's: dampers only
+        # what the links' sweeps read of the hair contacts where they hold them (``kernels.sweeps.link_sweep``)
+        self._no_sweep_contacts = [wp.zeros(1, dtype=wp.vec2i, device=device), contact_kernels.ContactBuffer(),
+                                   contact_kernels.ContactResponse(), wp.zeros(1, dtype=wp.int32, device=device),
+                                   wp.zeros(1, dtype=wp.int32, device=device)]
 
     @staticmethod
     def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
@@ -284,9 +291,9 @@ class Solver:
         First every strand answers every pair at once (Jacobi between strands; ``articulated.interaction_response``):
         each pair's end takes the pair's backward-Euler damper split by the two ends' inverse inertias in their
         strands (``articulated.strand_inverse_inertia``, ``prepare_response``), which is exact for a lone pair. With
-        links, Gauss-Seidel sweeps over the strands' colours follow (``sweeps.link_sweep``): each colour's strands
-        answer their links again, the strands they are linked to held at their latest answer, the hair contacts'
-        dampers held as the first pass had them."""
+        links, Gauss-Seidel sweeps over the strands' colours follow (``sweeps.link_sweep``; ``links.sweeps_at`` of the
+        step): each colour's strands answer their links and hair contacts again, the strands at their other ends held
+        at their latest answer (on a GPU the hair contacts' dampers are held as the first pass had them)."""
         model, ex = self.model, self.executor
         implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         links = self.links if self.link_sweeps else None
@@ -300,13 +307,16 @@ class Solver:
         for part in self.responders:
             part.prepare_response(model, state_in, state_out, self.dt, dampers)
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
+        # the sweeps solve the hair contacts too, where each segment has its list of them (the CPU)
+        contacts_swept = links is not None and contacts is not None and contacts.sweeps_contacts
         # each segment gathers its contacts' and its links' dampers (in this order, into its own blocks), reading
         # other strands' velocities, which the response then rewrites: a chain of its own, the response another
         with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
             if contacts is not None:
-                contacts.gather_response(model, state_in, state_out, self.dt, held)
+                contacts.gather_response(model, state_in, state_out, self.dt, held,
+                                         self.swept if contacts_swept else None)
             if links is not None:
-                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept)
+                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept, contacts_swept)
                 ex.launch(sweeps.sweep_start, model.strand_count,
                           [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
                           [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
@@ -321,7 +331,7 @@ class Solver:
             if links is not None:
                 ex.launch(sweeps.sweep_answer, model.strand_count,
                           [model.seg_per_strand, state_in.seg_xform, state_in.vertex_positions, state_out.joint_qd,
-                           self.free_qd, self.free_velocities], [self.answered_velocities],
+                           self.free_qd, self.free_velocities], [self.answered_velocities, self.answered_sweeps[0]],
                           min_chunk=INTEGRATE_MIN_CHUNK)
             elif project:
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
@@ -331,14 +341,18 @@ class Solver:
                   links.link_seg_b, links.stiffness, links.damping, links.link_point_a, links.link_point_b,
                   links.link_broken, control.bases, self.dt, implicit, self.loads, state_in.joint_q,
                   state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd, self.free_velocities,
-                  self.answered_velocities, held, self.swept, self.scratch, self.factors]
-        fault = len(inputs) + 1 + len(outputs)  # the fault bits' index, behind the colour's strands and ``reuse``
+                  self.answered_velocities]
+        held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
+                   self.swept, self.scratch, self.factors]
+        fault = len(inputs) + 3 + len(held_on) + 1 + len(outputs)  # the fault bits' index (behind ``reuse``)
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
         # at every step, and hair at rest on a body crept); every sweep after the first solves the same matrices
-        for sweep in range(links.sweeps):
+        for sweep in range(links.sweeps_at(self._dt_host)):
+            before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):
-                ex.launch(sweeps.link_sweep, len(strands), [strands, *inputs, int(sweep > 0)], outputs,
-                          min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
+                ex.launch(sweeps.link_sweep, len(strands),
+                          [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0)],
+                          outputs, min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)

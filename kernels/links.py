@@ -481,8 +481,10 @@ def link_response_gather(
     seg_xform: wp.array(dtype=wp.transform),
     # Control:
     dt: wp.array(dtype=float),
-    # The hair contacts' dampers
+    # The hair contacts' dampers; ``contacts_swept``: the sweeps' blocks already hold theirs, whole
+    # (``kernels.contacts.contact_response_gather``), else they take ``held``'s
     held: InteractionResponse,
+    contacts_swept: int,
     # Out:
     dampers: InteractionResponse,
     sweep_blocks: InteractionResponse,
@@ -505,6 +507,10 @@ def link_response_gather(
     A1 = held.A[seg]
     B1 = held.B[seg]
     C1 = held.C[seg]
+    if contacts_swept != 0:
+        A1 = sweep_blocks.A[seg]
+        B1 = sweep_blocks.B[seg]
+        C1 = sweep_blocks.C[seg]
     sweep_blocks.A[seg] = A1
     sweep_blocks.B[seg] = B1
     sweep_blocks.C[seg] = C1

@@ -21,6 +21,7 @@ from hairwarp.kernels.articulated import (
     finish_response,
     spin_free_torque,
 )
+from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, sweep_entry_force
 from hairwarp.kernels.links import link_damping_matrix, seg_point_velocity
 
 wp.set_module_options({"enable_backward": False})
@@ -63,12 +64,22 @@ def sweep_answer(
     joint_qd: wp.array(dtype=wp.vec3),
     free_qd: wp.array(dtype=wp.vec3),
     free_velocities: wp.array(dtype=wp.vec3),
-    # Out:
+    # Out: the answers, and the copy the first sweep reads of its own colour's (``link_sweep``)
     answered_velocities: wp.array(dtype=wp.vec3),
+    answered_copy: wp.array(dtype=wp.vec3),
 ):
     """One thread per strand: ``answer`` for the response every strand gave at once (the sweeps' start)."""
-    answer(tid_offset + wp.tid(), seg_per_strand, seg_xform_in, vertex_positions_in, joint_qd, free_qd,
-           free_velocities, answered_velocities)
+    strand = tid_offset + wp.tid()
+    answer(strand, seg_per_strand, seg_xform_in, vertex_positions_in, joint_qd, free_qd, free_velocities,
+           answered_velocities)
+    copy_answer(strand, seg_per_strand, answered_velocities, answered_copy)
+
+
+@wp.func
+def copy_answer(strand: int, S: int, answered: wp.array(dtype=wp.vec3), copy: wp.array(dtype=wp.vec3)):
+    for k in range(S + 1):
+        v = strand * (S + 1) + k
+        copy[v] = answered[v]
 
 
 @wp.kernel
@@ -131,10 +142,22 @@ def link_sweep(
     free_q: wp.array(dtype=wp.quat),
     free_qd: wp.array(dtype=wp.vec3),
     free_velocities: wp.array(dtype=wp.vec3),
-    # In and out: the vertex velocities of each strand's latest answer, linearised at the step's start
+    # In and out: the vertex velocities of each strand's latest answer, linearised at the step's start; the same
+    # as the last sweep left them, read for strands of this colour (solved at once with this one), and where this
+    # sweep leaves them for the next
     answered_velocities: wp.array(dtype=wp.vec3),
-    # The hair contacts' dampers (held through the sweeps as the first pass had them)
+    answered_before: wp.array(dtype=wp.vec3),
+    answered_after: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.int32),
+    # The hair contacts' dampers as the first pass had them: held through the sweeps where ``contacts_swept`` is 0
+    # (on a GPU, which has no contact lists per segment), else solved in them (``contacts`` ... ``seg_entries``)
     held: InteractionResponse,
+    contacts_swept: int,
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    contacts: ContactBuffer,
+    response: ContactResponse,
+    seg_entry_start: wp.array(dtype=wp.int32),
+    seg_entries: wp.array(dtype=wp.int32),
     # The sweeps' dampers: their blocks, the same every sweep (``kernels.links.link_response_gather``); their forces,
     # written here
     dampers: InteractionResponse,
@@ -159,13 +182,15 @@ def link_sweep(
     damper ``h P`` (the pair's whole point inertia) and the force ``+-(k l) - P (v_own - v_other)``, ``v_own`` its
     end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
     (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else the first
-    pass's). The hair contacts' dampers stay as the first pass had them (``held``). The strand is then solved from
-    its free step (``damper_solve``, ``finish_response``) and its answer published (``answer``). A colour's strands
-    share no link, so they are solved at once, and each sees what the earlier colours gave: every sweep lowers the
-    links' implicit step's error in its energy norm (the step's matrix is symmetric positive definite), so unlike
-    Jacobi between strands it cannot overshoot, whatever the ends' masses; more sweeps converge to the
-    backward-Euler answer of the whole lattice. At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first
-    pass's answer."""
+    pass's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
+    toward the other side's latest answer), or, on a GPU, held as the first pass had them (``held``). The strand is
+    then solved from its free step (``damper_solve``, ``finish_response``) and its answer published (``answer``). A
+    colour's strands share no link, so they are solved at once, and each sees what the earlier colours gave: every
+    sweep lowers the links' implicit step's error in its energy norm (the step's matrix is symmetric positive
+    definite), so unlike Jacobi between strands it cannot overshoot, whatever the ends' masses; more sweeps converge
+    to the backward-Euler answer of the whole lattice. Hair contacts can join two strands of one colour, which a
+    sweep then solves at once (Jacobi, each with the whole damper): the colours are the links', fixed for the run.
+    At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first pass's answer."""
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]
@@ -177,14 +202,24 @@ def link_sweep(
         joint_qd_out[seg] = free_qd[seg]
         force = held.force[seg]
         torque = held.torque[seg]
+        xf = seg_xform_in[seg]
+        R = wp.transform_get_rotation(xf)
+        origin = wp.transform_get_translation(xf)
+        if contacts_swept != 0:
+            force = wp.vec3()
+            torque = wp.vec3()
+            for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
+                entry = seg_entries[j]
+                f = wp.quat_rotate_inv(R, sweep_entry_force(entry, strand, S, strip_pairs, contacts, response,
+                                                            free_velocities, answered_velocities, answered_before,
+                                                            colors))
+                force += f
+                torque += spin_free_torque(wp.quat_rotate_inv(R, response.point[entry] - origin), f)
         a_first = seg_link_start[seg]
         a_last = seg_link_start[seg + 1]
         b_first = seg_b_start[seg]
         b_last = seg_b_start[seg + 1]
         if a_first != a_last or b_first != b_last:
-            xf = seg_xform_in[seg]
-            R = wp.transform_get_rotation(xf)
-            origin = wp.transform_get_translation(xf)
             for j in range(a_first, b_last - b_first + a_last):
                 link = j
                 side = float(1.0)
@@ -219,3 +254,5 @@ def link_sweep(
     finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
                     seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
     answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd_out, free_qd, free_velocities, answered_velocities)
+    if contacts_swept != 0:
+        copy_answer(strand, S, answered_velocities, answered_after)

@@ -756,10 +756,64 @@ def test_link_response_converges_to_the_backward_euler_pair():
         solver._respond(start, free, control)
         v = _midpoints_velocity(free, start, L)
         errors.append(max(np.abs(v[g] - expect[g]).max() for g in range(2)))
-    # ends this stiff (h^2 k / m_eff ~ 50) converge slowly, but more sweeps get nearer, down to round-off (3.2e-4,
-    # 2.0e-4, 3.3e-5, then 9e-8 m/s at 64 and 256 sweeps)
+    # ends this stiff (h^2 k / m_eff ~ 50) converge slowly, but more sweeps get nearer, down to round-off (at this
+    # step ``sweeps`` n runs 4 n: 2.5e-4, 1.0e-4, 2.6e-6, then 9e-8 m/s at 256 and 1024 sweeps)
     assert all(b < a or b < 1e-6 * speed for a, b in zip(errors, errors[1:])), errors
     # float32 state and solve against float64: 1e-5 of the speed (as in the contact pair above)
+    assert errors[-1] < 1e-5 * speed, errors
+
+
+def test_sweeps_converge_a_link_and_a_contact_to_their_coupled_backward_euler_step():
+    """The same pendulums, tied at their midpoints by a link and meeting there (a segment-segment contact), each
+    midpoint approaching the other at ``speed``. Link and contact both act on the two strands: the first pass
+    answers each pair as if it were alone, the sweeps then solve both, the contact with its whole damper toward the
+    other strand's latest answer (``kernels.contacts.sweep_entry_force``). Against the step of the two solved as one
+    coupled system in closed form (the link's ``-h k u'``; the contact's ``k_c d - D v_n'`` along the normal, in
+    contact throughout), the error falls with the sweeps to float32 round-off (2.1e-5, 1.6e-5, 2.5e-6, then 2.8e-7
+    m/s at 32 and 128 sweeps). Held through the sweeps as the first pass had it (the response before the sweeps took
+    the contacts), the contact kept each midpoint's answer to the other's free velocity, and the error stopped at
+    2.2e-5 m/s from 8 sweeps on."""
+    import hairwarp as hw
+    from hairwarp.interactions import StaticLinks
+    from hairwarp.solver import Solver
+
+    L, delta, h, k, kc, c, speed = 0.02, 0.001, 1.0 / 240.0, 5.0, 10.0, 0.01, 0.3
+    _, _, model, control = _crossing_pendulums(delta, L)
+    m = float(model.seg_mass.numpy()[0])
+    inertia = model.seg_inertia.numpy()[0].astype(np.float64)
+    i_root = inertia[0] + m * (L / 2) ** 2
+    # turn rates: A about x, B about z and about y (the link test's); the link's rows as there
+    J0, J1 = np.array([[0.0, L / 2, delta]]), np.array([[0.0, L / 2, 0.0], [0.0, 0.0, -L / 2]])
+    r = np.array([speed / (L / 2), -speed / (L / 2), 0.0])  # the midpoints approach along y
+    link = h * h * k * np.block([[J0 @ J0.T, -J0 @ J1.T], [-J1 @ J0.T, J1 @ J1.T]])
+    # the contact along n = -y (from B to A): v_n = -(g . r), its force on the rates -g (k_c d + D g . r)
+    g = np.array([L / 2, -L / 2, 0.0])
+    D = h * kc + c
+    lhs = i_root * np.eye(3) + link + h * D * np.outer(g, g)
+    exact = np.linalg.solve(lhs, i_root * r - h * kc * (THRESHOLD - delta) * g)
+    assert kc * (THRESHOLD - delta) + D * (g @ exact) > 0.0  # in contact at the end of the step
+    expect = [J0.T @ exact[:1] * [1.0, 1.0, 0.0], J1.T @ exact[1:]]
+
+    errors = []
+    for sweeps in (1, 2, 8, 32, 128):
+        links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01, stiffness=k,
+                                  damping=0.0, break_length=1.0, response=True, sweeps=sweeps)
+        contacts = HairContacts.build(model.rest_vertex_positions, threshold=THRESHOLD, stiffness=kc, damping=c,
+                                      friction=0.0, capacity=4, rest_gaps=False, segment_segment=True,
+                                      response=True)
+        solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, contacts=contacts, threads=1)
+        assert links.sweeps_at(h) == sweeps and links.sweeps_at(4.0 * h) == 4 * sweeps
+        solver.set_dt(h)
+        start = model.state()
+        free = _with_point_velocities(solver, model, control, [[0.0, speed, 0.0], [0.0, -speed, 0.0]], L)
+        links.apply_forces(model, start, solver.dt, solver.seg_force, solver.seg_torque)
+        contacts.detect(model, start)
+        contacts.apply_forces(model, start, solver.dt)
+        solver._respond(start, free, control)
+        v = _midpoints_velocity(free, start, L)
+        errors.append(max(np.abs(v[q] - expect[q]).max() for q in range(2)))
+    assert all(b < a or b < 1e-6 * speed for a, b in zip(errors, errors[1:])), errors
+    # float32 state and solve against float64: 1e-5 of the speed (as in the pairs above)
     assert errors[-1] < 1e-5 * speed, errors
 
 
@@ -813,14 +867,15 @@ def test_link_sweeps_take_out_what_the_first_pass_puts_into_a_lattice(k):
     step only dissipates). The response's first pass alone, Jacobi between strands, multiplied it by 2.3 (k = 1,
     h^2 k / m_eff 2.5) and 8.1 (k = 5, 12.7): each strand answered its links as if their other ends held still,
     and links meeting one pendulum near its root and another near its tip left the light end hardly answered. The
-    sweeps take it out: with the shipped 2 it falls (0.49 and 0.32), and more sweeps lower it toward the coupled
-    backward-Euler step (64 sweeps: 0.45 and 0.18). Turn rates about 1 rad/s keep the step's turns near 1/60 rad,
-    where the step's linearisation holds (the residual is second order in it)."""
+    sweeps take it out: ``sweeps`` = 2, the default, which a step of 1/60 s takes as 8 (``sweeps_at``), leaves 0.46
+    and 0.23, and more sweeps lower it toward the coupled backward-Euler step (0.45 and 0.18 from 32 on). Turn
+    rates about 1 rad/s keep the step's turns near 1/60 rad, where the step's linearisation holds (the residual is
+    second order in it)."""
     w0 = np.zeros((12, 3))
     w0[:, :2] = np.random.default_rng(3).normal(0.0, 1.0, (12, 2))
     h = 1.0 / 60.0
     ratio = {}
-    for sweeps in (0, 1, 2, 8, 64):
+    for sweeps in (0, 1, 2, 8, 64):  # at this step, 0, 4, 8, 32 and 256 sweeps
         before, after, stiff = _tied_lattice(k, sweeps, w0, h)
         ratio[sweeps] = after / before
     assert 2.0 < stiff < 15.0
