@@ -765,6 +765,13 @@ class HairContacts:
         contacts.entry_mass = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
         contacts.seg_entry_start = wp.zeros(G * S + 1, dtype=wp.int32, device=dev)
         contacts.seg_entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
+        # the contacts the links' sweeps solve in a step (``kernels.contacts.SweepContacts``)
+        sweep = contact_kernels.SweepContacts()
+        sweep.entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
+        sweep.end = wp.zeros(G * S, dtype=wp.int32, device=dev)
+        sweep.friction = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
+        sweep.free = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
+        contacts.sweep_contacts = sweep
         # without the lists (a GPU), the response's split counts one contact a segment (``contact_response_split``)
         contacts._one_count = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
@@ -813,11 +820,12 @@ class HairContacts:
                [model.seg_per_strand, self._strip_pairs, self.buffer, counts, state_in.seg_xform, dt, dampers],
                [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
-    def gather_response(self, model, state_in, state_out, dt, dampers, swept=None):
+    def gather_response(self, model, state_in, state_out, dt, dampers, swept=None, colors=None):
         """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
         :class:`kernels.articulated.InteractionResponse`), from the free step's end velocities in ``state_out``, the
         frames of ``state_in`` and :meth:`prepare_response`; with ``swept``, store the blocks of the same dampers
-        whole there, for the links' sweeps (:attr:`sweeps_contacts`; launch only)."""
+        whole there and list the contacts for the links' sweeps, whose strands have ``colors``
+        (:attr:`sweeps_contacts`; launch only)."""
         if not self.enabled:
             return
         inputs = [model.seg_per_strand, self._strip_pairs, self.buffer, self._response_buffer]
@@ -828,7 +836,8 @@ class HairContacts:
         else:
             launch(self.executor, contact_kernels.contact_response_gather, len(self._seg_cursor),
                    [*inputs, self.seg_entry_start, self.seg_entries, state_in.seg_xform, state_out.vertex_velocities,
-                    dt, int(swept is not None)], [dampers, swept if swept is not None else dampers], device=self.device,
+                    dt, int(swept is not None), colors if colors is not None else self._one_count],
+                   [dampers, swept if swept is not None else dampers, self.sweep_contacts], device=self.device,
                    min_chunk=GATHER_MIN_CHUNK)
 
     @property
@@ -840,7 +849,7 @@ class HairContacts:
 
     def sweep_inputs(self) -> list:
         """What ``kernels.sweeps.link_sweep`` reads of the contacts (after its ``contacts_swept`` flag)."""
-        return [self._strip_pairs, self.buffer, self._response_buffer, self.seg_entry_start, self.seg_entries]
+        return [self._strip_pairs, self.buffer, self._response_buffer, self.seg_entry_start, self.sweep_contacts]
 
     @property
     def enabled(self) -> bool:

@@ -158,7 +158,7 @@ class Solver:
         # what the links' sweeps read of the hair contacts where they hold them (``kernels.sweeps.link_sweep``)
         self._no_sweep_contacts = [wp.zeros(1, dtype=wp.vec2i, device=device), contact_kernels.ContactBuffer(),
                                    contact_kernels.ContactResponse(), wp.zeros(1, dtype=wp.int32, device=device),
-                                   wp.zeros(1, dtype=wp.int32, device=device)]
+                                   contact_kernels.SweepContacts()]
 
     @staticmethod
     def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
@@ -314,7 +314,7 @@ class Solver:
         with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
             if contacts is not None:
                 contacts.gather_response(model, state_in, state_out, self.dt, held,
-                                         self.swept if contacts_swept else None)
+                                         *((self.swept, links.strand_color_array) if contacts_swept else ()))
             if links is not None:
                 links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept, contacts_swept)
                 ex.launch(sweeps.sweep_start, model.strand_count,

@@ -238,6 +238,19 @@ class ContactResponse:
     split: wp.array(dtype=wp.vec2)
 
 
+@wp.struct
+class SweepContacts:
+    """The hair contacts the links' sweeps solve in a step (``sweep_entry_force``), listed once a step by
+    ``contact_response_gather``: per segment, at ``seg_entry_start[seg]`` up to ``end[seg]``, the entries in
+    contact at the free step (``entries``), each with its friction coefficient ``friction`` [N s/m] and ``free``,
+    its own strand's share of the pair's relative velocity at the free step [m/s] (the part no sweep changes)."""
+
+    entries: wp.array(dtype=wp.int32)
+    end: wp.array(dtype=wp.int32)
+    friction: wp.array(dtype=float)
+    free: wp.array(dtype=wp.vec3)
+
+
 @wp.func
 def push_contact(buf: ContactBuffer, kind: int, a: int, b: int, w: wp.vec3, gap: float,
                  fault: wp.array(dtype=wp.int32)):
@@ -965,32 +978,30 @@ def contact_relative_velocity(slot: int, seg_per_strand: int, strip_pairs: wp.ar
 
 
 @wp.func
-def own_or_answered(v: int, strand: int, seg_per_strand: int, own: wp.array(dtype=wp.vec3),
-                    answered: wp.array(dtype=wp.vec3), answered_before: wp.array(dtype=wp.vec3),
-                    colors: wp.array(dtype=wp.int32)):
-    """Vertex ``v``'s velocity in ``strand``'s sweep: from ``own`` where it is one of ``strand``'s; from
-    ``answered_before`` (the last sweep's answers) where its strand has ``strand``'s colour and is solved at the same
-    time, so that no strand reads what another writes; else from ``answered``."""
+def others_velocity(v: int, strand: int, seg_per_strand: int, answered: wp.array(dtype=wp.vec3),
+                    answered_before: wp.array(dtype=wp.vec3), colors: wp.array(dtype=wp.int32)):
+    """Vertex ``v``'s velocity as ``strand``'s sweep sees it: zero where it is ``strand``'s own (that part is
+    ``SweepContacts.free``); from ``answered_before`` (the last sweep's answers) where its strand has ``strand``'s
+    colour and is solved at the same time, so that no strand reads what another writes; else from ``answered``."""
     other = v // (seg_per_strand + 1)
     if other == strand:
-        return own[v]
+        return wp.vec3()
     if colors[other] == colors[strand]:
         return answered_before[v]
     return answered[v]
 
 
 @wp.func
-def sweep_relative_velocity(slot: int, strand: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
-                            contacts: ContactBuffer, response: ContactResponse, own: wp.array(dtype=wp.vec3),
-                            answered: wp.array(dtype=wp.vec3), before: wp.array(dtype=wp.vec3),
-                            colors: wp.array(dtype=wp.int32)) -> wp.vec3:
-    """``contact_relative_velocity`` with ``strand``'s vertices from ``own`` and every other strand's from its latest
-    answer (``own_or_answered``)."""
+def others_relative_velocity(slot: int, strand: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
+                             contacts: ContactBuffer, response: ContactResponse, answered: wp.array(dtype=wp.vec3),
+                             answered_before: wp.array(dtype=wp.vec3), colors: wp.array(dtype=wp.int32)) -> wp.vec3:
+    """The other strands' share of ``contact_relative_velocity`` (``others_velocity``); ``strand``'s own vertices
+    count zero."""
     S = seg_per_strand
     ia = contacts.a[slot]
     ib = contacts.b[slot]
     wt = response.weights[slot]
-    # the (up to) four vertices of each side and their weights, as contact_relative_velocity takes them
+    # each side's vertices and weights, as contact_relative_velocity takes them
     a0 = ia
     a1 = ia
     b0 = int(0)
@@ -1014,53 +1025,44 @@ def sweep_relative_velocity(slot: int, strand: int, seg_per_strand: int, strip_p
         b3 = b0
         wa = wp.vec2(1.0 - wt[0], wt[0])
         wb = wp.vec4(1.0 - wt[1], wt[1], 0.0, 0.0)
-    va = wa[0] * own_or_answered(a0, strand, S, own, answered, before, colors) \
-        + wa[1] * own_or_answered(a1, strand, S, own, answered, before, colors)
-    vb = wb[0] * own_or_answered(b0, strand, S, own, answered, before, colors) \
-        + wb[1] * own_or_answered(b1, strand, S, own, answered, before, colors) \
-        + wb[2] * own_or_answered(b2, strand, S, own, answered, before, colors) \
-        + wb[3] * own_or_answered(b3, strand, S, own, answered, before, colors)
+    va = wa[0] * others_velocity(a0, strand, S, answered, answered_before, colors) \
+        + wa[1] * others_velocity(a1, strand, S, answered, answered_before, colors)
+    vb = wb[0] * others_velocity(b0, strand, S, answered, answered_before, colors) \
+        + wb[1] * others_velocity(b1, strand, S, answered, answered_before, colors) \
+        + wb[2] * others_velocity(b2, strand, S, answered, answered_before, colors) \
+        + wb[3] * others_velocity(b3, strand, S, answered, answered_before, colors)
     return va - vb
 
 
 @wp.func
-def sweep_entry_force(entry: int, strand: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
-                      contacts: ContactBuffer, response: ContactResponse, free_velocities: wp.array(dtype=wp.vec3),
+def sweep_entry_force(j: int, strand: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
+                      contacts: ContactBuffer, response: ContactResponse, sweep: SweepContacts,
                       answered_velocities: wp.array(dtype=wp.vec3), answered_before: wp.array(dtype=wp.vec3),
                       colors: wp.array(dtype=wp.int32)) -> wp.vec3:
-    """One entry's force [N, world] on ``strand``'s free velocities in a sweep (``kernels.sweeps.link_sweep``): the
-    contact's damper as the first pass took it (``response_entry``: in contact or not, and its friction coefficient,
-    from the free step), on the velocity of ``strand``'s side from its free step relative to the other side's latest
-    answer (``answered_velocities``). With the whole damper as its point inertia (``contact_response_gather``) that
-    is ``strand``'s block of the contacts' backward-Euler step, the other strands held: Gauss-Seidel, as the links'.
-    Linear in the velocities through the sweeps (the contact is neither dropped nor taken up between them), so the
-    factors of the first sweep serve every later one."""
+    """The force [N, world] of the ``j``-th of ``sweep``'s entries on ``strand``'s free velocities in a sweep
+    (``kernels.sweeps.link_sweep``): the contact's damper as the first pass took it (``response_entry``: in contact
+    or not, and its friction coefficient, from the free step) on the velocity of ``strand``'s side from its free
+    step relative to the other side's latest answer. With the whole damper as its point inertia
+    (``contact_response_gather``) that is ``strand``'s block of the contacts' backward-Euler step, the other strands
+    held: Gauss-Seidel, as the links'. Linear in the velocities through the sweeps (the contact is neither dropped
+    nor taken up between them), so the factors of the first sweep serve every later one."""
+    entry = sweep.entries[j]
     slot = entry // 4
-    D = response.coef[slot]
-    share = response.share[entry]
-    if D <= 0.0 or share == 0.0:
-        return wp.vec3()
     n = response.normal[slot]
-    target = response.target[slot]
-    v0 = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, free_velocities)
-    vn0 = wp.dot(v0, n)
-    push0 = D * (target - vn0)
-    if push0 <= 0.0:
-        return wp.vec3()
-    vt0 = v0 - vn0 * n
-    Dt = response.friction * push0 / wp.sqrt(wp.dot(vt0, vt0) + response.slip_velocity * response.slip_velocity)
-    v = sweep_relative_velocity(slot, strand, seg_per_strand, strip_pairs, contacts, response, free_velocities,
-                                answered_velocities, answered_before, colors)
+    v = sweep.free[j] + others_relative_velocity(slot, strand, seg_per_strand, strip_pairs, contacts, response,
+                                                 answered_velocities, answered_before, colors)
     vn = wp.dot(v, n)
-    return share * (D * (target - vn) * n - Dt * (v - vn * n))
+    return response.share[entry] * (response.coef[slot] * (response.target[slot] - vn) * n
+                                    - sweep.friction[j] * (v - vn * n))
 
 
 @wp.func
 def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.transform), seg_per_strand: int,
                    strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
                    vertex_velocities: wp.array(dtype=wp.vec3)):
-    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, s)``, the
-    point, the point inertia [kg] (zero: none), the force [N] on the free velocities and the side's split factor.
+    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, s, D_t)``,
+    the point, the point inertia [kg] (zero: none), the force [N] on the free velocities, the side's split factor and
+    the friction coefficient [N s/m].
 
     The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
     at its end; each side takes it as a damper ``s D`` toward the pair's centre-of-mass velocity (Jacobi between
@@ -1071,7 +1073,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     D = response.coef[slot]
     share = response.share[entry]
     if D <= 0.0 or share == 0.0:
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0
+        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0
     n = response.normal[slot]
     split = response.split[slot]
     s = split[1]
@@ -1081,7 +1083,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     vn = wp.dot(vrel, n)
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
     if push <= 0.0:
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0  # the pair leaves faster than its spring explains: no contact
+        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0  # the pair leaves faster than its spring explains: no contact
     # Coulomb friction as a damper on the tangential velocity, its coefficient the cone's over the free step's slip
     # (regularised below slip_velocity): the damper's force, D_t |v_t'| <= D_t |v_t| <= mu f_n, stays in the cone,
     # and a damper never reverses the slip it acts on, however many contacts share a segment.
@@ -1095,7 +1097,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     a = wp.abs(share)
     M = (s * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
     f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
-    return r, M, f, s
+    return r, M, f, s, Dt
 
 
 @wp.kernel
@@ -1173,15 +1175,17 @@ def contact_response_gather(
     # Control:
     dt: wp.array(dtype=float),
     sweeping: int,
+    colors: wp.array(dtype=wp.int32),
     # In and out:
     dampers: InteractionResponse,
-    # Out: with ``sweeping``, the blocks of the sweeps' dampers
+    # Out: with ``sweeping``, the blocks of the sweeps' dampers and their contacts
     sweep_blocks: InteractionResponse,
+    sweep: SweepContacts,
 ):
     """One thread per segment: add the dampers of the contacts that push it (``response_entry``, its entries in slot
     order) to its ``InteractionResponse`` blocks, for ``kernels.articulated.interaction_response``; with
     ``sweeping``, store the blocks of the same dampers whole (split factor 1) in ``sweep_blocks``, which the links'
-    gather adds to and ``kernels.sweeps.link_sweep`` solves with."""
+    gather adds to and ``kernels.sweeps.link_sweep`` solves with, and list the contacts in ``sweep``."""
     seg = tid_offset + wp.tid()
     h = dt[0]
     A = wp.mat33()
@@ -1192,9 +1196,12 @@ def contact_response_gather(
     C1 = wp.mat33()
     force = wp.vec3()
     torque = wp.vec3()
+    strand = seg // seg_per_strand
+    listed = seg_entry_start[seg]
     for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
-        r, M, f, s = response_entry(seg_entries[j], h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
-                                    response, vertex_velocities)
+        entry = seg_entries[j]
+        r, M, f, s, Dt = response_entry(entry, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts, response,
+                                        vertex_velocities)
         if wp.trace(M) > 0.0:
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
@@ -1208,11 +1215,20 @@ def contact_response_gather(
                 A1 += Ap1
                 B1 += Bp1
                 C1 += M1
+                slot = entry // 4
+                sweep.entries[listed] = entry
+                sweep.friction[listed] = Dt
+                sweep.free[listed] = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response,
+                                                               vertex_velocities) - others_relative_velocity(
+                    slot, strand, seg_per_strand, strip_pairs, contacts, response, vertex_velocities, vertex_velocities,
+                    colors)
+                listed += 1
     add_damper(dampers, seg, A, B, C, force, torque)
     if sweeping != 0:
         sweep_blocks.A[seg] = A1
         sweep_blocks.B[seg] = B1
         sweep_blocks.C[seg] = C1
+        sweep.end[seg] = listed
 
 
 @wp.kernel
@@ -1242,8 +1258,8 @@ def contact_response_scatter(
     for e in range(4):
         seg = segs[e]
         if seg >= 0:
-            r, M, f, s = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
-                                        response, vertex_velocities)
+            r, M, f, s, Dt = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs,
+                                            contacts, response, vertex_velocities)
             if wp.trace(M) > 0.0:
                 Ap, Bp = point_damper_blocks(r, M)
                 wp.atomic_add(dampers.A, seg, Ap)

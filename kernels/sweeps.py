@@ -21,7 +21,7 @@ from hairwarp.kernels.articulated import (
     finish_response,
     spin_free_torque,
 )
-from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, sweep_entry_force
+from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, SweepContacts, sweep_entry_force
 from hairwarp.kernels.links import link_damping_matrix, seg_point_velocity
 
 wp.set_module_options({"enable_backward": False})
@@ -150,14 +150,14 @@ def link_sweep(
     answered_after: wp.array(dtype=wp.vec3),
     colors: wp.array(dtype=wp.int32),
     # The hair contacts' dampers as the first pass had them: held through the sweeps where ``contacts_swept`` is 0
-    # (on a GPU, which has no contact lists per segment), else solved in them (``contacts`` ... ``seg_entries``)
+    # (on a GPU, which has no contact lists per segment), else solved in them (``contacts`` ... ``sweep_contacts``)
     held: InteractionResponse,
     contacts_swept: int,
     strip_pairs: wp.array(dtype=wp.vec2i),
     contacts: ContactBuffer,
     response: ContactResponse,
     seg_entry_start: wp.array(dtype=wp.int32),
-    seg_entries: wp.array(dtype=wp.int32),
+    sweep_contacts: SweepContacts,
     # The sweeps' dampers: their blocks, the same every sweep (``kernels.links.link_response_gather``); their forces,
     # written here
     dampers: InteractionResponse,
@@ -208,13 +208,13 @@ def link_sweep(
         if contacts_swept != 0:
             force = wp.vec3()
             torque = wp.vec3()
-            for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
-                entry = seg_entries[j]
-                f = wp.quat_rotate_inv(R, sweep_entry_force(entry, strand, S, strip_pairs, contacts, response,
-                                                            free_velocities, answered_velocities, answered_before,
+            for j in range(seg_entry_start[seg], sweep_contacts.end[seg]):
+                f = wp.quat_rotate_inv(R, sweep_entry_force(j, strand, S, strip_pairs, contacts, response,
+                                                            sweep_contacts, answered_velocities, answered_before,
                                                             colors))
                 force += f
-                torque += spin_free_torque(wp.quat_rotate_inv(R, response.point[entry] - origin), f)
+                r = wp.quat_rotate_inv(R, response.point[sweep_contacts.entries[j]] - origin)
+                torque += spin_free_torque(r, f)
         a_first = seg_link_start[seg]
         a_last = seg_link_start[seg + 1]
         b_first = seg_b_start[seg]

@@ -903,7 +903,8 @@ def md_robustness(data: dict) -> list[str]:
               f"step a frame) no fault, ≤ {fr['goal_1_mm']:g} mm. At 7 substeps and fewer (steps of 1/220 s or "
               "longer) the links' and hair contacts' forces are solved after the free step, on each pair's relative "
               "motion (`response = \"auto\"`, docs/interactions.md), and at steps up to 1/45 s (2 substeps and more) "
-              "the links again by `links.sweeps` Gauss-Seidel sweeps between strands. *4 substeps*: between frame "
+              "both again by Gauss-Seidel sweeps between strands (`links.sweeps` per 1/240 s of step: 8 at 2 "
+              "substeps). *4 substeps*: between frame "
               "rate and the shipped 8, no goal (broken links, tips [mm]); a hole between the forms `auto` hands over "
               "between would show here.", "",
               "| scene | 4 substeps | 2 substeps | broken links (at 16 substeps) | tips [mm] | verdict | 1 substep "
