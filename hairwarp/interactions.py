@@ -195,9 +195,10 @@ class StaticLinks:
             ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``.
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
-        sweeps: the response's Gauss-Seidel sweeps per step (``build``). strand_colors: numpy int32 (G,), each
-            strand's colour, no two linked strands sharing one (:func:`strand_colors`); color_strands: int32 (G,)
-            on the device, the strands by colour; color_views: a view of ``color_strands`` per colour, in order.
+        sweeps: the response's Gauss-Seidel sweeps per step of up to 1/240 s (``build``, :meth:`sweeps_at`).
+            strand_colors: numpy int32 (G,), each strand's colour, no two linked strands sharing one
+            (:func:`strand_colors`); strand_color_array: the same on the device; color_strands: int32 (G,) on the
+            device, the strands by colour; color_views: a view of ``color_strands`` per colour, in order.
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the links), or None.
     """
 
@@ -241,9 +242,12 @@ class StaticLinks:
                 :class:`hairwarp.Solver` runs it), for steps of 1/220 s and longer (the scenes'
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
-            sweeps: with ``response``, block Gauss-Seidel sweeps over the strands' colours per step
-                (``kernels.sweeps.link_sweep``): each strand is solved with the strands it is linked to held at their
-                latest velocities; more sweeps converge toward the whole lattice's backward-Euler step.
+            sweeps: with ``response``, block Gauss-Seidel sweeps over the strands' colours per step of up to
+                :data:`SWEEP_REFERENCE_STEP`, proportionally more at longer steps (:meth:`sweeps_at`;
+                ``kernels.sweeps.link_sweep``): each strand is solved with the strands it is linked to or touches
+                (its hair contacts, on the CPU) held at their latest velocities; more sweeps converge toward the
+                backward-Euler step of the whole lattice and its contacts. The count is taken on the host at each
+                step, so a step captured in a graph keeps the count of the step it was captured at.
             device: Warp device.
         """
         verts = _check_vertices(rest_vertices)
@@ -612,6 +616,8 @@ class HairContacts:
         contact_counter: int32 (1,), contacts found in the last step (may exceed the capacity).
         contact_overflow: int32 (1,), 1 once a step found more contacts than the capacity (sticky).
         buffer: the ``kernels.contacts.ContactBuffer`` of these arrays, as the kernels take them.
+        sweep_contacts: the ``kernels.contacts.SweepContacts`` the links' sweeps solve in a step, listed by
+            :meth:`gather_response` (on the CPU).
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the contacts), or None.
     """
 
