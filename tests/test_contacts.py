@@ -891,10 +891,12 @@ def test_link_sweeps_take_out_what_the_first_pass_puts_into_a_lattice(k):
     assert ratio[64] <= ratio[8] * (1 + 1e-5) and ratio[8] <= ratio[2] * (1 + 1e-5) and ratio[2] <= ratio[1], ratio
 
 
-def test_captured_step_with_link_sweeps_replays_the_eager_step():
+@pytest.mark.parametrize("with_contacts", [False, True])
+def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
     """A step with the links' sweeps captured in a Warp graph on the CPU (one thread) and replayed gives the eager
     step's bits, with what the sweeps keep between their launches spoilt before the replay: nothing of the step
-    happens on the host, and the colours' launches are fixed."""
+    happens on the host, and the colours' launches are fixed. ``with_contacts``: hair contacts detected in the step
+    and solved in the sweeps too, their per-step list spoilt as well."""
     from hairwarp.interactions import StaticLinks
     from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
@@ -906,7 +908,12 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step():
     model = Model.build(np.stack([roots, roots + 0.01 * dirs, roots + 0.02 * dirs], axis=1), params, segments=2)
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006, stiffness=5.0, damping=0.01,
                               break_length=1.0, response=True, sweeps=2)
-    solver = Solver(model, "implicit_joints", links=links, threads=1)
+    contacts = None
+    if with_contacts:
+        contacts = HairContacts.build(model.rest_vertex_positions, threshold=0.004, stiffness=20.0, damping=0.01,
+                                      friction=0.3, capacity=256, rest_gaps=False, segment_segment=True,
+                                      response=True)
+    solver = Solver(model, "implicit_joints", links=links, contacts=contacts, threads=1)
     assert solver.link_sweeps and len(links.color_views) > 1
     control = model.control()
     start = model.state()
@@ -920,9 +927,15 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step():
     replayed.joint_q.zero_()
     replayed.joint_qd.zero_()
     # what the sweeps keep between their launches, spoilt: the replay must make it again
-    for a in (solver.free_q, solver.free_qd, solver.free_velocities, solver.answered_velocities, solver.swept.force,
-              solver.swept.C, solver.dampers.C):
-        a.fill_(1.0)
+    spoilt = [solver.free_q, solver.free_qd, solver.free_velocities, solver.answered_velocities, solver.swept.force,
+              solver.swept.C, solver.dampers.C, *solver.answered_sweeps]
+    if with_contacts:
+        listed = contacts.sweep_contacts.end.numpy() - contacts.seg_entry_start.numpy()[:-1]
+        assert contacts.sweeps_contacts and listed.sum() > 0  # the sweeps solved contacts
+        sweep = contacts.sweep_contacts
+        spoilt += [contacts.contact_counter, sweep.end, sweep.friction, sweep.free]
+    for a in spoilt:
+        a.fill_(1)
     wp.capture_launch(capture.graph)
     assert not np.array_equal(eager.joint_qd.numpy(), start.joint_qd.numpy())  # the step did something
     for key in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
