@@ -77,6 +77,8 @@ def sweep_answer(
 
 @wp.func
 def copy_answer(strand: int, S: int, answered: wp.array(dtype=wp.vec3), copy: wp.array(dtype=wp.vec3)):
+    """Copy ``strand``'s answered vertex velocities into ``copy``, where the next sweep reads them for the strands
+    of its colour (``link_sweep``'s ``answered_before``)."""
     for k in range(S + 1):
         v = strand * (S + 1) + k
         copy[v] = answered[v]
