@@ -184,8 +184,9 @@ def test_static_links_builder_is_deterministic():
 
 
 def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
-    """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented, the goal
-    verdict follows from it, and the report section renders every row."""
+    """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented (the links'
+    response after the free step included), the goal verdict follows from it, and the report section renders every
+    row."""
     from conftest import require_ratboy
 
     require_ratboy("Ratboy_mohawk.tfx")
@@ -196,10 +197,12 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
     data = suite_interactions(BenchConfig.quick_preset(), Path("/nonexistent"))
     cost = data["cost"]["scene_guides"]
     assert cost["status"] == "ok" and cost["strands"] == 444
+    # the mohawk solves its links after the free step (links.response = "step"): that solve is counted
+    assert cost["response"] == ["StaticLinks"] and cost["response_s"] > 0.0
     for row in cost["margins"]:
         detection = row["refit_s"] + row["vertex_face_s"] + row["segment_segment_s"]
         per_step_detection = detection / cost["substeps"] if row["margin"] > 0 else detection
-        expected = cost["links_s"] + row["forces_s"] + per_step_detection
+        expected = cost["links_s"] + row["forces_s"] + cost["response_s"] + per_step_detection
         # the same sums of the same float64 figures: equal up to the order of additions
         assert row["per_step_s"] == pytest.approx(expected, rel=1e-12)
         assert row["per_dynamics"] == pytest.approx(expected / cost["dynamics_s"], rel=1e-12)

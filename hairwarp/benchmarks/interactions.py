@@ -34,12 +34,14 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs refit, or rebuilt for a
     margin > 0 as a detection between steps does), ``vertex_face`` and
     ``segment_segment`` (detection after the refit), ``forces`` (the pass over the stored pairs). The per-step
-    cost of the interactions is ``links + forces + (refit + detection) / substeps`` for a margin > 0 (detection
-    once per frame) and ``links + forces + refit + detection`` for margin 0.
+    cost of the interactions is ``links + forces + response + (refit + detection) / substeps`` for a margin > 0
+    (detection once per frame) and ``links + forces + response + refit + detection`` for margin 0, ``response`` the
+    scene's solve of the links and contacts after the free step where it has one (``Solver._respond``: the scene's
+    free step with it less without it; the mohawk ships ``links.response = "step"``).
 
     Returns:
         ``{"status": "ok", "device", "strands", "segments", "substeps", "dt", "links", "strip_quads",
-        "dynamics_s", "links_s", "broken_links", "margins": [{"margin", "stored", "active",
+        "dynamics_s", "links_s", "response_s", "broken_links", "margins": [{"margin", "stored", "active",
         "refit_s", "vertex_face_s", "segment_segment_s", "forces_s", "per_step_s", "per_dynamics"}], ...}``,
         times in seconds, or ``{"status": "skipped", "message"}`` when the assets are missing.
     """
@@ -75,10 +77,20 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     broken = links.link_broken  # applying the links may break some: their flags are put back after the timing
     broken_before = broken.numpy().copy()
     total_before = links.link_broken_total.numpy().copy()
-    common = interleaved_medians({
+    stages = {
         "dynamics": lambda: dynamics.step(state, out_state, control, dt),
         "links": lambda: links.apply(model, state, dt_arr, force, torque, mass),
-    }, device, repeats)
+    }
+    solver = sim.solver
+    if solver.responders:
+        # the links' and contacts' response after the free step (``links.response`` / ``interactions.response``,
+        # "step" or "auto" at long steps): the scene's solver's free step with and without it
+        free = model.state()
+        stages["free step"] = lambda: solver._integrate(state, free, control)
+        stages["free step + response"] = lambda: (solver._integrate(state, free, control),
+                                                  solver._respond(state, free, control))
+    common = interleaved_medians(stages, device, repeats)
+    response = max(common.get("free step + response", 0.0) - common.get("free step", 0.0), 0.0)
     broken.assign(broken_before)
     links.link_broken_total.assign(total_before)
 
@@ -113,7 +125,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         }, device, repeats))
         active = _active_contacts(contacts, model, state)
         detection = times["refit"] + times["vertex_face"] + times["segment_segment"]
-        per_step = common["links"] + times["forces"]
+        per_step = common["links"] + times["forces"] + response
         per_step += detection / substeps if margin > 0.0 else detection
         rows.append({"margin": float(margin), "detect": "frame" if margin > 0.0 else "step", "stored": stored,
                      "active": active, "overflowed": contacts.overflowed(),
@@ -124,7 +136,8 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
             "links": links.link_count, "broken_links": links.broken_count(),
             "strip_quads": base.strips.quad_count if base.strips is not None else 0,
             "threshold": base.threshold, "scene_margin": base.margin,
-            "dynamics_s": common["dynamics"], "links_s": common["links"],
+            "dynamics_s": common["dynamics"], "links_s": common["links"], "response_s": response,
+            "response": [part.__class__.__name__ for part in solver.responders],
             "margins": rows, "wall_s": time.perf_counter() - t_start}
 
 
@@ -320,17 +333,21 @@ def md_interactions(data: dict) -> list[str]:
     lines += [f"Cost per step on the Ratboy mohawk scene in motion ({first.get('segments')} segments, "
               f"{first.get('substeps')} substeps; detection once per frame within the margin, margin 0: detection in "
               "every step), each stage timed on the same state, interleaved, medians; `per step` = links + contact "
-              "forces + (refit + detection) / substeps.", "",
-              "| guides | margin | stored / active pairs | links ms | refit ms | vertex-face ms | segment-segment ms "
-              "| forces ms | per step ms | dynamics ms | × dynamics |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "forces + response + (refit + detection) / substeps, `response` the scene's solve of its links (and "
+              "contacts) after the free step (its `response = \"step\"`: the first pass and the sweeps), the free "
+              "step with it less without it.", "",
+              "| guides | margin | stored / active pairs | links ms | response ms | refit ms | vertex-face ms "
+              "| segment-segment ms | forces ms | per step ms | dynamics ms | × dynamics |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for cost in data.get("cost", {}).values():
         if cost.get("status") != "ok":
-            lines.append(f"| – | – | {cost.get('message', cost.get('status'))} | | | | | | | | |")
+            lines.append(f"| – | – | {cost.get('message', cost.get('status'))} | | | | | | | | | |")
             continue
         for row in cost["margins"]:
             lines.append(
                 f"| {cost['strands']} | {row['margin'] * 1e3:g} mm | {row['stored']} / {row['active']} | "
-                f"{cost['links_s'] * 1e3:.2f} | {row['refit_s'] * 1e3:.2f} | {row['vertex_face_s'] * 1e3:.1f} | "
+                f"{cost['links_s'] * 1e3:.2f} | {cost.get('response_s', 0.0) * 1e3:.2f} | "
+                f"{row['refit_s'] * 1e3:.2f} | {row['vertex_face_s'] * 1e3:.1f} | "
                 f"{row['segment_segment_s'] * 1e3:.1f} | {row['forces_s'] * 1e3:.2f} | {row['per_step_s'] * 1e3:.2f} | "
                 f"{cost['dynamics_s'] * 1e3:.2f} | {row['per_dynamics']:.2f} |")
     lines.append("")
