@@ -33,6 +33,12 @@ AUTO_RESPONSE_DT = 1.0 / 220.0
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
 
 
+def _host_copy(array) -> np.ndarray:
+    """A host copy of ``array`` that does not change with it (a CPU array's ``numpy()`` is a view)."""
+    host = array.numpy()
+    return host.copy() if array.device.is_cpu else host
+
+
 class Stepper:
     """Advances a solver by whole frames of ``substeps`` steps, swapping two states.
 
@@ -338,11 +344,13 @@ class Simulation:
         array of :class:`hairwarp.State`), its time [s], frame and parity, and the solver's
         :meth:`hairwarp.Solver.persistent_arrays`."""
         st = self.stepper
-        out = {f"state{i}.{name}": getattr(s, name).numpy() for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
+        # ``numpy()`` of a CPU array is a view of it: copied, or the checkpoint would follow the run
+        out = {f"state{i}.{name}": _host_copy(getattr(s, name)) for i, s in enumerate(st.states)
+               for name in _STATE_ARRAYS}
         out["stepper.time"] = np.array(st.time, dtype=np.float64)
         out["stepper.frame"] = np.array(st.frame, dtype=np.int64)
         out["stepper.parity"] = np.array(st.parity, dtype=np.int64)
-        out.update({f"solver.{k}": a.numpy() for k, a in self.solver.persistent_arrays().items()})
+        out.update({f"solver.{k}": _host_copy(a) for k, a in self.solver.persistent_arrays().items()})
         return out
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
