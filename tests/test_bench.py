@@ -430,6 +430,34 @@ def test_threads_copies_throughput_of_sleeping_copies():
         assert 0.02 / n <= share < 0.025 / n, (n, share)
 
 
+def test_threads_frame_timings_run_the_same_frames():
+    """Every whole-frame timing, on one thread, N or the copies, starts from the run's checkpoint: each runs the same
+    frames of the motion, whichever side is faster and however many timings came before."""
+    from hairwarp.benchmarks.threads import FRAMES_PER_TIMING, _time_frames, _time_frames_copies
+
+    class Run:  # what the timings use of a Simulation: a frame counter they advance, checkpoint and restore
+        def __init__(self):
+            self.frame, self.ran = 10, []
+
+        def advance(self):
+            self.ran.append(self.frame)
+            self.frame += 1
+
+        def checkpoint(self):
+            return {"frame": self.frame}
+
+        def restore(self, saved):
+            self.frame = saved["frame"]
+
+    runs = [Run() for _ in range(3)]
+    saved = [r.checkpoint() for r in runs]
+    for _ in range(3):
+        assert _time_frames(runs[0], saved[0], runs[0].advance) >= 0.0
+        assert _time_frames_copies(runs[1:], saved[1:], [r.advance for r in runs[1:]]) >= 0.0
+    expected = list(range(10, 10 + FRAMES_PER_TIMING)) * 3
+    assert all(r.ran == expected for r in runs), [r.ran for r in runs]
+
+
 def test_threads_report_states_goals_and_efficiency():
     from hairwarp.benchmarks.threads import md_threads
 

@@ -3,6 +3,9 @@ for whole frames, on the default scene and the Ratboy mohawk, against one thread
 
 One thread and N threads run the same simulation (two ``Simulation`` objects, each warmed up), timed in
 interleaved rounds (1, N, 1, N, ...) so a change of the machine's load hits both; each figure is the best round.
+A whole frame is timed over the same frames on every side: each timing restores the run's checkpoint and runs
+:data:`FRAMES_PER_TIMING` frames (timed back to back instead, the faster side ran later frames of the motion, with
+other contacts).
 The load average is recorded before and after: on a loaded machine the second thread may find no core free, and
 the speed-up then says more about the load than about the executor.
 
@@ -49,9 +52,48 @@ def _stages(sim):
         stages["hair contact detection"] = lambda: contacts.detect(model, s0)
     if sim.dense is not None:
         stages["dense interpolate + push-out + Hermite"] = lambda: sim.dense_curves()
-    stages["frame (detection, substeps, dense)"] = lambda: (sim.advance_frame(),
-                                                            sim.dense_curves() if sim.dense is not None else None)
+    stages[FRAME_STAGE] = lambda: (sim.advance_frame(), sim.dense_curves() if sim.dense is not None else None)
     return stages
+
+
+#: The stage that advances the run: timed over the same frames on every side (``_time_frames``).
+FRAME_STAGE = "frame (detection, substeps, dense)"
+
+#: Frames each timing of a whole frame runs from the checkpoint.
+FRAMES_PER_TIMING = 4
+
+
+def _time_frames(sim, saved: dict, frame_fn) -> float:
+    """Seconds per frame of :data:`FRAMES_PER_TIMING` frames run from ``saved`` (a checkpoint of ``sim``), so every
+    timing, on one thread or N, runs the same frames of the motion (their work varies with the contacts)."""
+    sim.restore(saved)
+    t0 = time.perf_counter()
+    for _ in range(FRAMES_PER_TIMING):
+        frame_fn()
+    return (time.perf_counter() - t0) / FRAMES_PER_TIMING
+
+
+def _time_frames_copies(sims, saved, frame_fns) -> float:
+    """:func:`_time_copies` for whole frames: every copy runs the same :data:`FRAMES_PER_TIMING` frames from its
+    checkpoint at once."""
+    start = threading.Barrier(len(sims))
+    spans = [0.0] * len(sims)
+
+    def run(k):
+        sims[k].restore(saved[k])
+        start.wait()
+        t0 = time.perf_counter()
+        for _ in range(FRAMES_PER_TIMING):
+            frame_fns[k]()
+        spans[k] = time.perf_counter() - t0
+
+    workers = [threading.Thread(target=run, args=(k,)) for k in range(1, len(sims))]
+    for t in workers:
+        t.start()
+    run(0)
+    for t in workers:
+        t.join()
+    return 1.0 / sum(FRAMES_PER_TIMING / dt for dt in spans)
 
 
 def _time(fn, min_s: float) -> float:
@@ -107,15 +149,26 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
             sim.advance_frame()
     stages = {t: _stages(sim) for t, sim in sims.items()}
     copy_stages = [_stages(sim) for sim in copies]
+    # every whole-frame timing starts from the same frame of the motion (checkpoints taken after the warm-up)
+    saved = {id(sim): sim.checkpoint() for sim in [*sims.values(), *copies[1:]]}
     best = {t: {name: float("inf") for name in stages[t]} for t in sims}
     best_copies = {name: float("inf") for name in stages[1]}
     load_before = list(os.getloadavg())
     for _ in range(rounds):
         for name in stages[1]:
-            for t in sims:
-                best[t][name] = min(best[t][name], _time(stages[t][name], min_s))
+            for t, sim in sims.items():
+                if name == FRAME_STAGE:
+                    spent = _time_frames(sim, saved[id(sim)], stages[t][name])
+                else:
+                    spent = _time(stages[t][name], min_s)
+                best[t][name] = min(best[t][name], spent)
             if threads > 1:
-                best_copies[name] = min(best_copies[name], _time_copies([c[name] for c in copy_stages], min_s))
+                if name == FRAME_STAGE:
+                    spent = _time_frames_copies(copies, [saved[id(c)] for c in copies],
+                                                [c[name] for c in copy_stages])
+                else:
+                    spent = _time_copies([c[name] for c in copy_stages], min_s)
+                best_copies[name] = min(best_copies[name], spent)
     load_after = list(os.getloadavg())
     rows = []
     for name in stages[1]:
