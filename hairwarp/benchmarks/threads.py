@@ -90,12 +90,7 @@ def _time_frames_copies(sims, saved, frame_fns) -> float:
             frame_fns[k]()
         spans[k] = time.perf_counter() - t0
 
-    workers = [threading.Thread(target=run, args=(k,)) for k in range(1, len(sims))]
-    for t in workers:
-        t.start()
-    run(0)
-    for t in workers:
-        t.join()
+    _on_threads(run, len(sims))
     return 1.0 / sum(FRAMES_PER_TIMING / dt for dt in spans)
 
 
@@ -129,13 +124,18 @@ def _time_copies(fns, min_s: float) -> float:
                 counts[k], spans[k] = n, dt
                 return
 
-    workers = [threading.Thread(target=run, args=(k,)) for k in range(1, len(fns))]
+    _on_threads(run, len(fns))
+    return 1.0 / sum(n / dt for n, dt in zip(counts, spans))
+
+
+def _on_threads(run, count: int):
+    """Call ``run(k)`` for k = 0 .. count - 1 at once: 0 on this thread, the others on threads of their own."""
+    workers = [threading.Thread(target=run, args=(k,)) for k in range(1, count)]
     for t in workers:
         t.start()
     run(0)
     for t in workers:
         t.join()
-    return 1.0 / sum(n / dt for n, dt in zip(counts, spans))
 
 
 def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: float = 0.2, device="cpu") -> dict:
