@@ -331,7 +331,8 @@ class Solver:
             if links is not None:
                 ex.launch(sweeps.sweep_answer, model.strand_count,
                           [model.seg_per_strand, state_in.seg_xform, state_in.vertex_positions, state_out.joint_qd,
-                           self.free_qd, self.free_velocities], [self.answered_velocities, self.answered_sweeps[0]],
+                           self.free_qd, self.free_velocities, int(contacts_swept)],
+                          [self.answered_velocities, self.answered_sweeps[0]],
                           min_chunk=INTEGRATE_MIN_CHUNK)
             elif project:
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)

@@ -64,7 +64,9 @@ def sweep_answer(
     joint_qd: wp.array(dtype=wp.vec3),
     free_qd: wp.array(dtype=wp.vec3),
     free_velocities: wp.array(dtype=wp.vec3),
-    # Out: the answers, and the copy the first sweep reads of its own colour's (``link_sweep``)
+    # With ``contacts_swept``, the copy the first sweep reads of its own colour's answers (``link_sweep``)
+    contacts_swept: int,
+    # Out:
     answered_velocities: wp.array(dtype=wp.vec3),
     answered_copy: wp.array(dtype=wp.vec3),
 ):
@@ -72,7 +74,8 @@ def sweep_answer(
     strand = tid_offset + wp.tid()
     answer(strand, seg_per_strand, seg_xform_in, vertex_positions_in, joint_qd, free_qd, free_velocities,
            answered_velocities)
-    copy_answer(strand, seg_per_strand, answered_velocities, answered_copy)
+    if contacts_swept != 0:
+        copy_answer(strand, seg_per_strand, answered_velocities, answered_copy)
 
 
 @wp.func
