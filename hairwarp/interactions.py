@@ -31,6 +31,7 @@ import warp as wp
 from hairwarp.executor import launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
+from hairwarp.kernels.sweeps import SWEEP_MAX_STEP
 from hairwarp.kernels.types import Fault
 
 # Strip triangles narrower than this fraction of the median width would make the density-scaled
@@ -135,15 +136,24 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 SEGMENT_MIN_CHUNK = 256
 
 #: Gauss-Seidel sweeps of the links' response per step (``StaticLinks.build``), at steps up to
-#: :data:`SWEEP_REFERENCE_STEP`; longer steps take proportionally more (``StaticLinks.sweeps_at``).
+#: :data:`SWEEP_REFERENCE_STEP`; longer steps take more (``StaticLinks.sweeps_at``).
 DEFAULT_SWEEPS = 2
 
-#: The step [s] up to which a step takes ``sweeps`` sweeps; a step k times as long takes ceil(k) times as many, so
-#: a second of simulation gets the same sweeps whatever the substeps. At 2 steps a frame (1/60 s) the Ratboy
-#: mohawk, its links and hair contacts solved by 2 sweeps, settled 20-40 mm below its 16-substep run and broke 315
-#: links in its turns and shake (25 at 16 substeps); with 8 it breaks 23. Limp hair (EI 1e-7, 64 segments) at
-#: 2 steps a frame burst on 2 or 4 sweeps (4.2 and 3.4 m/s at its tips as it falls onto itself) and holds on 8.
+#: The step [s] up to which a step takes ``sweeps`` sweeps; a step k times as long takes k ** SWEEP_GROWTH times as
+#: many (rounded up). At 2 steps a frame (1/60 s) the Ratboy mohawk, its links and hair contacts solved by 2 sweeps,
+#: settled 20-40 mm below its 16-substep run and broke 315 links in its turns and shake (25 at 16 substeps). Limp
+#: hair (EI 1e-7, 64 segments) at 2 steps a frame burst on 2 or 4 sweeps (4.2 and 3.4 m/s at its tips as it falls
+#: onto itself) and holds on 8.
 SWEEP_REFERENCE_STEP = 1.0 / 240.0
+
+#: How the sweeps a step needs grow with its length: the longer the step, the stiffer the links and contacts are
+#: against the strands' inertia (``h c`` and ``h^2 k`` against ``m``), and the less a sweep takes off the error.
+#: Measured on the Ratboy mohawk in its turn and its shake (the RMS of the vertex velocities against 64 sweeps), a
+#: sweep leaves 0.37-0.53 of the error at 1/240 s, 0.57-0.75 at 1/120 s and 0.69-0.85 at 1/60 s: the error 2 sweeps
+#: leave at 1/240 s (0.76-1.2 mm/s) takes 6-8 at 1/120 s and 14-16 at 1/60 s, k ** 1.5 times as many. With k
+#: times as many (8 at 1/60 s) the error was 4.4-4.9 mm/s, and the mohawk broke 29-46 links in five runs with
+#: gravity changed by 1e-5 (21-25 at 16 substeps); with 16, 16-32.
+SWEEP_GROWTH = 1.5
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
@@ -243,7 +253,7 @@ class StaticLinks:
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
             sweeps: with ``response``, block Gauss-Seidel sweeps over the strands' colours per step of up to
-                :data:`SWEEP_REFERENCE_STEP`, proportionally more at longer steps (:meth:`sweeps_at`;
+                :data:`SWEEP_REFERENCE_STEP`, more at longer steps (:meth:`sweeps_at`;
                 ``kernels.sweeps.link_sweep``): each strand is solved with the strands it is linked to or touches
                 (its hair contacts, on the CPU) held at their latest velocities; more sweeps converge toward the
                 backward-Euler step of the whole lattice and its contacts. The count is taken on the host at each
@@ -388,9 +398,13 @@ class StaticLinks:
                [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def sweeps_at(self, dt: float) -> int:
-        """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to :data:`SWEEP_REFERENCE_STEP`, in
-        proportion beyond (rounded up)."""
-        return max(self.sweeps, math.ceil(self.sweeps * float(dt) / SWEEP_REFERENCE_STEP - 1e-9))
+        """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to
+        :data:`SWEEP_REFERENCE_STEP`, and a step k times as long k ** :data:`SWEEP_GROWTH` times as many (rounded
+        up); none beyond ``kernels.sweeps.SWEEP_MAX_STEP``, where each strand keeps the first pass's answer."""
+        if float(dt) > SWEEP_MAX_STEP:
+            return 0
+        growth = (float(dt) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
+        return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
 
     def gather_response(self, model, state_in, state_out, dt, held, dampers, swept, contacts_swept: bool = False):
         """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``

@@ -529,9 +529,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                               "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
                               choices=("auto", "step", "link")),
             "sweeps": Field("int", 2, "with the step response, at steps up to 1/45 s: Gauss-Seidel sweeps over "
-                            "the strands' links and hair contacts after the first pass, per step of 1/240 s (longer "
-                            "steps take proportionally more: 8 at 1/60 s); more hold the hair nearer its "
-                            "backward-Euler step, each costs about one more response solve", range="[1, 64]"),
+                            "the strands' links and hair contacts after the first pass, per step of up to 1/240 s (a "
+                            "step k times as long takes k^1.5 times as many: 16 at 1/60 s); more hold the hair "
+                            "nearer its backward-Euler step, each costs about one more response solve",
+                            range="[1, 64]"),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
     ),
