@@ -369,6 +369,24 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
     assert chart_grid(sweep, tmp_path / "grid.png").stat().st_size > 0
 
 
+def test_robustness_strand_spread_against_a_hand_count():
+    """The convergence part's spread of the tip difference over the strands: 20 strands off by 1..20 mm in every
+    frame give a median strand of 10.5 mm and the 10 worst strands' share of the mean square
+    (11^2 + ... + 20^2) / (1^2 + ... + 20^2) = 2485 / 2870; a strand off in one frame of four counts half its
+    offset (RMS over frames)."""
+    from hairwarp.benchmarks.robustness import WORST_STRANDS, strand_spread
+
+    reference = np.zeros((4, 20, 3))
+    tips = reference.copy()
+    tips[:, :, 0] = 1e-3 * np.arange(1, 21)
+    out = strand_spread(tips, reference)
+    assert WORST_STRANDS == 10
+    assert abs(out["median_strand_mm"] - 10.5) < 1e-9 and abs(out["worst_share"] - 2485 / 2870) < 1e-12
+    tips = reference.copy()
+    tips[2, :, 1] = 2e-3  # one frame of four: RMS over frames 1 mm
+    assert abs(strand_spread(tips, reference)["median_strand_mm"] - 1.0) < 1e-9
+
+
 def test_robustness_spin_keys_turn_at_the_spin_rate():
     """The extreme-motion suite's spin: keyframes 20 degrees apart whose interpolated head turns about z at
     3 rev/s between the first and the last interval (Catmull-Rom on evenly spaced keys of a constant rate is that
