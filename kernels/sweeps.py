@@ -171,6 +171,9 @@ def link_sweep(
     scratch: AbaScratch,
     factors: DamperFactors,
     reuse: int,
+    # 1 on the step's last sweep, whose answer the strand keeps: only then its joints are turned and its forward
+    # kinematics run (the sweeps before read only ``answered_velocities``, from the joint velocities)
+    last: int,
     # Out: the strand answered, from the free step's result
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
@@ -255,9 +258,10 @@ def link_sweep(
     for k in range(S):
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
     damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse)
-    b = strand * bases.per_strand
-    finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
-                    seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
+    if last != 0:
+        b = strand * bases.per_strand
+        finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
+                        seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
     answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd_out, free_qd, free_velocities, answered_velocities)
     if contacts_swept != 0:
         copy_answer(strand, S, answered_velocities, answered_after)
