@@ -192,13 +192,14 @@ def link_sweep(
     (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else the first
     pass's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
     toward the other side's latest answer), or, on a GPU, held as the first pass had them (``held``). The strand is
-    then solved from its free step (``damper_solve``, ``finish_response``) and its answer published (``answer``). A
-    colour's strands share no link, so they are solved at once, and each sees what the earlier colours gave: every
-    sweep lowers the links' implicit step's error in its energy norm (the step's matrix is symmetric positive
-    definite), so unlike Jacobi between strands it cannot overshoot, whatever the ends' masses; more sweeps converge
-    to the backward-Euler answer of the whole lattice. Hair contacts can join two strands of one colour, which a
-    sweep then solves at once (Jacobi, each with the whole damper): the colours are the links', fixed for the run.
-    At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first pass's answer."""
+    then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep only) and its
+    answer published (``answer``). A colour's strands share no link, so they are solved at once, and each sees what
+    the earlier colours gave: every sweep lowers the links' implicit step's error in its energy norm (the step's
+    matrix is symmetric positive definite), so unlike Jacobi between strands it cannot overshoot, whatever the ends'
+    masses; more sweeps converge to the backward-Euler answer of the whole lattice. Hair contacts can join two
+    strands of one colour, which a sweep then solves at once (Jacobi, each with the whole damper): the colours are
+    the links', fixed for the run. At steps longer than ``SWEEP_MAX_STEP`` the strand keeps the first pass's
+    answer."""
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]
