@@ -206,7 +206,7 @@ class StaticLinks:
         link_broken: int32 (L,) on the device, 1 once a link broke.
         link_broken_total: int32 (1,) on the device, the number of broken links.
         sweeps: the response's Gauss-Seidel sweeps per step of up to 1/240 s (``build``, :meth:`sweeps_at`).
-            strand_colors: numpy int32 (G,), each strand's colour, no two linked strands sharing one
+        strand_colors: numpy int32 (G,), each strand's colour, no two linked strands sharing one
             (:func:`strand_colors`); strand_color_array: the same on the device; color_strands: int32 (G,) on the
             device, the strands by colour; color_views: a view of ``color_strands`` per colour, in order.
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the links), or None.

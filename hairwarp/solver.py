@@ -345,17 +345,17 @@ class Solver:
                   self.answered_velocities]
         held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
                    self.swept, self.scratch, self.factors]
-        fault = len(inputs) + 3 + len(held_on) + 2 + len(outputs)  # the fault bits' index (behind ``reuse``, ``last``)
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
         # at every step, and hair at rest on a body crept); every sweep after the first solves the same matrices
         count = links.sweeps_at(self._dt_host)
         for sweep in range(count):
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):
-                ex.launch(sweeps.link_sweep, len(strands),
-                          [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
-                           int(sweep == count - 1)],
-                          outputs, min_chunk=INTEGRATE_MIN_CHUNK, private_or=[fault])
+                args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
+                        int(sweep == count - 1)]
+                # the fault bits (the last output) are private per chunk
+                ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=INTEGRATE_MIN_CHUNK,
+                          private_or=[len(args) + len(outputs) - 1])
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)

@@ -954,26 +954,37 @@ def contact_gather(
 
 
 @wp.func
+def contact_vertices(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer):
+    """The vertices of the contact in ``slot``: side a's two (a vertex-face contact's vertex twice, a segment's
+    ends) and side b's four (the strip quad's corners in ``response.weights`` order, or a segment's ends, the first
+    twice more)."""
+    ia = contacts.a[slot]
+    ib = contacts.b[slot]
+    if contacts.kind[slot] == CONTACT_VERTEX_FACE:
+        qa, qb = strip_quad_origins(ib // 2, seg_per_strand, strip_pairs)
+        return wp.vec2i(ia, ia), wp.vec4i(qa, qb, qa + 1, qb + 1)
+    va0 = ia + ia // seg_per_strand
+    vb0 = ib + ib // seg_per_strand
+    return wp.vec2i(va0, va0 + 1), wp.vec4i(vb0, vb0 + 1, vb0, vb0)
+
+
+@wp.func
 def contact_relative_velocity(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
                               contacts: ContactBuffer, response: ContactResponse,
                               vertex_velocities: wp.array(dtype=wp.vec3)) -> wp.vec3:
     """Velocity [m/s] of side a relative to side b of the contact in ``slot``, at the points that ``contact_force``
     took at the step's start, from ``vertex_velocities``."""
-    ia = contacts.a[slot]
-    ib = contacts.b[slot]
+    a, b = contact_vertices(slot, seg_per_strand, strip_pairs, contacts)
     wt = response.weights[slot]
     va = wp.vec3()
     vb = wp.vec3()
     if contacts.kind[slot] == CONTACT_VERTEX_FACE:
-        qa, qb = strip_quad_origins(ib // 2, seg_per_strand, strip_pairs)
-        va = vertex_velocities[ia]
-        vb = (wt[0] * vertex_velocities[qa] + wt[1] * vertex_velocities[qb] + wt[2] * vertex_velocities[qa + 1]
-              + wt[3] * vertex_velocities[qb + 1])
+        va = vertex_velocities[a[0]]
+        vb = (wt[0] * vertex_velocities[b[0]] + wt[1] * vertex_velocities[b[1]] + wt[2] * vertex_velocities[b[2]]
+              + wt[3] * vertex_velocities[b[3]])
     else:
-        va0 = ia + ia // seg_per_strand
-        vb0 = ib + ib // seg_per_strand
-        va = wp.lerp(vertex_velocities[va0], vertex_velocities[va0 + 1], wt[0])
-        vb = wp.lerp(vertex_velocities[vb0], vertex_velocities[vb0 + 1], wt[1])
+        va = wp.lerp(vertex_velocities[a[0]], vertex_velocities[a[1]], wt[0])
+        vb = wp.lerp(vertex_velocities[b[0]], vertex_velocities[b[1]], wt[1])
     return va - vb
 
 
@@ -998,39 +1009,20 @@ def others_relative_velocity(slot: int, strand: int, seg_per_strand: int, strip_
     """The other strands' share of ``contact_relative_velocity`` (``others_velocity``); ``strand``'s own vertices
     count zero."""
     S = seg_per_strand
-    ia = contacts.a[slot]
-    ib = contacts.b[slot]
+    a, b = contact_vertices(slot, S, strip_pairs, contacts)
     wt = response.weights[slot]
-    # each side's vertices and weights, as contact_relative_velocity takes them
-    a0 = ia
-    a1 = ia
-    b0 = int(0)
-    b1 = int(0)
-    b2 = int(0)
-    b3 = int(0)
+    # each side's weights, as contact_relative_velocity takes them
     wa = wp.vec2(1.0, 0.0)
     wb = wt
-    if contacts.kind[slot] == CONTACT_VERTEX_FACE:
-        qa, qb = strip_quad_origins(ib // 2, S, strip_pairs)
-        b0 = qa
-        b1 = qb
-        b2 = qa + 1
-        b3 = qb + 1
-    else:
-        a0 = ia + ia // S
-        a1 = a0 + 1
-        b0 = ib + ib // S
-        b1 = b0 + 1
-        b2 = b0
-        b3 = b0
+    if contacts.kind[slot] != CONTACT_VERTEX_FACE:
         wa = wp.vec2(1.0 - wt[0], wt[0])
         wb = wp.vec4(1.0 - wt[1], wt[1], 0.0, 0.0)
-    va = wa[0] * others_velocity(a0, strand, S, answered, answered_before, colors) \
-        + wa[1] * others_velocity(a1, strand, S, answered, answered_before, colors)
-    vb = wb[0] * others_velocity(b0, strand, S, answered, answered_before, colors) \
-        + wb[1] * others_velocity(b1, strand, S, answered, answered_before, colors) \
-        + wb[2] * others_velocity(b2, strand, S, answered, answered_before, colors) \
-        + wb[3] * others_velocity(b3, strand, S, answered, answered_before, colors)
+    va = wa[0] * others_velocity(a[0], strand, S, answered, answered_before, colors) \
+        + wa[1] * others_velocity(a[1], strand, S, answered, answered_before, colors)
+    vb = wb[0] * others_velocity(b[0], strand, S, answered, answered_before, colors) \
+        + wb[1] * others_velocity(b[1], strand, S, answered, answered_before, colors) \
+        + wb[2] * others_velocity(b[2], strand, S, answered, answered_before, colors) \
+        + wb[3] * others_velocity(b[3], strand, S, answered, answered_before, colors)
     return va - vb
 
 
