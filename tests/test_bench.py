@@ -381,6 +381,7 @@ def test_robustness_strand_spread_against_a_hand_count():
     tips[:, :, 0] = 1e-3 * np.arange(1, 21)
     out = strand_spread(tips, reference)
     assert WORST_STRANDS == 10
+    # float64 throughout: the tolerances are round-off of sums of 20 terms
     assert abs(out["median_strand_mm"] - 10.5) < 1e-9 and abs(out["worst_share"] - 2485 / 2870) < 1e-12
     tips = reference.copy()
     tips[2, :, 1] = 2e-3  # one frame of four: RMS over frames 1 mm
