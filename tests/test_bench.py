@@ -388,6 +388,21 @@ def test_robustness_strand_spread_against_a_hand_count():
     assert abs(strand_spread(tips, reference)["median_strand_mm"] - 1.0) < 1e-9
 
 
+def test_robustness_convergence_floor_on_the_tiny_scene():
+    """The convergence part on the tiny scene at 1 and 2 substeps against 4: every run finishes, and its second
+    reference run (gravity changed by PERTURBATION, relative) lands a finite, non-zero distance from the first: the
+    change is 1e-5 of 9.81 m/s^2, a hundred times float32's resolution of it, so it reaches the tips."""
+    from hairwarp.benchmarks.robustness import PERTURBATION, bench_convergence, perturbed, raw_scene
+
+    gravity = raw_scene("tiny").get("sim", {}).get("gravity", [0.0, 0.0, -9.81])
+    assert perturbed(raw_scene("tiny"))["sim"]["gravity"] == [g * (1.0 + PERTURBATION) for g in gravity]
+    conv = bench_convergence((1, 2), 4, 0.3, scene_name="tiny")
+    assert conv["perturbation"] == PERTURBATION and set(conv["variants"]) == {"links", "no links"}
+    for v in conv["variants"].values():
+        assert v["reference_fault"] is None and all(r["fault"] is None for r in v["rows"])
+        assert 0.0 < v["reference_again_mm"] < min(r["tip_rms_mm"] for r in v["rows"])
+
+
 def test_robustness_spin_keys_turn_at_the_spin_rate():
     """The extreme-motion suite's spin: keyframes 20 degrees apart whose interpolated head turns about z at
     3 rev/s between the first and the last interval (Catmull-Rom on evenly spaced keys of a constant rate is that
