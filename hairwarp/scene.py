@@ -300,6 +300,11 @@ def _check_scene(values, given, error):
     if mot["pivot"] is None and head["center"] is not None and head["radii"] is not None:
         c, r = head["center"], head["radii"]
         mot["pivot"] = (c[0], c[1], c[2] - r[2])
+    dense, segments = values["dense"], values["sim"]["segments"]
+    if dense["basis"] == "catmullRom" and (dense["count"] > 0 or dense["density"] is not None) and segments < 3:
+        # the cache's cubic curves take 4 vertices or more (hairwarp.io.cache); the interpolated strands have S + 1
+        error("sim.segments", f"dense.basis = \"catmullRom\" needs curves of 4 vertices, 3 segments or more, got "
+                              f"{segments}; raise sim.segments or set dense.basis = \"linear\"")
     if head["shape"] in ("ellipsoid", "sphere") and (head["center"] is None or head["radii"] is None):
         error("head", f"shape = \"{head['shape']}\" needs center and radii when the groom comes from a file")
     times = [k["time"] for k in mot["keys"]]

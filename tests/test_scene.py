@@ -222,6 +222,29 @@ def test_out_of_range(tmp_path):
     assert str(tmp_path) in str(err)
 
 
+def test_catmull_rom_dense_curves_need_three_segments(tmp_path):
+    """USD's cubic curves take 4 vertices or more: 2 segments with Catmull-Rom dense hair are refused when the scene
+    loads, naming sim.segments, not when the cache is written; linear dense hair or none runs at 1 segment."""
+    base = MINIMAL + "[dense]\ncount = 10\nbasis = 'catmullRom'\n"
+    err = _errors(_write(tmp_path, base + "[sim]\nsegments = 2\n"))
+    (path, msg), = err.errors
+    assert path == "sim.segments" and "dense.basis" in msg and "got 2" in msg
+    assert Scene.load(_write(tmp_path, base + "[sim]\nsegments = 3\n")).sim.segments == 3
+    linear = MINIMAL + "[dense]\ncount = 10\nbasis = 'linear'\n[sim]\nsegments = 1\n"
+    assert Scene.load(_write(tmp_path, linear)).sim.segments == 1
+
+
+def test_the_default_scene_nods_about_x_when_told_to():
+    """long_hair.toml leaves head.motion.axis to the kind's default, so the README's ``-s head.motion.kind=nod``
+    pitches the head (about x through the neck) and its turn still yaws about z."""
+    scene = Scene.load(SCENES / "long_hair.toml")
+    turn = scene.head_motion().pose(0.9)[1]
+    nod = scene.with_overrides(["head.motion.kind='nod'"]).head_motion().pose(0.9)[1]
+    # quaternions (x, y, z, w) of a rotation about one axis: the other two components are zero
+    assert abs(turn[2]) > 0.1 and abs(turn[0]) == abs(turn[1]) == 0.0
+    assert abs(nod[0]) > 0.01 and abs(nod[1]) == abs(nod[2]) == 0.0
+
+
 def test_bad_choice_lists_the_choices(tmp_path):
     err = _errors(_write(tmp_path, MINIMAL + "[sim]\nintegrator = 'implicit'\n"))
     (path, msg), = err.errors
