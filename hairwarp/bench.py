@@ -128,7 +128,7 @@ def _suite(name, config, out, log) -> dict:
 
         module, function = EXTRA_SUITES[name]
         return getattr(importlib.import_module(module), function)(config, out, log)
-    raise ValueError(f"unknown benchmark suite {name!r}; choose one of {', '.join(SUITES)} or all")
+    raise ValueError(f"unknown benchmark suite {name!r}; choose one of {', '.join([*SUITES, *EXTRA_SUITES])} or all")
 
 
 def json_default(value):

@@ -367,7 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="time and measure the accuracy of the solver",
                        description="Benchmarks: speed and accuracy of the solver.")
-    p.add_argument("suite", nargs="?", metavar="SUITE", help="benchmark suite; default: all")
+    from hairwarp.bench import EXTRA_SUITES, SUITES
+
+    p.add_argument("suite", nargs="?", metavar="SUITE",
+                   help=f"benchmark suite: {', '.join(SUITES)} ('all', the default, runs these), or one of "
+                        f"{', '.join(EXTRA_SUITES)}")
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     p.add_argument("--device", metavar="D", help="Warp device")
     p.add_argument("--threads", type=_nonnegative_int, metavar="N",

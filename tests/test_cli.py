@@ -35,6 +35,13 @@ def test_help_lists_the_subcommands():
         assert cmd in r.stdout
     r = _hairwarp("run", "--help")
     assert r.returncode == 0 and "--frames" in r.stdout and "KEY=VALUE" in r.stdout
+    # every suite that `hairwarp bench` accepts is named in its help (argparse wraps the lines)
+    from hairwarp.bench import EXTRA_SUITES, SUITES
+
+    r = _hairwarp("bench", "--help")
+    assert r.returncode == 0
+    text = " ".join(r.stdout.split())
+    assert all(name in text for name in (*SUITES, *EXTRA_SUITES))
 
 
 def test_version():
