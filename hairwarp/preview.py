@@ -429,10 +429,15 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
     return out_png
 
 
-def _frame_title(frame: dict) -> str:
-    f = frame["frame"]
-    label = f"{f:g}" if float(f).is_integer() else f"{f:.2f}"
-    return f"frame {label}   {frame['time']:.2f} s"
+def frame_title(frame: float, seconds: float) -> str:
+    """A panel's caption: the frame's number in the cache (its time code) and its time from the first frame [s]."""
+    label = f"{frame:g}" if float(frame).is_integer() else f"{frame:.2f}"
+    return f"frame {label}   {seconds:.2f} s"
+
+
+def sheet_size(panels: int) -> tuple[int, int]:
+    """Pixel size of a contact sheet of ``panels`` frames (the run's preview and ``hairwarp preview`` alike)."""
+    return (min(560 * panels, 2400), 600) if panels > 1 else (700, 700)
 
 
 def _pick_frames(cache_path, frames) -> list[float]:
@@ -471,10 +476,9 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
     if gif:
         return _write_gif(cache_path, out, view, progress)
     data = read_frames(cache_path, _pick_frames(cache_path, frames))
-    n = len(data)
-    size = (min(560 * n, 2400), 600) if n > 1 else (700, 700)
-    return render_frames([d["curves"] for d in data], out, titles=[_frame_title(d) for d in data],
-                         meshes=[[m[:2] for m in d["meshes"].values()] for d in data], view=view, size_px=size)
+    return render_frames([d["curves"] for d in data], out, titles=[frame_title(d["frame"], d["time"]) for d in data],
+                         meshes=[[m[:2] for m in d["meshes"].values()] for d in data], view=view,
+                         size_px=sheet_size(len(data)))
 
 
 GIF_SIZE_PX = (520, 520)
@@ -506,7 +510,7 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False) -> Pat
     shown = _Progress(len(data), progress)
     shown.update(0)
     for done, (d, panel) in enumerate(zip(data, panels, strict=True), 1):
-        fig = _sheet([panel], [_frame_title(d)], GIF_SIZE_PX, limits=limits, depth=depth)
+        fig = _sheet([panel], [frame_title(d["frame"], d["time"])], GIF_SIZE_PX, limits=limits, depth=depth)
         fig.canvas.draw()
         images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())).convert("RGB"))
         shown.update(done)

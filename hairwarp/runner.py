@@ -742,14 +742,16 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                 preview_path = preview_cache(out_path, out_path.with_suffix(".png"),
                                              frames=int(scene.output.preview_frames))
             elif preview and kept:
-                from hairwarp.preview import render_frames
+                from hairwarp.preview import frame_title, render_frames, sheet_size
 
                 preview_path = out_path.with_suffix(".png")
+                first = int(scene.output.start_frame)
                 render_frames(
                     [c for _, c, _ in kept],
                     preview_path,
-                    titles=[f"frame {f}  t = {f * sim.frame_dt:.2f} s" for f, _, _ in kept],
+                    titles=[frame_title(first + f, f * sim.frame_dt) for f, _, _ in kept],
                     meshes=[m for _, _, m in kept] if sim.colliders else None,
+                    size_px=sheet_size(len(kept)),
                 )
         except KeyboardInterrupt:
             pass  # a second signal: stop drawing at once

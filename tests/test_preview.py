@@ -1,6 +1,7 @@
 """Previews: pictures read back with Pillow, checked against where the orthographic camera must put things."""
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from hairwarp.io.cache import CacheWriter
@@ -76,9 +77,9 @@ def test_same_camera_in_every_panel_and_meshes(tmp_path):
     assert abs(g2 - g1) < CENTRE_PX
 
 
-def _tiny_cache(path, frames=3):
+def _tiny_cache(path, frames=3, start_frame=0):
     v, f = _octahedron(np.zeros(3), 0.05)
-    with CacheWriter(path, fps=12) as cache:
+    with CacheWriter(path, fps=12, start_frame=start_frame) as cache:
         cache.add_curves("dense", np.full(6, 10), basis="catmullRom")
         cache.add_curves("guides", np.full(2, 10), kind="guides")
         cache.add_mesh("head", v, f)
@@ -88,8 +89,20 @@ def _tiny_cache(path, frames=3):
             g, _ = _vertical_strands([-0.05, 0.05], n_pts=10, top=0.05)
             m = np.eye(4)
             m[0, 3] = 0.01 * i
-            cache.write_frame(i, {"dense": (pts, None), "guides": (g, None)}, xforms={"head": m})
+            cache.write_frame(start_frame + i, {"dense": (pts, None), "guides": (g, None)}, xforms={"head": m})
     return path
+
+
+def test_frames_are_captioned_by_time_code_and_time_from_the_start(tmp_path):
+    """A cache whose frames start at 1001 (``output.start_frame``): its first frame is frame 1001 at 0 s, as the
+    run's own preview captions it, and the next 1/12 s later (12 frames a second)."""
+    from hairwarp.io.usd_inspect import read_frames
+    from hairwarp.preview import frame_title
+
+    data = read_frames(_tiny_cache(tmp_path / "late.usdc", start_frame=1001))
+    assert [d["frame"] for d in data] == [1001.0, 1002.0, 1003.0]
+    assert [d["time"] for d in data] == pytest.approx([0.0, 1 / 12, 2 / 12])
+    assert frame_title(data[1]["frame"], data[1]["time"]) == "frame 1002   0.08 s"
 
 
 def test_preview_cache_png(tmp_path):

@@ -31,7 +31,8 @@ def read_frames(path, frames=None) -> list[dict]:
             transforms (or the default time when nothing is animated).
 
     Returns:
-        One dict per frame: ``{"frame": float, "time": seconds, "curves": {prim name: (points (N, 3) float64,
+        One dict per frame: ``{"frame": float, "time": seconds from the stage's start time code (a hairwarp cache's
+        simulation time, whatever its ``output.start_frame``), "curves": {prim name: (points (N, 3) float64,
         curve_vertex_counts (C,) int64)}, "meshes": {prim name: (vertices (V, 3) in world space, triangles (F, 3),
         world matrix 4x4 in the column convention)}}``.
     """
@@ -46,6 +47,7 @@ def read_frames(path, frames=None) -> list[dict]:
     if frames is None:
         frames = _time_samples(stage) or [stage.GetStartTimeCode()]
     tcps = stage.GetTimeCodesPerSecond() or 24.0
+    start = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else 0.0
     curve_names = _unique_names(curve_prims)
     mesh_names = _unique_names(mesh_prims)
     out = []
@@ -53,7 +55,7 @@ def read_frames(path, frames=None) -> list[dict]:
         xc = UsdGeom.XformCache(float(f))
         curves = {n: _curve_arrays(p, float(f), xc, conv, path) for n, p in zip(curve_names, curve_prims, strict=True)}
         meshes = {n: _mesh_arrays(p, float(f), xc, conv) for n, p in zip(mesh_names, mesh_prims, strict=True)}
-        out.append({"frame": float(f), "time": float(f) / tcps, "curves": curves, "meshes": meshes})
+        out.append({"frame": float(f), "time": (float(f) - start) / tcps, "curves": curves, "meshes": meshes})
     return out
 
 
