@@ -100,10 +100,12 @@ def _cmd_info(args) -> int:
     if not path.exists():
         raise FileNotFoundError(f"{path.resolve()}: no such file")
     suffix = path.suffix.lower()
+    if args.set and suffix != ".toml":
+        raise ValueError(f"{path}: -s overrides apply to a scene (.toml), not to {suffix or 'this file'}")
     if suffix == ".toml":
         from hairwarp.scene import Scene
 
-        print(Scene.load(path).summary())
+        print(Scene.load(path, args.set or ()).summary())
     elif suffix in _GROOM_SUFFIXES:
         print(_groom_summary(path))
     elif suffix in _USD_SUFFIXES:
@@ -363,6 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="describe a scene, a groom or a cache",
                        description="Describe a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*).")
     p.add_argument("file", metavar="FILE")
+    p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",
+                   help="a scene: override a key as hairwarp run does, to check it before a run (repeatable)")
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("bench", help="time and measure the accuracy of the solver",

@@ -913,6 +913,7 @@ class Scene:
         if overrides:
             raw = copy.deepcopy(raw)
             problems = []
+            _switch_groom_source(raw, overrides)
             for text in overrides:
                 try:
                     _apply_override(raw, text)
@@ -1124,6 +1125,25 @@ def _parse_value(text: str):
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text.strip()
+
+
+def _switch_groom_source(raw: dict, overrides: list[str]):
+    """An override that names the groom's source (``groom.file`` or ``groom.generator``) replaces the file's other
+    source: its keys go (``-s groom.file=...`` on a generated scene reads that file instead of raising "give either
+    generator or file"). Keys of the other source that the overrides set themselves stay, and are reported."""
+    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
+    groom = raw.get("groom")
+    if not isinstance(groom, dict):
+        return
+    if "groom.file" in keys and "groom.generator" not in keys:
+        drop = ("generator", *_SCALP_KEYS)
+    elif "groom.generator" in keys and "groom.file" not in keys:
+        drop = ("file", *_FILE_KEYS)
+    else:
+        return
+    for key in drop:
+        if f"groom.{key}" not in keys:
+            groom.pop(key, None)
 
 
 def _apply_override(raw: dict, text: str):

@@ -96,6 +96,14 @@ def test_info_scene():
     r = _hairwarp("info", SCENES / "long_hair.toml")
     assert r.returncode == 0, r.stderr
     assert "long_hair" in r.stdout and "300 guides" in r.stdout and "90 frames" in r.stdout and "Turn(" in r.stdout
+    # overrides are checked as a run would take them; on a cache they are refused
+    r = _hairwarp("info", SCENES / "long_hair.toml", "-s", "sim.frames=12", "-s", "head.motion.kind='nod'")
+    assert r.returncode == 0, r.stderr
+    assert "12 frames" in r.stdout and "Nod(" in r.stdout
+    r = _hairwarp("info", SCENES / "long_hair.toml", "-s", "sim.fram=12")
+    assert r.returncode == 2 and "sim.fram" in r.stderr and "Traceback" not in r.stderr
+    r = _hairwarp("info", REPO / "docs" / "tunnelling.json", "-s", "sim.frames=12")
+    assert r.returncode == 2 and "-s overrides apply to a scene" in r.stderr
 
 
 def _write_hair(path, strands):

@@ -286,6 +286,21 @@ def test_generator_and_file_are_exclusive(tmp_path, text, match):
     assert any(path == "groom" and match in msg for path, msg in err.errors), err.errors
 
 
+def test_an_override_of_the_groom_source_replaces_the_files(tmp_path):
+    """-s groom.file=... on a generated scene reads that file: the generator and its keys go (the file's own error
+    "give either generator or file" stays for a file that sets both); a scalp key the overrides set themselves is
+    still refused; -s groom.generator=... on a file scene goes back to the scalp."""
+    hair = tmp_path / "g.hair"
+    hair.write_bytes(b"")
+    generated = Scene.load(SCENES / "tiny.toml")
+    scene = generated.with_overrides([f"groom.file='{hair}'", "head.shape='none'"])
+    assert scene.groom.file == str(hair) and scene.groom.generator is None
+    with pytest.raises(SceneError, match="groom.count"):
+        generated.with_overrides([f"groom.file='{hair}'", "head.shape='none'", "groom.count=5"])
+    back = scene.with_overrides(["groom.generator='scalp'"])
+    assert back.groom.generator == "scalp" and back.groom.file is None
+
+
 def test_keys_of_the_other_groom_source_are_rejected(tmp_path):
     err = _errors(_write(tmp_path, MINIMAL + "scale = 0.01\n"))
     assert err.errors == [("groom.scale", "applies to groom.file only, not to a generator")]
