@@ -291,6 +291,18 @@ def _product(a: MotionSample, b: MotionSample) -> MotionSample:
 # motions
 
 
+#: The ``[head.motion]`` keys each kind reads (besides ``kind``); the others are ignored by it.
+MOTION_KEYS = {
+    "still": (),
+    "turn": ("amplitude_deg", "period", "start", "ramp", "axis", "pivot"),
+    "nod": ("amplitude_deg", "period", "start", "ramp", "axis", "pivot"),
+    "shake": ("amplitude_deg", "period", "start", "ramp", "axis", "pivot"),
+    "translate": ("distance", "period", "start", "ramp", "axis"),
+    "keyframes": ("keys", "interpolation", "pivot"),
+    "usd": ("file", "prim", "joint", "interpolation"),
+}
+
+
 class HeadMotion:
     """A rigid motion of the head frame; call :meth:`evaluate` (or the motion itself) with a time.
 
@@ -344,15 +356,7 @@ class HeadMotion:
         kind = cfg.pop("kind", "still")
         if kind not in MOTION_KINDS:
             raise ValueError(f"head.motion.kind: unknown kind {kind!r}; choose one of {', '.join(MOTION_KINDS)}")
-        allowed = {
-            "still": set(),
-            "turn": {"amplitude_deg", "period", "start", "ramp", "axis"},
-            "nod": {"amplitude_deg", "period", "start", "ramp", "axis"},
-            "shake": {"amplitude_deg", "period", "start", "ramp", "axis"},
-            "translate": {"distance", "period", "start", "ramp", "axis"},
-            "keyframes": {"keys", "interpolation"},
-            "usd": {"file", "prim", "joint", "interpolation"},
-        }[kind]
+        allowed = set(MOTION_KEYS[kind]) - {"pivot"}
         pivot = cfg.pop("pivot", pivot)
         extra = sorted(set(cfg) - allowed)
         common = {"amplitude_deg", "period", "start", "ramp", "axis", "distance"}

@@ -924,6 +924,8 @@ class Scene:
             label = f"{label} (with overrides)"
         v = _Validator(base_dir)
         data = v.section(_ROOT, raw, "")
+        if not v.errors:
+            v.errors.extend(_unread_motion_overrides(data["head"]["motion"]["kind"], overrides))
         if v.errors:
             raise SceneError(label, v.errors)
         if data["scene"]["name"] is None:
@@ -1125,6 +1127,24 @@ def _parse_value(text: str):
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text.strip()
+
+
+def _unread_motion_overrides(kind: str, overrides: list[str]) -> list[tuple[str, str]]:
+    """Errors for the overrides of ``[head.motion]`` keys that ``kind`` does not read (``-s head.motion.distance=0.05``
+    on a turn would change nothing). The scene file's own keys for other kinds stay allowed: overriding ``kind``
+    alone must work on any scene."""
+    read = set(_motion.MOTION_KEYS[kind])
+    errors = []
+    for text in overrides:
+        key = text.split("=", 1)[0].strip()
+        leaf = key.removeprefix("head.motion.")
+        if key.startswith("head.motion.") and "." not in leaf and "[" not in leaf and leaf != "kind" \
+                and leaf not in read:
+            kinds = [k for k, keys in _motion.MOTION_KEYS.items() if leaf in keys]
+            if kinds:
+                errors.append((key, f"is read by kind = {' or '.join(repr(k) for k in kinds)} only "
+                                    f"(kind is {kind!r}); set head.motion.kind too"))
+    return errors
 
 
 def _switch_groom_source(raw: dict, overrides: list[str]):

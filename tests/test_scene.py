@@ -301,6 +301,19 @@ def test_an_override_of_the_groom_source_replaces_the_files(tmp_path):
     assert back.groom.generator == "scalp" and back.groom.file is None
 
 
+def test_a_motion_key_overridden_for_a_kind_that_ignores_it_is_refused():
+    """-s head.motion.distance=0.05 on a turn would change nothing: refused, naming the kind that reads it; with
+    kind = "translate" it is read; the file's keys for other kinds (a turn's amplitude) do not stop -s kind=still."""
+    scene = Scene.load(SCENES / "long_hair.toml")
+    with pytest.raises(SceneError) as info:
+        scene.with_overrides(["head.motion.distance=0.05"])
+    assert info.value.errors == [("head.motion.distance", "is read by kind = 'translate' only (kind is 'turn'); "
+                                                          "set head.motion.kind too")]
+    slide = scene.with_overrides(["head.motion.distance=0.05", "head.motion.kind='translate'"])
+    assert slide.head.motion.distance == 0.05
+    assert scene.with_overrides(["head.motion.kind='still'"]).head.motion.kind == "still"
+
+
 def test_keys_of_the_other_groom_source_are_rejected(tmp_path):
     err = _errors(_write(tmp_path, MINIMAL + "scale = 0.01\n"))
     assert err.errors == [("groom.scale", "applies to groom.file only, not to a generator")]
