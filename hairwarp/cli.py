@@ -7,7 +7,7 @@
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
     hairwarp schema [SECTION]       # every scene key: type, default, range, unit, meaning
     hairwarp bench [SUITE] [--quick] [--device D] [--threads N] [--out DIR] [--format human|json]
-    hairwarp preview CACHE [-o PNG] [--frames N] [--gif]
+    hairwarp preview CACHE [-o PNG] [--frames N] [--gif] [--guides]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
     hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
 
@@ -183,7 +183,7 @@ def _cmd_preview(args) -> int:
         raise FileNotFoundError(f"{path.resolve()}: no such file")
     from hairwarp.preview import preview_cache
 
-    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif, progress=True)
+    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif, progress=True, guides=args.guides)
     print(f"preview  {out}")
     return EXIT_OK
 
@@ -391,6 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="PNG", help="picture to write; default: beside the cache")
     p.add_argument("--frames", type=_positive_int, default=4, metavar="N", help="frames on the sheet (default 4)")
     p.add_argument("--gif", action="store_true", help="write an animated GIF of every frame instead")
+    p.add_argument("--guides", action="store_true",
+                   help="draw the guide strands too, in orange (default: the dense hair alone when the cache has it, "
+                        "as the run's preview)")
     p.set_defaults(func=_cmd_preview)
 
     p = sub.add_parser("wedge", help="run variants of a scene on Dask (one run per combination of values)",

@@ -454,7 +454,17 @@ def _pick_frames(cache_path, frames) -> list[float]:
     return [samples[i] for i in idx]
 
 
-def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_quarter", progress=False) -> Path:
+def rendered_curves(curves: dict, guides: bool = False) -> dict:
+    """The curves a preview draws: what renders, the dense hair, when the cache holds any besides its guides (as
+    ``hairwarp run``'s own preview); every curve with ``guides`` (guides in orange) or when there is nothing else."""
+    if guides:
+        return curves
+    dense = {name: c for name, c in curves.items() if "guide" not in name.lower()}
+    return dense or curves
+
+
+def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_quarter", progress=False,
+                  guides=False) -> Path:
     """Render a cache written by :class:`hairwarp.io.cache.CacheWriter` as a contact sheet PNG or an animated GIF.
 
     Args:
@@ -464,6 +474,8 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
         gif: write an animated GIF of every frame (at the cache's frame rate) instead of the contact sheet.
         view: a name from :data:`VIEWS` or (azimuth, elevation) in degrees.
         progress: show the GIF's frames drawn on stderr, as ``hairwarp run`` shows its frames.
+        guides: draw the guide strands too (in orange); by default a cache with dense hair shows that alone, as
+            ``hairwarp run``'s preview does (:func:`rendered_curves`).
 
     Returns:
         The path of the picture written.
@@ -474,9 +486,10 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
     suffix = ".gif" if gif else ".png"
     out = Path(out_png) if out_png is not None else cache_path.with_suffix(suffix)
     if gif:
-        return _write_gif(cache_path, out, view, progress)
+        return _write_gif(cache_path, out, view, progress, guides)
     data = read_frames(cache_path, _pick_frames(cache_path, frames))
-    return render_frames([d["curves"] for d in data], out, titles=[frame_title(d["frame"], d["time"]) for d in data],
+    return render_frames([rendered_curves(d["curves"], guides) for d in data], out,
+                         titles=[frame_title(d["frame"], d["time"]) for d in data],
                          meshes=[[m[:2] for m in d["meshes"].values()] for d in data], view=view,
                          size_px=sheet_size(len(data)))
 
@@ -485,7 +498,7 @@ GIF_SIZE_PX = (520, 520)
 GIF_MAX_CURVES = 2500
 
 
-def _write_gif(cache_path: Path, out: Path, view, progress: bool = False) -> Path:
+def _write_gif(cache_path: Path, out: Path, view, progress: bool = False, guides: bool = False) -> Path:
     """Every time sample as one GIF frame, all with the camera and limits of the whole animation.
 
     Drawing is most of the time (about 0.5 s a frame of the default scene's cache on a busy 2-core machine: building
@@ -500,7 +513,8 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False) -> Pat
     fps = _open_stage(cache_path).GetTimeCodesPerSecond() or 24.0
     data = read_frames(cache_path)
     cam = _camera(view)
-    panels = [_Panel(d["curves"], [m[:2] for m in d["meshes"].values()], cam, GIF_MAX_CURVES) for d in data]
+    panels = [_Panel(rendered_curves(d["curves"], guides), [m[:2] for m in d["meshes"].values()], cam,
+                     GIF_MAX_CURVES) for d in data]
     width, height = GIF_SIZE_PX
     margin = 0.012
     aspect = ((1.0 - 2 * margin) * width) / ((1.0 - _CAPTION_BAND - margin) * height)

@@ -116,6 +116,21 @@ def test_preview_cache_png(tmp_path):
     assert Image.open(out2).format == "PNG"
 
 
+def test_preview_cache_shows_what_renders_unless_asked_for_guides(tmp_path):
+    """A cache with dense hair and guides: by default the sheet draws the dense hair alone, as the run's own preview
+    does; with guides=True the two guide strands (outside the dense ones) add their pixels; a cache of guides alone
+    shows them."""
+    from hairwarp.preview import rendered_curves
+
+    curves = {"dense": 1, "guides": 2}
+    assert rendered_curves(curves) == {"dense": 1} and rendered_curves(curves, guides=True) == curves
+    assert rendered_curves({"guides": 2}) == {"guides": 2}
+    cache = _tiny_cache(tmp_path / "tiny.usdc")
+    _, plain = _foreground(preview_cache(cache, tmp_path / "plain.png", frames=[0], view="front"))
+    _, both = _foreground(preview_cache(cache, tmp_path / "both.png", frames=[0], view="front", guides=True))
+    assert both.sum() > plain.sum() + 100
+
+
 def test_preview_cache_gif(tmp_path):
     cache = _tiny_cache(tmp_path / "tiny.usda", frames=4)
     out = preview_cache(cache, gif=True)
