@@ -385,6 +385,69 @@ class Simulation:
         return self.motion.evaluate(t).matrix()
 
 
+#: The checkpoint entry of a run's scene (JSON), which ``--resume`` compares with the scene it is given.
+RESUME_SCENE_KEY = "run.scene"
+
+#: Scene keys a resumed run may change: how long it runs and how, not what it simulates or writes.
+RESUME_FREE_KEYS = ("sim.frames", "sim.device", "sim.threads", "output.preview", "output.preview_frames",
+                    "output.writer")
+
+
+def _flat_scene(scene) -> dict:
+    """``scene``'s values by dotted key, less :data:`RESUME_FREE_KEYS`."""
+    flat = {}
+
+    def walk(node, prefix):
+        for key, value in node.items():
+            path = f"{prefix}{key}"
+            if isinstance(value, dict):
+                walk(value, path + ".")
+            elif path not in RESUME_FREE_KEYS:
+                flat[path] = value
+
+    walk(scene.to_dict(), "")
+    return flat
+
+
+def _resume_scene(scene) -> str:
+    import json
+
+    return json.dumps(_flat_scene(scene), sort_keys=True, default=str)
+
+
+#: Scene keys (and key prefixes) of what a cache holds besides the simulation: the strands and their curves, the
+#: colliders' meshes, the stage's units and time codes. A resumed run that changes one would write a cache whose
+#: frames do not fit together.
+RESUME_FIXED_KEYS = ("scene.", "groom.", "dense.", "output.", "sim.fps", "sim.segments", "head.shape", "head.file",
+                     "head.center", "head.radii", "head.up_axis", "head.scale", "head.translate", "colliders")
+
+
+def _check_resumed_scene(scene, saved, out_path) -> str | None:
+    """Compare the scene a run resumes with with the stopped run's (but for :data:`RESUME_FREE_KEYS`). A change of
+    what the cache holds (:data:`RESUME_FIXED_KEYS`: a dense hair count, the groom, the stage's units) is refused;
+    a change of the simulation (more substeps after a fault, another stiffness) is taken from the frame resumed
+    after, and the returned note says which."""
+    import json
+
+    if saved is None:  # a checkpoint written before runs kept their scene
+        return None
+    before = json.loads(str(saved))
+    now = json.loads(_resume_scene(scene))
+    changed = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+
+    def listed(keys):
+        text = ", ".join(f"{k} ({now.get(k)!r}, was {before.get(k)!r})" for k in keys[:3])
+        return text + (f" and {len(keys) - 3} more" if len(keys) > 3 else "")
+
+    fixed = [k for k in changed if k.startswith(RESUME_FIXED_KEYS)]
+    if fixed:
+        raise ValueError(f"{out_path}: cannot resume: the cache's frames would not fit together: {listed(fixed)}; "
+                         f"resume with the stopped run's values, or run without --resume to start afresh")
+    if changed:
+        return f"resuming with a changed simulation: {listed(changed)}, from the frame resumed after"
+    return None
+
+
 def _cache_writer(scene, out_path, notes: list, resume: bool):
     """The writer ``output.writer`` asks for: the inline :class:`hairwarp.io.cache.CacheWriter` or a
     :class:`hairwarp.io.background.BackgroundCacheWriter` (the simulation goes on while a second process converts and
@@ -552,8 +615,10 @@ def _kept(cache) -> str:
     if cache.last_frame is None:
         return "no frame was complete"
     first = cache.last_frame - cache.frames_written + 1
+    at = (f"the cache at {cache.path} is untouched" if Path(cache.path).exists()
+          else f"nothing was written at {cache.path}")
     return (f"frames {first}-{cache.last_frame} are in {cache.partial_path} (hairwarp run --resume continues "
-            f"from there; the cache at {cache.path} is untouched)")
+            f"from there, with a changed simulation too, such as more substeps; {at})")
 
 
 def _mesh_collider(path, up_axis, scale, translate, rotate_deg, name, options):
@@ -713,7 +778,12 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             if cache.resumed_after - cache.start_frame > frames:
                 raise ValueError(f"{out_path}: cannot resume: the stopped run is at frame {cache.resumed_after}, "
                                  f"past sim.frames = {frames}")
-            sim.restore(cache.folder.read_checkpoint(cache.resumed_after))
+            saved = cache.folder.read_checkpoint(cache.resumed_after)
+            changed = _check_resumed_scene(scene, saved.pop(RESUME_SCENE_KEY, None), out_path)
+            if changed:
+                notes.append(changed)
+                report.note(changed)
+            sim.restore(saved)
             start = cache.resumed_after - cache.start_frame + 1
         _check_disk(cache, scene, frames, start, report)
         with _Stops() as stops:
@@ -811,7 +881,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         if dense is not None:
             curves["hair"] = sim.dense_curves()
         cache.write_frame(t0 + frame, curves, xforms={name: world for name, _, _, world in meshes} or None,
-                          checkpoint=sim.checkpoint())
+                          checkpoint={**sim.checkpoint(), RESUME_SCENE_KEY: np.array(_resume_scene(scene))})
         if frame in shown:
             mesh = _merged_world_mesh(meshes)
             if dense is not None:  # the preview shows what renders: the dense hair

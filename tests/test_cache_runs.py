@@ -100,6 +100,27 @@ def test_a_failing_run_keeps_the_previous_cache(tmp_path):
     assert after.keys() == before.keys() and all(np.array_equal(after[k], v) for k, v in before.items())
 
 
+def test_resume_refuses_a_cache_that_would_not_fit_and_takes_a_changed_simulation(tmp_path):
+    """A run that faulted (explicit stiff springs at one step a frame) leaves its frames; --resume with another dense
+    hair count is refused (its curves would change between frames) and leaves them, --resume at more substeps with
+    the implicit integrator goes on from the last good frame and says what changed."""
+    out = tmp_path / "tiny.usdc"
+    stiff = ["-s", 'sim.integrator="semi_implicit"', "-s", "strands.bend_stiffness=10.0", "-s", "sim.substeps=1"]
+    first = _run(out, "--frames", "6", *stiff)
+    assert first.returncode == 3, first.stderr
+    partial = tmp_path / "tiny.partial" / "tiny.usdc"
+    kept = _samples(partial)
+    refused = _run(out, "--frames", "6", *stiff, "-s", "dense.count=20", "--resume")
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "cannot resume" in refused.stderr and "dense.count (20, was 0)" in refused.stderr
+    assert not out.exists() and _samples(partial).keys() == kept.keys()
+    fixed = _run(out, "--frames", "6", "-s", "strands.bend_stiffness=10.0", "-s", "sim.substeps=16", "--resume")
+    assert fixed.returncode == 0, fixed.stderr
+    assert "resuming with a changed simulation" in fixed.stderr and "sim.integrator" in fixed.stderr
+    stage = Usd.Stage.Open(str(out))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0.0, 6.0)
+
+
 def test_a_second_run_on_the_same_output_is_refused(tmp_path):
     out = tmp_path / "tiny.usdc"
     first = _run(out, "--frames", "200", "-s", "sim.substeps=64", wait=False)
