@@ -92,12 +92,11 @@ def default_threads() -> int:
 
 def resolve_threads(threads) -> int:
     """``threads`` as a positive int: None or 0 mean :func:`default_threads`."""
-    if threads is None or int(threads) == 0:
+    if threads is None:
         return default_threads()
-    threads = int(threads)
-    if threads < 0:
-        raise ValueError(f"threads must be >= 0 (0: every core this process may use), got {threads}")
-    return threads
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 0:
+        raise ValueError(f"threads must be an integer >= 0 (0: every core this process may use), got {threads!r}")
+    return int(threads) if threads else default_threads()
 
 
 class _Workers:

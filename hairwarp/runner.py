@@ -56,6 +56,10 @@ class Stepper:
     def __init__(self, solver: Solver, *, dt: float, substeps: int = 1, control=None, state=None, use_graph=None):
         model = solver.model
         self.solver = solver
+        if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
+            raise ValueError(f"substeps must be an integer >= 1 (steps per frame), got {substeps!r}")
+        if isinstance(dt, bool) or not isinstance(dt, int | float | np.floating | np.integer) or not dt > 0.0:
+            raise ValueError(f"dt must be a number of seconds > 0, got {dt!r}")
         self.dt = float(dt)
         self.substeps = int(substeps)
         self.control = control if control is not None else model.control()
@@ -221,6 +225,8 @@ class Simulation:
     def dense_curves(self) -> tuple[np.ndarray, np.ndarray | None]:
         """Host copies of the dense hair's points and velocities for this frame (Hermite samples for
         ``basis = "linear"``, interpolated vertices for ``"catmullRom"``)."""
+        if self.dense is None:
+            raise ValueError(f"scene {self.scene.name!r} has no dense hair: set dense.count (or dense.density)")
         s, c = self.stepper.state, self.stepper.control
         hermite = self.scene.dense.basis == "linear"
         velocities = s.vertex_velocities if self.scene.dense.velocities else None
@@ -320,6 +326,20 @@ class Simulation:
                 for old in sorted(cache)[: len(cache) // 2]:
                     del cache[old]
         return pose
+
+    @property
+    def motion(self):
+        """The head's motion (a :class:`hairwarp.HeadMotion`: ``evaluate(t)`` and ``pose(t)``), the scene's
+        ``[head.motion]`` unless assigned; every step sets the control from it."""
+        return self._motion
+
+    @motion.setter
+    def motion(self, motion):
+        if not (callable(getattr(motion, "evaluate", None)) and callable(getattr(motion, "pose", None))):
+            raise TypeError(f"motion must have evaluate(t) and pose(t), as a hairwarp.HeadMotion; got "
+                            f"{type(motion).__name__}")
+        self._motion = motion
+        self._poses = {}  # the teleport test's poses were the old motion's
 
     def advance_frame(self) -> Fault:
         if self.contacts is not None and not self.contacts.detect_each_step:

@@ -180,6 +180,7 @@ class Solver:
         ``state_in`` must hold its world quantities (a state from ``model.state()`` or from a
         previous step does; after editing its joints call :meth:`forward_kinematics`).
         """
+        self._check_step_arguments(state_in, state_out, control)
         self.set_dt(dt)
         body = self.body_contacts.enabled
         self._force_passes(state_in, control, detect_body=body)
@@ -196,11 +197,27 @@ class Solver:
         if self.responders:
             self._respond(state_in, state_out, control, project=body)
 
+    def _check_step_arguments(self, state_in, state_out, control):
+        """States of this model's size and a control: a kernel reading past a smaller state's arrays would crash the
+        process, not raise."""
+        if control is None or not hasattr(control, "wind"):
+            raise TypeError(f"control must be a hairwarp Control (model.control()), got {type(control).__name__}")
+        joints = self.model.strand_count * self.model.seg_per_strand
+        vertices = self.model.strand_count * (self.model.seg_per_strand + 1)
+        for name, state in (("state_in", state_in), ("state_out", state_out)):
+            q = getattr(state, "joint_q", None)
+            x = getattr(state, "vertex_positions", None)
+            if q is None or x is None:
+                raise TypeError(f"{name} must be a hairwarp State (model.state()), got {type(state).__name__}")
+            if q.shape[0] != joints or x.shape[0] != vertices:
+                raise ValueError(f"{name} holds {q.shape[0]} joints and {x.shape[0]} vertices, this model "
+                                 f"{joints} and {vertices}: a state of another model (use model.state())")
+
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""
-        if dt != self._dt_host:
-            if not dt > 0.0:
-                raise ValueError(f"dt must be > 0, got {dt}")
+        if dt != self._dt_host or self._dt_host is None:
+            if not isinstance(dt, int | float | np.floating | np.integer) or not dt > 0.0:
+                raise ValueError(f"dt must be a number of seconds > 0, got {dt!r}")
             self.dt.fill_(float(dt))
             self._dt_host = dt
 

@@ -35,6 +35,37 @@ class State:
             wp.copy(getattr(self, name), getattr(other, name))
 
 
+def _vector(name: str, value) -> np.ndarray:
+    """``value`` as 3 finite floats, or a ValueError naming ``name``."""
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 3 numbers, got {value!r}") from None
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return v
+
+
+def _vectors(name_a: str, a, name_b: str, b) -> np.ndarray:
+    return np.concatenate([_vector(name_a, a), _vector(name_b, b)])
+
+
+def _head_pose(position, rotation) -> np.ndarray:
+    """Position and rotation (quaternion x, y, z, w) as 7 floats; a quaternion off unit length by more than float32
+    rounding is normalised, a zero or non-finite one refused."""
+    p = _vector("position", position)
+    try:
+        q = np.asarray(rotation, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"rotation must be a quaternion (x, y, z, w), got {rotation!r}") from None
+    norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+    if q.shape != (4,) or not np.isfinite(q).all() or norm < 1.0e-6:
+        raise ValueError(f"rotation must be a non-zero quaternion (x, y, z, w) of finite numbers, got {rotation!r}")
+    if abs(norm - 1.0) > 1.0e-6:
+        q = q / norm
+    return np.concatenate([p, q])
+
+
 class Control:
     """Animated inputs of a step; device arrays updated in place so captured graphs see new values.
 
@@ -87,9 +118,9 @@ class Control:
                  angular_velocity=(0.0, 0.0, 0.0), linear_acceleration=(0.0, 0.0, 0.0),
                  angular_acceleration=(0.0, 0.0, 0.0)):
         """Set the head pose (rotation as quaternion x, y, z, w) and its world velocities and accelerations."""
-        values = (np.concatenate([np.asarray(position, float), np.asarray(rotation, float)]),
-                  np.concatenate([angular_velocity, linear_velocity]),
-                  np.concatenate([angular_acceleration, linear_acceleration]))
+        values = (_head_pose(position, rotation),
+                  _vectors("angular_velocity", angular_velocity, "linear_velocity", linear_velocity),
+                  _vectors("angular_acceleration", angular_acceleration, "linear_acceleration", linear_acceleration))
         arrays = (self.head_xform, self.head_velocity, self.head_acceleration)
         if self.head_xform.device.is_cpu:
             # straight into the arrays' host memory: three assigns cost ~50 us, paid every step
@@ -136,4 +167,5 @@ class Control:
             target.assign(a)
 
     def set_wind(self, velocity):
-        self.wind.assign(np.asarray([velocity], dtype=np.float32))
+        """Set the wind velocity [m/s], world."""
+        self.wind.assign(np.asarray([_vector("wind velocity", velocity)], dtype=np.float32))

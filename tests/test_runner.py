@@ -76,6 +76,64 @@ def test_an_explicit_integrators_fault_gives_substeps_that_run(tiny, integrator)
     assert np.isfinite(sim.guide_curves()[0]).all()
 
 
+def test_the_step_api_refuses_what_would_crash_or_do_nothing(tiny):
+    """Arguments the kernels cannot take are refused with the argument's name: a state of another model (a kernel
+    reading past its arrays would end the process), no control, no step size, no substeps, a head pose that is
+    not finite or no rotation, a wind of the wrong size, a thread count that is not a count, and dense hair asked
+    of a scene without any. Valid values still step."""
+    sim = Simulation(tiny)
+    solver, model = sim.solver, sim.model
+    control = model.control()
+    bigger = Simulation(tiny.with_overrides(["sim.segments=9"])).model
+    with pytest.raises(ValueError, match="state_in holds .* joints"):
+        solver.step(bigger.state(), model.state(), control, 1 / 240)
+    with pytest.raises(ValueError, match="state_out holds"):
+        solver.step(model.state(), bigger.state(), control, 1 / 240)
+    with pytest.raises(TypeError, match="control must be a hairwarp Control"):
+        solver.step(model.state(), model.state(), None, 1 / 240)
+    with pytest.raises(ValueError, match="dt must be"):
+        hw.Solver(model).step(model.state(), model.state(), control, None)
+    for substeps in (0, -1, 2.5):
+        with pytest.raises(ValueError, match="substeps must be"):
+            Stepper(solver, dt=1 / 240, substeps=substeps)
+    for bad in ({"position": (np.nan, 0.0, 0.0)}, {"rotation": (0.0, 0.0, 0.0, 0.0)}, {"rotation": (0.0, 0.0, 1.0)},
+                {"linear_velocity": (1.0, 0.0)}):
+        with pytest.raises(ValueError, match="position|rotation|velocity"):
+            control.set_head(**bad)
+    for wind in ((np.inf, 0.0, 0.0), (1.0, 0.0)):
+        with pytest.raises(ValueError, match="wind velocity"):
+            control.set_wind(wind)
+    for threads in ("abc", 2.5, -1, "2"):
+        with pytest.raises(ValueError, match="threads must be"):
+            Simulation(tiny, threads=threads)
+    with pytest.raises(ValueError, match="no dense hair"):
+        sim.dense_curves()
+    # a quaternion off unit length is normalised, and the valid calls step
+    control.set_head(rotation=(0.0, 0.0, 0.0, 2.0))
+    assert control.head_xform.numpy()[0][3:] == pytest.approx([0.0, 0.0, 0.0, 1.0])
+    control.set_wind((1.0, 0.0, 0.0))
+    solver.step(model.state(), model.state(), control, 1 / 240)
+
+
+def test_a_simulation_drives_its_head_from_an_assigned_motion(tiny):
+    """``sim.motion`` assigned mid-run drives the head from the next step on: a slide of 5 cm along x with a period
+    of 1 s puts the head at 0.05 sin(2 pi t) at the end of frame 6 (t = 0.2 s at 30 fps); set_head on the control
+    would be overwritten, and an object that is no motion is refused."""
+    import hairwarp.motion as motion
+
+    sim = Simulation(tiny)
+    sim.advance_frame()
+    sim.motion = motion.HeadMotion.from_config({"kind": "translate", "distance": 0.05, "period": 1.0, "start": 0.0,
+                                                "ramp": 0.0})
+    for _ in range(5):
+        sim.advance_frame()
+    t = 6 / tiny.sim.fps
+    # float32 head position: 1e-7 m of 0.05 m
+    assert sim.stepper.control.head_xform.numpy()[0][0] == pytest.approx(0.05 * np.sin(2 * np.pi * t), abs=1e-7)
+    with pytest.raises(TypeError, match="evaluate"):
+        sim.motion = 3
+
+
 def run_steps(tiny, steps, use_graph, substeps):
     sim = Simulation(tiny)
     stepper = Stepper(sim.solver, dt=tiny.step_dt, substeps=substeps, control=sim.stepper.control,
