@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 from pathlib import Path
 
 __all__ = ["build_parser", "main"]
@@ -469,6 +470,8 @@ def main(argv=None) -> int:
     Usage errors exit through argparse (``SystemExit(2)``); ``--help`` and ``--version`` exit 0.
     """
     args = build_parser().parse_args(argv)
+    # a warning is one line of its own, as the errors are (not the source line that raised it)
+    warnings.formatwarning = lambda message, category, *_: f"hairwarp: warning: {message}\n"
     try:  # Warp's banner, its module-load lines and the CUDA-driver warning of a CPU machine: not news on every run
         import warp as wp
 

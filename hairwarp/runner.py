@@ -622,7 +622,8 @@ def _check_disk(cache, scene, frames: int, start: int, report) -> None:
     count = frames + 1 - start
     total = frame_bytes * count * (2 if scene.output.layout == "single" else 1)  # flattening copies it once
     report.note(f"cache    {cache.path}: about {_human_bytes(frame_bytes * (frames + 1))} "
-                f"({_human_bytes(frame_bytes)} per frame x {frames + 1} frames)")
+                f"({_human_bytes(frame_bytes)} per frame x {frames + 1} frames"
+                + (f", {count} of them to write)" if start else ")"))
     free = free_bytes(cache.folder.dir)
     if total > free:
         raise ValueError(f"{cache.path}: the cache needs about {_human_bytes(total)} "
