@@ -421,6 +421,33 @@ def test_robustness_spin_keys_turn_at_the_spin_rate():
     assert abs(2.0 * math.degrees(math.atan2(s.rotation[2], s.rotation[3])) - 140.0) < 1e-6
 
 
+def test_robustness_newton_rod_rests_on_its_collider():
+    """Newton's VBD rod released onto the peers' capsule and floor for 1 s: every run finishes finite with the
+    figures of the MuJoCo peer; with shape contacts the rod's surface never goes more than 1 mm into the collider,
+    and without them the rod swings through the capsule (its centre line more than 1 cm inside)."""
+    try:
+        import newton  # noqa: F401
+    except ImportError as e:
+        pytest.skip(f"newton is not importable: {e}")
+    from hairwarp.benchmarks.common import RADIUS
+    from hairwarp.benchmarks.robustness import PEER_NEWTON_ITERATIONS, PEER_SEGMENTS, newton_rest
+
+    out = newton_rest({"duration": 1.0})
+    assert out["iterations"] == PEER_NEWTON_ITERATIONS and out["segments"] == PEER_SEGMENTS and out["newton"]
+    assert set(out["results"]) == {"capsule", "plane"}
+    for entry in out["results"].values():
+        for label in ("contact", "no_contact"):
+            r = entry[label]
+            assert r["finite"] and r["frames_done"] == 30
+            assert len(r["rms_speed_per_second_mm_s"]) == 1 and len(r["rms_speed_per_frame_mm_s"]) == 30
+        rv = entry["contact"]["resting"]
+        assert set(rv) == {"points", "max_mm"} and "resting" not in entry["no_contact"]
+        assert entry["contact"]["min_clearance_mm"] > -1.0
+    # the rod drapes over the capsule: some of its points lie on it in the last second
+    assert out["results"]["capsule"]["contact"]["resting"]["points"] > 0
+    assert out["results"]["capsule"]["no_contact"]["min_clearance_mm"] < -1e3 * RADIUS - 10.0
+
+
 def test_single_layer_baseline_writes_what_the_cache_writer_writes(tmp_path):
     """The dense suite's baseline writer (one layer saved each frame) stores the same samples as the clip-layer
     cache: both read back with usd-core, frame by frame, bit for bit (both store the float32 points as given)."""

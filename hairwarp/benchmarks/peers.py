@@ -6,8 +6,9 @@ along body -z, centre of mass at (0, 0, -L/2), explicit mass and inertia in ever
 Warp and Newton store quaternions (x, y, z, w), MuJoCo (w, x, y, z).
 
 ``run_request(request)`` is the child's entry; ``request["kind"]`` is ``throughput``,
-``trajectory``, ``reference``, ``stability_mujoco``, ``stability_newton`` or ``robustness_mujoco_rest``
-(:func:`hairwarp.benchmarks.robustness.mujoco_rest`).
+``trajectory``, ``reference``, ``stability_mujoco``, ``stability_newton``, ``robustness_mujoco_rest``
+(:func:`hairwarp.benchmarks.robustness.mujoco_rest`) or ``robustness_newton_rest``
+(:func:`hairwarp.benchmarks.robustness.newton_rest`).
 """
 
 from __future__ import annotations
@@ -738,4 +739,8 @@ def run_request(req: dict) -> dict:
         from hairwarp.benchmarks.robustness import mujoco_rest
 
         return mujoco_rest(req)
+    if kind == "robustness_newton_rest":
+        from hairwarp.benchmarks.robustness import newton_rest
+
+        return newton_rest(req)
     raise ValueError(f"unknown request kind {kind!r}")

@@ -1,5 +1,5 @@
 """Suite ``robustness``: does the hair hold up as a user runs it? Rest, stability grid, convergence in the
-substeps, frame-rate steps, head teleports, and MuJoCo's chain at rest on a collider.
+substeps, frame-rate steps, head teleports, and MuJoCo's chain and Newton's VBD rod at rest on a collider.
 
 Every figure is measured through the public API only (:class:`hairwarp.Scene`, :class:`hairwarp.runner.Simulation`
 with ``advance_frame``, ``guide_curves``, ``frame_stats``, :class:`hairwarp.SimulationFault`), on the shipped scenes
@@ -13,8 +13,8 @@ read as raw TOML and changed there, so the suite measures whatever physics the c
 * :func:`bench_convergence` - tips against the 32-substep run as the substeps grow, with and without links.
 * :func:`bench_frame_rate` - every shipped scene with links at 2 and 1 substeps against 16.
 * :func:`bench_teleport` - a 0.5 m head jump in 1 ms and a 0.5 m move in 2 frames.
-* :func:`bench_peers` - MuJoCo's chain (``peers.mujoco_chain_xml`` with capsule geoms) at rest on a capsule and on
-  a plane, in a child process.
+* :func:`bench_peers` - MuJoCo's chain (``peers.mujoco_chain_xml`` with capsule geoms) and Newton's VBD rod
+  (``add_rod``, shape contacts) at rest on a capsule and on a plane, each in a child process.
 * :func:`suite_robustness` - all of them; :func:`md_robustness` its report section.
 """
 
@@ -567,7 +567,7 @@ def bench_extreme(duration: float, overrides=(), scene_name: str = "long_hair", 
 
 
 # ---------------------------------------------------------------------------------------------
-# 6. peers: MuJoCo's chain at rest on a collider (child process)
+# 6. peers: MuJoCo's chain and Newton's VBD rod at rest on a collider (child processes)
 
 PEER_SEGMENTS = 20
 PEER_EI = 2.0e-4  # the shipped scenes' bend stiffness [N m^2]
@@ -578,6 +578,11 @@ PEER_FPS = 30.0
 # floor 0.25 m under the root, so the last 5 cm of the 0.3 m strand lie on it.
 PEER_CAPSULE = {"center": (-0.15, 0.0, -0.08), "radius": 0.05, "half_length": 0.2}
 PEER_FLOOR_Z = -0.25
+# Newton's VBD rod: the iterations of the stability suite's runs, a contact stiffness that keeps the rod's surface
+# within a fraction of its radius of the collider's, and a detection gap above the rod's travel in a step.
+PEER_NEWTON_ITERATIONS = 10
+PEER_NEWTON_CONTACT_KE = 1.0e4  # [N/m]
+PEER_NEWTON_GAP = 0.01  # [m]
 
 
 def _mujoco_rest_xml(collider: str, contact: bool) -> str:
@@ -671,23 +676,156 @@ def mujoco_rest(req: dict) -> dict:
             "bend_stiffness": PEER_EI, "duration_s": duration, "results": out}
 
 
+def _newton_rest_model(collider: str, contact: bool):
+    """Newton's VBD rod of the peers' strand hanging straight down from the origin (``add_rod``, bend and twist
+    stiffness EI / L [N m/rad] and damping PEER_HAIR_DAMPING / L [N m s/rad] at every joint, the cylinder mass
+    properties), its root a rod joint to the world with the same spring, and the collider a static shape where
+    MuJoCo's XML places it. Returns the model and the rod's body indices (body origin at the segment's centre, local
+    +z from root to tip)."""
+    import newton
+    import warp as wp
+
+    from hairwarp.benchmarks.common import DENSITY, GRAVITY, RADIUS, STRAND_LENGTH, straight_strands
+    from hairwarp.benchmarks.peers import _cylinder_bodies
+
+    S = PEER_SEGMENTS
+    L = STRAND_LENGTH / S
+    k, kd = PEER_EI / L, PEER_HAIR_DAMPING / L
+    builder = newton.ModelBuilder(gravity=(0.0, 0.0, -GRAVITY))
+    # MuJoCo's sliding friction; its torsional and rolling coefficients are Newton's defaults
+    cfg = newton.ModelBuilder.ShapeConfig(density=DENSITY, ke=PEER_NEWTON_CONTACT_KE, mu=0.5, gap=PEER_NEWTON_GAP,
+                                          has_shape_collision=contact, has_particle_collision=False)
+    verts = straight_strands(np.zeros((1, 3)), S, np.array([0.0, 0.0, -1.0]))
+    rod = newton.Rod([wp.vec3(*p) for p in verts[0]], radius=RADIUS)
+    bodies, joints = builder.add_rod(rod=rod, cfg=cfg, stretch_stiffness=1.0e5, stretch_damping=0.0,
+                                     bend_stiffness=k, bend_damping=kd, twist_stiffness=k, twist_damping=kd,
+                                     wrap_in_articulation=False)
+    _cylinder_bodies(builder, bodies, S)
+    # The root: a rod joint to the world at the origin, its world anchor's +z pointing down, so that its spring rests
+    # with the strand hanging straight down, as the spring of MuJoCo's root ball joint.
+    down = wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), math.pi)
+    root = builder.add_joint_rod(parent=-1, child=bodies[0], parent_xform=wp.transform(wp.vec3(0.0, 0.0, 0.0), down),
+                                 child_xform=wp.transform(wp.vec3(0.0, 0.0, -L / 2), wp.quat_identity()),
+                                 stretch_stiffness=1.0e5, stretch_damping=0.0, bend_stiffness=k, bend_damping=kd,
+                                 twist_stiffness=k, twist_damping=kd)
+    builder.add_articulation([*joints, root])
+    if collider == "capsule":
+        c = PEER_CAPSULE
+        # along y: MuJoCo's euler='1.5707963 0 0' turns the capsule's z axis about x
+        turn = wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), 1.5707963)
+        builder.add_shape_capsule(-1, xform=wp.transform(wp.vec3(*c["center"]), turn), radius=c["radius"],
+                                  half_height=c["half_length"], cfg=cfg)
+    else:
+        builder.add_ground_plane(height=PEER_FLOOR_Z, cfg=cfg)
+    builder.color()
+    return builder.finalize(device="cpu"), bodies
+
+
+def _newton_points(body_q: np.ndarray, L: float) -> np.ndarray:
+    """Joint positions and the tip of the rod (S+1, 3) from its bodies' poses (S, 7)."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(body_q, np.float64)
+    half = Rotation.from_quat(q[:, 3:]).apply([0.0, 0.0, L / 2])
+    return np.concatenate([q[:, :3] - half, q[-1:, :3] + half[-1:]])
+
+
+def newton_rest(req: dict) -> dict:
+    """Newton's VBD rod (:func:`_newton_rest_model`) released from the canonical tilt onto a static collider,
+    ``duration`` s at 1/240 s with PEER_NEWTON_ITERATIONS iterations, shape contacts from ``CollisionPipeline``
+    passed to ``SolverVBD.step``: the outputs of :func:`mujoco_rest`, with contacts and without (no collision
+    pipeline, the collider's shape not colliding); plus the smallest clearance between the rod's surface and the
+    collider over the run (negative: inside)."""
+    import newton
+    import warp as wp
+    from scipy.spatial.transform import Rotation
+
+    from hairwarp.benchmarks.common import RADIUS, STRAND_LENGTH, TILT_DEG
+
+    wp.config.quiet = True
+    S = PEER_SEGMENTS
+    L = STRAND_LENGTH / S
+    duration = float(req["duration"])
+    per_frame = int(round(1.0 / (PEER_FPS * PEER_DT)))
+    frames = int(round(duration * PEER_FPS))
+    turn = Rotation.from_rotvec([0.0, math.radians(TILT_DEG), 0.0])
+    out = {}
+    for collider in ("capsule", "plane"):
+        entry = {}
+        for label, contact in (("contact", True), ("no_contact", False)):
+            model, bodies = _newton_rest_model(collider, contact)
+            solver = newton.solvers.SolverVBD(model, iterations=PEER_NEWTON_ITERATIONS)
+            pipeline = newton.CollisionPipeline(model) if contact else None
+            contacts = pipeline.contacts() if contact else None
+            states = [model.state(), model.state()]
+            control = model.control()
+            # released turned TILT_DEG about the root, at rest
+            q = states[0].body_q.numpy().astype(np.float64)
+            q[:, :3] = turn.apply(q[:, :3])
+            q[:, 3:] = (turn * Rotation.from_quat(q[:, 3:])).as_quat()
+            for s in states:
+                s.body_q.assign(q.astype(np.float32))
+            pts = [_newton_points(q[bodies], L)]
+            for _ in range(frames):
+                for _ in range(per_frame):
+                    states[0].clear_forces()
+                    if contact:
+                        pipeline.collide(states[0], contacts)
+                    solver.step(states[0], states[1], control, contacts, PEER_DT)
+                    states[0], states[1] = states[1], states[0]
+                pts.append(_newton_points(states[0].body_q.numpy()[bodies], L))
+                if not np.isfinite(pts[-1]).all():
+                    break
+            pts = np.asarray(pts)
+            finite = bool(np.isfinite(pts).all())
+            tips = pts[:, -1:, :]
+            speed = tip_speeds(tips, 1.0 / PEER_FPS)
+            per_s = rms_per_second(speed, PEER_FPS)
+            dist = np.stack([_collider_distance(collider, p) for p in pts])
+            rec = {"finite": finite, "frames_done": len(pts) - 1,
+                   "rms_speed_per_second_mm_s": [1e3 * s for s in per_s],
+                   "rms_speed_per_frame_mm_s": (1e3 * speed[:, 0]).tolist(),
+                   "min_clearance_mm": 1e3 * float(dist.min() - RADIUS) if finite else None}
+            if contact:
+                window = pts[-int(PEER_FPS) - 1:]
+                near = dist[-int(PEER_FPS) - 1:]
+                resting = (near <= RADIUS + 1.0e-3).all(axis=0)
+                resting[0] = False  # the root
+                motion = np.linalg.norm(np.diff(window, axis=0), axis=-1)[:, resting]
+                rec["resting"] = {"points": int(resting.sum()),
+                                  "max_mm": 1e3 * float(motion.max()) if resting.any() and finite else None}
+            entry[label] = rec
+        out[collider] = entry
+    return {"newton": newton.__version__, "segments": S, "dt": PEER_DT, "solver": "SolverVBD",
+            "iterations": PEER_NEWTON_ITERATIONS, "bend_stiffness": PEER_EI,
+            "contact_stiffness": PEER_NEWTON_CONTACT_KE, "duration_s": duration, "results": out}
+
+
+def _second_figures(r: dict, second: int) -> None:
+    """Add the tip speed of ``second`` with contacts and without, and their ratio, to each collider of a peer's
+    at-rest result."""
+    if r.get("status") != "ok":
+        return
+    for entry in r["results"].values():
+        c = entry["contact"]["rms_speed_per_second_mm_s"]
+        n = entry["no_contact"]["rms_speed_per_second_mm_s"]
+        entry["second_mm_s"] = c[second - 1] if len(c) >= second else None
+        entry["no_contact_second_mm_s"] = n[second - 1] if len(n) >= second else None
+        entry["ratio"] = (entry["second_mm_s"] / entry["no_contact_second_mm_s"]
+                          if entry["second_mm_s"] is not None and entry["no_contact_second_mm_s"] else None)
+
+
 def bench_peers(duration: float, second: int, timeout_s: float = 240.0) -> dict:
     r = run_child({"kind": "robustness_mujoco_rest", "duration": duration}, timeout_s)
-    if r.get("status") == "ok":
-        for entry in r["results"].values():
-            c = entry["contact"]["rms_speed_per_second_mm_s"]
-            n = entry["no_contact"]["rms_speed_per_second_mm_s"]
-            entry["second_mm_s"] = c[second - 1] if len(c) >= second else None
-            entry["no_contact_second_mm_s"] = n[second - 1] if len(n) >= second else None
-            entry["ratio"] = (entry["second_mm_s"] / entry["no_contact_second_mm_s"]
-                              if entry["second_mm_s"] is not None and entry["no_contact_second_mm_s"] else None)
+    nw = run_child({"kind": "robustness_newton_rest", "duration": duration}, timeout_s)
+    _second_figures(r, second)
+    _second_figures(nw, second)
     not_modelled = {
         "mujoco": "sweep, frame rate and teleport: the chain of peers.py is one strand without static links, hair "
                   "contacts or a groom on a head, so the long_hair cases have no counterpart there",
-        "newton": "not modelled: the stability suite runs Newton's VBD rods without contacts; rods resting on a "
-                  "collider need Newton's shape contacts set up and checked first, not done here",
+        "newton": "sweep, frame rate and teleport, as for MuJoCo: one VBD rod, no links, hair contacts or groom",
     }
-    return {"mujoco_rest": r, "second": second, "not_modelled": not_modelled}
+    return {"mujoco_rest": r, "newton_rest": nw, "second": second, "not_modelled": not_modelled}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -711,12 +849,14 @@ def chart_rest(rest: dict, peers: dict | None, path) -> Path:
             ax.plot(t, y, ls=ls, color=colors[n % 10], lw=1.1 if ls == "-" else 0.9,
                     label=f"{row['scene']}" + (" (colliders)" if label == "colliders" else " (no colliders)"))
         n += 1
-    mj = (peers or {}).get("mujoco_rest", {})
-    if mj.get("status") == "ok":
-        for collider, entry in mj["results"].items():
+    for key, name in (("mujoco_rest", "MuJoCo chain"), ("newton_rest", "Newton VBD rod")):
+        pr = (peers or {}).get(key, {})
+        if pr.get("status") != "ok":
+            continue
+        for collider, entry in pr["results"].items():
             y = np.maximum(np.asarray(entry["contact"]["rms_speed_per_frame_mm_s"]), 1e-4)
             ax.plot((np.arange(len(y)) + 1) / PEER_FPS, y, ls=":", color=colors[n % 10], lw=1.0,
-                    label=f"MuJoCo chain on a {collider}")
+                    label=f"{name} on a {collider}")
             n += 1
     ax.axhline(GOAL_REST_MM_S, color="k", lw=0.8, ls="-.", label=f"goal {GOAL_REST_MM_S:g} mm/s")
     s = rest["second"]
@@ -1016,28 +1156,48 @@ def md_robustness(data: dict) -> list[str]:
                          f"{_v(r['meets'])} |")
     lines += ["", "### Peers", ""]
     mj = peers["mujoco_rest"]
+    nw = peers.get("newton_rest") or {"status": "not run"}
+    setup = []
     if mj.get("status") == "ok":
-        lines += [f"MuJoCo {mj['mujoco']}: the chain of `peers.py` ({mj['segments']} segments of 0.3 m, EI "
-                  f"{mj['bend_stiffness']:g} N m² as joint springs, capsule geoms of the strand's radius, "
-                  f"`{mj['integrator']}` at {mj['dt'] * 1e3:.3g} ms), released from the 80° tilt onto a static "
-                  f"capsule (radius {PEER_CAPSULE['radius']:g} m) or onto a floor, {mj['duration_s']:g} s; the same "
-                  f"without contacts. Tip speed from 30 fps samples as above; *resting*: joint points within the "
-                  f"strand's radius + 1 mm of the collider over the last second.", "",
-                  f"| collider | second {peers['second']} [mm/s] (goal ≤ {GOAL_REST_MM_S:g}) | without contacts "
-                  f"| ratio (goal ≤ {GOAL_REST_RATIO:g}×) | resting points, max per frame [mm] (goal < "
+        setup.append(f"MuJoCo {mj['mujoco']}: the chain of `peers.py` ({mj['segments']} segments of 0.3 m, EI "
+                     f"{mj['bend_stiffness']:g} N m² as joint springs, capsule geoms of the strand's radius, "
+                     f"`{mj['integrator']}` at {mj['dt'] * 1e3:.3g} ms), released from the 80° tilt onto a static "
+                     f"capsule (radius {PEER_CAPSULE['radius']:g} m) or onto a floor, {mj['duration_s']:g} s; the "
+                     f"same without contacts. Tip speed from 30 fps samples as above; *resting*: joint points within "
+                     f"the strand's radius + 1 mm of the collider over the last second.")
+    if nw.get("status") == "ok":
+        clear = ", ".join(f"{c} {_f(e['contact']['min_clearance_mm'], 2)} mm" for c, e in nw["results"].items())
+        setup.append(f"Newton {nw['newton']}: the same strand as a VBD rod (`add_rod`, {nw['segments']} capsule "
+                     f"bodies with the cylinder mass properties, EI / L as bend and twist stiffness and the hair "
+                     f"damping at every rod joint, the root a rod joint to the world with the same spring), "
+                     f"`{nw['solver']}` with {nw['iterations']} iterations at {nw['dt'] * 1e3:.3g} ms, shape contacts "
+                     f"from `CollisionPipeline` (stiffness {nw['contact_stiffness']:g} N/m, friction 0.5) on a static "
+                     f"capsule shape or ground plane placed as MuJoCo's, {nw['duration_s']:g} s; smallest clearance "
+                     f"between rod and collider over the run (negative: inside): {clear}. At "
+                     f"{nw['iterations']} iterations the rod's bending springs barely act (without them its motion "
+                     f"is nearly the same, as is MuJoCo's chain without its springs), so it wraps the capsule where "
+                     f"the chain lies across it: the rows compare the solvers as they run, not one motion.")
+    if setup:
+        lines.append(" ".join(setup))
+    runs = [(name, r) for name, r in (("MuJoCo", mj), ("Newton", nw)) if r.get("status") == "ok"]
+    if runs:
+        lines += ["", f"| peer, collider | second {peers['second']} [mm/s] (goal ≤ {GOAL_REST_MM_S:g}) | without "
+                  f"contacts | ratio (goal ≤ {GOAL_REST_RATIO:g}×) | resting points, max per frame [mm] (goal < "
                   f"{GOAL_RESTING_MM:g}) |", "|---|---:|---:|---:|---|"]
-        for collider, e in mj["results"].items():
-            rv = e["contact"].get("resting", {})
-            lines.append(f"| {collider} | {_f(e['second_mm_s'])} "
-                         f"{_v(e['second_mm_s'] is not None and e['second_mm_s'] <= GOAL_REST_MM_S)} "
-                         f"| {_f(e['no_contact_second_mm_s'])} | {_f(e['ratio'])} "
-                         f"{_v(e['ratio'] is not None and e['ratio'] <= GOAL_REST_RATIO)} "
-                         f"| {rv.get('points')}, {_f(rv.get('max_mm'))} "
-                         f"{_v(rv.get('max_mm') is not None and rv['max_mm'] < GOAL_RESTING_MM)} |")
-        lines += ["", "The chain without contacts has no air drag and only the hair damping in its joints: it swings "
+        for name, r in runs:
+            for collider, e in r["results"].items():
+                rv = e["contact"].get("resting", {})
+                lines.append(f"| {name}, {collider} | {_f(e['second_mm_s'])} "
+                             f"{_v(e['second_mm_s'] is not None and e['second_mm_s'] <= GOAL_REST_MM_S)} "
+                             f"| {_f(e['no_contact_second_mm_s'])} | {_f(e['ratio'])} "
+                             f"{_v(e['ratio'] is not None and e['ratio'] <= GOAL_REST_RATIO)} "
+                             f"| {rv.get('points')}, {_f(rv.get('max_mm'))} "
+                             f"{_v(rv.get('max_mm') is not None and rv['max_mm'] < GOAL_RESTING_MM)} |")
+        lines += ["", "A strand without contacts has no air drag and only the hair damping in its joints: it swings "
                   "on, so its ratio says little; the figures with contacts are the comparison."]
-    else:
-        lines.append(f"- MuJoCo at rest: {mj.get('status')}: {mj.get('message', '')[:200]}")
+    failed = [f"- {name} at rest: {r.get('status')}: {r.get('message', '')[:200]}"
+              for name, r in (("MuJoCo", mj), ("Newton", nw)) if r.get("status") != "ok"]
+    lines += ([""] if runs and failed else []) + failed
     lines += [""] + [f"- {k}: {v}." for k, v in peers["not_modelled"].items()]
     pw = data.get("part_wall_s", {})
     lines += ["", f"*Suite `robustness`: {data.get('wall_s')} s (" + ", ".join(f"{k} {v} s" for k, v in pw.items())
