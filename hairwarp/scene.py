@@ -488,7 +488,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                     "pivot": Field("vec3", None, "world point the head turns about; default: the neck, "
                                                  "center - (0, 0, radii.z)", "m"),
                     "keys": ArrayOf(_MOTION_KEY, doc="keyframes: the keys, in time order"),
-                    "file": Field("path", None, "usd: the stage holding the head's animation, relative to the scene "
+                    "file": Field("path", None, "usd: the stage holding the head's animation (played from its "
+                                                "startTimeCode), relative to the scene "
                                                 "file", suffixes=(".usd", ".usda", ".usdc", ".usdz")),
                     "prim": Field("str", None, "usd: the head's prim path in that stage, e.g. /Character/Head, or "
                                                "a Skeleton's (with joint); the head moves as it does from its first "

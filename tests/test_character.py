@@ -41,16 +41,20 @@ def test_skeleton_head_joint_moves_as_the_head_prim(tmp_path):
     times, prim_poses = read_prim_motion(path, "/Character/Head")
     joint_times, joint_poses = read_prim_motion(path, "/Character/Rig/Skel", "Head")
     np.testing.assert_array_equal(joint_times, times)
-    # float32 angles on one side, float32 quaternions on the other: 1e-7 of a rotation at 1.5 m
-    np.testing.assert_allclose(joint_poses, prim_poses, rtol=0, atol=1e-6)
+    # Both are read at every frame of the stage; at the authored samples (every second frame) float32 angles on one
+    # side and float32 quaternions on the other agree to 1e-7 of a rotation at 1.5 m. Between them USD interpolates
+    # the prim's Euler angles linearly and the joint's rotations by slerp: 1.8e-6 m apart at most here.
+    authored = np.round(times * 24.0) % 2 == 0
+    np.testing.assert_allclose(joint_poses[authored], prim_poses[authored], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(joint_poses, prim_poses, rtol=0, atol=5e-6)
     by_prim = head_motion_from_usd(path, "/Character/Head")
     by_joint = head_motion_from_usd(path, "/Character/Rig/Skel", joint="Hips/Spine/Neck/Head")
     # the shipped scene on the joint instead of the prim
     on_joint = hw.Scene.load(SCENES / "character.toml", overrides=["head.motion.prim='/Character/Rig/Skel'",
                                                                    "head.motion.joint='Head'"]).head_motion()
-    for t in np.linspace(0.0, END / 24.0, 145):
-        np.testing.assert_allclose(by_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=1e-6)
-        np.testing.assert_allclose(on_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=1e-6)
+    for t in np.linspace(0.0, END / 24.0, 145):  # between samples as above
+        np.testing.assert_allclose(by_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=5e-6)
+        np.testing.assert_allclose(on_joint.evaluate(t).matrix(), by_prim.evaluate(t).matrix(), rtol=0, atol=5e-6)
 
 
 def test_shipped_character_stage_is_the_generated_one(tmp_path):

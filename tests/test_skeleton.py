@@ -164,8 +164,11 @@ def test_joint_world_poses_equal_the_chain_composed_by_hand(skel_stage, joint):
 
     times, matrices = read_prim_motion(skel_stage, "/Char/Skel", joint)
     codes = sorted(set(ANIM_CODES) | set(PRIM_CODES))
-    np.testing.assert_allclose(times, np.array(codes) / FPS, rtol=0, atol=1e-12)
-    for code, m in zip(codes, matrices):
+    # read at every frame of the stage between the first sample and the last, so that the head follows USD's own
+    # interpolation between the samples; checked by hand at the samples
+    np.testing.assert_allclose(times, np.arange(codes[0], codes[-1] + 1) / FPS, rtol=0, atol=1e-12)
+    for code in codes:
+        m = matrices[code - codes[0]]
         expect = _expected_head(code)
         np.testing.assert_allclose(m[:3, 3], expect[:3, 3], rtol=0, atol=ATOL_M, err_msg=f"code {code}")
         np.testing.assert_allclose(m[:3, :3], expect[:3, :3], rtol=0, atol=ATOL_ROT, err_msg=f"code {code}")
@@ -260,3 +263,42 @@ def test_joint_applies_to_usd_motion_only(tmp_path):
 
     with pytest.raises(hw.SceneError, match=r"head.motion.joint: applies to kind = \"usd\" only"):
         hw.Scene.from_dict({"head": {"motion": {"kind": "nod", "joint": "Head"}}})
+
+
+def _turning_head(path, start: float, angles: dict, start_time_code=None):
+    """A Z-up stage at 24 codes a second whose /Head Xform turns about z: ``angles`` time code -> degrees."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    stage.SetTimeCodesPerSecond(FPS)
+    if start_time_code is not None:
+        stage.SetStartTimeCode(start_time_code)
+        stage.SetEndTimeCode(max(angles))
+    op = UsdGeom.Xform.Define(stage, "/Head").AddRotateZOp()
+    for code, deg in angles.items():
+        op.Set(float(deg), start + code - min(angles))
+    stage.Save()
+    return path
+
+
+def _turn_deg(matrix) -> float:
+    return float(np.degrees(np.arctan2(matrix[1, 0], matrix[0, 0])))
+
+
+def test_a_usd_head_plays_from_the_stages_start_and_turns_as_usd_interpolates(tmp_path):
+    """A shot authored from time code 1001 (its stage's startTimeCode) plays from the run's first frame: 12 codes
+    later (0.5 s at 24 codes a second) the head has turned as keyed. A turn keyed 0 then 270 degrees 12 codes apart
+    goes the long way round, as USD's rotateZ interpolates it: 90 degrees at code 4, where keys through the two
+    samples alone turned -30 degrees the short way."""
+    from hairwarp.io.usd_anim import head_motion_from_usd
+
+    shot = _turning_head(tmp_path / "shot.usda", 1001.0, {1001: 0.0, 1013: 30.0}, start_time_code=1001.0)
+    motion = head_motion_from_usd(shot, "/Head", interpolation="linear")
+    assert _turn_deg(motion.evaluate(0.0).matrix()) == pytest.approx(0.0, abs=1e-9)
+    # float32 angles: 1e-5 degrees
+    assert _turn_deg(motion.evaluate(12 / FPS).matrix()) == pytest.approx(30.0, abs=1e-5)
+    long_way = _turning_head(tmp_path / "spin.usda", 0.0, {0: 0.0, 12: 270.0})
+    motion = head_motion_from_usd(long_way, "/Head", interpolation="linear")
+    assert _turn_deg(motion.evaluate(4 / FPS).matrix()) == pytest.approx(90.0, abs=1e-5)
+    assert _turn_deg(motion.evaluate(6 / FPS).matrix()) == pytest.approx(135.0, abs=1e-5)

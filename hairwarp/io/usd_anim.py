@@ -19,6 +19,28 @@ __all__ = ["head_motion_from_usd", "mesh_motion", "read_animated_collider", "rea
 _CONSTANT_SCALE_RTOL = 1.0e-6
 
 
+def _seconds(stage, codes) -> np.ndarray:
+    """Time codes as seconds of the run: from the stage's start time code where it has one authored (a shot that
+    starts at frame 1001 plays from the run's first frame), else from time code 0; ``timeCodesPerSecond`` codes a
+    second. One time, 0, when there is no code."""
+    if not len(codes):
+        return np.zeros(1)
+    origin = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else 0.0
+    return (np.asarray(codes, dtype=np.float64) - origin) / (stage.GetTimeCodesPerSecond() or 24.0)
+
+
+def _every_code(codes) -> list[float]:
+    """``codes`` and every whole time code between the first and the last: a rigid motion read at each of the
+    stage's frames follows USD's own interpolation of its transform ops (a rotateY keyed 0 then 270 degrees turns
+    the long way round, a translate and a rotate keyed together move the prim along USD's path), which keyframes
+    through the authored samples alone would not (they turn the short way, about another centre)."""
+    if len(codes) < 2:
+        return list(codes)
+    first, last = float(codes[0]), float(codes[-1])
+    whole = np.arange(np.ceil(first), np.floor(last) + 1.0)
+    return sorted(set(map(float, codes)) | set(map(float, whole)))
+
+
 def _find_mesh(stage, prim_path, path):
     from pxr import UsdGeom
 
@@ -74,8 +96,10 @@ def read_animated_mesh(path, prim_path=None):
     Returns:
         ``(vertices, faces, times, matrices)``: vertices [m] in the mesh's own frame, float64 ``(V, 3)``, or
         ``(T, V, 3)`` when the points themselves are time-sampled (then one set per time); faces ``(F, 3)`` int64;
-        times [s] ``(T,)`` (time code / timeCodesPerSecond; a stage with no sample gives one time, 0, read at
-        the default time); matrices ``(T, 4, 4)`` rigid world poses, column convention (``p_world = M @ [p, 1]``).
+        times [s] ``(T,)`` (time codes from the stage's authored start, ``_seconds``; the frames between the
+        samples too when only transforms are animated, ``_every_code``; a stage with no sample gives one time, 0,
+        read at the default time); matrices ``(T, 4, 4)`` rigid world poses, column convention
+        (``p_world = M @ [p, 1]``).
         ``vertices`` moved by ``matrices[i]`` is the mesh in the world at ``times[i]``.
 
     Raises:
@@ -190,7 +214,7 @@ def _joint_poses(stage, prim, joint, c4, where):
     elif not codes:
         raise _keyed("prim", f"{where}: the skeleton has no bound animation (skel:animationSource) and no "
                              "transform samples, so the joint would stay still at its rest pose")
-    codes = sorted(codes)
+    codes = _every_code(sorted(codes))
     time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
     usd = []
     for tc in time_codes:
@@ -202,8 +226,7 @@ def _joint_poses(stage, prim, joint, c4, where):
         # Row vectors: a point in the joint's frame goes to skeleton space, then to the world.
         usd.append(np.array(skel_space[index], dtype=np.float64) @ to_world)
     matrices, _ = _rigid_poses(usd, codes, c4, where)
-    tcps = stage.GetTimeCodesPerSecond() or 24.0
-    return (np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)), matrices
+    return _seconds(stage, codes), matrices
 
 
 def read_prim_motion(path, prim_path: str, joint: str | None = None):
@@ -250,11 +273,10 @@ def read_prim_motion(path, prim_path: str, joint: str | None = None):
                               f"Skeleton prim{hint}")
     if not UsdGeom.Xformable(prim):
         raise _keyed("prim", f"{where} is a {kind}, not transformable")
-    codes = sorted(_transform_times(prim))
-    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    codes = _every_code(sorted(_transform_times(prim)))
     time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
     matrices, _ = _rigid_world_poses(prim, time_codes, codes, c4, where)
-    return (np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)), matrices
+    return _seconds(stage, codes), matrices
 
 
 def head_motion_from_usd(path, prim_path: str, *, joint: str | None = None, interpolation: str = "smooth"):
@@ -290,9 +312,10 @@ def _read_animated_mesh(path, prim_path):
     points_attr = mesh.GetPointsAttr()
     point_times = points_attr.GetTimeSamples()
     codes = sorted(_transform_times(prim) | set(point_times))
-    tcps = stage.GetTimeCodesPerSecond() or 24.0
+    if not point_times:  # a rigid motion: read at every frame, as the head's (``_every_code``)
+        codes = _every_code(codes)
     time_codes = [Usd.TimeCode(t) for t in codes] or [Usd.TimeCode.Default()]
-    times = np.array(codes, dtype=np.float64) / tcps if codes else np.zeros(1)
+    times = _seconds(stage, codes)
 
     matrices, scale = _rigid_world_poses(prim, time_codes, codes, c4, where)
 
