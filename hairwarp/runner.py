@@ -264,11 +264,12 @@ class Simulation:
             elif c.kind == "plane":
                 out.append(Collider.plane(point=tuple(c.translate), normal=tuple(place[:3, 2]), name=c.name, **opts))
             elif c.kind == "ellipsoid":
-                out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, **opts))
+                out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, local_xform=place,
+                                              **opts))
             elif c.kind == "usd":
                 from hairwarp.io.usd_anim import read_animated_collider
 
-                opts.pop("attach")
+                opts.pop("attach")  # "world": the scene checks that no other is given
                 out.append(read_animated_collider(c.file, c.prim, name=c.name, **opts))
             else:
                 out.append(_mesh_collider(c.file, c.up_axis, c.scale, c.translate, c.rotate_deg, c.name, opts))

@@ -278,6 +278,18 @@ def _check_head(values, given, error):
         error("file", 'shape = "mesh" needs the mesh file')
 
 
+#: The ``[[colliders]]`` keys of one kind's shape and placement; ``name``, ``kind``, ``thickness`` and ``friction``
+#: apply to every kind. A usd collider moves as its stage animates it, in the world.
+_COLLIDER_KEYS = {
+    "sphere": ("radius", "translate", "rotate_deg", "attach"),
+    "capsule": ("radius", "half_height", "translate", "rotate_deg", "attach"),
+    "plane": ("translate", "rotate_deg", "attach"),
+    "ellipsoid": ("radii", "translate", "rotate_deg", "attach"),
+    "mesh": ("file", "up_axis", "scale", "translate", "rotate_deg", "attach"),
+    "usd": ("file", "prim"),
+}
+
+
 def _check_collider(values, given, error):
     kind = values["kind"]
     needs = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "ellipsoid": ("radii",),
@@ -285,6 +297,12 @@ def _check_collider(values, given, error):
     for key in needs:
         if values[key] is None:
             error(key, f'kind = "{kind}" needs {key}')
+    for key in sorted(set(given) - set(_COLLIDER_KEYS[kind]) - {"name", "kind", "thickness", "friction"}):
+        if key == "attach" and values[key] == "world":
+            continue
+        kinds = [k for k, keys in _COLLIDER_KEYS.items() if key in keys]
+        why = (" (a usd collider moves as its stage animates it, in the world)" if kind == "usd" else "")
+        error(key, f"is read by kind = {' or '.join(repr(k) for k in kinds)}, not by {kind!r}{why}")
 
 
 def _check_scene(values, given, error):

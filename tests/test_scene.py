@@ -478,3 +478,40 @@ def test_a_new_section_is_one_entry(monkeypatch, tmp_path):
     assert [c.radius for c in scene.colliders] == [0.2, 0.1]
     err = _errors(_write(tmp_path, MINIMAL + "[[colliders]]\nradius = 0.2\n[[colliders]]\nkind = 'box'\nradus = 1\n"))
     assert [p for p, _ in err.errors] == ["colliders[1].radus", "colliders[1].kind"]
+
+
+def test_collider_keys_a_kind_does_not_read_are_refused(tmp_path):
+    """A radius on a plane, a placement on a usd collider (which moves as its stage animates it, in the world): refused
+    naming the kinds that read them; the keys of every kind and attach = "world" are taken."""
+    err = _errors(_write(tmp_path, MINIMAL + "[[colliders]]\nname = 'floor'\nkind = 'plane'\nradius = 0.2\n"))
+    assert err.errors == [("colliders[0].radius", "is read by kind = 'sphere' or 'capsule', not by 'plane'")]
+    stage = tmp_path / "body.usda"
+    stage.write_text("#usda 1.0\n")
+    err = _errors(_write(tmp_path, MINIMAL + "[[colliders]]\nname = 'body'\nkind = 'usd'\nfile = 'body.usda'\n"
+                                             "attach = 'head'\nscale = 2.0\n"))
+    assert [path for path, _ in err.errors] == ["colliders[0].attach", "colliders[0].scale"]
+    assert all("moves as its stage animates it" in msg for _, msg in err.errors)
+    scene = Scene.load(_write(tmp_path, MINIMAL + "[[colliders]]\nname = 'egg'\nkind = 'ellipsoid'\n"
+                                                  "radii = [0.2, 0.1, 0.1]\nrotate_deg = [0.0, 0.0, 90.0]\n"
+                                                  "attach = 'world'\n"))
+    assert scene.colliders[0].rotate_deg == (0.0, 0.0, 90.0)
+
+
+def test_a_turned_ellipsoid_collider_is_turned_in_contact_and_in_the_cache():
+    """An ellipsoid of radii (0.2, 0.1, 0.1) turned 90 degrees about z has its long axis along y: a point 0.15 m along
+    y is inside (distance < 0), one 0.15 m along x outside by 0.05 m (float32 distances: 1e-6 m), and the mesh the
+    cache shows reaches 0.2 m along y."""
+    import numpy as np
+
+    from hairwarp.runner import Simulation
+
+    scene = Scene.load(SCENES / "tiny.toml", ["head.shape='none'"])
+    raw = scene.to_dict()
+    raw["colliders"] = [{"name": "egg", "kind": "ellipsoid", "radii": [0.2, 0.1, 0.1], "rotate_deg": [0.0, 0.0, 90.0],
+                         "translate": [0.0, 0.0, 0.0]}]
+    sim = Simulation(Scene.from_dict(raw, source=SCENES / "tiny.toml"))
+    d, _, _ = sim.collider_set.signed_distance([[0.0, 0.15, 0.0], [0.15, 0.0, 0.0]])
+    assert d[0, 0] < -0.01 and abs(d[1, 0] - 0.05) < 1e-6
+    (_, verts, _, world), = sim.collider_meshes(0.0)
+    shown = verts @ world[:3, :3].T + world[:3, 3]
+    assert np.ptp(shown[:, 1]) == pytest.approx(0.4, rel=1e-3) and np.ptp(shown[:, 0]) == pytest.approx(0.2, rel=1e-3)
