@@ -239,7 +239,6 @@ class Simulation:
     def _build_colliders(scene) -> list:
         """The head's collider (``[head]``) and the ``[[colliders]]`` of the scene."""
         from hairwarp.colliders import Collider
-        from hairwarp.motion import euler_xyz_deg_to_quat, quat_to_matrix
 
         out = []
         head = scene.head
@@ -251,29 +250,37 @@ class Simulation:
         elif head.shape == "mesh":
             out.append(_mesh_collider(head.file, head.up_axis, head.scale, head.translate, np.zeros(3), "head",
                                       contact))
-        for c in scene.colliders:
-            place = np.eye(4)
-            place[:3, :3] = quat_to_matrix(euler_xyz_deg_to_quat(c.rotate_deg))
-            place[:3, 3] = c.translate
-            opts = {"thickness": float(c.thickness), "friction": float(c.friction), "attach": c.attach}
-            if c.kind == "sphere":
-                out.append(Collider.sphere(float(c.radius), center=tuple(c.translate), name=c.name, **opts))
-            elif c.kind == "capsule":
-                out.append(Collider.capsule(float(c.radius), float(c.half_height), local_xform=place, name=c.name,
-                                            **opts))
-            elif c.kind == "plane":
-                out.append(Collider.plane(point=tuple(c.translate), normal=tuple(place[:3, 2]), name=c.name, **opts))
-            elif c.kind == "ellipsoid":
-                out.append(Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, local_xform=place,
-                                              **opts))
-            elif c.kind == "usd":
-                from hairwarp.io.usd_anim import read_animated_collider
-
-                opts.pop("attach")  # "world": the scene checks that no other is given
-                out.append(read_animated_collider(c.file, c.prim, name=c.name, **opts))
-            else:
-                out.append(_mesh_collider(c.file, c.up_axis, c.scale, c.translate, c.rotate_deg, c.name, opts))
+        for i, c in enumerate(scene.colliders):
+            try:
+                out.append(Simulation._build_collider(c))
+            except ValueError as exc:  # ColliderError, UsdFileError: name the scene's collider too
+                raise type(exc)(f"colliders[{i}] ({c.name}): {exc}") from None
         return out
+
+    @staticmethod
+    def _build_collider(c):
+        """One ``[[colliders]]`` table's collider."""
+        from hairwarp.colliders import Collider
+        from hairwarp.motion import euler_xyz_deg_to_quat, quat_to_matrix
+
+        place = np.eye(4)
+        place[:3, :3] = quat_to_matrix(euler_xyz_deg_to_quat(c.rotate_deg))
+        place[:3, 3] = c.translate
+        opts = {"thickness": float(c.thickness), "friction": float(c.friction), "attach": c.attach}
+        if c.kind == "sphere":
+            return Collider.sphere(float(c.radius), center=tuple(c.translate), name=c.name, **opts)
+        if c.kind == "capsule":
+            return Collider.capsule(float(c.radius), float(c.half_height), local_xform=place, name=c.name, **opts)
+        if c.kind == "plane":
+            return Collider.plane(point=tuple(c.translate), normal=tuple(place[:3, 2]), name=c.name, **opts)
+        if c.kind == "ellipsoid":
+            return Collider.ellipsoid(tuple(c.translate), tuple(c.radii), name=c.name, local_xform=place, **opts)
+        if c.kind == "usd":
+            from hairwarp.io.usd_anim import read_animated_collider
+
+            opts.pop("attach")  # "world": the scene checks that no other is given
+            return read_animated_collider(c.file, c.prim, name=c.name, **opts)
+        return _mesh_collider(c.file, c.up_axis, c.scale, c.translate, c.rotate_deg, c.name, opts)
 
     def collider_meshes(self, t: float) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
         """(name, local vertices, faces, world matrix at time t) of every collider, for the cache and previews."""

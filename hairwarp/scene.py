@@ -297,6 +297,9 @@ def _check_collider(values, given, error):
     for key in needs:
         if values[key] is None:
             error(key, f'kind = "{kind}" needs {key}')
+    if kind == "mesh" and values["file"] is not None and Path(values["file"]).suffix.lower() in (".usd", ".usda",
+                                                                                                  ".usdc"):
+        error("file", 'a USD stage: give it as kind = "usd" (its Mesh prim, animated or still)')
     for key in sorted(set(given) - set(_COLLIDER_KEYS[kind]) - {"name", "kind", "thickness", "friction"}):
         if key == "attach" and values[key] == "world":
             continue
@@ -1085,7 +1088,12 @@ class Scene:
         if cfg["file"] is None:
             return None
         H = np.eye(4) if head_rest is None else np.asarray(head_rest, dtype=np.float64)
-        track, faces = read_surface_track(cfg["file"], cfg["prim"], interpolation=cfg["interpolation"])
+        from hairwarp.io.usd_common import UsdFileError
+
+        try:
+            track, faces = read_surface_track(cfg["file"], cfg["prim"], interpolation=cfg["interpolation"])
+        except UsdFileError as exc:  # name the scene's key too
+            raise UsdFileError(f"{self._label}: groom.surface.prim: {exc}") from None
         roots = groom.roots() @ H[:3, :3].T + H[:3, 3]
         binding = ScalpBinding(track, faces, roots, head_rest=H, max_distance=cfg["max_distance"],
                                where=f"{self._label}: groom.surface ({cfg['file']}: {cfg['prim']})")

@@ -515,3 +515,23 @@ def test_a_turned_ellipsoid_collider_is_turned_in_contact_and_in_the_cache():
     (_, verts, _, world), = sim.collider_meshes(0.0)
     shown = verts @ world[:3, :3].T + world[:3, 3]
     assert np.ptp(shown[:, 1]) == pytest.approx(0.4, rel=1e-3) and np.ptp(shown[:, 0]) == pytest.approx(0.2, rel=1e-3)
+
+
+def test_collider_file_errors_name_the_collider(tmp_path):
+    """A USD stage given to a mesh collider is sent to kind = "usd"; a usd collider whose prim the stage lacks fails
+    when the simulation is built, naming the scene's collider as well as the file."""
+    from pxr import Usd, UsdGeom
+
+    from hairwarp.io.usd_common import UsdFileError
+    from hairwarp.runner import Simulation
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "body.usda"))
+    UsdGeom.Xform.Define(stage, "/Body")
+    stage.Save()
+    err = _errors(_write(tmp_path, MINIMAL + "[[colliders]]\nname = 'body'\nkind = 'mesh'\nfile = 'body.usda'\n"))
+    assert err.errors == [("colliders[0].file", 'a USD stage: give it as kind = "usd" (its Mesh prim, animated or '
+                                                 'still)')]
+    raw = Scene.load(SCENES / "tiny.toml").to_dict()
+    raw["colliders"] = [{"name": "body", "kind": "usd", "file": str(tmp_path / "body.usda"), "prim": "/Body/Nope"}]
+    with pytest.raises(UsdFileError, match=r"colliders\[0\] \(body\): .*body.usda"):
+        Simulation(Scene.from_dict(raw, source=SCENES / "tiny.toml"))
