@@ -104,9 +104,12 @@ def _cmd_info(args) -> int:
     if args.set and suffix != ".toml":
         raise ValueError(f"{path}: -s overrides apply to a scene (.toml), not to {suffix or 'this file'}")
     if suffix == ".toml":
+        from hairwarp.runner import Simulation
         from hairwarp.scene import Scene
 
-        print(Scene.load(path, args.set or ()).summary())
+        scene = Scene.load(path, args.set or ())
+        print(scene.summary())
+        Simulation.check_colliders(scene)  # their files and prims, as a run reads them
     elif suffix in _GROOM_SUFFIXES:
         print(_groom_summary(path))
     elif suffix in _USD_SUFFIXES:

@@ -428,11 +428,17 @@ def combinations(params: Mapping[str, Sequence[str]], mode: str = "grid") -> lis
 
 
 def _load(scene, overrides: list[str]):
+    """The scene (a path or a :class:`hairwarp.Scene`) with ``overrides``, validated, its colliders' files read as a
+    run reads them (so a bad one is refused before anything runs)."""
+    from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
     if isinstance(scene, Scene):
-        return scene.with_overrides(overrides) if overrides else scene
-    return Scene.load(scene, overrides=overrides)
+        scene = scene.with_overrides(overrides) if overrides else scene
+    else:
+        scene = Scene.load(scene, overrides=overrides)
+    Simulation.check_colliders(scene)
+    return scene
 
 
 def _plain(value):

@@ -258,6 +258,17 @@ class Simulation:
         return out
 
     @staticmethod
+    def check_colliders(scene) -> list:
+        """Build the scene's colliders, reading their files, as a run would before its first step: a file or prim
+        that a run would refuse raises here (ValueError naming the scene file and the collider), for checks before
+        anything runs (``hairwarp info``, batches and wedges). Returns them."""
+        try:
+            return Simulation._build_colliders(scene)
+        except ValueError as exc:
+            where = scene.source if scene.source is not None else scene.name
+            raise type(exc)(f"{where}: {exc}") from None
+
+    @staticmethod
     def _build_collider(c):
         """One ``[[colliders]]`` table's collider."""
         from hairwarp.colliders import Collider

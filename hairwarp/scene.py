@@ -1125,6 +1125,12 @@ class Scene:
         lines.append(f"head       {h['shape']}" + (f" at {_fmt(h['center'])} radii {_fmt(h['radii'])}"
                                                   if h["center"] is not None and h["shape"] != "none" else "")
                      + f", motion {self.head_motion()!r}")
+        for c in d["colliders"]:
+            what = {"sphere": f"radius {c['radius']}", "capsule": f"radius {c['radius']}, half height "
+                    f"{c['half_height']}", "ellipsoid": f"radii {_fmt(c['radii'])}", "plane": "",
+                    "mesh": f"{c['file']}", "usd": f"{c['file']}" + (f": {c['prim']}" if c["prim"] else "")}
+            where = "" if c["kind"] == "usd" else f", attached to the {c['attach']}"
+            lines.append(f"collider   {c['name']}: {c['kind']} {what[c['kind']]}".rstrip() + where)
         if any(w["velocity"]):
             lines.append(f"wind       {_fmt(w['velocity'])} m/s from {w['start']:g} s to {_fmt(w['end'])} s")
         return "\n".join(lines)

@@ -106,6 +106,25 @@ def test_info_scene():
     assert r.returncode == 2 and "-s overrides apply to a scene" in r.stderr
 
 
+def test_info_lists_the_colliders_and_reads_their_files(tmp_path):
+    """The shoulders scene's body is listed; a usd collider whose prim the stage lacks is refused by info as a run
+    refuses it (exit 2, naming the collider), not found out at run time."""
+    r = _hairwarp("info", SCENES / "long_hair_shoulders.toml")
+    assert r.returncode == 0, r.stderr
+    assert "collider   shoulders: capsule radius 0.08, half height 0.16, attached to the world" in r.stdout
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "body.usda"))
+    UsdGeom.Xform.Define(stage, "/Body")
+    stage.Save()
+    scene = tmp_path / "s.toml"
+    scene.write_text("[groom]\ngenerator = 'scalp'\n[[colliders]]\nname = 'body'\nkind = 'usd'\n"
+                     "file = 'body.usda'\nprim = '/Body'\n")
+    r = _hairwarp("info", scene)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "colliders[0] (body)" in r.stderr and str(scene) in r.stderr
+
+
 def _write_hair(path, strands):
     """Cem Yuksel's .hair file, written here with numpy: header, uint16 segments, float32 points."""
     counts = np.array([len(s) for s in strands])
