@@ -101,22 +101,25 @@ def test_a_failing_run_keeps_the_previous_cache(tmp_path):
 
 
 def test_resume_refuses_a_cache_that_would_not_fit_and_takes_a_changed_simulation(tmp_path):
-    """A run that faulted (explicit stiff springs at one step a frame) leaves its frames; --resume with another dense
-    hair count is refused (its curves would change between frames) and leaves them, --resume at more substeps with
-    the implicit integrator goes on from the last good frame and says what changed."""
+    """A run that faulted (explicit stiff springs at one step a frame) leaves its frames; a resume with another dense
+    hair count is refused (its curves would change between frames) and leaves them, a resume at more substeps with
+    the implicit integrator goes on from the last good frame and says what changed (through the API, as
+    ``hairwarp run --resume`` calls it; the command's exit codes are checked above)."""
+    import hairwarp as hw
+    from hairwarp.runner import simulate
+
     out = tmp_path / "tiny.usdc"
-    stiff = ["-s", 'sim.integrator="semi_implicit"', "-s", "strands.bend_stiffness=10.0", "-s", "sim.substeps=1"]
-    first = _run(out, "--frames", "6", *stiff)
-    assert first.returncode == 3, first.stderr
+    tiny = hw.Scene.load(TINY, ["output.preview=false", "strands.bend_stiffness=10.0"])
+    stiff = tiny.with_overrides(['sim.integrator="semi_implicit"', "sim.substeps=1"])
+    with pytest.raises(hw.SimulationFault):
+        simulate(stiff, out, frames=6, progress=False)
     partial = tmp_path / "tiny.partial" / "tiny.usdc"
     kept = _samples(partial)
-    refused = _run(out, "--frames", "6", *stiff, "-s", "dense.count=20", "--resume")
-    assert refused.returncode == 2 and "Traceback" not in refused.stderr
-    assert "cannot resume" in refused.stderr and "dense.count (20, was 0)" in refused.stderr
+    with pytest.raises(ValueError, match=r"cannot resume: .*dense.count \(20, was 0\)"):
+        simulate(stiff.with_overrides(["dense.count=20"]), out, frames=6, progress=False, resume=True)
     assert not out.exists() and _samples(partial).keys() == kept.keys()
-    fixed = _run(out, "--frames", "6", "-s", "strands.bend_stiffness=10.0", "-s", "sim.substeps=16", "--resume")
-    assert fixed.returncode == 0, fixed.stderr
-    assert "resuming with a changed simulation" in fixed.stderr and "sim.integrator" in fixed.stderr
+    result = simulate(tiny.with_overrides(["sim.substeps=16"]), out, frames=6, progress=False, resume=True)
+    assert any("resuming with a changed simulation" in n and "sim.integrator" in n for n in result.notes)
     stage = Usd.Stage.Open(str(out))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0.0, 6.0)
 

@@ -731,7 +731,8 @@ def _newton_points(body_q: np.ndarray, L: float) -> np.ndarray:
 
 
 def newton_rest(req: dict) -> dict:
-    """Newton's VBD rod (:func:`_newton_rest_model`) released from the canonical tilt onto a static collider,
+    """Newton's VBD rod (:func:`_newton_rest_model`) released from the canonical tilt onto a static collider (each of
+    ``req["colliders"]``, default the capsule and the plane),
     ``duration`` s at 1/240 s with PEER_NEWTON_ITERATIONS iterations, shape contacts from ``CollisionPipeline``
     passed to ``SolverVBD.step``: the outputs of :func:`mujoco_rest`, with contacts and without (no collision
     pipeline, the collider's shape not colliding); plus the smallest clearance between the rod's surface and the
@@ -750,7 +751,7 @@ def newton_rest(req: dict) -> dict:
     frames = int(round(duration * PEER_FPS))
     turn = Rotation.from_rotvec([0.0, math.radians(TILT_DEG), 0.0])
     out = {}
-    for collider in ("capsule", "plane"):
+    for collider in req.get("colliders", ("capsule", "plane")):
         entry = {}
         for label, contact in (("contact", True), ("no_contact", False)):
             model, bodies = _newton_rest_model(collider, contact)
