@@ -1111,7 +1111,9 @@ class Scene:
                      f"{sim['substeps']} substeps (dt = {self.step_dt * 1e3:.3g} ms), {sim['integrator']}, "
                      f"device {sim['device']}")
         if g["generator"] == "scalp":
-            lines.append(f"groom      scalp generator: {g['count']} guides x {g['length']:g} m, "
+            made = len(self.build_groom().strands)
+            asked = f" ({g['count']} asked: what the root grid holds)" if made != g["count"] else ""
+            lines.append(f"groom      scalp generator: {made} guides{asked} x {g['length']:g} m, "
                          f"{sim['segments']} segments each")
         else:
             cut = f", at most {g['max_strands']} strands" if g["max_strands"] else ""
