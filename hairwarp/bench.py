@@ -79,21 +79,29 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
     keep_header = old_machine is not None and not any(name in SUITES for name in suites)
     results["machine"] = old_machine if keep_header else machine
     t_all = time.perf_counter()
-    for name in suites:
-        log(f"== suite {name} ==")
-        t0 = time.perf_counter()
-        common.GATE.enabled = config.quiet_gate
-        common.GATE.budget_s = config.quiet_budget_s
-        common.GATE.max_wait_s = config.quiet_max_wait_s
-        common.GATE.reset()
-        data = _suite(name, config, out, log)
-        data["quiet_gate"] = common.GATE.summary()
-        data["wall_s"] = round(time.perf_counter() - t0, 1)
-        data["quick"] = config.quick
-        data["machine"] = {**machine, "load_average_end": common.load_average()}
-        results["suites"][name] = data
-        log(f"== suite {name}: {data['wall_s']} s ==")
-        path.write_text(json.dumps(results, indent=1, default=json_default))
+    done = 0
+    try:
+        for name in suites:
+            log(f"== suite {name} ==")
+            t0 = time.perf_counter()
+            common.GATE.enabled = config.quiet_gate
+            common.GATE.budget_s = config.quiet_budget_s
+            common.GATE.max_wait_s = config.quiet_max_wait_s
+            common.GATE.reset()
+            data = _suite(name, config, out, log)
+            data["quiet_gate"] = common.GATE.summary()
+            data["wall_s"] = round(time.perf_counter() - t0, 1)
+            data["quick"] = config.quick
+            data["machine"] = {**machine, "load_average_end": common.load_average()}
+            results["suites"][name] = data
+            done += 1
+            log(f"== suite {name}: {data['wall_s']} s ==")
+            path.write_text(json.dumps(results, indent=1, default=json_default))
+    except BaseException:
+        if done:  # the suites that finished keep their report and charts
+            report.write_report(results, out)
+            log(f"wrote the report of the {done} suite{'s' if done > 1 else ''} that finished to {out}")
+        raise
     results["wall_s"] = round(time.perf_counter() - t_all, 1)
     if not keep_header:
         results["machine"]["load_average_end"] = common.load_average()

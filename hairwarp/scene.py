@@ -941,6 +941,7 @@ class Scene:
                     _apply_override(raw, text)
                 except ValueError as exc:
                     problems.append(exc.args[0])
+            _switch_collider_kinds(raw, overrides)
             if problems:
                 raise SceneError(label, problems)
             label = f"{label} (with overrides)"
@@ -1180,6 +1181,23 @@ def _unread_motion_overrides(kind: str, overrides: list[str]) -> list[tuple[str,
                 errors.append((key, f"is read by kind = {' or '.join(repr(k) for k in kinds)} only "
                                     f"(kind is {kind!r}); set head.motion.kind too"))
     return errors
+
+
+def _switch_collider_kinds(raw: dict, overrides: list[str]):
+    """An override of a collider's ``kind`` drops the file's keys of that collider that the new kind does not read
+    (``-s 'colliders[0].kind="mesh"' -s colliders[0].file=...`` turns a capsule into a mesh where it was; its radius
+    goes). Keys the overrides set themselves stay, and are reported if the kind does not read them."""
+    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
+    colliders = raw.get("colliders")
+    for key in keys:
+        match = re.fullmatch(r"colliders\[(\d+)\]\.kind", key)
+        if not match or not isinstance(colliders, list) or int(match.group(1)) >= len(colliders):
+            continue
+        i = int(match.group(1))
+        table = colliders[i]
+        read = set(_COLLIDER_KEYS.get(table.get("kind"), ())) | {"name", "kind", "thickness", "friction"}
+        for name in [k for k in table if k not in read and f"colliders[{i}].{k}" not in keys]:
+            del table[name]
 
 
 def _switch_groom_source(raw: dict, overrides: list[str]):

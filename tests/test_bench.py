@@ -551,3 +551,23 @@ def test_wedge_report_compares_workers_at_one_thread_and_the_threaded_worker():
     assert "| 1 | 1 | 2 | **40.0** |" in text
     assert "One worker whose runs take 2 threads each: 40.0 s, the speed of 1.50× the one-thread worker against " \
            "1.88× for 2 workers, so a wedge fills the cores faster" in text
+
+
+def test_a_failing_suite_leaves_the_report_of_those_that_finished(tmp_path, monkeypatch):
+    """Suites run one after the other: when one raises, the report of the suites before it is still written (its
+    JSON was), and the error goes on to the caller."""
+    from hairwarp.benchmarks import report
+
+    written = []
+
+    def suite(name, config, out, log):
+        if name == "second":
+            raise RuntimeError("the second suite failed")
+        return {"figure": 1.0}
+
+    monkeypatch.setattr(bench, "_suite", suite)
+    monkeypatch.setattr(report, "write_report", lambda results, out: written.append(sorted(results["suites"])))
+    with pytest.raises(RuntimeError, match="the second suite failed"):
+        bench.run_suites(["first", "second"], BenchConfig.quick_preset("cpu"), tmp_path, log=lambda m: None)
+    assert written == [["first"]]
+    assert json.loads((tmp_path / bench.JSON_NAME).read_text())["suites"]["first"]["figure"] == 1.0

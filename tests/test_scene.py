@@ -535,3 +535,17 @@ def test_collider_file_errors_name_the_collider(tmp_path):
     raw["colliders"] = [{"name": "body", "kind": "usd", "file": str(tmp_path / "body.usda"), "prim": "/Body/Nope"}]
     with pytest.raises(UsdFileError, match=r"colliders\[0\] \(body\): .*body.usda"):
         Simulation(Scene.from_dict(raw, source=SCENES / "tiny.toml"))
+
+
+def test_an_override_of_a_colliders_kind_drops_the_keys_the_new_kind_does_not_read(tmp_path):
+    """-s colliders[0].kind="mesh" with a file on the shoulders scene turns its capsule into a mesh where the capsule
+    was: its radius and half height go (they were refused as keys a mesh does not read), its placement stays."""
+    mesh = tmp_path / "cap.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    shipped = Scene.load(SCENES / "long_hair_shoulders.toml")
+    scene = shipped.with_overrides(["colliders[0].kind='mesh'", f"colliders[0].file='{mesh}'"])
+    c, before = scene.colliders[0], shipped.colliders[0]
+    assert c.kind == "mesh" and c.radius is None and c.half_height is None
+    assert c.translate == before.translate and c.rotate_deg == before.rotate_deg
+    with pytest.raises(SceneError, match="colliders\\[0\\].radius"):
+        shipped.with_overrides(["colliders[0].kind='mesh'", f"colliders[0].file='{mesh}'", "colliders[0].radius=0.1"])
