@@ -498,6 +498,16 @@ GIF_SIZE_PX = (520, 520)
 GIF_MAX_CURVES = 2500
 
 
+def gif_durations(count: int, fps: float) -> list[int]:
+    """Per-frame display times [ms] of a GIF at ``fps``: GIF keeps hundredths of a second, so a constant 33 ms
+    (30 fps) would play at 1/0.03 = 33 fps; the frames' ends are rounded to 10 ms instead, each from its exact time
+    (3, 3, 4 hundredths at 30 fps), at least 20 ms a frame (browsers slow shorter ones down)."""
+    step = 1000.0 / float(fps)
+    ends = [10 * round(step * (i + 1) / 10.0) for i in range(count)]
+    starts = [0] + ends[:-1]
+    return [max(20, e - s) for s, e in zip(starts, ends)]
+
+
 def _write_gif(cache_path: Path, out: Path, view, progress: bool = False, guides: bool = False) -> Path:
     """Every time sample as one GIF frame, all with the camera and limits of the whole animation.
 
@@ -535,6 +545,6 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False, guides
     palette = probe.quantize(colors=255, method=Image.Quantize.MEDIANCUT)
     frames = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
     out.parent.mkdir(parents=True, exist_ok=True)
-    frames[0].save(out, save_all=True, append_images=frames[1:], duration=max(20, int(round(1000.0 / fps))), loop=0,
+    frames[0].save(out, save_all=True, append_images=frames[1:], duration=gif_durations(len(frames), fps), loop=0,
                    optimize=False)
     return out

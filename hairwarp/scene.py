@@ -322,6 +322,9 @@ def _check_scene(values, given, error):
         c, r = head["center"], head["radii"]
         mot["pivot"] = (c[0], c[1], c[2] - r[2])
     dense, segments = values["dense"], values["sim"]["segments"]
+    if dense["density"] is not None and dense["count"] > 0:
+        error("dense.density", f"give dense.count (now {dense['count']}) or dense.density, not both: set "
+                               "dense.count = 0 for a density")
     if dense["basis"] == "catmullRom" and (dense["count"] > 0 or dense["density"] is not None) and segments < 3:
         # the cache's cubic curves take 4 vertices or more (hairwarp.io.cache); the interpolated strands have S + 1
         error("sim.segments", f"dense.basis = \"catmullRom\" needs curves of 4 vertices, 3 segments or more, got "
@@ -590,7 +593,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "count": Field("int", 0, "dense strands interpolated from the guides (0 = none)", range="[0, inf)"),
             "density": Field("float", None, "dense strands per m^2 of scalp, instead of count", "1/m^2",
                              range="(0, inf)"),
-            "samples_per_segment": Field("int", 4, "Hermite samples per guide segment (1 = no smoothing)",
+            "samples_per_segment": Field("int", 4, "Hermite samples per guide segment (1 = no smoothing); the "
+                                                   "linear basis and previews: Catmull-Rom curves take the "
+                                                   "interpolated vertices",
                                          range="[1, 64]"),
             "basis": Field("str", "linear", "linear curves over the Hermite samples, or Catmull-Rom curves "
                                             "over the interpolated vertices (smaller files)",
@@ -615,12 +620,14 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "guide_width": Field("vec2", (0.002, 0.0005), "guide curve width at the root and at the tip", "m",
                                  range="[0, inf)"),
             "preview": Field("bool", True, "render a preview image next to the cache"),
-            "preview_frames": Field("int", 4, "frames shown in the preview (at most sim.frames are)", range="[1, inf)"),
+            "preview_frames": Field("int", 4, "frames shown in the preview (at most the sim.frames + 1 written)",
+                                    range="[1, inf)"),
             "writer": Field("str", "inline", "who writes the cache: the simulating thread (inline), or a second "
                                              "process while the simulation goes on (background; needs a free core)",
                             choices=("inline", "background")),
-            "layout": Field("str", "clips", "the cache: a root layer with one clip layer per frame (clips), or one "
-                                            "file flattened at the end (single)", choices=("clips", "single")),
+            "layout": Field("str", "clips", "the cache: a root layer over clip layers, one a frame (small frames "
+                                            "gathered into one clip when the run ends) (clips), or one file "
+                                            "flattened at the end (single)", choices=("clips", "single")),
             "up_axis": Field("str", "Z", "up axis of the cache stage (points are rotated into it; Maya and Houdini "
                                          "work Y up)", choices=("Z", "Y")),
             "meters_per_unit": Field("float", 1.0, "unit of the cache stage (0.01 = centimetres, as Maya and "
@@ -942,6 +949,7 @@ class Scene:
                 except ValueError as exc:
                     problems.append(exc.args[0])
             _switch_collider_kinds(raw, overrides)
+            _switch_dense_amount(raw, overrides)
             if problems:
                 raise SceneError(label, problems)
             label = f"{label} (with overrides)"
@@ -1181,6 +1189,19 @@ def _unread_motion_overrides(kind: str, overrides: list[str]) -> list[tuple[str,
                 errors.append((key, f"is read by kind = {' or '.join(repr(k) for k in kinds)} only "
                                     f"(kind is {kind!r}); set head.motion.kind too"))
     return errors
+
+
+def _switch_dense_amount(raw: dict, overrides: list[str]):
+    """An override of ``dense.density`` replaces the file's ``dense.count`` (0), and one of ``dense.count`` the file's
+    density: ``-s dense.density=20000`` on a scene that gives a count asks for that density."""
+    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
+    dense = raw.get("dense")
+    if not isinstance(dense, dict):
+        return
+    if "dense.density" in keys and "dense.count" not in keys:
+        dense.pop("count", None)
+    elif "dense.count" in keys and "dense.density" not in keys:
+        dense.pop("density", None)
 
 
 def _switch_collider_kinds(raw: dict, overrides: list[str]):

@@ -161,3 +161,13 @@ def test_preview_gif_shows_its_progress(tmp_path):
     # As in a run, the rate and the time left show once the clock has a frame to go by.
     assert all(re.fullmatch(rf"frame \d+/{samples}(  [\d.]+ frames/s  \d+ s left)?", line) for line in lines), lines
     assert Image.open(tmp_path / "tiny.gif").n_frames == samples
+
+
+def test_gif_frames_keep_the_frame_rate_to_a_hundredth_of_a_second():
+    """GIF stores hundredths of a second: 30 frames at 30 fps last 3, 4, 3, ... hundredths, 1 s in all (a constant
+    33 ms, stored as 30, played 10 % fast); 24 fps, 6 frames: 0.25 s."""
+    from hairwarp.preview import gif_durations
+
+    d = gif_durations(30, 30.0)
+    assert sum(d) == 1000 and set(d) == {30, 40} and all(x % 10 == 0 for x in d)
+    assert sum(gif_durations(6, 24.0)) == 250

@@ -549,3 +549,14 @@ def test_an_override_of_a_colliders_kind_drops_the_keys_the_new_kind_does_not_re
     assert c.translate == before.translate and c.rotate_deg == before.rotate_deg
     with pytest.raises(SceneError, match="colliders\\[0\\].radius"):
         shipped.with_overrides(["colliders[0].kind='mesh'", f"colliders[0].file='{mesh}'", "colliders[0].radius=0.1"])
+
+
+def test_dense_count_and_density_are_one_or_the_other():
+    """A file's count with a density override asks for the density; both given in one place are refused naming
+    dense.density (the dense hair builder took only one and said so without a key)."""
+    scene = Scene.load(SCENES / "long_hair.toml")
+    assert scene.dense.count == 3000
+    dense = scene.with_overrides(["dense.density=20000"])
+    assert dense.dense.density == 20000 and dense.dense.count == 0
+    with pytest.raises(SceneError, match="dense.density"):
+        scene.with_overrides(["dense.density=20000", "dense.count=100"])

@@ -81,7 +81,7 @@ def chart_dynamics(d: dict, path: Path):
     ax.set_xticks(range(len(configs)))
     ax.set_xticklabels([f"{c['G']} strands x {c['S']} segments" for c in configs])
     ax.set_ylabel("segment-steps per second (higher is better)")
-    ax.set_title("Strand dynamics throughput on the canonical scene, dt = 1 ms, one CPU thread")
+    ax.set_title("Strand dynamics throughput on the canonical scene, dt = 1 ms (threads as the table says)")
     ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     fig.tight_layout()
     fig.savefig(path)
