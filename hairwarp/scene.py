@@ -1136,6 +1136,19 @@ class Scene:
         lines.append(f"head       {h['shape']}" + (f" at {_fmt(h['center'])} radii {_fmt(h['radii'])}"
                                                   if h["center"] is not None and h["shape"] != "none" else "")
                      + f", motion {self.head_motion()!r}")
+        lk, ia, dn, out = d["links"], d["interactions"], d["dense"], d["output"]
+        if lk["enabled"]:
+            lines.append(f"links      {lk['neighbours']} a segment within {lk['radius']:g} m, {lk['stiffness']:g} N/m, "
+                         f"break at {lk['break_length']:g} m, response {lk['response']}")
+        if ia["enabled"]:
+            lines.append(f"contacts   hair against hair below {ia['threshold']:g} m, {ia['stiffness']:g} N/m, "
+                         f"friction {ia['friction']:g}, response {ia['response']}")
+        amount = (f"{dn['density']:g} per m^2 of scalp" if dn["density"] is not None
+                  else f"{dn['count']} strands" if dn["count"] else "none")
+        lines.append(f"dense      {amount}" + (f", {dn['basis']} curves" if amount != "none" else ""))
+        lines.append(f"output     {out['up_axis']} up, {out['meters_per_unit']:g} m per unit, from frame "
+                     f"{out['start_frame']}, {out['layout']} layout, {out['writer']} writer"
+                     + (", guides" if out["guides"] else "") + (", preview" if out["preview"] else ""))
         for c in d["colliders"]:
             what = {"sphere": f"radius {c['radius']}", "capsule": f"radius {c['radius']}, half height "
                     f"{c['half_height']}", "ellipsoid": f"radii {_fmt(c['radii'])}", "plane": "",
