@@ -405,15 +405,21 @@ class Simulation:
         if set(arrays) != expected:
             raise ValueError(f"the checkpoint does not fit this scene: it holds {sorted(set(arrays) - expected)} "
                              f"more and {sorted(expected - set(arrays))} less than the simulation")
-        for key, target in targets.items():
+        for key, target in targets.items():  # every check before the first change: a refused one changes nothing
             value = np.asarray(arrays[key])
             if value.shape != target.numpy().shape:
                 raise ValueError(f"the checkpoint does not fit this scene: {key} has shape {value.shape}, the "
                                  f"simulation {target.numpy().shape} (another groom, segment count or feature set)")
-            target.assign(value)
-        st.time = float(arrays["stepper.time"])
-        st.frame = int(arrays["stepper.frame"])
-        st.parity = int(arrays["stepper.parity"])
+        time_s, frame, parity = (np.asarray(arrays[f"stepper.{k}"]).reshape(()) for k in ("time", "frame", "parity"))
+        if not (np.isfinite(time_s) and time_s >= 0.0 and float(frame) == int(frame) >= 0 and int(parity) in (0, 1)
+                and float(parity) == int(parity)):
+            raise ValueError(f"the checkpoint's stepper.time, frame and parity must be a time >= 0 [s], a whole "
+                             f"frame >= 0 and 0 or 1, got {float(time_s)}, {float(frame)} and {float(parity)}")
+        for key, target in targets.items():
+            target.assign(np.asarray(arrays[key]))
+        st.time = float(time_s)
+        st.frame = int(frame)
+        st.parity = int(parity)
 
     def guide_curves(self) -> tuple[np.ndarray, np.ndarray]:
         """Host copies of the guide vertex positions and velocities, (G*(S+1), 3) each."""

@@ -299,3 +299,10 @@ def test_checkpoint_restores_the_run_exactly():
     for expected in ahead:
         sim.advance_frame()
         np.testing.assert_array_equal(sim.guide_curves()[0], expected)
+    # a checkpoint whose stepper is no frame is refused, and changes nothing
+    before = sim.guide_curves()[0].copy()
+    for key, bad in (("stepper.frame", 1.5), ("stepper.parity", 2), ("stepper.time", np.nan)):
+        with pytest.raises(ValueError, match="stepper.time, frame and parity"):
+            sim.restore({**saved, key: np.array(bad)})
+    np.testing.assert_array_equal(sim.guide_curves()[0], before)
+    assert sim.stepper.frame == 6
