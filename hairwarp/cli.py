@@ -473,8 +473,17 @@ def main(argv=None) -> int:
     Usage errors exit through argparse (``SystemExit(2)``); ``--help`` and ``--version`` exit 0.
     """
     args = build_parser().parse_args(argv)
-    # a warning is one line of its own, as the errors are (not the source line that raised it)
-    warnings.formatwarning = lambda message, category, *_: f"hairwarp: warning: {message}\n"
+    # a warning is one line of its own, as the errors are (not the source line that raised it); for this command only
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        return _main(args)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"hairwarp: warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _main(args) -> int:
     try:  # Warp's banner, its module-load lines and the CUDA-driver warning of a CPU machine: not news on every run
         import warp as wp
 

@@ -410,14 +410,15 @@ class Simulation:
             if value.shape != target.numpy().shape:
                 raise ValueError(f"the checkpoint does not fit this scene: {key} has shape {value.shape}, the "
                                  f"simulation {target.numpy().shape} (another groom, segment count or feature set)")
-        time_s, frame, parity = (np.asarray(arrays[f"stepper.{k}"]).reshape(()) for k in ("time", "frame", "parity"))
-        if not (np.isfinite(time_s) and time_s >= 0.0 and float(frame) == int(frame) >= 0 and int(parity) in (0, 1)
-                and float(parity) == int(parity)):
+        time_s, frame, parity = (float(np.asarray(arrays[f"stepper.{k}"]).reshape(()))
+                                 for k in ("time", "frame", "parity"))
+        if not (math.isfinite(time_s) and time_s >= 0.0 and frame >= 0.0 and frame.is_integer()
+                and parity in (0.0, 1.0)):
             raise ValueError(f"the checkpoint's stepper.time, frame and parity must be a time >= 0 [s], a whole "
-                             f"frame >= 0 and 0 or 1, got {float(time_s)}, {float(frame)} and {float(parity)}")
+                             f"frame >= 0 and 0 or 1, got {time_s}, {frame} and {parity}")
         for key, target in targets.items():
             target.assign(np.asarray(arrays[key]))
-        st.time = float(time_s)
+        st.time = time_s
         st.frame = int(frame)
         st.parity = int(parity)
 
@@ -912,6 +913,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     for name, verts, faces, _ in meshes0:
         cache.add_mesh(name, verts, faces, purpose=scene.output.collider_purpose)
     t0 = cache.start_frame
+    run_scene = np.array(_resume_scene(scene))  # kept in every checkpoint, for --resume
     report.restart(start)
     for frame in range(start, frames + 1):
         if frame > 0:
@@ -927,7 +929,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         if dense is not None:
             curves["hair"] = sim.dense_curves()
         cache.write_frame(t0 + frame, curves, xforms={name: world for name, _, _, world in meshes} or None,
-                          checkpoint={**sim.checkpoint(), RESUME_SCENE_KEY: np.array(_resume_scene(scene))})
+                          checkpoint={**sim.checkpoint(), RESUME_SCENE_KEY: run_scene})
         if frame in shown:
             mesh = _merged_world_mesh(meshes)
             if dense is not None:  # the preview shows what renders: the dense hair

@@ -278,8 +278,9 @@ def _check_head(values, given, error):
         error("file", 'shape = "mesh" needs the mesh file')
 
 
-#: The ``[[colliders]]`` keys of one kind's shape and placement; ``name``, ``kind``, ``thickness`` and ``friction``
-#: apply to every kind. A usd collider moves as its stage animates it, in the world.
+#: The ``[[colliders]]`` keys of one kind's shape and placement, besides :data:`_COLLIDER_COMMON`, which every kind
+#: reads. A usd collider moves as its stage animates it, in the world.
+_COLLIDER_COMMON = frozenset({"name", "kind", "thickness", "friction"})
 _COLLIDER_KEYS = {
     "sphere": ("radius", "translate", "rotate_deg", "attach"),
     "capsule": ("radius", "half_height", "translate", "rotate_deg", "attach"),
@@ -300,7 +301,7 @@ def _check_collider(values, given, error):
     if kind == "mesh" and values["file"] is not None and Path(values["file"]).suffix.lower() in (".usd", ".usda",
                                                                                                   ".usdc"):
         error("file", 'a USD stage: give it as kind = "usd" (its Mesh prim, animated or still)')
-    for key in sorted(set(given) - set(_COLLIDER_KEYS[kind]) - {"name", "kind", "thickness", "friction"}):
+    for key in sorted(set(given) - set(_COLLIDER_KEYS[kind]) - _COLLIDER_COMMON):
         if key == "attach" and values[key] == "world":
             continue
         kinds = [k for k, keys in _COLLIDER_KEYS.items() if key in keys]
@@ -942,21 +943,22 @@ class Scene:
         if overrides:
             raw = copy.deepcopy(raw)
             problems = []
-            _switch_groom_source(raw, overrides)
+            keys = _override_keys(overrides)
+            _switch_groom_source(raw, keys)
             for text in overrides:
                 try:
                     _apply_override(raw, text)
                 except ValueError as exc:
                     problems.append(exc.args[0])
-            _switch_collider_kinds(raw, overrides)
-            _switch_dense_amount(raw, overrides)
+            _switch_collider_kinds(raw, keys)
+            _switch_dense_amount(raw, keys)
             if problems:
                 raise SceneError(label, problems)
             label = f"{label} (with overrides)"
         v = _Validator(base_dir)
         data = v.section(_ROOT, raw, "")
         if not v.errors:
-            v.errors.extend(_unread_motion_overrides(data["head"]["motion"]["kind"], overrides))
+            v.errors.extend(_unread_motion_overrides(data["head"]["motion"]["kind"], _override_keys(overrides)))
         if v.errors:
             raise SceneError(label, v.errors)
         if data["scene"]["name"] is None:
@@ -1186,14 +1188,18 @@ def _parse_value(text: str):
         return text.strip()
 
 
-def _unread_motion_overrides(kind: str, overrides: list[str]) -> list[tuple[str, str]]:
+def _override_keys(overrides) -> set[str]:
+    """The key paths that ``key.path=value`` overrides set."""
+    return {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
+
+
+def _unread_motion_overrides(kind: str, keys: set[str]) -> list[tuple[str, str]]:
     """Errors for the overrides of ``[head.motion]`` keys that ``kind`` does not read (``-s head.motion.distance=0.05``
     on a turn would change nothing). The scene file's own keys for other kinds stay allowed: overriding ``kind``
     alone must work on any scene."""
     read = set(_motion.MOTION_KEYS[kind])
     errors = []
-    for text in overrides:
-        key = text.split("=", 1)[0].strip()
+    for key in sorted(keys):
         leaf = key.removeprefix("head.motion.")
         if key.startswith("head.motion.") and "." not in leaf and "[" not in leaf and leaf != "kind" \
                 and leaf not in read:
@@ -1204,10 +1210,9 @@ def _unread_motion_overrides(kind: str, overrides: list[str]) -> list[tuple[str,
     return errors
 
 
-def _switch_dense_amount(raw: dict, overrides: list[str]):
+def _switch_dense_amount(raw: dict, keys: set[str]):
     """An override of ``dense.density`` replaces the file's ``dense.count`` (0), and one of ``dense.count`` the file's
     density: ``-s dense.density=20000`` on a scene that gives a count asks for that density."""
-    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
     dense = raw.get("dense")
     if not isinstance(dense, dict):
         return
@@ -1217,11 +1222,10 @@ def _switch_dense_amount(raw: dict, overrides: list[str]):
         dense.pop("density", None)
 
 
-def _switch_collider_kinds(raw: dict, overrides: list[str]):
+def _switch_collider_kinds(raw: dict, keys: set[str]):
     """An override of a collider's ``kind`` drops the file's keys of that collider that the new kind does not read
     (``-s 'colliders[0].kind="mesh"' -s colliders[0].file=...`` turns a capsule into a mesh where it was; its radius
     goes). Keys the overrides set themselves stay, and are reported if the kind does not read them."""
-    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
     colliders = raw.get("colliders")
     for key in keys:
         match = re.fullmatch(r"colliders\[(\d+)\]\.kind", key)
@@ -1229,16 +1233,15 @@ def _switch_collider_kinds(raw: dict, overrides: list[str]):
             continue
         i = int(match.group(1))
         table = colliders[i]
-        read = set(_COLLIDER_KEYS.get(table.get("kind"), ())) | {"name", "kind", "thickness", "friction"}
+        read = set(_COLLIDER_KEYS.get(table.get("kind"), ())) | _COLLIDER_COMMON
         for name in [k for k in table if k not in read and f"colliders[{i}].{k}" not in keys]:
             del table[name]
 
 
-def _switch_groom_source(raw: dict, overrides: list[str]):
+def _switch_groom_source(raw: dict, keys: set[str]):
     """An override that names the groom's source (``groom.file`` or ``groom.generator``) replaces the file's other
     source: its keys go (``-s groom.file=...`` on a generated scene reads that file instead of raising "give either
     generator or file"). Keys of the other source that the overrides set themselves stay, and are reported."""
-    keys = {text.split("=", 1)[0].strip() for text in overrides if "=" in text}
     groom = raw.get("groom")
     if not isinstance(groom, dict):
         return

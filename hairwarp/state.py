@@ -46,8 +46,27 @@ def _vector(name: str, value) -> np.ndarray:
     return v
 
 
-def _vectors(name_a: str, a, name_b: str, b) -> np.ndarray:
-    return np.concatenate([_vector(name_a, a), _vector(name_b, b)])
+def _head_values(position, rotation, angular_velocity, linear_velocity, angular_acceleration, linear_acceleration):
+    """The pose (7), velocities (6) and accelerations (6) ``set_head`` stores. Valid values take one check of the
+    lot (set every step: a few microseconds); others are checked one by one for a message that names them."""
+    try:
+        pose = np.concatenate((np.asarray(position, float).reshape(-1), np.asarray(rotation, float).reshape(-1)))
+        velocity = np.concatenate((np.asarray(angular_velocity, float).reshape(-1),
+                                   np.asarray(linear_velocity, float).reshape(-1)))
+        acceleration = np.concatenate((np.asarray(angular_acceleration, float).reshape(-1),
+                                       np.asarray(linear_acceleration, float).reshape(-1)))
+        fast = pose.shape == (7,) and velocity.shape == (6,) and acceleration.shape == (6,)
+    except (TypeError, ValueError):
+        fast = False
+    if fast and np.isfinite(pose).all() and np.isfinite(velocity).all() and np.isfinite(acceleration).all():
+        norm_sq = float(pose[3:] @ pose[3:])
+        if abs(norm_sq - 1.0) <= 2.0e-6:  # a unit quaternion to float32 rounding: stored as given
+            return pose, velocity, acceleration
+    return (_head_pose(position, rotation),
+            np.concatenate([_vector("angular_velocity", angular_velocity),
+                            _vector("linear_velocity", linear_velocity)]),
+            np.concatenate([_vector("angular_acceleration", angular_acceleration),
+                            _vector("linear_acceleration", linear_acceleration)]))
 
 
 def _head_pose(position, rotation) -> np.ndarray:
@@ -118,9 +137,8 @@ class Control:
                  angular_velocity=(0.0, 0.0, 0.0), linear_acceleration=(0.0, 0.0, 0.0),
                  angular_acceleration=(0.0, 0.0, 0.0)):
         """Set the head pose (rotation as quaternion x, y, z, w) and its world velocities and accelerations."""
-        values = (_head_pose(position, rotation),
-                  _vectors("angular_velocity", angular_velocity, "linear_velocity", linear_velocity),
-                  _vectors("angular_acceleration", angular_acceleration, "linear_acceleration", linear_acceleration))
+        values = _head_values(position, rotation, angular_velocity, linear_velocity, angular_acceleration,
+                              linear_acceleration)
         arrays = (self.head_xform, self.head_velocity, self.head_acceleration)
         if self.head_xform.device.is_cpu:
             # straight into the arrays' host memory: three assigns cost ~50 us, paid every step

@@ -629,6 +629,27 @@ def _collider_distance(collider: str, pts: np.ndarray) -> np.ndarray:
     return pts[:, 2] - PEER_FLOOR_Z
 
 
+def _peer_rest_record(pts: np.ndarray, collider: str, contact: bool) -> dict:
+    """A peer's strand at rest from its points (frames, S+1, 3) sampled at PEER_FPS: whether they stayed finite, the
+    tip's RMS speed per second and per frame [mm/s]; with ``contact`` the points within the strand's radius + 1 mm
+    of the collider in every frame of the last second (the root left out) and their largest motion a frame [mm]."""
+    from hairwarp.benchmarks.common import RADIUS
+
+    finite = bool(np.isfinite(pts).all())
+    speed = tip_speeds(pts[:, -1:, :], 1.0 / PEER_FPS)
+    rec = {"finite": finite, "rms_speed_per_second_mm_s": [1e3 * s for s in rms_per_second(speed, PEER_FPS)],
+           "rms_speed_per_frame_mm_s": (1e3 * speed[:, 0]).tolist()}
+    if contact:
+        window = pts[-int(PEER_FPS) - 1:]
+        dist = np.stack([_collider_distance(collider, p) for p in window])
+        resting = (dist <= RADIUS + 1.0e-3).all(axis=0)
+        resting[0] = False  # the root
+        motion = np.linalg.norm(np.diff(window, axis=0), axis=-1)[:, resting]
+        rec["resting"] = {"points": int(resting.sum()),
+                          "max_mm": 1e3 * float(motion.max()) if resting.any() and finite else None}
+    return rec
+
+
 def mujoco_rest(req: dict) -> dict:
     """MuJoCo chain released from the canonical tilt onto a static collider, ``duration`` s at 1/240 s with
     ``discrete`` (MuJoCo 4: joint springs implicit): tip RMS speed per second from 30 fps samples, with contacts
@@ -636,7 +657,7 @@ def mujoco_rest(req: dict) -> dict:
     last second."""
     import mujoco
 
-    from hairwarp.benchmarks.common import RADIUS, TILT_DEG
+    from hairwarp.benchmarks.common import TILT_DEG
     from hairwarp.benchmarks.peers import mujoco_set_tilt
 
     S = PEER_SEGMENTS
@@ -654,22 +675,8 @@ def mujoco_rest(req: dict) -> dict:
             for _ in range(frames):
                 mujoco.mj_step(m, d, nstep=per_frame)
                 pts.append(_mujoco_points(m, d, S))
-            pts = np.asarray(pts)
-            finite = bool(np.isfinite(pts).all())
-            tips = pts[:, -1:, :]
-            speed = tip_speeds(tips, 1.0 / PEER_FPS)
-            per_s = rms_per_second(speed, PEER_FPS)
-            rec = {"finite": finite, "rms_speed_per_second_mm_s": [1e3 * s for s in per_s],
-                   "rms_speed_per_frame_mm_s": (1e3 * speed[:, 0]).tolist(),
-                   "unstable_warning": int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)}
-            if contact:
-                window = pts[-int(PEER_FPS) - 1:]
-                dist = np.stack([_collider_distance(collider, p) for p in window])
-                resting = (dist <= RADIUS + 1.0e-3).all(axis=0)
-                resting[0] = False  # the root
-                motion = np.linalg.norm(np.diff(window, axis=0), axis=-1)[:, resting]
-                rec["resting"] = {"points": int(resting.sum()),
-                                  "max_mm": 1e3 * float(motion.max()) if resting.any() else None}
+            rec = _peer_rest_record(np.asarray(pts), collider, contact)
+            rec["unstable_warning"] = int(d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
             entry[label] = rec
         out[collider] = entry
     return {"mujoco": mujoco.__version__, "segments": S, "dt": PEER_DT, "integrator": "discrete",
@@ -778,23 +785,9 @@ def newton_rest(req: dict) -> dict:
                 if not np.isfinite(pts[-1]).all():
                     break
             pts = np.asarray(pts)
-            finite = bool(np.isfinite(pts).all())
-            tips = pts[:, -1:, :]
-            speed = tip_speeds(tips, 1.0 / PEER_FPS)
-            per_s = rms_per_second(speed, PEER_FPS)
-            dist = np.stack([_collider_distance(collider, p) for p in pts])
-            rec = {"finite": finite, "frames_done": len(pts) - 1,
-                   "rms_speed_per_second_mm_s": [1e3 * s for s in per_s],
-                   "rms_speed_per_frame_mm_s": (1e3 * speed[:, 0]).tolist(),
-                   "min_clearance_mm": 1e3 * float(dist.min() - RADIUS) if finite else None}
-            if contact:
-                window = pts[-int(PEER_FPS) - 1:]
-                near = dist[-int(PEER_FPS) - 1:]
-                resting = (near <= RADIUS + 1.0e-3).all(axis=0)
-                resting[0] = False  # the root
-                motion = np.linalg.norm(np.diff(window, axis=0), axis=-1)[:, resting]
-                rec["resting"] = {"points": int(resting.sum()),
-                                  "max_mm": 1e3 * float(motion.max()) if resting.any() and finite else None}
+            rec = _peer_rest_record(pts, collider, contact)
+            clearance = min(float(_collider_distance(collider, p).min()) for p in pts) - RADIUS
+            rec.update(frames_done=len(pts) - 1, min_clearance_mm=1e3 * clearance if rec["finite"] else None)
             entry[label] = rec
         out[collider] = entry
     return {"newton": newton.__version__, "segments": S, "dt": PEER_DT, "solver": "SolverVBD",
