@@ -17,6 +17,11 @@ from hairwarp.kernels.types import Fault, Integrator
 #: threads``).
 INTEGRATE_MIN_CHUNK = 16
 
+#: Fewest strands per chunk of a Gauss-Seidel sweep over one colour of strands (``sweeps.link_sweep``): the
+#: mohawk's last colours hold 39, 11 and 4 strands, and one strand's sweep takes about 6 us (8 against 16: a
+#: frame 1-2 % faster on two threads, ``hairwarp bench threads``).
+SWEEP_MIN_CHUNK = 8
+
 #: Fewest segments per chunk of the air drag (~15 ns a segment: a second thread pays from ~4,000 segments on).
 DRAG_MIN_CHUNK = 4096
 
@@ -373,7 +378,7 @@ class Solver:
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
                         int(sweep == count - 1)]
                 # the fault bits (the last output) are private per chunk
-                ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=INTEGRATE_MIN_CHUNK,
+                ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
