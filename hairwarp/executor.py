@@ -476,7 +476,9 @@ class Executor:
         the block writes, only their own elements (those of the same units); the private reductions fold when the
         block ends, so none may read what another folds. A launch the chain cannot take (explicit ``chunks``,
         ``per_chunk``, ``private_sum``, or a size that is no multiple of ``units``) first runs what is held, then
-        runs alone: the launch order stands. One thread or a graph capture run each launch at once, as always.
+        runs alone: the launch order stands. One thread or a graph capture run each launch at once, as always; so
+        does a chain of one chunk, except within a :meth:`batch`: there its launches stay one task, run in order
+        (one by one, the batch would run them at once on different threads, racing where they write the same array).
         """
         if not self.parallel or self._chain is not None or _capturing(self.device):
             yield
@@ -486,7 +488,7 @@ class Executor:
             chunks = self.chunks(units, min_chunk)
             have = self._chain_chunks[(units, min_chunk)] = (chunks, {})
         chunks, scaled = have
-        if len(chunks) == 1:
+        if len(chunks) == 1 and self._batch is None:
             yield
             return
         self._chain = held = _Chain(units, chunks, scaled)

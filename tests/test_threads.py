@@ -115,6 +115,53 @@ def test_chain_runs_each_chunk_through_every_launch_in_order():
         ex.close()
 
 
+@wp.kernel
+def _slow_double(tid_offset: int, y: wp.array(dtype=float)):
+    i = tid_offset + wp.tid()
+    v = y[i]
+    for _ in range(200000):  # long enough that a launch run beside it finishes first
+        v = v * 1.0000001 + 1.0e-12
+    y[i] = 2.0 * y[i] + (v - v)
+
+
+@wp.kernel
+def _add_one(tid_offset: int, y: wp.array(dtype=float)):
+    i = tid_offset + wp.tid()
+    y[i] = y[i] + 1.0
+
+
+def test_chain_of_one_chunk_in_a_batch_keeps_its_order():
+    """A chain too small to split (fewer units than a chunk) within a batch still runs its launches in order on one
+    thread: run as separate launches of the batch, the second would read the array before the first wrote it."""
+    for threads in (2, 3):
+        ex = Executor("cpu", threads, min_chunk=16)
+        y = wp.array(np.arange(8, dtype=np.float32), dtype=float)
+        other = wp.zeros(8, dtype=float)
+        with ex.batch():
+            with ex.chain(8, 16):
+                ex.launch(_slow_double, 8, [], [y])
+                ex.launch(_add_one, 8, [], [y])
+            ex.launch(_add_one, 8, [], [other])
+        np.testing.assert_array_equal(y.numpy(), 2.0 * np.arange(8, dtype=np.float32) + 1.0)
+        np.testing.assert_array_equal(other.numpy(), np.ones(8, dtype=np.float32))
+        ex.close()
+
+
+def test_small_scene_with_links_same_bits_on_two_threads():
+    """The tiny scene with links (8 strands: every per-strand launch one chunk, run beside the other launches of its
+    batch) gives the same guide points on 2 threads as on 1, run after run."""
+    scene = hw.Scene.load(SCENES / "tiny.toml", overrides=["links.enabled=true", "output.preview=false",
+                                                           "dense.count=0"])
+    tips = []
+    for threads in (1, 2, 2, 2):
+        sim = hw.Simulation(scene, threads=threads)
+        for _ in range(4):
+            sim.advance_frame()
+        tips.append(sim.guide_curves()[0])
+    for x in tips[1:]:
+        np.testing.assert_array_equal(x, tips[0])
+
+
 def test_pool_threads_sleep_when_idle_and_every_chunk_runs():
     """Between launches the pool's threads spin, then sleep (their state 0) once idle for ``SPIN_SECONDS``: an idle
     simulation gives its cores back. A launch wakes them again and every chunk runs once, whichever took it."""
