@@ -134,6 +134,54 @@ def test_a_simulation_drives_its_head_from_an_assigned_motion(tiny):
         sim.motion = 3
 
 
+@pytest.mark.parametrize("scene_name, overrides", [
+    # a keyframed turn (90 degrees in 0.4 s), at 2 substeps
+    ("fast_turn.toml", ["groom.count=20", "sim.substeps=2", "links.enabled=false", "interactions.enabled=false"]),
+    # roots on the character's sliding scalp: per-strand root frames
+    ("character.toml", ["groom.count=20"]),
+])
+def test_head_accelerations_are_the_mean_over_each_step(scene_name, overrides):
+    """Every step gives the control the motion's velocities at the step's end, and as accelerations their change
+    over the step divided by the step: the hair takes over the step the head's own change of velocity (sampled at
+    the step's end, the turn's accelerations differ from that by more than 10 %). The same for the root frames of a
+    scalp binding. Reference: the scene's motion (and scalp binding) evaluated at the steps' ends."""
+    scene = hw.Scene.load(hw.Scene.default_path().parent / scene_name,
+                          overrides=["dense.count=0", "output.preview=false", *overrides])
+    sim = Simulation(scene)
+    control = sim.stepper.control
+    given = []
+    set_motion, set_frames = control.set_motion, control.set_root_frames
+    control.set_motion = lambda sample: (given.append(["head", sample]), set_motion(sample))
+    control.set_root_frames = lambda *frames: (given[-1].append(frames), set_frames(*frames))
+    for _ in range(12):
+        sim.advance_frame()
+    dt, t, largest_gap = sim.stepper.dt, 0.0, 0.0
+    for entry in given:
+        t_end = t + dt  # the runner's own sum of steps
+        sample = entry[1]
+        truth = sim.motion.evaluate(t_end)
+        start = sim.motion.evaluate(t)
+        np.testing.assert_array_equal(sample.angular_velocity, truth.angular_velocity)
+        np.testing.assert_array_equal(sample.linear_velocity, truth.linear_velocity)
+        # float64 on the host: the difference of two velocities over dt, to round-off
+        np.testing.assert_allclose(sample.angular_acceleration, (truth.angular_velocity - start.angular_velocity) / dt,
+                                   rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(sample.linear_acceleration, (truth.linear_velocity - start.linear_velocity) / dt,
+                                   rtol=1e-9, atol=1e-9)
+        scale = max(np.linalg.norm(truth.angular_acceleration), 1e-9)
+        largest_gap = max(largest_gap, np.linalg.norm(truth.angular_acceleration - sample.angular_acceleration) / scale)
+        if sim.surface is not None:
+            _, velocities, accelerations = entry[2]
+            _, v_end, _ = sim.surface.root_frames(t_end)
+            _, v_start, _ = sim.surface.root_frames(t)
+            np.testing.assert_array_equal(velocities, v_end)
+            np.testing.assert_allclose(accelerations, (v_end - v_start) / dt, rtol=1e-9, atol=1e-9)
+        t = t_end
+    assert len(given) == 12 * sim.stepper.substeps
+    if sim.surface is None:
+        assert largest_gap > 0.1  # the test sees steps whose mean is not the end's acceleration
+
+
 def run_steps(tiny, steps, use_graph, substeps):
     sim = Simulation(tiny)
     stepper = Stepper(sim.solver, dt=tiny.step_dt, substeps=substeps, control=sim.stepper.control,
