@@ -281,6 +281,15 @@ def _nonnegative_int(text: str) -> int:
     return value
 
 
+def _thread_count(text: str) -> int:
+    from hairwarp.executor import MAX_THREADS
+
+    value = _nonnegative_int(text)
+    if value > MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_THREADS} threads, got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -352,7 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="unit of the cache in metres, e.g. 0.01 for centimetres (overrides output.meters_per_unit)")
     p.add_argument("--start-frame", type=_nonnegative_int, metavar="N",
                    help="time code of the first frame (overrides output.start_frame)")
-    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+    p.add_argument("--threads", type=_thread_count, metavar="N",
                    help="CPU threads (overrides sim.threads; 0: every core this process may use)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
@@ -382,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{', '.join(EXTRA_SUITES)}")
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke check")
     p.add_argument("--device", metavar="D", help="Warp device")
-    p.add_argument("--threads", type=_nonnegative_int, metavar="N",
+    p.add_argument("--threads", type=_thread_count, metavar="N",
                    help="CPU threads of the timed runs (default: every core this process may use; the threads "
                         "suite times 1 against N)")
     p.add_argument("--out", metavar="DIR", help="folder for results and charts")

@@ -77,6 +77,10 @@ SCATTER_CHUNKS = 8
 #: pool gives its cores back at once (OpenMP's threads spin for a similar while).
 SPIN_SECONDS = 0.001
 
+#: Most threads an executor takes: beyond the largest machines' cores (a pool of 10^5 threads took 40 s to start
+#: and then failed, leaving its threads behind). Results are the same bits for any count, so no more is needed.
+MAX_THREADS = 1024
+
 #: Prepared launches kept per executor (argument lists seen; a step has two, one per state parity).
 PREPARED_LIMIT = 512
 
@@ -95,8 +99,9 @@ def resolve_threads(threads) -> int:
     """``threads`` as a positive int: None or 0 mean :func:`default_threads`."""
     if threads is None:
         return default_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 0:
-        raise ValueError(f"threads must be an integer >= 0 (0: every core this process may use), got {threads!r}")
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or not 0 <= threads <= MAX_THREADS:
+        raise ValueError(f"threads must be an integer in [0, {MAX_THREADS}] (0: every core this process may use, "
+                         f"{default_threads()} here), got {threads!r}")
     return int(threads) if threads else default_threads()
 
 
@@ -126,8 +131,16 @@ class _Workers:
         self._local = threading.local()
         self._threads = [threading.Thread(target=self._loop, args=(i,), name=f"hairwarp-{i + 1}", daemon=True)
                          for i in range(count)]
-        for t in self._threads:
-            t.start()
+        started = 0
+        try:
+            for t in self._threads:
+                t.start()
+                started += 1
+        except RuntimeError as e:  # the system's limit on threads: stop the ones started, say so
+            self.count, self._threads = started, self._threads[:started]
+            self.close()
+            raise RuntimeError(f"could not start {count + 1} CPU threads ({started + 1} started: {e}); set fewer "
+                               f"threads (sim.threads, --threads or threads=)") from None
         _POOLS.add(self)
 
     def _loop(self, i: int):

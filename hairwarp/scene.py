@@ -398,7 +398,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "segments": Field("int", 20, "simulation segments per guide strand", range="[1, 1024]"),
             "device": Field("str", "cpu", "Warp device: cpu, cuda or cuda:N"),
             "threads": Field("int", 0, "CPU threads of the launches (results are the same bits for any count); "
-                                       "0: every core this process may use; ignored on CUDA", range="[0, inf)"),
+                                       "0: every core this process may use; ignored on CUDA", range="[0, 1024]"),
             "gravity": Field("vec3", (0.0, 0.0, -9.81), "gravitational acceleration, world", "m/s^2"),
             "max_rotation_per_step": Field("float", 1.0, "fault bound on a joint's bend in one step", "rad",
                                            range="(0, inf)"),

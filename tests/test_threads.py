@@ -162,6 +162,46 @@ def test_small_scene_with_links_same_bits_on_two_threads():
         np.testing.assert_array_equal(x, tips[0])
 
 
+def test_thread_counts_past_the_limit_are_refused_and_a_failed_pool_stops_its_threads(tmp_path, capsys,
+                                                                                      monkeypatch):
+    """More than ``MAX_THREADS`` is refused by the API, the scene and the command (exit 2, one line) before any
+    thread starts; a pool the system cannot start stops the threads it started and says what to change."""
+    import threading
+
+    from hairwarp.cli import main
+    from hairwarp.executor import MAX_THREADS
+    from hairwarp.scene import SCHEMA, SceneError
+
+    with pytest.raises(ValueError, match=f"in \\[0, {MAX_THREADS}\\]"):
+        Executor("cpu", MAX_THREADS + 1)
+    assert SCHEMA["sim"].fields["threads"].range == f"[0, {MAX_THREADS}]"
+    with pytest.raises(SceneError, match="sim.threads"):
+        hw.Scene.load(SCENES / "tiny.toml", overrides=[f"sim.threads={MAX_THREADS + 1}"])
+    with pytest.raises(SystemExit) as stop:
+        main(["run", str(SCENES / "tiny.toml"), "-o", str(tmp_path / "t.usdc"), "--threads", "99999"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and f"at most {MAX_THREADS}" in err and "Traceback" not in err
+    assert not any(tmp_path.iterdir())
+
+    before = threading.active_count()
+    start, started = threading.Thread.start, []
+
+    def start_three(thread):  # the system's limit, reached at the fourth thread
+        if len(started) == 3:
+            raise RuntimeError("can't start new thread")
+        started.append(thread)
+        start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", start_three)
+    ex = Executor("cpu", 8, min_chunk=1)
+    with pytest.raises(RuntimeError, match="could not start 8 CPU threads \\(4 started"):
+        ex.launch(_add_one, 64, [], [wp.zeros(64, dtype=float)])
+    monkeypatch.undo()
+    for t in started:
+        t.join(timeout=5.0)
+    assert threading.active_count() == before
+
+
 def test_pool_threads_sleep_when_idle_and_every_chunk_runs():
     """Between launches the pool's threads spin, then sleep (their state 0) once idle for ``SPIN_SECONDS``: an idle
     simulation gives its cores back. A launch wakes them again and every chunk runs once, whichever took it."""
