@@ -58,8 +58,8 @@ class Stepper:
         self.solver = solver
         if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
             raise ValueError(f"substeps must be an integer >= 1 (steps per frame), got {substeps!r}")
-        if isinstance(dt, bool) or not isinstance(dt, int | float | np.floating | np.integer) or not dt > 0.0:
-            raise ValueError(f"dt must be a number of seconds > 0, got {dt!r}")
+        if isinstance(dt, bool) or not isinstance(dt, int | float | np.floating | np.integer) or not 0 < dt < math.inf:
+            raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
         self.dt = float(dt)
         self.substeps = int(substeps)
         self.control = control if control is not None else model.control()

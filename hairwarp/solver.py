@@ -187,6 +187,7 @@ class Solver:
         """
         self._check_step_arguments(state_in, state_out, control)
         self.set_dt(dt)
+        self._control = control  # read back only on a fault, to name non-finite input
         body = self.body_contacts.enabled
         self._force_passes(state_in, control, detect_body=body)
         # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
@@ -217,12 +218,19 @@ class Solver:
             if q.shape[0] != joints or x.shape[0] != vertices:
                 raise ValueError(f"{name} holds {q.shape[0]} joints and {x.shape[0]} vertices, this model "
                                  f"{joints} and {vertices}: a state of another model (use model.state())")
+        if state_in is state_out:
+            raise ValueError("state_in and state_out are the same state: a step reads the one while it writes the "
+                             "other (use two, model.state(), and swap them after each step)")
+        frames = control.bases.xform.shape[0]
+        if control.bases.per_strand and frames != self.model.strand_count:
+            raise ValueError(f"control holds root frames of {frames} strands, this model has "
+                             f"{self.model.strand_count}: a control of another model (use model.control())")
 
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""
         if dt != self._dt_host or self._dt_host is None:
-            if not isinstance(dt, int | float | np.floating | np.integer) or not dt > 0.0:
-                raise ValueError(f"dt must be a number of seconds > 0, got {dt!r}")
+            if not isinstance(dt, int | float | np.floating | np.integer) or not 0.0 < dt < math.inf:
+                raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
             self.dt.fill_(float(dt))
             self._dt_host = dt
 
@@ -480,7 +488,13 @@ class Solver:
         dt = self._dt_host
         step = f"dt = {dt:.3g} s" + (f" ({substeps} substeps per frame)" if substeps else "")
         more = "raise sim.substeps" if substeps else "use a smaller dt"
-        if bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
+        bad_input = _nonfinite_control(getattr(self, "_control", None))
+        if bad_input:
+            stage = "control input"
+            what = f"the control's {bad_input} held non-finite values, which the step took"
+            advice = ("give the control finite values (set_head, set_wind and set_root_frames refuse others; an "
+                      "array written in place is not checked)")
+        elif bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
             stage = "dynamics (aba + integrate)"
             what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
                     else f"a joint bent more than {self.max_rotation_per_step} rad in one step")
@@ -517,6 +531,18 @@ class Solver:
             advice = more
         message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
+
+
+def _nonfinite_control(control) -> str:
+    """The names of the arrays of ``control`` (None: none) that hold non-finite values, or ''."""
+    if control is None:
+        return ""
+    arrays = {"head_xform": control.head_xform, "head_velocity": control.head_velocity,
+              "head_acceleration": control.head_acceleration, "wind": control.wind}
+    if control.bases.per_strand:
+        arrays.update({"root frames": control.bases.xform, "root frame velocities": control.bases.velocity,
+                       "root frame accelerations": control.bases.acceleration})
+    return ", ".join(name for name, a in arrays.items() if not np.isfinite(a.numpy()).all())
 
 
 def state_arrays(state) -> dict[str, np.ndarray]:

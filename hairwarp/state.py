@@ -85,6 +85,20 @@ def _head_pose(position, rotation) -> np.ndarray:
     return np.concatenate([p, q])
 
 
+def _unit_quaternions(xforms: np.ndarray) -> np.ndarray:
+    """``(G, 7)`` poses with their quaternions (columns 3-6) of unit length: a zero one is refused, naming its strand,
+    one off unit length by more than float32 rounding normalised (a quaternion of length 5 put a root 84 m up)."""
+    norm = np.linalg.norm(xforms[:, 3:].astype(np.float64), axis=1)
+    zero = np.flatnonzero(norm < 1.0e-6)
+    if len(zero):
+        raise ValueError(f"set_root_frames: xforms has a zero quaternion (strand {int(zero[0])})")
+    off = np.abs(norm - 1.0) > 1.0e-6
+    if off.any():
+        xforms = xforms.copy()
+        xforms[off, 3:] = (xforms[off, 3:] / norm[off, None]).astype(np.float32)
+    return xforms
+
+
 class Control:
     """Animated inputs of a step; device arrays updated in place so captured graphs see new values.
 
@@ -166,8 +180,9 @@ class Control:
                 origin [m/s^2].
 
         Raises:
-            ValueError: the control was made without ``root_frames=True``, or an array has the wrong shape or
-                non-finite values.
+            ValueError: the control was made without ``root_frames=True``, an array has the wrong shape or
+                non-finite values, or a quaternion is zero. Quaternions off unit length by more than float32
+                rounding are normalised, as :meth:`set_head` does.
         """
         if not self.root_frames:
             raise ValueError("this control has no per-strand root frames: make it with Control(model, "
@@ -182,6 +197,8 @@ class Control:
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"set_root_frames: {name} has non-finite values (strand "
                                  f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])})")
+            if name == "xforms":
+                a = _unit_quaternions(a)
             target.assign(a)
 
     def set_wind(self, velocity):

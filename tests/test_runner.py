@@ -77,22 +77,42 @@ def test_an_explicit_integrators_fault_gives_substeps_that_run(tiny, integrator)
 
 
 def test_the_step_api_refuses_what_would_crash_or_do_nothing(tiny):
-    """Arguments the kernels cannot take are refused with the argument's name: a state of another model (a kernel
-    reading past its arrays would end the process), no control, no step size, no substeps, a head pose that is
-    not finite or no rotation, a wind of the wrong size, a thread count that is not a count, and dense hair asked
-    of a scene without any. Valid values still step."""
+    """Arguments the kernels cannot take are refused with the argument's name: a state or a control of another
+    model (a kernel reading past its arrays would end the process), one state as both input and output, no
+    control, no finite step size, no substeps, a head pose that is not finite or no rotation, a zero root frame
+    quaternion, a wind of the wrong size, a thread count that is not a count, and dense hair asked of a scene
+    without any. Valid values still step."""
     sim = Simulation(tiny)
     solver, model = sim.solver, sim.model
     control = model.control()
     bigger = Simulation(tiny.with_overrides(["sim.segments=9"])).model
+    bigger_strands = Simulation(tiny.with_overrides(["groom.count=12"])).model
     with pytest.raises(ValueError, match="state_in holds .* joints"):
         solver.step(bigger.state(), model.state(), control, 1 / 240)
     with pytest.raises(ValueError, match="state_out holds"):
         solver.step(model.state(), bigger.state(), control, 1 / 240)
     with pytest.raises(TypeError, match="control must be a hairwarp Control"):
         solver.step(model.state(), model.state(), None, 1 / 240)
+    for dt in (None, np.inf, np.nan, 0.0):
+        with pytest.raises(ValueError, match="dt must be"):
+            hw.Solver(model).step(model.state(), model.state(), control, dt)
     with pytest.raises(ValueError, match="dt must be"):
-        hw.Solver(model).step(model.state(), model.state(), control, None)
+        Stepper(solver, dt=np.inf)
+    same = model.state()
+    with pytest.raises(ValueError, match="the same state"):
+        solver.step(same, same, control, 1 / 240)
+    with pytest.raises(ValueError, match="a control of another model"):
+        solver.step(model.state(), model.state(), hw.Control(bigger_strands, root_frames=True), 1 / 240)
+    framed = hw.Control(model, root_frames=True)
+    G = model.strand_count
+    still = np.zeros((G, 6))
+    poses = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (G, 1))
+    poses[5, 3:] = 0.0
+    with pytest.raises(ValueError, match="zero quaternion \\(strand 5\\)"):
+        framed.set_root_frames(poses, still, still)
+    poses[5, 3:] = (0.0, 0.0, 0.0, 5.0)  # normalised, as set_head does
+    framed.set_root_frames(poses, still, still)
+    assert framed.bases.xform.numpy()[5][3:] == pytest.approx([0.0, 0.0, 0.0, 1.0])
     for substeps in (0, -1, 2.5):
         with pytest.raises(ValueError, match="substeps must be"):
             Stepper(solver, dt=1 / 240, substeps=substeps)
@@ -113,6 +133,28 @@ def test_the_step_api_refuses_what_would_crash_or_do_nothing(tiny):
     assert control.head_xform.numpy()[0][3:] == pytest.approx([0.0, 0.0, 0.0, 1.0])
     control.set_wind((1.0, 0.0, 0.0))
     solver.step(model.state(), model.state(), control, 1 / 240)
+
+
+@pytest.mark.parametrize("field", ["wind", "head_velocity", "head_xform"])
+def test_nonfinite_control_written_in_place_is_named_as_the_fault(tiny, field):
+    """A control array written in place (as a captured graph's inputs are) with a NaN is not checked on the way in;
+    the fault it causes names the control's array and says to give it finite values, not the step size."""
+    sim = Simulation(tiny)
+    solver, model = sim.solver, sim.model
+    control = model.control()
+    array = getattr(control, field)
+    values = array.numpy().copy()
+    values.view(np.float32).reshape(-1)[0] = np.nan
+    array.assign(values)
+    s0, s1 = model.state(), model.state()
+    solver.forward_kinematics(s0, control)
+    for _ in range(3):
+        solver.step(s0, s1, control, 1 / 240)
+        s0, s1 = s1, s0
+    with pytest.raises(hw.SimulationFault) as fault:
+        solver.check(s0, frame=1)
+    assert fault.value.stage == "control input"
+    assert f"the control's {field} held non-finite values" in str(fault.value) and "finite values" in str(fault.value)
 
 
 def test_a_simulation_drives_its_head_from_an_assigned_motion(tiny):
