@@ -259,3 +259,21 @@ def test_a_stop_while_drawing_the_preview_keeps_the_complete_cache(tmp_path, mon
     assert info.value.signum == signal.SIGTERM
     stage = Usd.Stage.Open(str(out))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0.0, 3.0)
+
+
+def test_resume_with_nothing_stopped_says_why(tmp_path, capsys):
+    """``--resume`` where no run stopped, and where the run finished: each says so, not that a folder which does not
+    exist "holds no complete frame"."""
+    from hairwarp.cli import main
+
+    out = tmp_path / "tiny.usdc"
+    args = ["run", str(TINY), "-o", str(out), "-s", "output.preview=false", "--frames", "1"]
+    assert main([*args, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert f"no stopped run to resume at {out}" in err and "holds no complete frame" not in err, err
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main([*args, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert f"the cache {out} is complete: nothing to resume" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.clips", "tiny.usdc"]

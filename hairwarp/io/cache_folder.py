@@ -205,7 +205,7 @@ class CacheFolder:
                     shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
             return None
         if span is None:
-            raise UsdFileError(f"{self.path}: nothing to resume: {self.dir} holds no complete frame")
+            raise UsdFileError(self._nothing_to_resume())
         last = span[1]
         if not self.checkpoint_path(last).is_file():
             raise UsdFileError(f"{self.path}: cannot resume: {self.checkpoint_path(last)} (the state after frame "
@@ -218,6 +218,18 @@ class CacheFolder:
             if stale and entry.is_file():
                 entry.unlink()
         return last
+
+    def _nothing_to_resume(self) -> str:
+        """Why ``--resume`` has no frame to continue from, for its message: the working folder held only this run's
+        lock (no run stopped here, or the last one finished and moved its cache into place), or a stopped run kept no
+        complete frame."""
+        left = [entry for entry in self.dir.iterdir() if entry != self.lock]
+        if left:
+            return f"{self.path}: nothing to resume: the stopped run in {self.dir} kept no complete frame"
+        if self.path.exists():
+            return (f"{self.path}: the cache {self.path} is complete: nothing to resume (hairwarp run without "
+                    f"--resume runs it again)")
+        return f"{self.path}: no stopped run to resume at {self.path} (no {self.dir.name} folder beside it)"
 
     # --- files -------------------------------------------------------------------------------------------------
 
