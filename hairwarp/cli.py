@@ -70,8 +70,17 @@ def _cmd_run(args) -> int:
     print(f"cache    {result.cache_path}")
     if getattr(result, "preview_path", None):
         print(f"preview  {result.preview_path}")
-    print(f"{result.frames} frames in {result.seconds:.2f} s")
+    simulated = result.frames - result.resumed_frames
+    resumed = ""
+    if result.resumed_frames:
+        resumed = f" after the {_counted(result.resumed_frames, 'frame')} of the stopped run"
+    print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.seconds:.2f} s")
     return EXIT_OK
+
+
+def _counted(count: int, noun: str) -> str:
+    """``count`` and ``noun``, in the plural unless it is one ("1 frame", "0 frames", "24 frames")."""
+    return f"{count} {noun}" if count == 1 else f"{count} {noun}s"
 
 
 def _cmd_schema(args) -> int:

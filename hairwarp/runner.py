@@ -749,7 +749,14 @@ def _merged_world_mesh(meshes):
 
 @dataclass
 class RunResult:
-    """What :func:`simulate` produced."""
+    """What :func:`simulate` produced.
+
+    Attributes:
+        frames: the frames the cache holds after its first (``sim.frames``), those of a resumed run included.
+        seconds_per_frame: wall time per frame this run simulated.
+        resumed_frames: frames after the first that the stopped run had simulated (0 for a run that did not
+            resume); this run simulated ``frames - resumed_frames``.
+    """
 
     cache_path: Path
     preview_path: Path | None
@@ -758,6 +765,7 @@ class RunResult:
     seconds_per_frame: float
     notes: list[str] = field(default_factory=list)
     frame_stats: list[dict] = field(default_factory=list)
+    resumed_frames: int = 0
 
 
 class _Progress:
@@ -914,8 +922,9 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             raise RunStopped(f"stopped by {name} while drawing the preview; the cache {out_path} is complete "
                              f"({frames + 1} frames), the preview may be missing.", stops.requested)
     seconds = time.perf_counter() - t_start
-    done = frames + 1 - start
-    return RunResult(out_path, preview_path, frames, seconds, seconds / max(done - 1, 1), notes, all_stats)
+    resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
+    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames - resumed, 1), notes, all_stats,
+                     resumed)
 
 
 def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_stats, stops) -> list:

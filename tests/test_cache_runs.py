@@ -277,3 +277,31 @@ def test_resume_with_nothing_stopped_says_why(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"the cache {out} is complete: nothing to resume" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.clips", "tiny.usdc"]
+
+
+def test_summary_counts_the_frames_this_run_simulated(tmp_path, capsys, monkeypatch):
+    """A resumed run's last line counts the frames it simulated and those the stopped run had, in the singular for
+    one (a run of 6 frames resumed after frame 4 simulated 2, not 6)."""
+    from hairwarp import runner
+    from hairwarp.cli import main
+
+    out = tmp_path / "tiny.usdc"
+    args = ["run", str(TINY), "-o", str(out), "-s", "output.preview=false", "--frames"]
+    assert main([*args, "1"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("1 frame simulated in ")
+    frame_stats = runner.Simulation.frame_stats
+    seen = []
+
+    def stop_at_frame_4(sim):  # a SIGTERM while frame 4 is written: the run stops after it
+        seen.append(len(seen))
+        if seen[-1] == 4:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return frame_stats(sim)
+
+    monkeypatch.setattr(runner.Simulation, "frame_stats", stop_at_frame_4)
+    assert main([*args, "6"]) == 128 + signal.SIGTERM
+    assert "stopped by SIGTERM after frame 4" in capsys.readouterr().err
+    monkeypatch.setattr(runner.Simulation, "frame_stats", frame_stats)
+    assert main([*args, "6", "--resume"]) == 0
+    summary = capsys.readouterr().out.splitlines()[-1]
+    assert summary.startswith("2 frames simulated after the 4 frames of the stopped run in "), summary

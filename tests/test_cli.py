@@ -308,6 +308,7 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
         preview_path = tmp_path / "out" / "tiny.png"
         frames = 2
         seconds = 0.5
+        resumed_frames = 0
 
     def fake(scene, out, **kw):
         seen.update(scene=scene, out=out, **kw)
