@@ -24,7 +24,9 @@ Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -35,6 +37,9 @@ EXIT_OK = 0
 EXIT_MISSING_PART = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
+
+#: The signals that stop a run besides SIGINT (which Python turns into KeyboardInterrupt), where the system has them.
+_STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 _USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _GROOM_SUFFIXES = (".tfx", ".hair")
@@ -494,7 +499,43 @@ def main(argv=None) -> int:
     # a warning is one line of its own, as the errors are (not the source line that raised it); for this command only
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
-        return _main(args)
+        try:
+            with _stops_before_the_run(args.command == "run"):
+                return _main(args)
+        except _StoppedBeforeTheRun as stop:
+            _error(f"stopped by {signal.Signals(stop.signum).name} before the run began; nothing was written")
+            return 128 + stop.signum
+
+
+class _StoppedBeforeTheRun(BaseException):
+    """SIGTERM or SIGHUP while ``run`` starts (Warp loads, the scene is checked), before the run takes the signals
+    over. A BaseException, as KeyboardInterrupt, so that no ``except Exception`` on the way swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _stops_before_the_run(active: bool):
+    """While ``active``: SIGTERM and SIGHUP end the command at once with one line and exit code 128 + signal, as
+    SIGINT does, instead of the default's silent end. :func:`hairwarp.runner.simulate` takes them over from its lock
+    on (it stops after the frame in flight, releases the lock and says what it kept) and gives them back after."""
+    import threading
+
+    if not active or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, _frame):
+        raise _StoppedBeforeTheRun(signum)
+
+    previous = {sig: signal.signal(sig, stop) for sig in _STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

@@ -853,49 +853,52 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     _preflight(scene, out_path, frames, device)
     notes, all_stats = [], []
     report = _Progress(frames, progress)
-    cache = _cache_writer(scene, out_path, notes, resume)
-    try:
-        if cache.folder.found:
-            report.note(cache.folder.found)
-        sim = Simulation(scene, device=device)
-        start = 0
-        if cache.resumed_after is not None:
-            # Frames are stored at time code output.start_frame + frame; the checkpoints are named by time code.
-            first = cache.folder.frame_range()[0]
-            if first != cache.start_frame:
-                raise ValueError(f"{out_path}: cannot resume: the stopped run starts at frame {first}, "
-                                 f"output.start_frame is {cache.start_frame}")
-            if cache.resumed_after - cache.start_frame > frames:
-                raise ValueError(f"{out_path}: cannot resume: the stopped run is at frame {cache.resumed_after}, "
-                                 f"past sim.frames = {frames}")
-            saved = cache.folder.read_checkpoint(cache.resumed_after)
-            changed = _check_resumed_scene(scene, saved.pop(RESUME_SCENE_KEY, None), out_path)
-            if changed:
-                notes.append(changed)
-                report.note(changed)
-            sim.restore(saved)
-            start = cache.resumed_after - cache.start_frame + 1
-        _check_disk(cache, scene, frames, start, report)
-        with _Stops() as stops:
-            kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
-        cache.close()
-    except SimulationFault as fault:
-        cache.abandon()
-        raise SimulationFault(f"{fault} {_kept(cache).capitalize()}.", frame=fault.frame, stage=fault.stage,
-                              bits=fault.bits) from None
-    except CacheWriteError as exc:
-        cache.abandon()
-        raise CacheWriteError(f"{cache.path}: {exc}; {_kept(cache)}") from None
-    except RunStopped as stop:
-        cache.abandon()
-        raise RunStopped(f"{stop} {_kept(cache).capitalize()}.", stop.signum) from None
-    except BaseException:
-        cache.abandon()
-        raise
-
-    preview_path = None
-    with _Stops() as stops:  # the cache is complete: a stop now skips only the picture
+    # One stop handler from the lock to the preview: a signal while the simulation is built (a second or more) was
+    # the default's, which ended the process silently and left the lock behind.
+    with _Stops() as stops:
+        cache = _cache_writer(scene, out_path, notes, resume)
         try:
+            if cache.folder.found:
+                report.note(cache.folder.found)
+            sim = Simulation(scene, device=device)
+            start = 0
+            if cache.resumed_after is not None:
+                # Frames are stored at time code output.start_frame + frame; the checkpoints are named by time code.
+                first = cache.folder.frame_range()[0]
+                if first != cache.start_frame:
+                    raise ValueError(f"{out_path}: cannot resume: the stopped run starts at frame {first}, "
+                                     f"output.start_frame is {cache.start_frame}")
+                if cache.resumed_after - cache.start_frame > frames:
+                    raise ValueError(f"{out_path}: cannot resume: the stopped run is at frame "
+                                     f"{cache.resumed_after}, past sim.frames = {frames}")
+                saved = cache.folder.read_checkpoint(cache.resumed_after)
+                changed = _check_resumed_scene(scene, saved.pop(RESUME_SCENE_KEY, None), out_path)
+                if changed:
+                    notes.append(changed)
+                    report.note(changed)
+                sim.restore(saved)
+                start = cache.resumed_after - cache.start_frame + 1
+            _check_disk(cache, scene, frames, start, report)
+            if stops.requested is not None:
+                raise RunStopped(f"stopped by {_signal_name(stops.requested)} before frame {start}.", stops.requested)
+            kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
+            cache.close()
+        except SimulationFault as fault:
+            cache.abandon()
+            raise SimulationFault(f"{fault} {_kept(cache).capitalize()}.", frame=fault.frame, stage=fault.stage,
+                                  bits=fault.bits) from None
+        except CacheWriteError as exc:
+            cache.abandon()
+            raise CacheWriteError(f"{cache.path}: {exc}; {_kept(cache)}") from None
+        except RunStopped as stop:
+            cache.abandon()
+            raise RunStopped(f"{stop} {_kept(cache).capitalize()}.", stop.signum) from None
+        except BaseException:
+            cache.abandon()
+            raise
+
+        preview_path = None
+        try:  # the cache is complete: a stop now skips only the picture
             if preview and start > 0:  # the frames before the resume are in the cache only
                 from hairwarp.preview import preview_cache
 
@@ -916,22 +919,24 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         except KeyboardInterrupt:
             pass  # a second signal: stop drawing at once
         if stops.requested is not None:
-            import signal
-
-            name = signal.Signals(stops.requested).name
-            raise RunStopped(f"stopped by {name} while drawing the preview; the cache {out_path} is complete "
-                             f"({frames + 1} frames), the preview may be missing.", stops.requested)
+            raise RunStopped(f"stopped by {_signal_name(stops.requested)} while drawing the preview; the cache "
+                             f"{out_path} is complete ({frames + 1} frames), the preview may be missing.",
+                             stops.requested)
     seconds = time.perf_counter() - t_start
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
     return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames - resumed, 1), notes, all_stats,
                      resumed)
 
 
+def _signal_name(signum: int) -> str:
+    import signal
+
+    return signal.Signals(signum).name
+
+
 def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_stats, stops) -> list:
     """Declare the cache's prims, then simulate and write frames ``start`` .. ``frames`` (each with its checkpoint);
     returns the frames kept for the preview."""
-    import signal
-
     model = sim.model
     G, S = model.strand_count, model.seg_per_strand
     counts = np.full(G, S + 1, dtype=np.int32)
@@ -983,6 +988,5 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
             kept.append((frame, shown_curves, mesh))
         report.update(frame, stats)
         if stops.requested is not None and frame < frames:
-            name = signal.Signals(stops.requested).name
-            raise RunStopped(f"stopped by {name} after frame {frame}.", stops.requested)
+            raise RunStopped(f"stopped by {_signal_name(stops.requested)} after frame {frame}.", stops.requested)
     return kept

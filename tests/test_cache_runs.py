@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -305,3 +306,32 @@ def test_summary_counts_the_frames_this_run_simulated(tmp_path, capsys, monkeypa
     assert main([*args, "6", "--resume"]) == 0
     summary = capsys.readouterr().out.splitlines()[-1]
     assert summary.startswith("2 frames simulated after the 4 frames of the stopped run in "), summary
+
+
+@pytest.mark.parametrize("where, sig, said", [
+    ("hairwarp.scene:Scene.load", signal.SIGHUP, "stopped by SIGHUP before the run began; nothing was written"),
+    ("hairwarp.runner:Simulation.__init__", signal.SIGTERM, "stopped by SIGTERM before frame 0. No frame was complete"),
+])
+def test_a_stop_before_the_first_frame_is_one_line_and_releases_the_lock(tmp_path, where, sig, said):
+    """SIGTERM and SIGHUP while the run starts (the scene is read; the simulation is built, with the lock taken)
+    end it with one line and 128 + signal, as SIGINT does; they used to end the process silently, the lock left."""
+    module, attr = where.split(":")
+    owner, name = attr.split(".")
+    code = textwrap.dedent(f"""
+        import os, sys
+        import {module} as m
+        from hairwarp.cli import main
+
+        original = m.{owner}.{name}
+        def stopped(*args, **kwargs):
+            os.kill(os.getpid(), {int(sig)})
+            return original(*args, **kwargs)
+        m.{owner}.{name} = stopped
+        sys.exit(main(sys.argv[1:]))
+    """)
+    out = tmp_path / "tiny.usdc"
+    res = subprocess.run([sys.executable, "-c", code, "run", str(TINY), "-o", str(out), "--frames", "2"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 128 + sig, res.stderr
+    assert said in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert list(tmp_path.iterdir()) == [], "the lock or a frame left behind"
