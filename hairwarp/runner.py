@@ -882,7 +882,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             if stops.requested is not None:
                 raise RunStopped(f"stopped by {_signal_name(stops.requested)} before frame {start}.", stops.requested)
             kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
-            cache.close()
+            cache.close(keep_lock=True)  # until the preview is written: a second run would replace the cache
         except SimulationFault as fault:
             cache.abandon()
             raise SimulationFault(f"{fault} {_kept(cache).capitalize()}.", frame=fault.frame, stage=fault.stage,
@@ -899,25 +899,12 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
 
         preview_path = None
         try:  # the cache is complete: a stop now skips only the picture
-            if preview and start > 0:  # the frames before the resume are in the cache only
-                from hairwarp.preview import preview_cache
-
-                preview_path = preview_cache(out_path, out_path.with_suffix(".png"),
-                                             frames=int(scene.output.preview_frames))
-            elif preview and kept:
-                from hairwarp.preview import frame_title, render_frames, sheet_size
-
-                preview_path = out_path.with_suffix(".png")
-                first = int(scene.output.start_frame)
-                render_frames(
-                    [c for _, c, _ in kept],
-                    preview_path,
-                    titles=[frame_title(first + f, f * sim.frame_dt) for f, _, _ in kept],
-                    meshes=[m for _, _, m in kept] if sim.colliders else None,
-                    size_px=sheet_size(len(kept)),
-                )
+            if preview:
+                preview_path = _draw_preview(scene, sim, out_path, start, kept)
         except KeyboardInterrupt:
             pass  # a second signal: stop drawing at once
+        finally:
+            cache.release()
         if stops.requested is not None:
             raise RunStopped(f"stopped by {_signal_name(stops.requested)} while drawing the preview; the cache "
                              f"{out_path} is complete ({frames + 1} frames), the preview may be missing.",
@@ -926,6 +913,27 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
     return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames - resumed, 1), notes, all_stats,
                      resumed)
+
+
+def _draw_preview(scene, sim, out_path: Path, start: int, kept: list) -> Path | None:
+    """Draw the run's preview beside its cache from the frames ``_run_frames`` kept; returns its path, or None when
+    no frame was kept."""
+    if start > 0:  # the frames before the resume are in the cache only
+        from hairwarp.preview import preview_cache
+
+        return preview_cache(out_path, out_path.with_suffix(".png"), frames=int(scene.output.preview_frames))
+    if not kept:
+        return None
+    from hairwarp.preview import frame_title, render_frames, sheet_size
+
+    first = int(scene.output.start_frame)
+    return render_frames(
+        [c for _, c, _ in kept],
+        out_path.with_suffix(".png"),
+        titles=[frame_title(first + f, f * sim.frame_dt) for f, _, _ in kept],
+        meshes=[m for _, _, m in kept] if sim.colliders else None,
+        size_px=sheet_size(len(kept)),
+    )
 
 
 def _signal_name(signum: int) -> str:

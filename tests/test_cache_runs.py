@@ -335,3 +335,24 @@ def test_a_stop_before_the_first_frame_is_one_line_and_releases_the_lock(tmp_pat
     assert res.returncode == 128 + sig, res.stderr
     assert said in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert list(tmp_path.iterdir()) == [], "the lock or a frame left behind"
+
+
+def test_the_lock_is_held_until_the_preview_is_written(tmp_path, monkeypatch, capsys):
+    """A second run on the output while the first draws its preview is refused, as while it simulates: the lock
+    went with the cache's move into place, and the second run's cache ended beside the first run's preview."""
+    import hairwarp.preview
+    from hairwarp.cli import main
+
+    out = tmp_path / "tiny.usdc"
+    render_frames = hairwarp.preview.render_frames
+    second = []
+
+    def render_while_a_second_run_starts(*args, **kwargs):
+        second.append(main(["run", str(TINY), "-o", str(out), "--frames", "1", "-s", "output.preview=false"]))
+        return render_frames(*args, **kwargs)
+
+    monkeypatch.setattr(hairwarp.preview, "render_frames", render_while_a_second_run_starts)
+    assert main(["run", str(TINY), "-o", str(out), "--frames", "2"]) == 0
+    assert second == [2] and "another run" in capsys.readouterr().err
+    assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 2.0, "the first run's cache"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.clips", "tiny.png", "tiny.usdc"]

@@ -332,8 +332,12 @@ class BackgroundCacheWriter(CacheWriter):
 
     # --- closing ---------------------------------------------------------------------------------------------
 
-    def close(self) -> Path:
+    def close(self, keep_lock: bool = False) -> Path:
         """Wait for the frames in flight, save, rename the file into place and end the writer process. Idempotent.
+
+        Args:
+            keep_lock: hold the output's lock until :meth:`release`, as
+                :meth:`hairwarp.io.cache.CacheWriter.close`; a close that fails releases it.
 
         Raises:
             UsdFileError: the writer process failed (at a frame, or saving); the message names the file and says
@@ -349,6 +353,8 @@ class BackgroundCacheWriter(CacheWriter):
         finally:
             self._closed = True
             self._shutdown()
+        if error is not None or self._failure is not None or not keep_lock:
+            self.release()
         if self._failure is not None and not self._failure_raised:
             self._failure_raised = True
             raise (CacheWriteError if self._failure_is_write else UsdFileError)(

@@ -690,9 +690,13 @@ class CacheWriter:
         """True once :meth:`close` has put the cache in place."""
         return self._closed
 
-    def close(self) -> Path:
+    def close(self, keep_lock: bool = False) -> Path:
         """Finish the cache (gather small frames, or flatten for layout "single") and move it to ``path``,
         replacing the cache there. Idempotent.
+
+        Args:
+            keep_lock: hold the output's lock until :meth:`release`, for what the run writes beside the cache
+                (its preview), so that a second run cannot start on the output in between.
 
         Returns:
             The destination path.
@@ -705,7 +709,15 @@ class CacheWriter:
             self._write_root(self._frames)
         self._finish()  # also in a background writer's process, the one that holds the layers
         self._closed = True
+        if not keep_lock:
+            self.release()
         return self.path
+
+    def release(self) -> None:
+        """Release the output's lock (after ``close(keep_lock=True)``) and remove the emptied working folder.
+        Idempotent."""
+        if self._owner:
+            self.folder.release()
 
     def _finish(self) -> None:
         from pxr import Usd

@@ -311,7 +311,9 @@ class CacheFolder:
     # --- the end -----------------------------------------------------------------------------------------------
 
     def finish(self, flat: Path | None) -> None:
-        """Move the finished cache to ``path``, replacing the one there, and remove the working folder.
+        """Move the finished cache to ``path``, replacing the one there, and empty the working folder but for the
+        lock: the run holds the output until :meth:`release` (which removes the folder), so that what it writes
+        beside the cache after it (the preview) cannot mix with a second run's cache.
 
         Args:
             flat: a single-file cache in the working folder to put at ``path``; None moves the clip cache (the root
@@ -330,8 +332,9 @@ class CacheFolder:
         except OSError as exc:
             raise CacheWriteError(f"moving the cache from {self.dir} to {self.path} failed: "
                                   f"{_os_error_text(exc)}") from None
-        self._locked = False
-        shutil.rmtree(self.dir, ignore_errors=True)
+        for entry in self.dir.iterdir():
+            if entry != self.lock:
+                shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else _discard(entry)
 
 
 def _discard(path: Path) -> None:
