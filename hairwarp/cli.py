@@ -15,7 +15,8 @@ Exit codes: 0 success; 1 a part of hairwarp this installation lacks (for ``wedge
 2 bad input (usage, scene, groom or cache errors, a missing file, an output that cannot be written, a missing
 device, not enough memory or disk for the run, another run on the same output; for ``wedge`` every variant is
 checked before any runs), with one message on stderr and no traceback; 3 the simulation stopped on a fault (the
-message names the frame, the stage and the parameter) or writing the cache failed (disk full, I/O error); for
+message names the frame, the stage and the parameter) or writing the cache or the picture failed (disk full, I/O
+error; a run whose preview failed says that its cache is complete); for
 ``wedge`` and ``batch``: some runs faulted, failed or were lost, the others finished, the summary says which;
 128 + N a signal N stopped the run (130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame.
 Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one-line message.
@@ -569,6 +570,10 @@ def _main(args) -> int:
         folder = sys.modules.get("hairwarp.io.cache_folder")
         if folder is not None and isinstance(exc, folder.CacheWriteError):
             _error(f"writing the cache failed: {exc}")
+            return EXIT_FAULT
+        preview = sys.modules.get("hairwarp.preview")
+        if preview is not None and isinstance(exc, preview.PreviewWriteError):
+            _error(str(exc))
             return EXIT_FAULT
         if _is_usd_error(exc):  # a file usd-core could not read or write, past hairwarp's own checks
             from hairwarp.io.usd_common import usd_error_text

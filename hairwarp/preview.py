@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["VIEWS", "preview_cache", "render_frames", "render_grid"]
+__all__ = ["VIEWS", "PreviewWriteError", "preview_cache", "render_frames", "render_grid"]
 
 VIEWS = {
     "front": (0.0, 0.0),
@@ -53,6 +53,52 @@ STRAND_JITTER = 0.25
 """Peak-to-peak brightness variation between strands."""
 MAX_MESH_FACES = 40000
 DPI = 100
+
+
+class PreviewWriteError(RuntimeError):
+    """Writing a picture failed (disk full, I/O error); the message names the path and, for a full disk, the space
+    the picture needs and the space free. Nothing is left at the path (see :func:`_save`)."""
+
+
+def _save(out: Path, encode) -> Path:
+    """Write the picture ``encode(stream)`` produces to ``out``, whole or not at all: encoded in memory (so its size
+    is known for the message of a full disk), written under a temporary name beside ``out``, flushed and renamed
+    over it. A full disk used to leave a truncated GIF at ``out`` and a traceback.
+
+    Raises:
+        PreviewWriteError: the folder or the file could not be written; the temporary file is removed.
+    """
+    import errno
+    import io
+    import os
+
+    buffer = io.BytesIO()
+    encode(buffer)
+    data = buffer.getbuffer()
+    tmp = out.with_name(f"{out.stem}.tmp{out.suffix}")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+    except BaseException as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        if not isinstance(exc, OSError):
+            raise
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            from hairwarp.io.cache_folder import free_bytes
+            from hairwarp.io.usd_common import _human_bytes
+
+            raise PreviewWriteError(f"no space left on {out.parent} for the picture {out}: it needs "
+                                    f"{_human_bytes(len(data))}, {_human_bytes(free_bytes(out.parent))} are free"
+                                    ) from None
+        raise PreviewWriteError(f"writing the picture {out} failed: {exc.strerror or exc}") from None
+    return out
 
 
 def _camera(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -341,6 +387,9 @@ def render_frames(frames, out_png, *, titles=None, meshes=None, view="three_quar
 
     Returns:
         The path of the PNG.
+
+    Raises:
+        PreviewWriteError: the PNG could not be written (nothing is left at ``out_png``).
     """
     out_png = Path(out_png)
     if meshes is not None and len(meshes) != len(frames):
@@ -350,9 +399,7 @@ def render_frames(frames, out_png, *, titles=None, meshes=None, view="three_quar
     if titles is None:
         titles = [f"frame {i}" for i in range(len(frames))]
     fig = _sheet(panels, titles, size_px)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=DPI, facecolor=BACKGROUND)
-    return out_png
+    return _save(out_png, lambda stream: fig.savefig(stream, format="png", dpi=DPI, facecolor=BACKGROUND))
 
 
 GRID_LABEL_PX = 190
@@ -424,9 +471,7 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
         if col_titles is not None and c < len(col_titles) and col_titles[c]:
             fig.text((GRID_LABEL_PX + (c + 0.5) * pw) / width, 1.0 - 0.5 * GRID_HEADER_PX / height, str(col_titles[c]),
                      ha="center", va="center", fontsize=9, color=CAPTION_COLOR, family="sans-serif")
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=DPI, facecolor=BACKGROUND)
-    return out_png
+    return _save(out_png, lambda stream: fig.savefig(stream, format="png", dpi=DPI, facecolor=BACKGROUND))
 
 
 def frame_title(frame: float, seconds: float) -> str:
@@ -479,6 +524,9 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
 
     Returns:
         The path of the picture written.
+
+    Raises:
+        PreviewWriteError: the picture could not be written (nothing is left at its path).
     """
     from hairwarp.io.usd_inspect import read_frames
 
@@ -544,7 +592,5 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False, guides
     probe.paste(images[-1], (0, height))
     palette = probe.quantize(colors=255, method=Image.Quantize.MEDIANCUT)
     frames = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    frames[0].save(out, save_all=True, append_images=frames[1:], duration=gif_durations(len(frames), fps), loop=0,
-                   optimize=False)
-    return out
+    return _save(out, lambda stream: frames[0].save(stream, format="GIF", save_all=True, append_images=frames[1:],
+                                                    duration=gif_durations(len(frames), fps), loop=0, optimize=False))

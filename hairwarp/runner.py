@@ -843,6 +843,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         RunStopped: a signal stopped the run; the message says where the complete frames are.
         hairwarp.io.cache_folder.CacheWriteError: the disk filled up or failed; the message names the path, the
             space needed and where the complete frames are.
+        hairwarp.preview.PreviewWriteError: the cache is complete and in place, but its preview could not be
+            written (the message says both).
     """
     from hairwarp.io.cache_folder import CacheWriteError
 
@@ -878,7 +880,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                     report.note(changed)
                 sim.restore(saved)
                 start = cache.resumed_after - cache.start_frame + 1
-            _check_disk(cache, scene, frames, start, report)
+            _check_disk_space(cache, scene, sim, frames, start, preview, report)
             if stops.requested is not None:
                 raise RunStopped(f"stopped by {_signal_name(stops.requested)} before frame {start}.", stops.requested)
             kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
@@ -897,12 +899,17 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             cache.abandon()
             raise
 
+        from hairwarp.preview import PreviewWriteError
+
         preview_path = None
         try:  # the cache is complete: a stop now skips only the picture
             if preview:
                 preview_path = _draw_preview(scene, sim, out_path, start, kept)
         except KeyboardInterrupt:
             pass  # a second signal: stop drawing at once
+        except PreviewWriteError as exc:
+            raise PreviewWriteError(f"the cache {out_path} is complete ({frames + 1} frames), the preview is "
+                                    f"missing: {exc}") from None
         finally:
             cache.release()
         if stops.requested is not None:
@@ -913,6 +920,61 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
     return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames - resumed, 1), notes, all_stats,
                      resumed)
+
+
+PREVIEW_BYTES_PER_PIXEL = 0.5
+"""Bytes of a preview PNG per pixel, for the disk-space check: 0.33 measured on tiny's sheet, 0.47 on the default
+scene's (3,000 dense strands)."""
+
+
+def _disk_needed(scene, sim, cache, frames: int, start: int, preview: bool) -> dict[str, int]:
+    """Bytes the run still writes on the cache's disk, by part: the frames (twice where the cache's close rewrites
+    them: flattened, or small frames gathered into clips), the topology layer (what its own space check asks: the
+    collider meshes and the curves' static arrays, uncompressed), the state stored with each frame (two at once:
+    the last frame's goes once the next one's is in place) and the preview."""
+    from hairwarp.io.cache import CHUNK_BYTES
+    from hairwarp.preview import sheet_size
+
+    _, frame_bytes = _estimate_bytes(scene, frames)
+    parts = {"frames": frame_bytes * (frames + 1 - start)}
+    if scene.output.layout == "single" or (frame_bytes * 2 <= CHUNK_BYTES and frames > 0):
+        parts["frames"] += frame_bytes * (frames + 1)
+    if start == 0:  # a resumed run's topology is on the disk already
+        curves = [(sim.model.strand_count, sim.model.strand_count * (sim.model.seg_per_strand + 1))]
+        if sim.dense is not None:
+            counts = sim.dense.curve_vertex_counts(scene.dense.basis == "linear")
+            curves.append((len(counts), int(counts.sum())))
+        meshes = sim.collider_meshes(0.0)
+        parts["topology"] = (sum(32 * n + 4 * v for n, v in curves)
+                             + sum(24 * len(faces) + 24 * len(verts) for _, verts, faces, _ in meshes))
+    state = {**sim.checkpoint(), RESUME_SCENE_KEY: np.array(_resume_scene(scene))}
+    parts["state"] = 2 * sum(a.nbytes for a in state.values())
+    if preview:
+        width, height = sheet_size(min(int(scene.output.preview_frames), frames + 1))
+        parts["preview"] = int(width * height * PREVIEW_BYTES_PER_PIXEL)
+    return parts
+
+
+def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool, report) -> None:
+    """Print what the run will write on the cache's disk and refuse a run that cannot fit there (one line,
+    ValueError), counting the frames, the topology, the stored state and the preview (the frames alone passed a
+    48-100 KiB disk for tiny, whose run then failed at frame 0)."""
+    from hairwarp.io.cache_folder import free_bytes
+    from hairwarp.io.usd_common import _human_bytes
+
+    _, frame_bytes = _estimate_bytes(scene, frames)
+    parts = _disk_needed(scene, sim, cache, frames, start, preview)
+    total = sum(parts.values()) + 65536  # each write's own check keeps this much spare
+    count = frames + 1 - start
+    listed = ", ".join(f"{name} {_human_bytes(n)}" for name, n in parts.items())
+    report.note(f"cache    {cache.path}: about {_human_bytes(frame_bytes * (frames + 1))} "
+                f"({_human_bytes(frame_bytes)} per frame x {frames + 1} frames"
+                + (f", {count} of them to write" if start else "") + f"); the run needs about "
+                f"{_human_bytes(total)} on its disk ({listed})")
+    free = free_bytes(cache.folder.dir)
+    if total > free:
+        raise ValueError(f"{cache.path}: the run needs about {_human_bytes(total)} on its disk ({listed}), "
+                         f"{_human_bytes(free)} are free on its disk: free space, or lower sim.frames or dense.count")
 
 
 def _draw_preview(scene, sim, out_path: Path, start: int, kept: list) -> Path | None:

@@ -209,7 +209,7 @@ def test_disk_full_mid_run_keeps_frames_and_exits_3(tmp_path):
     """The pre-check is bypassed (its estimate would refuse the run), so the disk fills at a later frame for sure."""
     with _tmpfs(tmp_path / "small", "size=256k") as mnt:
         out = mnt / "tiny.usdc"
-        code = ("import sys\nimport hairwarp.runner as r\nr._check_disk = lambda *a, **k: None\n"
+        code = ("import sys\nimport hairwarp.runner as r\nr._check_disk_space = lambda *a, **k: None\n"
                 "from hairwarp.cli import main\nsys.exit(main(sys.argv[1:]))")
         cmd = [sys.executable, "-c", code, "run", str(TINY), "-o", str(out), "-s", "output.preview=false",
                "-s", "output.guides=true", "--frames", "100000"]
@@ -356,3 +356,39 @@ def test_the_lock_is_held_until_the_preview_is_written(tmp_path, monkeypatch, ca
     assert second == [2] and "another run" in capsys.readouterr().err
     assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 2.0, "the first run's cache"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.clips", "tiny.png", "tiny.usdc"]
+
+
+def test_disk_too_small_for_the_topology_state_and_preview_is_refused_before_the_first_step(tmp_path, capsys):
+    """tiny's frames fit in 100 KiB, its topology layer, stored state and preview do not: the check counted the frames
+    alone (40.6 KiB), passed, and the run failed at frame 0 with exit 3."""
+    from hairwarp.cli import main
+
+    with _tmpfs(tmp_path / "small", "size=100k") as mnt:
+        assert main(["run", str(TINY), "-o", str(mnt / "tiny.usdc")]) == 2
+        err = capsys.readouterr().err
+        assert "are free on its disk" in err and "topology" in err and "preview" in err, err
+        assert list(mnt.iterdir()) == []
+
+
+def test_a_full_disk_at_the_preview_keeps_the_complete_cache_and_exits_3(tmp_path, capsys, monkeypatch):
+    """The disk fills while the preview is written (the check before the run is bypassed: it would refuse it): the
+    run says its cache is complete and its preview missing, exits 3, and leaves no picture; ``hairwarp preview`` on
+    that disk too, for a PNG and a GIF (which it left truncated, with a traceback)."""
+    from hairwarp import runner
+    from hairwarp.cli import main
+
+    monkeypatch.setattr(runner, "_check_disk_space", lambda *args, **kwargs: None)
+    with _tmpfs(tmp_path / "small", "size=300k") as mnt:
+        out = mnt / "tiny.usdc"
+        assert main(["run", str(TINY), "-o", str(out)]) == 3
+        err = capsys.readouterr().err
+        assert f"the cache {out} is complete (11 frames), the preview is missing: no space left on {mnt}" in err, err
+        assert "Traceback" not in err
+        assert sorted(p.name for p in mnt.iterdir()) == ["tiny.clips", "tiny.usdc"]
+        assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 10.0
+        for extra in ([], ["--gif"]):
+            picture = mnt / ("x.gif" if extra else "x.png")
+            assert main(["preview", str(out), "-o", str(picture), *extra]) == 3
+            err = capsys.readouterr().err
+            assert f"no space left on {mnt} for the picture {picture}: it needs" in err, err
+            assert sorted(p.name for p in mnt.iterdir()) == ["tiny.clips", "tiny.usdc"]
