@@ -1210,8 +1210,16 @@ def md_robustness(data: dict) -> list[str]:
     pw = data.get("part_wall_s", {})
     lines += ["", f"*Suite `robustness`: {data.get('wall_s')} s (" + ", ".join(f"{k} {v} s" for k, v in pw.items())
               + f") on {sm.get('date')}, load average {sm.get('load_average_start')} → {sm.get('load_average_end')}"
-              + ("; quick sizes" if data.get("quick") else "") + ".*"]
+              + ("; quick sizes" if data.get("quick") else "") + "."
+              + _rerun_note(data.get("rerun")) + "*"]
     return lines
+
+
+def _rerun_note(rerun: dict | None) -> str:
+    """The parts of a record run again on their own later and merged into it (``{"date", "git_commit", "parts"}``)."""
+    if not rerun:
+        return ""
+    return f" Rerun on {rerun['date']} at commit {rerun['git_commit']}: {', '.join(rerun['parts'])}."
 
 
 def summary(data: dict) -> list[str]:
