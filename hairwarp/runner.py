@@ -674,24 +674,6 @@ def _preflight(scene, out_path: Path, frames: int, device) -> None:
                          f"{_human_bytes(available)} are available: lower groom.count, sim.segments or dense.count")
 
 
-def _check_disk(cache, scene, frames: int, start: int, report) -> None:
-    """Print the estimated cache size and refuse a run whose cache cannot fit on the disk (one line, ValueError)."""
-    from hairwarp.io.cache_folder import free_bytes
-    from hairwarp.io.usd_common import _human_bytes
-
-    _, frame_bytes = _estimate_bytes(scene, frames)
-    count = frames + 1 - start
-    total = frame_bytes * count * (2 if scene.output.layout == "single" else 1)  # flattening copies it once
-    report.note(f"cache    {cache.path}: about {_human_bytes(frame_bytes * (frames + 1))} "
-                f"({_human_bytes(frame_bytes)} per frame x {frames + 1} frames"
-                + (f", {count} of them to write)" if start else ")"))
-    free = free_bytes(cache.folder.dir)
-    if total > free:
-        raise ValueError(f"{cache.path}: the cache needs about {_human_bytes(total)} "
-                         f"({_human_bytes(frame_bytes)} per frame x {count} frames), {_human_bytes(free)} are free "
-                         f"on its disk: free space, or lower sim.frames or dense.count")
-
-
 def _kept(cache) -> str:
     """Where the frames of a run that did not finish are, for its message."""
     if cache.last_frame is None:
@@ -699,7 +681,8 @@ def _kept(cache) -> str:
     first = cache.last_frame - cache.frames_written + 1
     at = (f"the cache at {cache.path} is untouched" if Path(cache.path).exists()
           else f"nothing was written at {cache.path}")
-    return (f"frames {first}-{cache.last_frame} are in {cache.partial_path} (hairwarp run --resume continues "
+    frames = f"frame {first} is" if first == cache.last_frame else f"frames {first}-{cache.last_frame} are"
+    return (f"{frames} in {cache.partial_path} (hairwarp run --resume continues "
             f"from there, with a changed simulation too, such as more substeps; {at})")
 
 

@@ -1118,9 +1118,9 @@ class Scene:
         lines = [f"scene      {self.name}" + (f" - {d['scene']['description']}" if d["scene"]["description"] else "")]
         if self.source is not None:
             lines.append(f"file       {self.source}")
+        substeps = f"{sim['substeps']} substep" + ("s" if sim["substeps"] != 1 else "")
         lines.append(f"time       {sim['frames']} frames at {sim['fps']:g} fps = {sim['frames'] / sim['fps']:.3g} s, "
-                     f"{sim['substeps']} substeps (dt = {self.step_dt * 1e3:.3g} ms), {sim['integrator']}, "
-                     f"device {sim['device']}")
+                     f"{substeps} (dt = {self.step_dt * 1e3:.3g} ms), {sim['integrator']}, device {sim['device']}")
         if g["generator"] == "scalp":
             made = len(self.build_groom().strands)
             asked = f" ({g['count']} asked: what the root grid holds)" if made != g["count"] else ""

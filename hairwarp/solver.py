@@ -486,7 +486,8 @@ class Solver:
         fault of the contact response alone names collision, with advice for colliders.
         """
         dt = self._dt_host
-        step = f"dt = {dt:.3g} s" + (f" ({substeps} substeps per frame)" if substeps else "")
+        per_frame = f" ({substeps} substep{'s' if substeps != 1 else ''} per frame)" if substeps else ""
+        step = f"dt = {dt:.3g} s{per_frame}"
         more = "raise sim.substeps" if substeps else "use a smaller dt"
         bad_input = _nonfinite_control(getattr(self, "_control", None))
         if bad_input:
