@@ -48,8 +48,8 @@ from pathlib import Path
 
 from hairwarp.bench import json_default
 
-__all__ = ["INSTALL_HINT", "Task", "batch", "batch_tasks", "completed_record", "local_cores", "read_cache_frames",
-           "run_task", "run_tasks", "scene_key", "wedge", "wedge_tasks"]
+__all__ = ["INSTALL_HINT", "Task", "batch", "batch_tasks", "completed_record", "local_cores",
+           "make_output_folder", "read_cache_frames", "run_task", "run_tasks", "scene_key", "wedge", "wedge_tasks"]
 
 MARKER = "complete.json"
 """The completion marker of a task folder, written last: the key and the size of every output file."""
@@ -651,6 +651,30 @@ def _failure_record(task: Task, status: str, message: str) -> dict:
             "skipped": False}
 
 
+def make_output_folder(out) -> Path:
+    """Create the output folder of a wedge or a batch (its parents too) and return its absolute path.
+
+    Called before anything runs, so that an output that cannot be a folder is one sentence naming the path and what
+    to do, not the traceback of ``mkdir``: a ``-o out/tiny.usdc`` that exists as a file (the ``-o`` of
+    ``hairwarp run``, whose output is a file) raised ``FileExistsError``, and ``-o /proc/w`` printed a bare
+    ``[Errno 2]``.
+
+    Raises:
+        ValueError: ``out`` is a file, or the system refused to create it (the reason it gave).
+    """
+    out = Path(out).resolve()
+    if out.exists() and not out.is_dir():
+        folder = out.with_suffix("") if out.suffix else out.parent / f"{out.name}_runs"
+        raise ValueError(f"{out} is a file; the output of a wedge or a batch is a folder (a subfolder per run, the "
+                         f"summaries and the contact sheet): name a folder, such as {folder}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot create the output folder {out} ({exc.strerror or exc}): name a folder this "
+                         f"user can create and write") from None
+    return out
+
+
 def run_tasks(tasks: Sequence[Task], out, *, scheduler: str | None = None, workers: int | None = None,
               retries: int = TASK_RETRIES, progress: bool = False, log: Callable[[str], None] | None = None,
               sheet: bool = True, shared_framing: bool = True,
@@ -673,8 +697,7 @@ def run_tasks(tasks: Sequence[Task], out, *, scheduler: str | None = None, worke
     Raises:
         KeyboardInterrupt: after cancelling what was left and closing the client and the local cluster.
     """
-    out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_folder(out)
     if log is None:
         log = _log_to_stderr if progress else (lambda m: None)
     records: dict[int, dict] = {}

@@ -280,6 +280,24 @@ def test_bad_wedge_keys_and_unequal_zip_exit_2_with_one_line(tmp_path, capsys):
     assert not out.exists()  # nothing was submitted
 
 
+@pytest.mark.parametrize("command", ["wedge", "batch"])
+def test_an_output_that_cannot_be_a_folder_exits_2_with_one_line(tmp_path, capsys, command):
+    """The output of a wedge or a batch is a folder: an existing file there (a cache, as ``hairwarp run -o`` names
+    it) and a folder the system cannot create (here under that file) are one line naming the path, exit 2, before any
+    run starts; both were the traceback of ``mkdir``, exit 1."""
+    cache = tmp_path / "tiny.usdc"
+    cache.write_bytes(b"not a folder")
+    args = [command, str(TINY)] + (["-w", "strands.drag=0.01"] if command == "wedge" else []) + ["--workers", "1"]
+    assert main([*args, "-o", str(cache)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{cache} is a file" in err[0] and f"such as {tmp_path / 'tiny'}" in err[0], err
+    assert main([*args, "-o", str(cache / "w")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"hairwarp: cannot create the output folder {cache / 'w'} (Not a directory): name a folder this "
+                   f"user can create and write"]
+    assert cache.read_bytes() == b"not a folder" and sorted(tmp_path.iterdir()) == [cache]
+
+
 def test_missing_dask_gives_the_install_command(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)
     assert main(["wedge", str(TINY), "-w", "strands.drag=0.01,0.02", "-o", str(tmp_path)]) == 1
