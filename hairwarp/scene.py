@@ -1128,8 +1128,11 @@ class Scene:
                          f"{sim['segments']} segments each")
         else:
             cut = f", at most {g['max_strands']} strands" if g["max_strands"] else ""
-            lines.append(f"groom      file {g['file']} (up {g['up_axis']}, scale {g['scale']:g}{cut}), "
-                         f"{sim['segments']} segments per guide")
+            suffix = Path(g["file"] or "").suffix.lower()
+            up = g["up_axis"] or {".tfx": "Y (the .tfx default)", ".hair": "Z (the .hair default)"}.get(suffix,
+                                                                                                      "the stage's")
+            lines.append(f"groom      file {g['file']} (up {up}, scale {g['scale']:g}{cut}): "
+                         f"{len(self.build_groom().strands)} guides, {sim['segments']} segments per guide")
         if g["surface"]["file"] is not None:
             lines.append(f"roots      on the scalp mesh {g['surface']['prim']} of {g['surface']['file']} (each on its "
                          f"triangle's frame)")

@@ -26,6 +26,11 @@ SWEEP_MIN_CHUNK = 8
 DRAG_MIN_CHUNK = 4096
 
 
+#: Substeps a frame past which an explicit integrator's fault no longer offers them as a way out, only
+#: ``implicit_joints``: the Ratboy mohawk's strands of a few millimetres asked for 14 million.
+EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
+
+
 class SimulationFault(RuntimeError):
     """A simulation left its bounds; the message names the frame, the stage and what to change."""
 
@@ -470,6 +475,10 @@ class Solver:
         damper's rate alike. It errs on the safe side. Substeps a frame that the shipped scenes need, measured
         (10 and 5 frames) against this estimate: tiny 515 (689) under rk4 and 375 (964) under semi_implicit;
         long_hair 430 (563) and 620 (788)."""
+        return self._explicit_step_limit()[0]
+
+    def _explicit_step_limit(self) -> tuple[float, int]:
+        """:meth:`explicit_step_bound` and the segment whose joint sets it."""
         m = self.model
         mass = m.seg_mass.numpy().astype(np.float64)
         length = m.seg_length.numpy().astype(np.float64)
@@ -477,7 +486,8 @@ class Solver:
         inertia[:, :2] += (mass * length * length / 4.0)[:, None]  # bending: about the joint, not the centre
         rate = np.maximum(np.sqrt(m.joint_stiffness.numpy() / inertia), m.joint_damping.numpy() / inertia)
         reach = 2.8 if self.integrator == Integrator.RK4 else 2.0
-        return float(reach / (2.0 * rate.max()))
+        fastest = int(np.argmax(rate.max(axis=1)))
+        return float(reach / (2.0 * rate[fastest].max())), fastest
 
     def _fault(self, bits: Fault, frame: int, substeps: int | None) -> SimulationFault:
         """The fault of the stage that set its bits, with advice that works for that stage.
@@ -502,13 +512,19 @@ class Solver:
             stiff = bool(np.any(self.model.joint_stiffness.numpy() > 0.0))
             if self.integrator in (Integrator.SEMI_IMPLICIT, Integrator.RK4) and stiff:
                 name = self.integrator.name.lower()
-                bound = self.explicit_step_bound()
-                need = (f"sim.substeps = {math.ceil(dt * substeps / bound)} or more, now {substeps}" if substeps
+                bound, seg = self._explicit_step_limit()
+                count = math.ceil(dt * substeps / bound) if substeps else 0
+                need = (f"sim.substeps = {count} or more, now {substeps}" if substeps
                         else f"dt <= {bound:.2g} s, now {dt:.3g} s")
+                S = self.model.seg_per_strand
+                shortest = float(self.model.seg_length.numpy()[seg])
                 advice = (f"{name} takes the joint springs and damping explicitly, and these strands need steps of "
-                          f"about {bound:.2g} s for them ({need}): use integrator = \"implicit_joints\" (no such "
-                          f"bound), that many substeps, or lower strands.damping and strands.twist_stiffness (the "
-                          f"twist about a strand's own axis has the least inertia, m r^2 / 2, and sets the bound)")
+                          f"about {bound:.2g} s for them ({need}; the fastest joint is on strand {seg // S}, whose "
+                          f"segments are {shortest * 1e3:.3g} mm): use integrator = \"implicit_joints\" (no such "
+                          f"bound)")
+                if count <= EXPLICIT_SUBSTEPS_WORTH_NAMING:
+                    advice += (", that many substeps, or lower strands.damping and strands.twist_stiffness (the twist "
+                               "about a strand's own axis has the least inertia, m r^2 / 2, and sets the bound)")
             elif not stiff:
                 advice = (f"a chain without joint stiffness whips freely: give strands.bend_stiffness a value, raise "
                           f"strands.damping or strands.drag, or {more} (now {step})")

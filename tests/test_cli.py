@@ -158,6 +158,19 @@ def test_info_groom(tmp_path):
     assert f"{lo[0]:.4g}" in out
 
 
+def test_info_of_a_scene_counts_the_guides_of_its_groom_file(tmp_path, capsys):
+    """A scene on a groom file: info gives the guides the file yields (not only the max_strands cap) and the up axis
+    the file is read with when the scene leaves it to the format's default."""
+    from hairwarp.cli import main
+
+    _write_hair(tmp_path / "g.hair", _straight_strands((5, 6, 7, 8)))
+    scene = tmp_path / "s.toml"
+    scene.write_text("[groom]\nfile = 'g.hair'\nmax_strands = 10\n[head]\nshape = 'none'\n")
+    assert main(["info", str(scene)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("groom"))
+    assert "(up Z (the .hair default), scale 1, at most 10 strands): 4 guides" in line, line
+
+
 @pytest.mark.skipif(not _has("hairwarp.groom"), reason="needs hairwarp.groom (Groom.load), not in this installation")
 def test_info_bad_groom_exits_2(tmp_path):
     path = tmp_path / "g.hair"

@@ -76,6 +76,23 @@ def test_an_explicit_integrators_fault_gives_substeps_that_run(tiny, integrator)
     assert np.isfinite(sim.guide_curves()[0]).all()
 
 
+def test_an_explicit_integrators_fault_on_tiny_segments_names_them_and_not_millions_of_substeps(tiny):
+    """Strands of 4 mm (0.5 mm segments) under semi_implicit need steps far too short to offer as substeps: the fault
+    names the strand with the shortest segments and their length, and points to implicit_joints alone."""
+    import re
+
+    scene = tiny.with_overrides(["sim.integrator=\"semi_implicit\"", "groom.length=0.004"])
+    sim = Simulation(scene)
+    with pytest.raises(hw.SimulationFault) as info:
+        sim.advance_frame()
+    message = str(info.value)
+    need = int(re.search(r"sim\.substeps = (\d+) or more", message).group(1))
+    assert need > 10_000  # a closed form for the order: the twist rate grows as 1 / (segment length)^2
+    named = float(re.search(r"strand \d+, whose segments are ([\d.]+) mm", message).group(1))
+    assert named == pytest.approx(1e3 * sim.model.seg_length.numpy().min(), rel=2e-3)  # the shortest strand's
+    assert "implicit_joints" in message and "that many substeps" not in message
+
+
 def test_the_step_api_refuses_what_would_crash_or_do_nothing(tiny):
     """Arguments the kernels cannot take are refused with the argument's name: a state or a control of another
     model (a kernel reading past its arrays would end the process), one state as both input and output, no
