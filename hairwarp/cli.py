@@ -243,7 +243,7 @@ def _cmd_wedge(args) -> int:
     out = Path(args.output) if args.output else Path("out") / f"wedge_{base.name}"
     tasks = farm.wedge_tasks(path, params, out, mode="zip" if args.zip else "grid", overrides=overrides)
     farm.make_output_folder(out)  # once the variants are checked: a bad key leaves no folder behind
-    print(f"wedge    {len(tasks)} variants of {path} into {out}", file=sys.stderr)
+    print(f"wedge    {_counted(len(tasks), 'variant')} of {path} into {out}", file=sys.stderr)
     return _run_farm(args, farm, tasks, out, shared_framing=True)
 
 
@@ -255,7 +255,7 @@ def _cmd_batch(args) -> int:
     out = Path(args.output) if args.output else Path("out") / "batch"
     tasks = farm.batch_tasks(args.scenes, out, overrides=_common_overrides(args))
     farm.make_output_folder(out)
-    print(f"batch    {len(tasks)} shots into {out}", file=sys.stderr)
+    print(f"batch    {_counted(len(tasks), 'shot')} into {out}", file=sys.stderr)
     return _run_farm(args, farm, tasks, out, shared_framing=False)
 
 

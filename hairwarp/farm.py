@@ -914,9 +914,11 @@ def sheet_frames(records: Sequence[dict], columns: int = SHEET_FRAMES) -> list[i
 
 
 def _row_title(r: dict) -> str:
+    """A row's caption on the sheet: the run's name, each wedged key in full with its value (the last name alone
+    made ``strands.damping`` and ``links.damping`` both ``damping``), or the shot's scene file, and its status."""
     lines = [r["name"]]
     for k, v in (r.get("values") or {}).items():
-        lines.append(f"{k.split('.')[-1]} = {_cell(v)}")
+        lines.append(f"{k} = {_cell(v)}")
     if not r.get("values"):
         lines.append(Path(str(r.get("scene", ""))).name)
     status = r["status"]

@@ -403,7 +403,10 @@ def render_frames(frames, out_png, *, titles=None, meshes=None, view="three_quar
 
 
 GRID_LABEL_PX = 190
-"""Width of the row-title column of :func:`render_grid` [px]."""
+"""Least width of the row-title column of :func:`render_grid` [px]; wider where a title needs it."""
+GRID_LABEL_FONT_PT = 8
+GRID_LABEL_INSET_PX = 8
+"""Font size of the row titles and their distance from the picture's left edge (as much is kept on their right)."""
 GRID_HEADER_PX = 30
 """Height of the column-title band of :func:`render_grid` [px]."""
 
@@ -439,7 +442,8 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
     panels = [[None if f is None else _Panel(f["curves"], f.get("meshes"), cam, max_curves) for f in row]
               for row in rows]
     pw, ph = (int(v) for v in panel_px)
-    width, height = GRID_LABEL_PX + n_cols * pw, GRID_HEADER_PX + n_rows * ph
+    label_px = _title_column_px(row_titles)
+    width, height = label_px + n_cols * pw, GRID_HEADER_PX + n_rows * ph
     fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, facecolor=BACKGROUND)
     FigureCanvasAgg(fig)
     pad = 4
@@ -454,10 +458,11 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
         top = height - GRID_HEADER_PX - r * ph
         if row_titles is not None and r < len(row_titles) and row_titles[r]:
             color = row_colors[r] if row_colors is not None and r < len(row_colors) and row_colors[r] else None
-            fig.text(8 / width, (top - ph / 2) / height, str(row_titles[r]), ha="left", va="center",
-                     fontsize=8, color=color or CAPTION_COLOR, family="sans-serif", linespacing=1.4)
+            fig.text(GRID_LABEL_INSET_PX / width, (top - ph / 2) / height, str(row_titles[r]), ha="left",
+                     va="center", fontsize=GRID_LABEL_FONT_PT, color=color or CAPTION_COLOR, family="sans-serif",
+                     linespacing=1.4)
         for c, panel in enumerate(row):
-            rect = ((GRID_LABEL_PX + c * pw + pad) / width, (top - ph + pad) / height, (pw - 2 * pad) / width,
+            rect = ((label_px + c * pw + pad) / width, (top - ph + pad) / height, (pw - 2 * pad) / width,
                     (ph - 2 * pad) / height)
             ax = fig.add_axes(rect)
             ax.set_facecolor(BACKGROUND)
@@ -469,9 +474,25 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
             _draw(ax, panel, row_limits, lo, hi, _line_width(panel.curve_count, min(pw, ph)))
     for c in range(n_cols):
         if col_titles is not None and c < len(col_titles) and col_titles[c]:
-            fig.text((GRID_LABEL_PX + (c + 0.5) * pw) / width, 1.0 - 0.5 * GRID_HEADER_PX / height, str(col_titles[c]),
+            fig.text((label_px + (c + 0.5) * pw) / width, 1.0 - 0.5 * GRID_HEADER_PX / height, str(col_titles[c]),
                      ha="center", va="center", fontsize=9, color=CAPTION_COLOR, family="sans-serif")
     return _save(out_png, lambda stream: fig.savefig(stream, format="png", dpi=DPI, facecolor=BACKGROUND))
+
+
+def _title_column_px(row_titles) -> int:
+    """Width of the row-title column [px]: :data:`GRID_LABEL_PX`, or the widest title with its insets when wider
+    (a wedged key in full, ``strands.bend_stiffness = 0.0001``, ran into the first panel)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    titles = [str(t) for t in (row_titles or ()) if t]
+    if not titles:
+        return GRID_LABEL_PX
+    fig = Figure(dpi=DPI)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    widest = max(fig.text(0.0, 0.0, t, fontsize=GRID_LABEL_FONT_PT, family="sans-serif", linespacing=1.4)
+                 .get_window_extent(renderer).width for t in titles)
+    return max(GRID_LABEL_PX, int(np.ceil(widest)) + 2 * GRID_LABEL_INSET_PX)
 
 
 def frame_title(frame: float, seconds: float) -> str:

@@ -163,6 +163,19 @@ def test_preview_gif_shows_its_progress(tmp_path):
     assert Image.open(tmp_path / "tiny.gif").n_frames == samples
 
 
+def test_grid_row_titles_stay_left_of_the_panels(tmp_path):
+    """A row title with a wedged key in full (``head.motion.angular_velocity = [0, 0, 1]``, 230 px wide) widens
+    the title column instead of running into the first panel (the column was 190 px whatever the titles)."""
+    from hairwarp.preview import render_grid
+
+    panel = 300
+    title = "tiny_0\nhead.motion.angular_velocity = [0, 0, 1]\nok"
+    _, ink = _foreground(render_grid([[None]], tmp_path / "grid.png", row_titles=[title], panel_px=(panel, panel)))
+    column = ink.shape[1] - panel
+    assert column > 230
+    assert ink[:, :column].any() and not ink[:, column - 4 : column + 100].any()
+
+
 def test_gif_frames_keep_the_frame_rate_to_a_hundredth_of_a_second():
     """GIF stores hundredths of a second: 30 frames at 30 fps last 3, 4, 3, ... hundredths, 1 s in all (a constant
     33 ms, stored as 30, played 10 % fast); 24 fps, 6 frames: 0.25 s."""

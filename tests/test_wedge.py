@@ -298,6 +298,29 @@ def test_an_output_that_cannot_be_a_folder_exits_2_with_one_line(tmp_path, capsy
     assert cache.read_bytes() == b"not a folder" and sorted(tmp_path.iterdir()) == [cache]
 
 
+def test_sheet_rows_name_the_wedged_keys_in_full():
+    """``strands.damping`` and ``links.damping`` wedged together: each row names its keys in full (both were
+    ``damping = ...``)."""
+    record = {"name": "tiny_0", "values": {"strands.damping": 1e-7, "links.damping": 0.002}, "status": "ok"}
+    assert farm._row_title(record).splitlines() == ["tiny_0", "strands.damping = 1e-07", "links.damping = 0.002",
+                                                     "ok"]
+
+
+@pytest.mark.parametrize("command", ["wedge", "batch"])
+def test_one_run_is_counted_in_the_singular(tmp_path, capsys, monkeypatch, command):
+    """The line a wedge or batch starts with: '1 variant', '1 shot' (was '1 variants', '1 shots')."""
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(farm, "run_tasks", stop)
+    args = [command, str(TINY)] + (["-w", "strands.drag=0.01"] if command == "wedge" else [])
+    assert main([*args, "-o", str(tmp_path / "w")]) == 130
+    first = capsys.readouterr().err.splitlines()[0]
+    assert first == {"wedge": f"wedge    1 variant of {TINY} into {tmp_path / 'w'}",
+                     "batch": f"batch    1 shot into {tmp_path / 'w'}"}[command]
+
+
 def test_missing_dask_gives_the_install_command(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)
     assert main(["wedge", str(TINY), "-w", "strands.drag=0.01,0.02", "-o", str(tmp_path)]) == 1
