@@ -600,8 +600,7 @@ def _write_gif(cache_path: Path, out: Path, view, progress: bool = False, guides
     limits = _limits(panels, aspect)
     depth = _depth_limits(panels)
     images = []
-    shown = _Progress(len(data), progress)
-    shown.update(0)
+    shown = _Progress(len(data), progress)  # counts frames drawn, from 1: a 'frame 0/N' took the first tenth's line
     for done, (d, panel) in enumerate(zip(data, panels, strict=True), 1):
         fig = _sheet([panel], [frame_title(d["frame"], d["time"])], GIF_SIZE_PX, limits=limits, depth=depth)
         fig.canvas.draw()

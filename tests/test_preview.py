@@ -143,21 +143,22 @@ def test_preview_cache_gif(tmp_path):
 
 def test_preview_gif_shows_its_progress(tmp_path):
     """`hairwarp preview --gif` prints the frames drawn as `hairwarp run` prints its frames (a line per tenth when
-    stderr is not a terminal), and the GIF it writes has every frame of the cache, as usd-core counts them."""
+    stderr is not a terminal), counted from 1: of 11 frames, 1/11 to 11/11 (a first 'frame 0/11' took the first
+    tenth's line and 1/11 was never shown). The GIF it writes has every frame of the cache, as usd-core counts them."""
     import re
     import subprocess
     import sys
 
     from pxr import Usd
 
-    cache = _tiny_cache(tmp_path / "tiny.usda", frames=5)
+    cache = _tiny_cache(tmp_path / "tiny.usda", frames=11)
     stage = Usd.Stage.Open(str(cache))
     samples = int(stage.GetEndTimeCode() - stage.GetStartTimeCode()) + 1
     r = subprocess.run([sys.executable, "-m", "hairwarp", "preview", cache, "--gif"], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0, r.stderr
     lines = r.stderr.strip().splitlines()
-    assert lines[0] == f"frame 0/{samples}" and lines[-1].startswith(f"frame {samples}/{samples}  ")
+    assert [line.split()[1] for line in lines] == [f"{i}/{samples}" for i in range(1, samples + 1)], lines
     # As in a run, the rate and the time left show once the clock has a frame to go by.
     assert all(re.fullmatch(rf"frame \d+/{samples}(  [\d.]+ frames/s  \d+ s left)?", line) for line in lines), lines
     assert Image.open(tmp_path / "tiny.gif").n_frames == samples
