@@ -7,7 +7,7 @@
     hairwarp info FILE              # a scene (.toml), a groom (.tfx, .hair, .usd*) or a cache (.usd*)
     hairwarp schema [SECTION]       # every scene key: type, default, range, unit, meaning
     hairwarp bench [SUITE] [--quick] [--device D] [--threads N] [--out DIR] [--format human|json]
-    hairwarp preview CACHE [-o PNG] [--frames N] [--gif] [--guides]
+    hairwarp preview CACHE [-o PICTURE] [--frames N] [--gif] [--guides]
     hairwarp wedge [SCENE] -w KEY=V1,V2,... [-w ...] [--grid | --zip] [-o DIR] [--scheduler ADDRESS | --workers N]
     hairwarp batch SCENE... | @LIST.txt [-o DIR] [--scheduler ADDRESS | --workers N]
 
@@ -418,7 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("preview", help="render frames of a cache to a PNG (or a GIF)",
                        description="Render frames of a USD cache as a contact sheet PNG or an animated GIF.")
     p.add_argument("cache", metavar="CACHE")
-    p.add_argument("-o", "--output", metavar="PNG", help="picture to write; default: beside the cache")
+    p.add_argument("-o", "--output", metavar="PICTURE",
+                   help="picture to write: a .png (a .gif with --gif; the suffix names the format written, another "
+                        "is refused); default: beside the cache")
     p.add_argument("--frames", type=_positive_int, default=4, metavar="N", help="frames on the sheet (default 4)")
     p.add_argument("--gif", action="store_true", help="write an animated GIF of every frame instead")
     p.add_argument("--guides", action="store_true",

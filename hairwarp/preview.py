@@ -535,7 +535,7 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
 
     Args:
         cache_path: the USD cache.
-        out_png: the picture to write; default: beside the cache, same stem, ``.png`` (``.gif`` when ``gif``).
+        out_png: the picture to write, named ``.png`` (``.gif`` when ``gif``); default: beside the cache, same stem.
         frames: how many evenly spaced frames to show (first and last included), or a list of frame numbers.
         gif: write an animated GIF of every frame (at the cache's frame rate) instead of the contact sheet.
         view: a name from :data:`VIEWS` or (azimuth, elevation) in degrees.
@@ -547,6 +547,8 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
         The path of the picture written.
 
     Raises:
+        ValueError: ``out_png``'s suffix is not that of the format written (``.png``, or ``.gif`` with ``gif``), as
+            a PNG written to ``y.jpg`` or a GIF to ``y.png`` would be misread by whatever opens it by its suffix.
         PreviewWriteError: the picture could not be written (nothing is left at its path).
     """
     from hairwarp.io.usd_inspect import read_frames
@@ -554,6 +556,10 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
     cache_path = Path(cache_path)
     suffix = ".gif" if gif else ".png"
     out = Path(out_png) if out_png is not None else cache_path.with_suffix(suffix)
+    if out.suffix.lower() != suffix:
+        raise ValueError(f"{out}: the animation is a GIF; name the picture .gif (or leave --gif out for a PNG contact "
+                         f"sheet)" if gif else f"{out}: the contact sheet is a PNG; name the picture .png (or add "
+                         f"--gif for an animated GIF, named .gif)")
     if gif:
         return _write_gif(cache_path, out, view, progress, guides)
     data = read_frames(cache_path, _pick_frames(cache_path, frames))

@@ -141,6 +141,22 @@ def test_preview_cache_gif(tmp_path):
     assert abs(gif.info["duration"] - 1000 / 12) <= GIF_TICK_MS
 
 
+@pytest.mark.parametrize(("options", "name", "says"), [([], "y.jpg", "name the picture .png"),
+                                                      ([], "y.gif", "add --gif"),
+                                                      (["--gif"], "y2.png", "name the picture .gif")])
+def test_preview_refuses_a_suffix_of_another_format(tmp_path, capsys, options, name, says):
+    """The suffix of ``-o`` must name the format written, PNG (GIF with ``--gif``): a sheet to ``y.jpg`` and an
+    animation to ``y2.png`` were written, in the other format, and exited 0. One line, exit 2, nothing written."""
+    from hairwarp.cli import main
+
+    cache = _tiny_cache(tmp_path / "tiny.usdc", frames=2)
+    assert main(["preview", str(cache), *options, "-o", str(tmp_path / name)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / name) in err[0] and says in err[0], err
+    assert not (tmp_path / name).exists()
+    assert main(["preview", str(cache), *options, "-o", str(tmp_path / f"ok{'.GIF' if options else '.PNG'}")]) == 0
+
+
 def test_preview_gif_shows_its_progress(tmp_path):
     """`hairwarp preview --gif` prints the frames drawn as `hairwarp run` prints its frames (a line per tenth when
     stderr is not a terminal), counted from 1: of 11 frames, 1/11 to 11/11 (a first 'frame 0/11' took the first
