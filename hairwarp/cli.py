@@ -42,6 +42,9 @@ EXIT_FAULT = 3
 #: The signals that stop a run besides SIGINT (which Python turns into KeyboardInterrupt), where the system has them.
 _STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
 
+#: Frames on the contact sheet of ``hairwarp preview`` when --frames is not given.
+_SHEET_FRAMES = 4
+
 _USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _GROOM_SUFFIXES = (".tfx", ".hair")
 
@@ -200,9 +203,17 @@ def _cmd_preview(args) -> int:
     path = Path(args.cache)
     if not path.exists():
         raise FileNotFoundError(f"{path.resolve()}: no such file")
-    from hairwarp.preview import preview_cache
+    from hairwarp.preview import cache_frames, preview_cache
 
-    out = preview_cache(path, args.output, frames=args.frames, gif=args.gif, progress=True, guides=args.guides)
+    frames = _SHEET_FRAMES if args.frames is None else args.frames
+    if args.frames is not None:  # what was asked and will not be shown is said, not dropped silently
+        available = len(cache_frames(path))
+        if args.gif:
+            _note(f"--frames is for the contact sheet; the GIF shows every frame of the cache ({available})")
+        elif args.frames > available:
+            _note(f"the cache has {_counted(available, 'frame')}, fewer than --frames {args.frames}: the sheet "
+                  f"shows {'it' if available == 1 else f'all {available}'}")
+    out = preview_cache(path, args.output, frames=frames, gif=args.gif, progress=True, guides=args.guides)
     print(f"preview  {out}")
     return EXIT_OK
 
@@ -421,8 +432,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", metavar="PICTURE",
                    help="picture to write: a .png (a .gif with --gif; the suffix names the format written, another "
                         "is refused); default: beside the cache")
-    p.add_argument("--frames", type=_positive_int, default=4, metavar="N", help="frames on the sheet (default 4)")
-    p.add_argument("--gif", action="store_true", help="write an animated GIF of every frame instead")
+    p.add_argument("--frames", type=_positive_int, metavar="N",
+                   help=f"frames on the sheet, evenly spaced, the first and the last included (default "
+                        f"{_SHEET_FRAMES}; every frame of a cache that has fewer)")
+    p.add_argument("--gif", action="store_true",
+                   help="write an animated GIF of every frame instead (--frames is then not used)")
     p.add_argument("--guides", action="store_true",
                    help="draw the guide strands too, in orange (default: the dense hair alone when the cache has it, "
                         "as the run's preview)")
@@ -459,6 +473,11 @@ def _error(message: str) -> None:
 
         message = clean_usd_text(message)
     print(f"hairwarp: {message}", file=sys.stderr)
+
+
+def _note(message: str) -> None:
+    """One line on stderr about an option that does less than asked; the command goes on."""
+    print(f"hairwarp: note: {message}", file=sys.stderr)
 
 
 def _is_usd_error(exc: BaseException) -> bool:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["VIEWS", "PreviewWriteError", "preview_cache", "render_frames", "render_grid"]
+__all__ = ["VIEWS", "PreviewWriteError", "cache_frames", "preview_cache", "render_frames", "render_grid"]
 
 VIEWS = {
     "front": (0.0, 0.0),
@@ -506,14 +506,20 @@ def sheet_size(panels: int) -> tuple[int, int]:
     return (min(560 * panels, 2400), 600) if panels > 1 else (700, 700)
 
 
-def _pick_frames(cache_path, frames) -> list[float]:
-    """Frame numbers to show: the listed ones, or ``frames`` evenly spaced time samples including the ends."""
+def cache_frames(cache_path) -> list[float]:
+    """The frames of a cache a picture can show: its time samples (the start time code when it has none)."""
     from hairwarp.io.usd_common import _open_stage, _time_samples
 
+    stage = _open_stage(cache_path)
+    return _time_samples(stage) or [stage.GetStartTimeCode()]
+
+
+def _pick_frames(cache_path, frames) -> list[float]:
+    """Frame numbers to show: the listed ones, or ``frames`` evenly spaced time samples including the ends (every
+    one when the cache has no more)."""
     if not isinstance(frames, int | np.integer):
         return [float(f) for f in frames]
-    stage = _open_stage(cache_path)
-    samples = _time_samples(stage) or [stage.GetStartTimeCode()]
+    samples = cache_frames(cache_path)
     if frames >= len(samples):
         return samples
     idx = np.unique(np.round(np.linspace(0, len(samples) - 1, max(int(frames), 1))).astype(np.int64))

@@ -157,6 +157,23 @@ def test_preview_refuses_a_suffix_of_another_format(tmp_path, capsys, options, n
     assert main(["preview", str(cache), *options, "-o", str(tmp_path / f"ok{'.GIF' if options else '.PNG'}")]) == 0
 
 
+def test_preview_says_which_frames_it_cannot_show(tmp_path, capsys):
+    """``--frames`` beyond a cache's frames, and ``--frames`` with ``--gif`` (which shows every frame), were dropped
+    without a word: each is now one note on stderr, and the picture is written. Frames the cache has: no note."""
+    from hairwarp.cli import main
+
+    cache = _tiny_cache(tmp_path / "tiny.usdc", frames=3)
+    assert main(["preview", str(cache), "--frames", "100", "-o", str(tmp_path / "a.png")]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        "hairwarp: note: the cache has 3 frames, fewer than --frames 100: the sheet shows all 3"]
+    assert main(["preview", str(cache), "--gif", "--frames", "2", "-o", str(tmp_path / "a.gif")]) == 0
+    assert capsys.readouterr().err.splitlines()[0] == (
+        "hairwarp: note: --frames is for the contact sheet; the GIF shows every frame of the cache (3)")
+    assert Image.open(tmp_path / "a.gif").n_frames == 3
+    assert main(["preview", str(cache), "--frames", "2", "-o", str(tmp_path / "b.png")]) == 0
+    assert capsys.readouterr().err == ""
+
+
 def test_preview_gif_shows_its_progress(tmp_path):
     """`hairwarp preview --gif` prints the frames drawn as `hairwarp run` prints its frames (a line per tenth when
     stderr is not a terminal), counted from 1: of 11 frames, 1/11 to 11/11 (a first 'frame 0/11' took the first
