@@ -18,7 +18,8 @@ checked before any runs), with one message on stderr and no traceback; 3 the sim
 message names the frame, the stage and the parameter) or writing the cache or the picture failed (disk full, I/O
 error; a run whose preview failed says that its cache is complete); for
 ``wedge`` and ``batch``: some runs faulted, failed or were lost, the others finished, the summary says which;
-128 + N a signal N stopped the run (130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame.
+128 + N a signal N stopped the run (130 SIGINT, 143 SIGTERM, 129 SIGHUP) after its last complete frame; 141
+(128 + SIGPIPE) the reader of the output went away (``hairwarp schema | head``), quietly, as other commands do.
 Set ``HAIRWARP_TRACEBACK=1`` to get the traceback of an error instead of the one-line message.
 """
 
@@ -38,6 +39,9 @@ EXIT_OK = 0
 EXIT_MISSING_PART = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
+#: The reader of the standard output went away (``hairwarp schema | head -3``): 128 + SIGPIPE, what a command the
+#: signal ends reports, so the command is quiet and a ``set -o pipefail`` script sees the usual cut-short status.
+EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE is 13 on every POSIX system (Windows has no signal.SIGPIPE to read it from)
 
 #: The signals that stop a run besides SIGINT (which Python turns into KeyboardInterrupt), where the system has them.
 _STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -525,10 +529,27 @@ def main(argv=None) -> int:
         warnings.showwarning = _show_warning
         try:
             with _stops_before_the_run(args.command == "run"):
-                return _main(args)
+                code = _main(args)
+            sys.stdout.flush()  # a reader gone shows here, not in the interpreter's last flush (its own traceback)
+            return code
         except _StoppedBeforeTheRun as stop:
             _error(f"stopped by {signal.Signals(stop.signum).name} before the run began; nothing was written")
             return 128 + stop.signum
+        except BrokenPipeError:
+            _stdout_to_devnull()
+            return EXIT_BROKEN_PIPE
+
+
+def _stdout_to_devnull() -> None:
+    """Point standard output at /dev/null, so that what is left in its buffer is dropped at exit instead of failing
+    once more on the closed pipe (Python's documented way, "Note on SIGPIPE" in the ``signal`` module)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by an object without a file (a test's capture)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
 
 
 class _StoppedBeforeTheRun(BaseException):

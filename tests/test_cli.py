@@ -295,6 +295,37 @@ def test_main_in_process_returns_codes(tmp_path, capsys):
     assert "missing.toml" in capsys.readouterr().err
 
 
+class _GoneReader:
+    """A standard output whose reader went away, as ``hairwarp schema | true`` leaves it."""
+
+    def write(self, text):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self):
+        pass
+
+
+@pytest.mark.parametrize("argv", [["schema"], ["info", str(SCENES / "tiny.toml")]])
+def test_a_reader_gone_ends_the_command_quietly_in_process(monkeypatch, capsys, argv):
+    """Output cut short by its reader: exit 141 (128 + SIGPIPE, as a command the signal ends), nothing on stderr;
+    it was BrokenPipeError's traceback and exit 1."""
+    from hairwarp.cli import main
+
+    monkeypatch.setattr(sys, "stdout", _GoneReader())
+    assert main(argv) == 141
+    assert capsys.readouterr().err == ""
+
+
+def test_a_reader_gone_ends_the_command_quietly():
+    """The same through a real pipe closed before the command writes: no traceback, not even at the interpreter's
+    last flush of the standard output."""
+    p = subprocess.Popen([sys.executable, "-m", "hairwarp", "schema"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    p.stdout.close()
+    err = p.stderr.read()
+    assert p.wait(timeout=CLI_TIMEOUT_S) == 141 and err == "", err
+
+
 def test_simulation_fault_exits_3(monkeypatch, tmp_path, capsys):
     """A SimulationFault from the runner becomes its message on stderr and exit code 3."""
     solver = pytest.importorskip("hairwarp.solver", reason="needs hairwarp.solver (SimulationFault)")
