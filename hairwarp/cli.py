@@ -87,7 +87,8 @@ def _cmd_run(args) -> int:
     resumed = ""
     if result.resumed_frames:
         resumed = f" after the {_counted(result.resumed_frames, 'frame')} of the stopped run"
-    print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.seconds:.2f} s")
+    print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s "
+          f"({result.seconds_per_frame:.3g} s a frame); {result.seconds:.2f} s in all, with the set-up and the preview")
     return EXIT_OK
 
 

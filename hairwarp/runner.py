@@ -736,9 +736,11 @@ class RunResult:
 
     Attributes:
         frames: the frames the cache holds after its first (``sim.frames``), those of a resumed run included.
-        seconds_per_frame: wall time per frame this run simulated.
+        seconds: wall time of the whole call: building the simulation, the frames, the cache's close, the preview.
+        seconds_per_frame: wall time per frame this run simulated, of the frames alone (writing them included).
         resumed_frames: frames after the first that the stopped run had simulated (0 for a run that did not
             resume); this run simulated ``frames - resumed_frames``.
+        frame_seconds: wall time of the frames alone.
     """
 
     cache_path: Path
@@ -749,6 +751,7 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     frame_stats: list[dict] = field(default_factory=list)
     resumed_frames: int = 0
+    frame_seconds: float = 0.0
 
 
 class _Progress:
@@ -866,7 +869,9 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             _check_disk_space(cache, scene, sim, frames, start, preview, report)
             if stops.requested is not None:
                 raise RunStopped(f"stopped by {_signal_name(stops.requested)} before frame {start}.", stops.requested)
+            t_frames = time.perf_counter()
             kept = _run_frames(sim, scene, cache, frames, start, report, notes, all_stats, stops)
+            frame_seconds = time.perf_counter() - t_frames
             cache.close(keep_lock=True)  # until the preview is written: a second run would replace the cache
         except SimulationFault as fault:
             cache.abandon()
@@ -901,8 +906,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                              stops.requested)
     seconds = time.perf_counter() - t_start
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
-    return RunResult(out_path, preview_path, frames, seconds, seconds / max(frames - resumed, 1), notes, all_stats,
-                     resumed)
+    return RunResult(out_path, preview_path, frames, seconds, frame_seconds / max(frames - resumed, 1), notes,
+                     all_stats, resumed, frame_seconds)
 
 
 PREVIEW_BYTES_PER_PIXEL = 0.5

@@ -3,6 +3,7 @@ usd-core and compared against an uninterrupted run."""
 
 import contextlib
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -306,6 +307,10 @@ def test_summary_counts_the_frames_this_run_simulated(tmp_path, capsys, monkeypa
     assert main([*args, "6", "--resume"]) == 0
     summary = capsys.readouterr().out.splitlines()[-1]
     assert summary.startswith("2 frames simulated after the 4 frames of the stopped run in "), summary
+    # the frames' time apart from the set-up's: the frames alone, per frame, then the whole call
+    frame_s, per_frame, total = map(float, re.search(r"in ([\d.]+) s \(([\d.e-]+) s a frame\); ([\d.]+) s in all",
+                                                     summary).groups())
+    assert per_frame == pytest.approx(frame_s / 2, rel=0.01, abs=0.01) and frame_s < total
 
 
 @pytest.mark.parametrize("where, sig, said", [
