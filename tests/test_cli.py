@@ -352,6 +352,8 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
         preview_path = tmp_path / "out" / "tiny.png"
         frames = 2
         seconds = 0.5
+        frame_seconds = 0.25
+        seconds_per_frame = 0.125
         resumed_frames = 0
 
     def fake(scene, out, **kw):
