@@ -63,7 +63,8 @@ class PreviewWriteError(RuntimeError):
 def _save(out: Path, encode) -> Path:
     """Write the picture ``encode(stream)`` produces to ``out``, whole or not at all: encoded in memory (so its size
     is known for the message of a full disk), written under a temporary name beside ``out``, flushed and renamed
-    over it. A full disk used to leave a truncated GIF at ``out`` and a traceback.
+    over it (``cache_folder.fsync_path``, as the cache's own files). A full disk used to leave a truncated GIF at
+    ``out`` and a traceback.
 
     Raises:
         PreviewWriteError: the folder or the file could not be written; the temporary file is removed.
@@ -72,17 +73,18 @@ def _save(out: Path, encode) -> Path:
     import io
     import os
 
+    from hairwarp.io.cache_folder import fsync_path
+
     buffer = io.BytesIO()
     encode(buffer)
     data = buffer.getbuffer()
     tmp = out.with_name(f"{out.stem}.tmp{out.suffix}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        tmp.write_bytes(data)
+        fsync_path(tmp)  # as the cache's files: flushed, renamed, the folder's entry flushed
         os.replace(tmp, out)
+        fsync_path(out.parent)
     except BaseException as exc:
         try:
             tmp.unlink(missing_ok=True)

@@ -915,7 +915,7 @@ PREVIEW_BYTES_PER_PIXEL = 0.5
 scene's (3,000 dense strands)."""
 
 
-def _disk_needed(scene, sim, cache, frames: int, start: int, preview: bool) -> dict[str, int]:
+def _disk_needed(scene, sim, frame_bytes: int, frames: int, start: int, preview: bool) -> dict[str, int]:
     """Bytes the run still writes on the cache's disk, by part: the frames (twice where the cache's close rewrites
     them: flattened, or small frames gathered into clips), the topology layer (what its own space check asks: the
     collider meshes and the curves' static arrays, uncompressed), the state stored with each frame (two at once:
@@ -923,7 +923,6 @@ def _disk_needed(scene, sim, cache, frames: int, start: int, preview: bool) -> d
     from hairwarp.io.cache import CHUNK_BYTES
     from hairwarp.preview import sheet_size
 
-    _, frame_bytes = _estimate_bytes(scene, frames)
     parts = {"frames": frame_bytes * (frames + 1 - start)}
     if scene.output.layout == "single" or (frame_bytes * 2 <= CHUNK_BYTES and frames > 0):
         parts["frames"] += frame_bytes * (frames + 1)
@@ -951,7 +950,7 @@ def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool,
     from hairwarp.io.usd_common import _human_bytes
 
     _, frame_bytes = _estimate_bytes(scene, frames)
-    parts = _disk_needed(scene, sim, cache, frames, start, preview)
+    parts = _disk_needed(scene, sim, frame_bytes, frames, start, preview)
     total = sum(parts.values()) + 65536  # each write's own check keeps this much spare
     count = frames + 1 - start
     listed = ", ".join(f"{name} {_human_bytes(n)}" for name, n in parts.items())

@@ -112,6 +112,7 @@ class Solver:
 
         self.dt = wp.zeros(1, dtype=float, device=device)
         self._dt_host = None
+        self._control = None  # the control of the last step, read back only on a fault, to name non-finite input
         scratch = articulated.AbaScratch()
         scratch.p = wp.zeros(n, dtype=wp.spatial_vector, device=device)
         scratch.c = wp.zeros(n, dtype=wp.spatial_vector, device=device)
@@ -192,7 +193,7 @@ class Solver:
         """
         self._check_step_arguments(state_in, state_out, control)
         self.set_dt(dt)
-        self._control = control  # read back only on a fault, to name non-finite input
+        self._control = control
         body = self.body_contacts.enabled
         self._force_passes(state_in, control, detect_body=body)
         # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
@@ -499,7 +500,7 @@ class Solver:
         per_frame = f" ({substeps} substep{'s' if substeps != 1 else ''} per frame)" if substeps else ""
         step = f"dt = {dt:.3g} s{per_frame}"
         more = "raise sim.substeps" if substeps else "use a smaller dt"
-        bad_input = _nonfinite_control(getattr(self, "_control", None))
+        bad_input = _nonfinite_control(self._control)
         if bad_input:
             stage = "control input"
             what = f"the control's {bad_input} held non-finite values, which the step took"

@@ -89,7 +89,8 @@ def test_an_explicit_integrators_fault_on_tiny_segments_names_them_and_not_milli
     need = int(re.search(r"sim\.substeps = (\d+) or more", message).group(1))
     assert need > 10_000  # a closed form for the order: the twist rate grows as 1 / (segment length)^2
     named = float(re.search(r"strand \d+, whose segments are ([\d.]+) mm", message).group(1))
-    assert named == pytest.approx(1e3 * sim.model.seg_length.numpy().min(), rel=2e-3)  # the shortest strand's
+    # the shortest strand's segments; the message gives 3 significant digits: 2e-3 covers their rounding
+    assert named == pytest.approx(1e3 * sim.model.seg_length.numpy().min(), rel=2e-3)
     assert "implicit_joints" in message and "that many substeps" not in message
 
 
