@@ -279,6 +279,10 @@ class _Prepared:
 
     def run_chunk(self, c: int):
         self.load_structs()
+        self.call(c)
+
+    def call(self, c: int):
+        """Run chunk ``c`` on this thread (without the GIL), its structs as last loaded."""
         bounds, args, _ = self.calls[c]
         self.forward(bounds, args)
 
@@ -586,22 +590,11 @@ class Executor:
             else:
                 self._flush_chain(chain)  # what the chain holds runs first
                 chain = None
-        key = (kernel, dim, min_chunk, tuple(private_or), tuple(private_add), tuple(private_sum),
-               None if chunks is None else tuple(chunks),
-               None if not per_chunk else tuple((i, tuple(map(id, v))) for i, v in sorted(per_chunk.items())),
-               *[(a,) if a.__class__ in _NUMBERS else id(a) for a in args])
-        prep = self._prepared.get(key)
-        if prep is None:
-            prep = self._prepare(kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks,
-                                 per_chunk)
-            if len(self._prepared) >= PREPARED_LIMIT:
-                self._prepared.pop(next(iter(self._prepared)))
-            self._prepared[key] = prep
+        prep = self._prepared_launch(kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks,
+                                     per_chunk)
         n = len(prep.calls)
         if n == 0:
             return
-        for parent in prep.zero:
-            parent.fill(0)  # host views of the private buffers (CPU arrays)
         if chain is not None:
             chain.preps.append(prep)
             return
@@ -613,6 +606,38 @@ class Executor:
             _fold(prep)
         else:
             self._run_groups([[prep]])
+
+    def prepare(self, kernel, dim: int, inputs, outputs=(), *, chunks, per_chunk=None, private_or=()):
+        """The packed chunks of a launch (arguments as :meth:`launch`; CPU only, not while capturing) for a caller
+        that runs them itself from tasks of :meth:`run`, interleaved with host work the chunks wait for: call
+        ``load_structs()`` once, then ``call(c)`` for every chunk ``c`` (on any thread, each once), then
+        :meth:`finish`. The private buffers are zeroed here."""
+        prep = self._prepared_launch(kernel, dim, [*inputs, *outputs], None, private_or, (), (), chunks, per_chunk)
+        prep.load_structs()
+        return prep
+
+    @staticmethod
+    def finish(prep):
+        """Fold the private buffers of a launch from :meth:`prepare` once all its chunks have run."""
+        _fold(prep)
+
+    def _prepared_launch(self, kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks, per_chunk):
+        """The prepared launch for these arguments (packed at the first call, then kept), its private buffers
+        zeroed."""
+        key = (kernel, dim, min_chunk, tuple(private_or), tuple(private_add), tuple(private_sum),
+               None if chunks is None else tuple(chunks),
+               None if not per_chunk else tuple((i, tuple(map(id, v))) for i, v in sorted(per_chunk.items())),
+               *[(a,) if a.__class__ in _NUMBERS else id(a) for a in args])
+        prep = self._prepared.get(key)
+        if prep is None:
+            prep = self._prepare(kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks,
+                                 per_chunk)
+            if len(self._prepared) >= PREPARED_LIMIT:
+                self._prepared.pop(next(iter(self._prepared)))
+            self._prepared[key] = prep
+        for parent in prep.zero:
+            parent.fill(0)  # host views of the private buffers (CPU arrays)
+        return prep
 
     def _prepare(self, kernel, dim, args, min_chunk, private_or, private_add, private_sum, chunks, per_chunk):
         """Pack the arguments of every chunk once (see :meth:`launch`)."""

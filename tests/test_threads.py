@@ -162,6 +162,37 @@ def test_small_scene_with_links_same_bits_on_two_threads():
         np.testing.assert_array_equal(x, tips[0])
 
 
+@pytest.mark.parametrize("capacity", [0, 500])
+def test_detection_on_threads_finds_the_contacts_of_one_thread_in_its_order(capacity):
+    """On several threads the trees are fitted and the contacts found as one set of tasks (the segment tree's
+    contacts while the strip tree is still being fitted): the stored contacts, their per-segment lists and the
+    fault bits are those of one thread, slot for slot; with too few slots (500 for about 900) the same ones are
+    kept and both report the overflow."""
+    scene = hw.Scene.load(SCENES / "long_hair.toml", overrides=[
+        "groom.count=120", "output.preview=false", f"interactions.capacity={capacity}"])
+    sims = {threads: hw.Simulation(scene, threads=threads) for threads in (1, 2, 3)}
+    for sim in sims.values():
+        sim.advance_frame()
+        sim.contacts.detect(sim.model, sim.state)
+        assert (sim.contacts._overlapped_detection() is (sim.solver.executor.threads > 1))
+    ref = sims[1].contacts
+    found = int(ref.contact_counter.numpy()[0])
+    assert found > 100
+    assert bool(ref.contact_overflow.numpy()[0]) == bool(capacity)  # 500 slots are too few, the default enough
+    assert found > ref.capacity if capacity else found < ref.capacity
+    kept = min(found, ref.capacity)
+    for threads in (2, 3):
+        c = sims[threads].contacts
+        assert int(c.contact_counter.numpy()[0]) == found
+        for name in ("contact_kind", "contact_a", "contact_b", "contact_w", "contact_gap"):
+            np.testing.assert_array_equal(getattr(c, name).numpy()[:kept], getattr(ref, name).numpy()[:kept],
+                                          err_msg=f"{threads} threads: {name}")
+        for name in ("seg_entry_start", "seg_entries", "contact_overflow"):
+            np.testing.assert_array_equal(getattr(c, name).numpy(), getattr(ref, name).numpy(),
+                                          err_msg=f"{threads} threads: {name}")
+        np.testing.assert_array_equal(sims[threads].state.fault.numpy(), sims[1].state.fault.numpy())
+
+
 def test_thread_counts_past_the_limit_are_refused_and_a_failed_pool_stops_its_threads(tmp_path, capsys,
                                                                                       monkeypatch):
     """More than ``MAX_THREADS`` is refused by the API, the scene and the command (exit 2, one line) before any

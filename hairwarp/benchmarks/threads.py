@@ -49,7 +49,8 @@ def _stages(sim):
         contacts = sim.contacts
         stages["hair contact BVH refit/rebuild (library, 2 trees)"] = lambda: contacts.refit(
             model, s0, rebuild=not contacts.detect_each_step)
-        stages["hair contact detection"] = lambda: contacts.detect(model, s0)
+        # both trees fitted, then both kinds of contact found: on several threads, one set of tasks
+        stages["hair contact detection (trees fitted, contacts found)"] = lambda: contacts.detect(model, s0)
     if sim.dense is not None:
         stages["dense interpolate + push-out + Hermite"] = lambda: sim.dense_curves()
     stages[FRAME_STAGE] = lambda: (sim.advance_frame(), sim.dense_curves() if sim.dense is not None else None)
