@@ -255,6 +255,11 @@ def _cmd_wedge(args) -> int:
             raise ValueError(f"-w {key} is given twice; list all its values in one -w {key}=V1,V2,...")
         params[key] = values
     overrides = _common_overrides(args)
+    fixed = {o.split("=", 1)[0].strip(): o for o in overrides}
+    for key in params:
+        if key in fixed:  # the wedge's value would silently win over the fixed one in every run
+            given = "--frames" if fixed[key] == f"sim.frames={args.frames}" else f"-s {fixed[key]}"
+            raise ValueError(f"{key} is both wedged (-w {key}=...) and fixed ({given}); give it one way")
     base = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"wedge_{base.name}"
     tasks = farm.wedge_tasks(path, params, out, mode="zip" if args.zip else "grid", overrides=overrides)

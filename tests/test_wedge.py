@@ -277,6 +277,13 @@ def test_bad_wedge_keys_and_unequal_zip_exit_2_with_one_line(tmp_path, capsys):
                  "--zip", "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--zip" in err[0]
+    # a wedged key also fixed for every run: the wedge's values used to win without a word
+    assert main(["wedge", str(TINY), "-w", "sim.substeps=2,4", "-s", "sim.substeps=8", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sim.substeps" in err[0] and "-s sim.substeps=8" in err[0]
+    assert main(["wedge", str(TINY), "-w", "sim.frames=2,4", "--frames", "3", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sim.frames" in err[0] and "--frames" in err[0]
     assert not out.exists()  # nothing was submitted
 
 
