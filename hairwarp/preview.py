@@ -13,6 +13,7 @@ so no display is ever needed.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -369,7 +370,39 @@ def _sheet(panels: list[_Panel], titles, size_px, *, limits=None, depth=None):
         if titles is not None and i < len(titles) and titles[i]:
             fig.text(x0 + 0.5 * panel_w, 0.5 * _CAPTION_BAND, str(titles[i]), ha="center", va="center",
                      fontsize=max(7.0, min(11.0, 0.022 * height)), color=CAPTION_COLOR, family="sans-serif")
+        if i == 0:
+            _draw_scale_bar(ax, limits, fontsize=max(7.0, min(10.0, 0.018 * height)))
     return fig
+
+
+def scale_bar_length(span: float) -> float:
+    """The scale bar's length [m] for a panel ``span`` metres wide: 1, 2 or 5 times a power of ten, the longest
+    within a sixth of the span."""
+    target = max(float(span), 1e-9) / 6.0
+    power = 10.0 ** math.floor(math.log10(target))
+    return max(m * power for m in (1.0, 2.0, 5.0) if m * power <= target * (1.0 + 1e-9))
+
+
+def scale_bar_label(length: float) -> str:
+    """``length`` [m] as a scale bar reads it: "5 mm", "10 cm", "1 m"."""
+    for unit, size in (("m", 1.0), ("cm", 1e-2), ("mm", 1e-3)):
+        if length >= size * (1.0 - 1e-9):
+            return f"{length / size:g} {unit}"
+    return f"{length / 1e-6:g} um"
+
+
+def _draw_scale_bar(ax, limits, fontsize: float) -> None:
+    """A bar of :func:`scale_bar_length` in the panel's lower left corner, its length written above it (the
+    camera is orthographic: a metre is as long at every depth)."""
+    (x0, x1), (y0, y1) = limits
+    length = scale_bar_length(x1 - x0)
+    left, base = x0 + 0.04 * (x1 - x0), y0 + 0.04 * (y1 - y0)
+    tick = 0.012 * (y1 - y0)
+    ax.plot([left, left, left, left + length, left + length, left + length],
+            [base + tick, base - tick, base, base, base - tick, base + tick],
+            color=CAPTION_COLOR, linewidth=1.0, solid_capstyle="butt", zorder=1000)
+    ax.text(left + 0.5 * length, base + 2.0 * tick, scale_bar_label(length), ha="center", va="bottom",
+            fontsize=fontsize, color=CAPTION_COLOR, family="sans-serif", zorder=1000)
 
 
 def render_frames(frames, out_png, *, titles=None, meshes=None, view="three_quarter", size_px=(1600, 600),

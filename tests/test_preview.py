@@ -5,7 +5,7 @@ import pytest
 from PIL import Image
 
 from hairwarp.io.cache import CacheWriter
-from hairwarp.preview import BACKGROUND, preview_cache, render_frames
+from hairwarp.preview import BACKGROUND, preview_cache, render_frames, scale_bar_label, scale_bar_length
 
 BG_TOLERANCE = 12
 """Max per-channel difference [0-255] still counted as background (anti-aliased edges, PNG is lossless)."""
@@ -55,6 +55,27 @@ def test_render_frames_size_and_hair_pixels(tmp_path):
     assert abs((200 - left.mean()) - (right.mean() - 200)) < CENTRE_PX
     # The strands are vertical: hair pixels in a column span most of the panel height.
     assert hair[:, int(round(left.mean()))].sum() > 150
+
+
+def test_scale_bar_is_a_round_length_drawn_to_the_strands_scale(tmp_path):
+    """The first panel's scale bar: 1, 2 or 5 times a power of ten metres, at most a sixth of the panel, and as many
+    pixels per metre as the two strands 0.2 m apart are (the camera is orthographic)."""
+    for span, length, label in ((0.6, 0.1, "10 cm"), (0.35, 0.05, "5 cm"), (1.2, 0.2, "20 cm"), (3.0, 0.5, "50 cm"),
+                                (0.012, 0.002, "2 mm"), (7.0, 1.0, "1 m")):
+        assert scale_bar_length(span) == pytest.approx(length) and scale_bar_label(length) == label
+    out = render_frames([{"hair": _vertical_strands([-0.1, 0.1])}], tmp_path / "sheet.png", view="front",
+                        size_px=(600, 400))
+    img, fg = _foreground(out)
+    hair = _hair_mask(img) & fg
+    cols = np.flatnonzero(hair.any(axis=0))
+    strands_px = cols[cols >= 300].mean() - cols[cols < 300].mean()  # 0.2 m
+    grey = fg & ~_hair_mask(img) & (np.abs(img - 107).max(axis=2) < 40)  # the caption colour, #6b6b6b
+    lower_left = grey[200:, :300]
+    row = int(np.argmax(lower_left.sum(axis=1)))
+    bar = np.flatnonzero(lower_left[row])
+    bar_m = 0.2 * (bar[-1] - bar[0]) / strands_px
+    # one pixel of anti-aliasing at each end of the bar, of about 50 px
+    assert any(abs(bar_m - m) < 0.04 * m for m in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)), bar_m
 
 
 def test_same_camera_in_every_panel_and_meshes(tmp_path):
