@@ -827,7 +827,7 @@ class HairContacts:
         r.weights = wp.zeros(cap, dtype=wp.vec4, device=dev)
         r.point = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
         r.share = wp.zeros(4 * cap, dtype=float, device=dev)
-        r.split = wp.zeros(cap, dtype=wp.vec2, device=dev)
+        r.split = wp.zeros(cap, dtype=wp.vec3, device=dev)
         self._response_buffer = r
         self.response = bool(on)
 

@@ -222,8 +222,9 @@ class ContactResponse:
     (a vertex-face contact's quad corners a_k, b_k, a_k+1, b_k+1; a segment pair's (s, t, 0, 0)). Per entry
     ``4 slot + e``, as the force's entries: the world ``point`` and the signed ``share`` (+1 side a; -1, or the
     face's corner weights, side b; 0 none). ``friction`` and ``slip_velocity`` [m/s]: the contacts' Coulomb
-    coefficient and its regularisation. ``split``: the two sides' split factors of the step's response
-    (``contact_response_split``)."""
+    coefficient and its regularisation. ``split``: the two sides' split factors of the step's response and the
+    share of the force on the free velocities that the step's solve leaves the pair, ``1 / (1 + h D (W_a + W_b))``,
+    which bounds its friction (``contact_response_split``)."""
 
 
     enabled: int
@@ -235,7 +236,7 @@ class ContactResponse:
     weights: wp.array(dtype=wp.vec4)
     point: wp.array(dtype=wp.vec3)
     share: wp.array(dtype=float)
-    split: wp.array(dtype=wp.vec2)
+    split: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -1078,10 +1079,12 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
         return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0  # the pair leaves faster than its spring explains: no contact
     # Coulomb friction as a damper on the tangential velocity, its coefficient the cone's over the free step's slip
     # (regularised below slip_velocity): the damper's force, D_t |v_t'| <= D_t |v_t| <= mu f_n, stays in the cone,
-    # and a damper never reverses the slip it acts on, however many contacts share a segment.
+    # and a damper never reverses the slip it acts on, however many contacts share a segment. f_n is the normal force
+    # the pair keeps once solved, push / (1 + h D W): push itself, at long steps h D W times larger, held strands
+    # against each other far past the cone (the mohawk at 2 substeps tore 14 more links).
     vt = vrel - vn * n
     vt_sq = wp.dot(vt, vt)
-    Dt = response.friction * push / wp.sqrt(vt_sq + response.slip_velocity * response.slip_velocity)
+    Dt = response.friction * push * split[2] / wp.sqrt(vt_sq + response.slip_velocity * response.slip_velocity)
     xf = seg_xform[seg]
     R = wp.transform_get_rotation(xf)
     nl = wp.quat_rotate_inv(R, n)
@@ -1110,7 +1113,8 @@ def contact_response_split(
     # In and out:
     response: ContactResponse,
 ):
-    """One thread per buffer slot: the split factors ``(s_a, s_b)`` of the contact's two sides (``response.split``),
+    """One thread per buffer slot: the split factors ``(s_a, s_b)`` of the contact's two sides and the share of its
+    force on the free velocities that the pair keeps once solved, ``1 / (1 + h D (W_a + W_b))`` (``response.split``),
     from their effective masses along the normal in their strands (``articulated_inverse_mass``; a face point's, its
     corners' segments' by their weights squared): ``split_factor``, the other side's inverse mass shared among its
     segments' contacts where it is the lighter and the contact holds it (``shared_inverse_mass``; counts from
@@ -1144,9 +1148,10 @@ def contact_response_split(
                 w_b += w
                 shared_b += count * w
     stiffness = dt[0] * D
-    response.split[slot] = wp.vec2(
+    response.split[slot] = wp.vec3(
         split_factor(w_a, shared_inverse_mass(w_a, w_b, shared_b / wp.max(w_b, 1.0e-30), stiffness)),
-        split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30), stiffness)))
+        split_factor(w_b, shared_inverse_mass(w_b, w_a, shared_a / wp.max(w_a, 1.0e-30), stiffness)),
+        1.0 / (1.0 + stiffness * (w_a + w_b)))
 
 
 @wp.kernel
