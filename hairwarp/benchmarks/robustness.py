@@ -310,11 +310,23 @@ def classify(run: dict) -> str:
     return "ok"
 
 
+#: A grid cell whose fastest vertex comes within this share of the burst speed is run again with gravity changed
+#: by each of :data:`NEAR_RERUNS` times :data:`PERTURBATION`: hair whipping near the limit crosses it in some runs
+#: and not in others (the limp 64 x 1 cell: 2.44-3.52 m/s over five such runs), and one run would call it safe.
+NEAR_FRACTION = 0.8
+NEAR_RERUNS = (1.0, -1.0, 2.0)
+
+
 def bench_sweep(segments, substeps, stiffness, duration: float, scene_name: str = "long_hair",
                 log=lambda m: None) -> dict:
     base = raw_scene(scene_name)
     cells = []
     t0 = time.perf_counter()
+
+    def run_cell(raw):
+        scene = build(raw, scene_name)
+        return run_scene(scene, int(round(duration * float(scene.sim.fps))))
+
     for inter in (True, False):
         for ei in stiffness:
             for S in segments:
@@ -322,22 +334,30 @@ def bench_sweep(segments, substeps, stiffness, duration: float, scene_name: str 
                     raw = set_key(set_key(set_key(base, "sim.segments", int(S)), "sim.substeps", int(n)),
                                   "strands.bend_stiffness", float(ei))
                     raw = set_key(set_key(raw, "links.enabled", inter), "interactions.enabled", inter)
-                    scene = build(raw, scene_name)
-                    run = run_scene(scene, int(round(duration * float(scene.sim.fps))))
+                    run = run_cell(raw)
                     cell = {"links_contacts": inter, "bend_stiffness": float(ei), "segments": int(S),
                             "substeps": int(n), "status": classify(run), "max_speed_m_s": run["max_speed"],
                             "frames_done": run["frames_done"], "wall_s": round(run["wall_s"], 2),
                             "stage": run["fault"]["stage"] if run["fault"] else None,
                             "fault_frame": run["fault"]["frame"] if run["fault"] else None}
+                    if cell["status"] == "ok" and run["max_speed"] > NEAR_FRACTION * BURST_M_S:
+                        again = [(times, run_cell(perturbed(raw, times))) for times in NEAR_RERUNS]
+                        cell["reruns"] = [{"gravity_change": times * PERTURBATION, "status": classify(r),
+                                           "max_speed_m_s": r["max_speed"]} for times, r in again]
                     cells.append(cell)
                     log(f"sweep links+contacts {'on' if inter else 'off'} EI {ei:g} S {S} x {n}: {cell['status']}"
                         + (f" ({cell['stage']}, frame {cell['fault_frame']})" if cell["stage"] else "")
-                        + f", vmax {run['max_speed']:.2f} m/s, {run['wall_s']:.1f} s")
+                        + f", vmax {run['max_speed']:.2f} m/s, {run['wall_s']:.1f} s"
+                        + (", again " + ", ".join(f"{r['status']} {r['max_speed_m_s']:.2f}" for r in cell["reruns"])
+                           if "reruns" in cell else ""))
     bad = [c for c in cells if c["status"] != "ok"]
+    near = [c for c in cells if "reruns" in c]
+    near_bad = [c for c in near if any(r["status"] != "ok" for r in c["reruns"])]
     return {"scene": scene_name, "duration_s": duration, "segments": list(segments), "substeps": list(substeps),
             "bend_stiffness": list(stiffness), "burst_m_s": BURST_M_S, "cells": cells,
             "counts": {s: sum(c["status"] == s for c in cells) for s in ("ok", "fault", "nan", "burst")},
-            "meets": not bad, "wall_s": time.perf_counter() - t0}
+            "near_fraction": NEAR_FRACTION, "near": len(near), "near_not_ok": len(near_bad),
+            "meets": not bad and not near_bad, "wall_s": time.perf_counter() - t0}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,10 +370,10 @@ def bench_sweep(segments, substeps, stiffness, duration: float, scene_name: str 
 PERTURBATION = 1.0e-5
 
 
-def perturbed(raw: dict) -> dict:
-    """``raw`` with gravity changed by :data:`PERTURBATION` (relative)."""
+def perturbed(raw: dict, times: float = 1.0) -> dict:
+    """``raw`` with gravity changed by ``times`` :data:`PERTURBATION` (relative)."""
     gravity = raw.get("sim", {}).get("gravity", [0.0, 0.0, -9.81])
-    return set_key(raw, "sim.gravity", [float(g) * (1.0 + PERTURBATION) for g in gravity])
+    return set_key(raw, "sim.gravity", [float(g) * (1.0 + times * PERTURBATION) for g in gravity])
 
 
 def convergence_orders(rows: list[dict]) -> dict:
@@ -983,6 +1003,10 @@ def _by_step(r: dict, before: str = "; ", after: str = "") -> str:
     return "" if n is None else f"{before}{n}{after}"
 
 
+def _cell_name(c: dict) -> str:
+    return f"{'on' if c['links_contacts'] else 'off'} EI {c['bend_stiffness']:g} {c['segments']}×{c['substeps']}"
+
+
 def _v(ok) -> str:
     return "✓" if ok else "✗"
 
@@ -1055,15 +1079,26 @@ def md_robustness(data: dict) -> list[str]:
               f"(`guide_curves()` velocities, every frame) without a fault. Goal: every cell ok.", "",
               f"![grid]({CHART_GRID})", "",
               f"- **{sweep['counts']['ok']} of {len(sweep['cells'])} cells ok** {_v(sweep['meets'])}; "
-              f"{sweep['counts']['fault']} faults, {sweep['counts']['nan']} NaN, {sweep['counts']['burst']} bursts; "
-              f"{sweep['wall_s']:.0f} s for the grid (largest cell {max(c['wall_s'] for c in sweep['cells']):.0f} "
-              "s)."]
+              f"{sweep['counts']['fault']} faults, {sweep['counts']['nan']} NaN, {sweep['counts']['burst']} bursts"
+              + (f"; {sweep['near']} near the limit, {sweep['near_not_ok']} of them not ok when run again"
+                 if sweep.get("near") else "")
+              + f"; {sweep['wall_s']:.0f} s for the grid (largest cell "
+              f"{max(c['wall_s'] for c in sweep['cells']):.0f} s)."]
     bad = [c for c in sweep["cells"] if c["status"] != "ok"]
     if bad:
         lines.append("- Not ok: " + "; ".join(
-            f"{'on' if c['links_contacts'] else 'off'} EI {c['bend_stiffness']:g} {c['segments']}×{c['substeps']}: "
-            + (f"{c['stage']} frame {c['fault_frame']}" if c["status"] == "fault" else
-               f"{c['status']} {c['max_speed_m_s']:.2g} m/s") for c in bad) + ".")
+            f"{_cell_name(c)}: " + (f"{c['stage']} frame {c['fault_frame']}" if c["status"] == "fault" else
+                                    f"{c['status']} {c['max_speed_m_s']:.2g} m/s") for c in bad) + ".")
+    near = [c for c in sweep["cells"] if "reruns" in c]
+    if near:
+        changes = ", ".join(f"{r['gravity_change']:+.0e}" for r in near[0]["reruns"])
+        lines.append(f"- Cells whose fastest vertex came within {100 * sweep['near_fraction']:.0f} % of the burst "
+                     f"speed, run again with gravity changed by {changes}"
+                     + " (relative; a whip near the limit crosses it in some runs and not in others, and the goal "
+                       "counts them all): " + "; ".join(
+                         f"{_cell_name(c)}: {c['max_speed_m_s']:.2f} m/s, again "
+                         + ", ".join(f"{r['max_speed_m_s']:.2f}" + ("" if r["status"] == "ok" else f" ({r['status']})")
+                                     for r in c["reruns"]) for c in near) + ".")
     ref_n = conv["reference_substeps"]
     lines += ["", "### Convergence in the substeps", "",
               f"`{conv['scene']}`{' (' + ', '.join(conv['overrides']) + ')' if conv['overrides'] else ''}, "
