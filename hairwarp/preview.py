@@ -461,7 +461,8 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
         panel_px: (width, height) of one panel in pixels.
         max_curves: curves drawn per panel at most.
         shared_limits: one camera framing and depth range for the whole grid (a wedge: looks compare
-            directly); False frames each row on its own (shots of different scenes).
+            directly), with a scale bar in the first panel; False frames each row on its own (shots of different
+            scenes), with a scale bar in each row's first panel.
         row_colors: an optional text colour per row title (e.g. to mark runs that stopped on a fault).
 
     Returns:
@@ -507,6 +508,8 @@ def render_grid(rows, out_png, *, row_titles=None, col_titles=None, view="three_
                         transform=ax.transAxes)
                 continue
             _draw(ax, panel, row_limits, lo, hi, _line_width(panel.curve_count, min(pw, ph)))
+            if c == 0 and (r == 0 or not shared_limits):  # one scale for the grid, or one a row framed alone
+                _draw_scale_bar(ax, row_limits, fontsize=7.0)
     for c in range(n_cols):
         if col_titles is not None and c < len(col_titles) and col_titles[c]:
             fig.text((label_px + (c + 0.5) * pw) / width, 1.0 - 0.5 * GRID_HEADER_PX / height, str(col_titles[c]),

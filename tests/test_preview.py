@@ -231,6 +231,29 @@ def test_grid_row_titles_stay_left_of_the_panels(tmp_path):
     assert ink[:, :column].any() and not ink[:, column - 4 : column + 100].any()
 
 
+@pytest.mark.parametrize("shared", [True, False])
+def test_grid_scale_bars_one_for_a_shared_framing_one_a_row_otherwise(tmp_path, shared):
+    """A wedge's grid (one framing) has one scale bar, in its first panel; a grid of shots framed row by row has
+    one in each row's first panel (the rows' scales differ)."""
+    from hairwarp.preview import GRID_HEADER_PX, render_grid
+
+    frame = {"curves": {"hair": _vertical_strands([-0.1, 0.1])}}
+    rows = [[frame, frame], [frame, frame]]
+    out = render_grid(rows, tmp_path / "grid.png", row_titles=["a", "b"], panel_px=(300, 300),
+                      shared_limits=shared)
+    img, fg = _foreground(out)
+    grey = fg & ~_hair_mask(img) & (np.abs(img - 107).max(axis=2) < 40)
+    left = img.shape[1] - 2 * 300  # the title column
+
+    def bar_in(r, c):  # the lower left quarter of panel (r, c): a horizontal grey run of 20 px or more
+        top = GRID_HEADER_PX + r * 300 + 150
+        quarter = grey[top:top + 150, left + c * 300:left + c * 300 + 150]
+        return bool(quarter.sum(axis=1).max() >= 20)
+
+    assert bar_in(0, 0) and not bar_in(0, 1) and not bar_in(1, 1)
+    assert bar_in(1, 0) is (not shared)
+
+
 def test_gif_frames_keep_the_frame_rate_to_a_hundredth_of_a_second():
     """GIF stores hundredths of a second: 30 frames at 30 fps last 3, 4, 3, ... hundredths, 1 s in all (a constant
     33 ms, stored as 30, played 10 % fast); 24 fps, 6 frames: 0.25 s."""
