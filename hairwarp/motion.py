@@ -497,6 +497,43 @@ class _AxisRotation(_Oscillation):
         f, _, _, c = _exp_functions(float(v @ v))
         return np.concatenate([f * v, [c]])
 
+    def evaluate(self, t: float) -> MotionSample:
+        """The turn about a fixed axis in closed form: angle ``a``, ``omega = a' k``, ``alpha = a'' k`` and the rest
+        offset turned by Rodrigues' formula: what the quaternion derivatives of the general path give (to float64
+        round-off, ``tests/test_motion.py``), in plain floats. A run samples the motion at every step between the
+        kernels, on one thread, and the general path's small arrays took a seventh of that serial time."""
+        e, e1, e2 = self._envelope(float(t))
+        A = self.amplitude
+        a, ad, add = A * e, A * e1, A * e2
+        kx, ky, kz = self.axis.tolist()
+        px, py, pz = self.pivot.tolist()
+        rx, ry, rz = (self.rest_position - self.pivot).tolist()
+        sa, ca = math.sin(a), math.cos(a)
+        kr = kx * rx + ky * ry + kz * rz
+        cx, cy, cz = ky * rz - kz * ry, kz * rx - kx * rz, kx * ry - ky * rx  # k x r0
+        # r = r0 cos a + (k x r0) sin a + k (k . r0)(1 - cos a)
+        x = rx * ca + cx * sa + kx * kr * (1.0 - ca)
+        y = ry * ca + cy * sa + ky * kr * (1.0 - ca)
+        z = rz * ca + cz * sa + kz * kr * (1.0 - ca)
+        wx, wy, wz = ad * kx, ad * ky, ad * kz
+        vx, vy, vz = wy * z - wz * y, wz * x - wx * z, wx * y - wy * x  # w x r
+        # alpha x r + w x (w x r)
+        ux, uy, uz = ky * z - kz * y, kz * x - kx * z, kx * y - ky * x  # k x r
+        gx, gy, gz = add * ux + (wy * vz - wz * vy), add * uy + (wz * vx - wx * vz), add * uz + (wx * vy - wy * vx)
+        sh = math.sin(0.5 * a)
+        return MotionSample(
+            position=np.array([px + x, py + y, pz + z]),
+            rotation=np.array([sh * kx, sh * ky, sh * kz, math.cos(0.5 * a)]),
+            linear_velocity=np.array([vx, vy, vz]),
+            angular_velocity=np.array([wx, wy, wz]),
+            linear_acceleration=np.array([gx, gy, gz]),
+            angular_acceleration=np.array([add * kx, add * ky, add * kz]),
+        )
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        sample = self.evaluate(t)
+        return sample.position, sample.rotation
+
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(amplitude_deg={math.degrees(self.amplitude):g}, period={self.period:g}, "
                 f"start={self.start:g}, ramp={self.ramp:g}, axis={self.axis.tolist()}, pivot={self.pivot.tolist()})")

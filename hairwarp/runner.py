@@ -113,9 +113,11 @@ def is_teleport(before, after, distance: float, angle_deg: float) -> bool:
     """Whether the head jumped between two motion samples (or ``(position, rotation)`` poses): its origin moved
     farther than ``distance`` [m] or it turned by more than ``angle_deg``."""
     (p0, q0), (p1, q1) = (_pose(before), _pose(after))
-    if float(np.linalg.norm(np.asarray(p1) - np.asarray(p0))) > distance:
+    # plain floats: two tests a step, run between the kernels on one thread
+    if math.dist(np.asarray(p1, dtype=float).tolist(), np.asarray(p0, dtype=float).tolist()) > distance:
         return True
-    cos_half = abs(float(np.dot(np.asarray(q1), np.asarray(q0))))
+    a, b = np.asarray(q1, dtype=float).tolist(), np.asarray(q0, dtype=float).tolist()
+    cos_half = abs(a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3])
     return 2.0 * math.degrees(math.acos(min(cos_half, 1.0))) > angle_deg
 
 
