@@ -173,6 +173,7 @@ class Simulation:
         self._wind = None  # the wind last set on the control
         self._poses = {}  # step number -> head pose, for the teleport test
         self._applied_at_start = None  # (t, what _applied(t) gave): the head at the next step's start
+        self._ahead = {}  # step end time -> what _applied gave, for the frame being advanced
         self.links = self._build_links(scene.links)
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
@@ -328,7 +329,8 @@ class Simulation:
 
     def _before_step(self, t, control):
         start = self.stepper.time
-        teleport, sample, frames = now = self._applied(t)
+        now = self._ahead.pop(t, None) or self._applied(t)
+        teleport, sample, frames = now
         if not teleport:
             # The head's accelerations over the step: the mean, (v(t) - v(start)) / dt, of the velocities the control
             # holds at the step's start and end, so that the hair takes over the step the head's own change of
@@ -396,11 +398,24 @@ class Simulation:
         self._motion = motion
         self._poses = {}  # the teleport test's poses were the old motion's
         self._applied_at_start = None  # so was the control's head at the step's start
+        self._ahead = {}
 
     def advance_frame(self) -> Fault:
         if self.contacts is not None and not self.contacts.detect_each_step:
             self.contacts.detect(self.model, self.stepper.state)  # pairs for this frame, within the margin
-        return self.stepper.advance_frame(self._before_step)
+        # the head at the end of each of the frame's steps, sampled together before the kernels: the same Python
+        # between them ran 3-6 times slower (its caches cold), on one thread while the others waited
+        st, t = self.stepper, self.stepper.time
+        ahead = {}
+        for _ in range(st.substeps):
+            t_end = t + st.dt  # as Stepper.advance_frame forms it, and then its time
+            ahead[t_end] = self._applied(t_end)
+            t = t_end
+        self._ahead = ahead
+        try:
+            return st.advance_frame(self._before_step)
+        finally:
+            self._ahead = {}
 
     def frame_stats(self) -> dict:
         """Counters of the frame just simulated (one small read each): broken links, contacts."""
