@@ -29,7 +29,7 @@ import threading
 import numpy as np
 import warp as wp
 
-from hairwarp.executor import launch
+from hairwarp.executor import _capturing, launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
 from hairwarp.kernels.sweeps import SWEEP_MAX_STEP
@@ -899,8 +899,6 @@ class HairContacts:
                 bounds(S, state.vertex_positions)
                 trees.append(bvh.rebuild if rebuild else bvh.refit)
         # Warp refits or rebuilds a CPU tree on one thread: the two trees (independent) go to two threads.
-        from hairwarp.executor import _capturing
-
         if self.executor is not None and not _capturing(self.device):
             self.executor.run(trees)
         else:
@@ -927,8 +925,6 @@ class HairContacts:
     def _overlapped_detection(self) -> bool:
         """Whether :meth:`detect` runs as :meth:`_fit_and_detect`: both kinds of contact, on several CPU threads,
         not in a graph capture."""
-        from hairwarp.executor import _capturing
-
         ex = self.executor
         return (ex is not None and ex.parallel and not self.device.is_cuda and self.strips is not None
                 and self.segment_segment and not _capturing(self.device))
@@ -971,7 +967,7 @@ class HairContacts:
                     fitted.set()
             return task
 
-        def detect(prep, c, fitted):
+        def chunk(prep, c, fitted):
             def task():
                 fitted.wait()  # the tree tasks come first: a thread is fitting it
                 if not failed:
@@ -981,8 +977,8 @@ class HairContacts:
         # the trees first (every thread that waits on one waits on a thread fitting it), the segment tree's chunks
         # next (the smaller tree is fitted first)
         ex.run([fit(self.seg_bvh, seg_fitted), fit(self.strip_bvh, strip_fitted),
-                *(detect(ss, c, seg_fitted) for c in range(len(ss_chunks))),
-                *(detect(vf, c, strip_fitted) for c in range(len(vf_chunks)))])
+                *(chunk(ss, c, seg_fitted) for c in range(len(ss_chunks))),
+                *(chunk(vf, c, strip_fitted) for c in range(len(vf_chunks)))])
         ex.finish(vf)
         ex.finish(ss)
         self._append_chunk_contacts(views, len(vf_chunks) + len(ss_chunks), fault)
@@ -1040,8 +1036,6 @@ class HairContacts:
         """
         ex = self.executor
         n = len(inputs)
-        from hairwarp.executor import _capturing
-
         parallel = ex is not None and ex.parallel and not _capturing(self.device)
         chunks = ex.chunks(dim, BLOCK_MIN_CHUNK, per_thread=DETECT_CHUNKS_PER_THREAD) if parallel else [(0, dim)]
         if len(chunks) == 1:
