@@ -340,6 +340,10 @@ class StaticLinks:
                                      device=dev)
         links.link_force = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.link_split = wp.zeros(n, dtype=wp.vec2, device=dev)
+        # what the sweeps read of each link end, a ends then b slots
+        links.ends = link_kernels.LinkEnds()
+        for name, size in (("force", 2 * n), ("arm", 2 * n), ("axis", n)):
+            setattr(links.ends, name, wp.zeros(size, dtype=wp.vec3, device=dev))
         # the response's sweeps: strands coloured so that no two of a colour are linked
         links.sweeps = int(sweeps)
         links.strand_colors = strand_colors(a // S, b // S, G)
@@ -386,17 +390,19 @@ class StaticLinks:
                 self.link_point_a, self.link_point_b],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
 
-    def prepare_response(self, model, state_in, state_out, dt, dampers):
+    def prepare_response(self, model, state_in, state_out, dt, dampers, sweeps: bool = True):
         """Each link's force on the free step's end velocities (``state_out``) and its ends' split factors, from
         the strands' inverse inertias in ``dampers`` (``link_response_split``; launch only): what
-        :meth:`gather_response` reads at both ends."""
+        :meth:`gather_response` reads at both ends; with ``sweeps``, what they read of each end's own free motion
+        (:attr:`ends`)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_split, self.link_count,
                [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.link_seg_a, self.link_seg_b,
                 self.stiffness, self.damping, self.link_point_a, self.link_point_b, self.link_broken,
-                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, dt, dampers],
-               [self.link_force, self.link_split], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, self.link_b_slot, dt,
+                dampers, int(sweeps)], [self.link_force, self.link_split, self.ends], device=self.device,
+               min_chunk=GATHER_MIN_CHUNK)
 
     def sweeps_at(self, dt: float) -> int:
         """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to
@@ -407,17 +413,20 @@ class StaticLinks:
         growth = (float(dt) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
         return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
 
-    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept, contacts_swept: bool = False):
+    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept, contacts_swept: bool = False,
+                        sweeps: bool = True):
         """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``
         (a :class:`kernels.articulated.InteractionResponse`): the hair contacts' from ``held`` and its link ends',
         from :meth:`prepare_response` and the frames of ``state_in``; the blocks of the sweeps' dampers (split factor
-        1) in ``swept``, added to the hair contacts' there with ``contacts_swept`` (launch only)."""
+        1) in ``swept``, added to the hair contacts' there with ``contacts_swept``, and with ``sweeps`` the link ends'
+        arms in :attr:`ends` (launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
                 self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
-                state_in.seg_xform, dt, held, int(contacts_swept)], [dampers, swept], device=self.device,
+                state_in.seg_xform, dt, held, int(contacts_swept), int(sweeps)], [dampers, swept, self.ends],
+               device=self.device,
                min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):

@@ -342,8 +342,13 @@ class Solver:
         ex.launch(articulated.strand_inverse_inertia, model.strand_count,
                   [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
                   min_chunk=INTEGRATE_MIN_CHUNK)
+        # the sweeps this step takes (none beyond ``sweeps.SWEEP_MAX_STEP``)
+        count = links.sweeps_at(self._dt_host) if links is not None else 0
         for part in self.responders:
-            part.prepare_response(model, state_in, state_out, self.dt, dampers)
+            if part is self.links:
+                part.prepare_response(model, state_in, state_out, self.dt, dampers, count > 0)
+            else:
+                part.prepare_response(model, state_in, state_out, self.dt, dampers)
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
         # the sweeps solve the hair contacts too, where each segment has its list of them (the CPU)
         contacts_swept = links is not None and contacts is not None and contacts.sweeps_contacts
@@ -354,7 +359,8 @@ class Solver:
                 contacts.gather_response(model, state_in, state_out, self.dt, held,
                                          *((self.swept, links.strand_color_array) if contacts_swept else ()))
             if links is not None:
-                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept, contacts_swept)
+                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept, contacts_swept,
+                                      count > 0)
                 ex.launch(sweeps.sweep_start, model.strand_count,
                           [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
                           [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
@@ -378,14 +384,13 @@ class Solver:
             return
         inputs = [model.chains, links.seg_link_start, links.seg_b_start, links.b_slot_link, links.link_seg_a,
                   links.link_seg_b, links.stiffness, links.damping, links.link_point_a, links.link_point_b,
-                  links.link_broken, control.bases, self.dt, implicit, self.loads, state_in.joint_q,
+                  links.link_broken, links.ends, control.bases, self.dt, implicit, self.loads, state_in.joint_q,
                   state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd, self.free_velocities,
                   self.answered_velocities]
         held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
                    self.swept, self.scratch, self.factors]
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
         # at every step, and hair at rest on a body crept); every sweep after the first solves the same matrices
-        count = links.sweeps_at(self._dt_host)
         for sweep in range(count):
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):

@@ -21,11 +21,11 @@ from hairwarp.kernels.articulated import (
     InteractionResponse,
     add_damper,
     articulated_inverse_mass,
-    point_damper_blocks,
     shared_inverse_mass,
     spin_free_torque,
     split_factor,
 )
+from hairwarp.kernels.spatial import skew
 
 wp.set_module_options({"enable_backward": False})
 
@@ -385,16 +385,37 @@ def link_break(
         wp.atomic_add(link_broken_total, 0, 1)
 
 
+@wp.struct
+class LinkEnds:
+    """What the links' sweeps read of each link end over a step (``kernels.sweeps.link_sweep``): ``force``, the
+    end's force on its own free velocities with the other end still, ``+-(k l) - P v_own`` [N, world]
+    (``link_response_split``); ``arm``, the end's point about its segment's origin in the segment's frame at the
+    step's start (``link_response_gather``); ``axis``, per link, the unit ``n`` of ``P = h k I + c n n^T`` [world]
+    (zero while the link has no direction). End slots: side a of link ``i`` at ``i``, side b of the link in b slot
+    ``j`` at ``link_count + j`` (``end_slot``)."""
+
+    force: wp.array(dtype=wp.vec3)
+    arm: wp.array(dtype=wp.vec3)
+    axis: wp.array(dtype=wp.vec3)
+
+
 @wp.func
-def link_damping_matrix(h: float, link_stiffness: float, link_damping: float, l: wp.vec3):
-    """The link's backward-Euler damper over the step, ``P = h k I + c n n^T`` [N s/m] (``n`` along ``l``; no
-    damping term while the link has no direction)."""
-    P = (h * link_stiffness) * wp.identity(n=3, dtype=float)
+def end_slot(j: int, a_last: int, b_first: int, link_count: int, b_slot_link: wp.array(dtype=wp.int32)):
+    """The ``j``-th end of a segment whose a ends are links ``a_first .. a_last - 1`` and whose b ends are b slots
+    ``b_first ..`` (``j`` from ``a_first``): its link, its side (+1 a, -1 b) and its ``LinkEnds`` slot."""
+    if j < a_last:
+        return j, float(1.0), j
+    b = b_first + j - a_last
+    return b_slot_link[b], float(-1.0), link_count + b
+
+
+@wp.func
+def link_axis(l: wp.vec3):
+    """The unit direction of ``l``, along which a link damps; zero below ``LINK_MIN_LENGTH`` (round-off)."""
     length = wp.length(l)
     if length > LINK_MIN_LENGTH:
-        n = l / length
-        P = P + link_damping * wp.outer(n, n)
-    return P
+        return l / length
+    return wp.vec3()
 
 
 @wp.kernel
@@ -417,12 +438,16 @@ def link_response_split(
     seg_xform: wp.array(dtype=wp.transform),
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
+    link_b_slot: wp.array(dtype=wp.int32),
     # Control:
     dt: wp.array(dtype=float),
     dampers: InteractionResponse,
+    # 1 when sweeps follow: each end's force on its own free velocities is kept for them (``LinkEnds``)
+    keep_ends: int,
     # Out:
     link_force: wp.array(dtype=wp.vec3),
     link_split: wp.array(dtype=wp.vec2),
+    ends: LinkEnds,
 ):
     """One thread per link: its backward-Euler force on the free velocities, ``k l - P u`` [N, world, on end a], and
     the split factors of its two ends (``split_factor``), for ``link_response_gather``.
@@ -443,11 +468,16 @@ def link_response_split(
     b = link_seg_b[link]
     xa = link_point_a[link]
     xb = link_point_b[link]
-    u = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa) - \
-        seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+    v_a = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa)
+    v_b = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
     l = xb - xa
-    P = link_damping_matrix(h, link_stiffness, link_damping, l)
-    force = link_stiffness * l - P * u
+    n = link_axis(l)
+    P = (h * link_stiffness) * wp.identity(n=3, dtype=float) + link_damping * wp.outer(n, n)
+    force = link_stiffness * l - P * (v_a - v_b)
+    if keep_ends != 0:
+        ends.force[link] = link_stiffness * l - P * v_a
+        ends.force[link_point_a.shape[0] + link_b_slot[link]] = -link_stiffness * l - P * v_b
+        ends.axis[link] = n
     e = wp.vec3(1.0, 0.0, 0.0)
     if wp.length_sq(force) > 0.0:
         e = wp.normalize(force)
@@ -485,15 +515,23 @@ def link_response_gather(
     # (``kernels.contacts.contact_response_gather``), else they take ``held``'s
     held: InteractionResponse,
     contacts_swept: int,
+    # 1 when sweeps follow: the ends' arms are kept for them (``LinkEnds``)
+    keep_ends: int,
     # Out:
     dampers: InteractionResponse,
     sweep_blocks: InteractionResponse,
+    ends: LinkEnds,
 ):
     """One thread per segment: its ``InteractionResponse`` blocks are the hair contacts' (``held``) and the dampers of
     its links' ends (its links as side a in link order, then as side b in slot order), in its frame at the step's
     start: at the end's point, the point inertia ``s h P`` and the force ``+-(k l - P u)``
     (``link_response_split``). The blocks of the sweeps' dampers go to ``sweep_blocks`` (``A``, ``B``, ``C``): the
-    same with split factor 1, which every sweep of the step reads (``kernels.sweeps.link_sweep``)."""
+    same with split factor 1, which every sweep of the step reads (``kernels.sweeps.link_sweep``); with
+    ``keep_ends``, the ends' arms (``LinkEnds``).
+
+    The blocks are summed in closed form: with ``P`` in the segment's frame ``h k I + c n n^T`` and ``m = r x n``,
+    a point inertia ``h P`` at ``r`` has ``A = h (h k (|r|^2 I - r r^T) + c m m^T)``, ``B = h (h k [r]x + c m n^T)``,
+    ``C = h P``; the spin about the segment's axis is taken out of the sums (``point_damper_blocks``)."""
     seg = tid_offset + wp.tid()
     a_first = seg_link_start[seg]
     a_last = seg_link_start[seg + 1]
@@ -511,31 +549,40 @@ def link_response_gather(
         A1 = sweep_blocks.A[seg]
         B1 = sweep_blocks.B[seg]
         C1 = sweep_blocks.C[seg]
-    sweep_blocks.A[seg] = A1
-    sweep_blocks.B[seg] = B1
-    sweep_blocks.C[seg] = C1
     if a_first == a_last and b_first == b_last:
+        sweep_blocks.A[seg] = A1
+        sweep_blocks.B[seg] = B1
+        sweep_blocks.C[seg] = C1
         return
     h = dt[0]
+    hk = h * link_stiffness
+    link_count = link_point_a.shape[0]
     xf = seg_xform[seg]
     R = wp.transform_get_rotation(xf)
-    Rm = wp.quat_to_matrix(R)
     origin = wp.transform_get_translation(xf)
-    A = wp.mat33()
-    B = wp.mat33()
-    C = wp.mat33()
+    # the sums over the ends, split (s) and whole: of h k |r|^2, h k r r^T, c m m^T, h k r, c m n^T, c n n^T, h k
+    rr_s = float(0.0)
+    rr_1 = float(0.0)
+    Rr_s = wp.mat33()
+    Rr_1 = wp.mat33()
+    Mm_s = wp.mat33()
+    Mm_1 = wp.mat33()
+    r_s = wp.vec3()
+    r_1 = wp.vec3()
+    Mn_s = wp.mat33()
+    Mn_1 = wp.mat33()
+    Nn_s = wp.mat33()
+    Nn_1 = wp.mat33()
+    w_s = float(0.0)
+    w_1 = float(0.0)
     force = wp.vec3()
     torque = wp.vec3()
     for j in range(a_first, b_last - b_first + a_last):
-        link = j
-        side = float(1.0)
-        if j >= a_last:
-            link = b_slot_link[b_first + j - a_last]
-            side = -1.0
+        link, side, slot = end_slot(j, a_last, b_first, link_count, b_slot_link)
         if link_broken[link] == 0:
             xa = link_point_a[link]
             xb = link_point_b[link]
-            P = link_damping_matrix(h, link_stiffness, link_damping, xb - xa)
+            l = xb - xa
             split = link_split[link]
             p = xa
             s = split[0]
@@ -543,21 +590,48 @@ def link_response_gather(
                 p = xb
                 s = split[1]
             r = wp.quat_rotate_inv(R, p - origin)
-            P_local = wp.transpose(Rm) * P * Rm
-            M = (s * h) * P_local
+            n = wp.quat_rotate_inv(R, link_axis(l))
+            m = wp.cross(r, n)
+            kr = hk * r
+            cm = link_damping * m
+            cn = link_damping * n
+            rr_1 += wp.dot(kr, r)
+            rr_s += s * wp.dot(kr, r)
+            Rr_1 += wp.outer(kr, r)
+            Rr_s += s * wp.outer(kr, r)
+            Mm_1 += wp.outer(cm, m)
+            Mm_s += s * wp.outer(cm, m)
+            r_1 += kr
+            r_s += s * kr
+            Mn_1 += wp.outer(cm, n)
+            Mn_s += s * wp.outer(cm, n)
+            Nn_1 += wp.outer(cn, n)
+            Nn_s += s * wp.outer(cn, n)
+            w_1 += hk
+            w_s += s * hk
             f = wp.quat_rotate_inv(R, side * link_force[link])
-            Ap, Bp = point_damper_blocks(r, M)
-            A += Ap
-            B += Bp
-            C += M
-            M1 = h * P_local
-            Ap1, Bp1 = point_damper_blocks(r, M1)
-            A1 += Ap1
-            B1 += Bp1
-            C1 += M1
             force += f
             torque += spin_free_torque(r, f)
-    sweep_blocks.A[seg] = A1
-    sweep_blocks.B[seg] = B1
-    sweep_blocks.C[seg] = C1
+            if keep_ends != 0:
+                ends.arm[slot] = r
+    A, B, C = sum_damper_blocks(h, rr_s, Rr_s, Mm_s, r_s, Mn_s, Nn_s, w_s)
+    A1p, B1p, C1p = sum_damper_blocks(h, rr_1, Rr_1, Mm_1, r_1, Mn_1, Nn_1, w_1)
+    sweep_blocks.A[seg] = A1 + A1p
+    sweep_blocks.B[seg] = B1 + B1p
+    sweep_blocks.C[seg] = C1 + C1p
     add_damper(dampers, seg, A, B, C, force, torque)
+
+
+@wp.func
+def sum_damper_blocks(h: float, rr: float, Rr: wp.mat33, Mm: wp.mat33, r: wp.vec3, Mn: wp.mat33, Nn: wp.mat33,
+                      w: float):
+    """``link_response_gather``'s blocks from its sums over the ends (``rr`` = sum h k |r|^2, ``Rr`` = sum h k r r^T,
+    ``Mm`` = sum c m m^T, ``r`` = sum h k r, ``Mn`` = sum c m n^T, ``Nn`` = sum c n n^T, ``w`` = sum h k; each end
+    weighted by its split factor or not), the spin about the segment's axis taken out as ``point_damper_blocks``
+    takes it."""
+    A = h * (rr * wp.identity(n=3, dtype=float) - Rr + Mm)
+    B = h * (skew(r) + Mn)
+    C = h * (w * wp.identity(n=3, dtype=float) + Nn)
+    A = wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
+    B = wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
+    return A, B, C

@@ -22,7 +22,7 @@ from hairwarp.kernels.articulated import (
     spin_free_torque,
 )
 from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, SweepContacts, sweep_entry_force
-from hairwarp.kernels.links import link_damping_matrix, seg_point_velocity
+from hairwarp.kernels.links import LinkEnds, end_slot, seg_point_velocity
 
 wp.set_module_options({"enable_backward": False})
 
@@ -131,10 +131,11 @@ def link_sweep(
     link_seg_b: wp.array(dtype=wp.int32),
     link_stiffness: float,
     link_damping: float,
-    # Scratch: the ends the force pass left
+    # Scratch: the ends the force pass left; what the first pass kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
+    ends: LinkEnds,
     # Control:
     bases: StrandBases,
     dt: wp.array(dtype=float),
@@ -205,6 +206,8 @@ def link_sweep(
     h = dt[0]
     if h > SWEEP_MAX_STEP:
         return  # keeps the first pass's answer
+    hk = h * link_stiffness
+    link_count = link_point_a.shape[0]
     for k in range(S):
         seg = strand * S + k
         joint_q_out[seg] = free_q[seg]
@@ -229,30 +232,22 @@ def link_sweep(
         b_first = seg_b_start[seg]
         b_last = seg_b_start[seg + 1]
         if a_first != a_last or b_first != b_last:
+            Rt = wp.transpose(wp.quat_to_matrix(R))
             for j in range(a_first, b_last - b_first + a_last):
-                link = j
-                side = float(1.0)
-                if j >= a_last:
-                    link = b_slot_link[b_first + j - a_last]
-                    side = -1.0
+                link, side, slot = end_slot(j, a_last, b_first, link_count, b_slot_link)
                 if link_broken[link] == 0:
-                    xa = link_point_a[link]
-                    xb = link_point_b[link]
-                    p = xa
-                    q = xb
+                    q = link_point_b[link]
                     other = link_seg_b[link]
                     if side < 0.0:
-                        p = xb
-                        q = xa
+                        q = link_point_a[link]
                         other = link_seg_a[link]
-                    l = xb - xa
-                    P = link_damping_matrix(h, link_stiffness, link_damping, l)
-                    u = seg_point_velocity(seg, S, vertex_positions_in, free_velocities, p) - seg_point_velocity(
-                        other, S, vertex_positions_in, answered_velocities, q)
-                    r = wp.quat_rotate_inv(R, p - origin)
-                    f = wp.quat_rotate_inv(R, side * link_stiffness * l - P * u)
+                    # f = +-(k l) - P (v_own - v_other): the end's own part as the first pass kept it, P on the
+                    # other end's latest answer
+                    v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
+                    n = ends.axis[link]
+                    f = Rt * (ends.force[slot] + hk * v + link_damping * wp.dot(n, v) * n)
                     force += f
-                    torque += spin_free_torque(r, f)
+                    torque += spin_free_torque(ends.arm[slot], f)
         dampers.force[seg] = force
         dampers.torque[seg] = torque
     # the strand's answer from its free step, with the factors of the step's first sweep kept
