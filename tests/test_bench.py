@@ -385,9 +385,11 @@ def test_robustness_grid_runs_cells_near_the_limit_again_and_counts_them(monkeyp
     calls = []
     plain = robustness.classify
 
-    def bursts_when_run_again(run):  # every 4th run of a cell (base, then 3 reruns) is its last rerun
+    runs = 1 + len(robustness.NEAR_RERUNS)  # a cell's base run, then its reruns
+
+    def bursts_when_run_again(run):  # each cell's last rerun
         calls.append(run)
-        return "burst" if len(calls) % 4 == 0 else plain(run)
+        return "burst" if len(calls) % runs == 0 else plain(run)
 
     monkeypatch.setattr(robustness, "classify", bursts_when_run_again)
     grid = robustness.bench_sweep([8], [2], [2e-4], duration=0.2, scene_name="tiny")
