@@ -281,6 +281,37 @@ def test_resume_with_nothing_stopped_says_why(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.clips", "tiny.usdc"]
 
 
+def test_a_run_refuses_to_replace_what_is_not_its_cache(tmp_path, capsys):
+    """A cache of the same name with another suffix keeps its frames in the same ``<stem>.clips``: a run of
+    ``k.usda`` beside ``k.usdc`` would replace them (``k.usdc`` then no longer opened). A ``<stem>.clips`` or
+    ``<stem>.partial`` that hairwarp did not write (a file, or a folder with other files) is refused too, and left as
+    it is; the same output again replaces its own cache."""
+    from hairwarp.cli import main
+
+    def run(name):
+        return main(["run", str(TINY), "-o", str(tmp_path / name), "-s", "output.preview=false", "--frames", "2"])
+
+    assert run("k.usdc") == 0
+    before = _samples(tmp_path / "k.usdc")
+    capsys.readouterr()
+    assert run("k.usda") == 2
+    err = capsys.readouterr().err
+    assert f"the cache {tmp_path / 'k.usdc'} keeps its frames in {tmp_path / 'k.clips'}" in err and len(
+        err.strip().splitlines()) == 1, err
+    after = _samples(tmp_path / "k.usdc")
+    assert after.keys() == before.keys() and not (tmp_path / "k.usda").exists()
+    for key, value in before.items():
+        np.testing.assert_array_equal(after[key], value, err_msg=str(key))
+    assert run("k.usdc") == 0  # its own cache again
+    (tmp_path / "y.clips").write_text("notes")
+    (tmp_path / "w.partial").mkdir()
+    (tmp_path / "w.partial" / "junk").write_text("mine")
+    capsys.readouterr()
+    assert run("y.usdc") == 2 and "y.clips is a file" in capsys.readouterr().err
+    assert run("w.usdc") == 2 and "did not write (junk)" in capsys.readouterr().err
+    assert (tmp_path / "y.clips").read_text() == "notes" and (tmp_path / "w.partial" / "junk").read_text() == "mine"
+
+
 def test_summary_counts_the_frames_this_run_simulated(tmp_path, capsys, monkeypatch):
     """A resumed run's last line counts the frames it simulated and those the stopped run had, in the singular for
     one (a run of 6 frames resumed after frame 4 simulated 2, not 6)."""

@@ -109,6 +109,7 @@ class CacheFolder:
         """
         if self.path.is_dir():
             raise UsdFileError(f"{self.path}: is a folder; name the cache file, e.g. {self.path / 'cache.usdc'}")
+        self._check_neighbours()
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -134,6 +135,34 @@ class CacheFolder:
             self._locked = True
             return
         raise CacheBusyError(f"{self.path}: another run keeps taking the lock {self.lock}")
+
+    def _check_neighbours(self) -> None:
+        """Refuse an output whose run would replace what is not this cache's: the frame folder ``<stem>.clips`` of a
+        cache of the same name with another suffix (``out/k.usda`` beside ``out/k.usdc``: both keep their frames
+        there), or a ``<stem>.clips`` or ``<stem>.partial`` that hairwarp did not write (a file, or a folder holding
+        files it never names so).
+
+        Raises:
+            UsdFileError: naming what would be lost.
+        """
+        final_clips = self.path.with_name(self.clips_name)
+        if final_clips.exists():
+            for suffix in _USD_SUFFIXES:
+                other = self.path.with_suffix(suffix)
+                if suffix != self.suffix and other.is_file():
+                    raise UsdFileError(f"{self.path}: the cache {other} keeps its frames in {final_clips}, which this "
+                                       f"run would replace; name this cache otherwise, or remove {other}")
+        stem = self.path.stem
+        for folder, ours in ((final_clips, _clip_file), (self.dir, lambda name: _working_file(name, stem))):
+            if folder.exists() and not folder.is_dir():
+                raise UsdFileError(f"{self.path}: {folder} is a file, where this cache would keep its frames; move "
+                                   f"it, or name the cache otherwise")
+            if folder.is_dir():
+                foreign = sorted(entry.name for entry in folder.iterdir() if not ours(entry.name))
+                if foreign:
+                    names = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
+                    raise UsdFileError(f"{self.path}: {folder} holds files hairwarp did not write ({names}), and this "
+                                       f"run would replace the folder; move them, or name the cache otherwise")
 
     def _owner(self) -> dict | None:
         """The live owner of an existing lock, or None when its process is gone."""
@@ -335,6 +364,22 @@ class CacheFolder:
         for entry in self.dir.iterdir():
             if entry != self.lock:
                 shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else _discard(entry)
+
+
+_USD_SUFFIXES = (".usd", ".usda", ".usdc")
+
+
+def _clip_file(name: str) -> bool:
+    """Whether ``name`` is one a cache's frame folder holds: its topology and clip manifest, the layer of a frame or of
+    a run of frames (``000012.usdc``, ``000000-000040.usdc``), or one of these being written (``.tmp``)."""
+    return name.startswith(("topology.", "manifest.")) or name[:6].isdigit()
+
+
+def _working_file(name: str, stem: str) -> bool:
+    """Whether ``name`` is one the working folder of the cache ``<stem>.*`` holds (the module docstring): the lock,
+    the root layer and frame folder (and a flattened cache) under the cache's stem, checkpoints under their frame,
+    the clips of the cache being replaced."""
+    return name in ("lock", "replaced.clips") or name.startswith(stem + ".") or name[:6].isdigit()
 
 
 def _discard(path: Path) -> None:
