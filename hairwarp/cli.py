@@ -377,15 +377,23 @@ def _version() -> str:
     return f"hairwarp {__version__}"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors are one line, as every other error of the command (argparse prints its usage
+    block first): ``hairwarp run: --threads: must be ... (hairwarp run --help)``, exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} ({self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``hairwarp`` command."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hairwarp",
         description="Hair simulation on NVIDIA Warp: articulated guide strands written to USD caches.",
         epilog="Run 'hairwarp COMMAND --help' for the options of a command.",
     )
     parser.add_argument("--version", action="version", version=_version())
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     p = sub.add_parser("run", help="simulate a scene and write a USD cache (and a preview)",
                        description="Simulate a scene and write a USD cache and a preview picture.")

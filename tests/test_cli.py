@@ -52,10 +52,13 @@ def test_version():
 
 
 def test_usage_errors_exit_2():
-    assert _hairwarp().returncode == 2
-    assert _hairwarp("fly").returncode == 2
-    r = _hairwarp("run", "--frames", "0")
-    assert r.returncode == 2 and "positive integer" in r.stderr
+    """Exit status 2 and one line naming the option, as every other error (argparse's usage block left out)."""
+    for args, said in ((), "required: COMMAND"), (("fly",), "invalid choice: 'fly'"), \
+            (("run", "--frames", "0"), "--frames: expected a positive integer"), \
+            (("run", "--threads", "abc"), "--threads: expected an integer >= 0"), \
+            (("wedge", "--workers", "0"), "--workers: expected a positive integer"):
+        r = _hairwarp(*args)
+        assert r.returncode == 2 and said in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
 def test_broken_scene_exits_2_and_names_the_key(tmp_path):
