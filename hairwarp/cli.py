@@ -328,6 +328,13 @@ def _thread_count(text: str) -> int:
     return value
 
 
+def _path(text: str) -> str:
+    """An output path: not empty (an empty ``-o`` fell back to the default path without a word)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty one")
+    return text
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -355,8 +362,8 @@ def _wedge_param(text: str) -> tuple[str, list[str]]:
 
 
 def _farm_options(p) -> None:
-    p.add_argument("-o", "--output", metavar="DIR", help="output folder (one subfolder per run, the summaries and "
-                                                         "the contact sheet)")
+    p.add_argument("-o", "--output", type=_path, metavar="DIR",
+                   help="output folder (one subfolder per run, the summaries and the contact sheet)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="a running Dask scheduler, e.g. tcp://host:8786 (dask-jobqueue, dask-kubernetes); "
@@ -399,7 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Simulate a scene and write a USD cache and a preview picture.")
     p.add_argument("scene", nargs="?", metavar="SCENE",
                    help="scene file (.toml); default: the bundled long_hair scene")
-    p.add_argument("-o", "--output", metavar="OUT.usdc", help="cache to write; default: out/<scene name>.usdc")
+    p.add_argument("-o", "--output", type=_path, metavar="OUT.usdc",
+                   help="cache to write; default: out/<scene name>.usdc")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="output frames (overrides sim.frames)")
     p.add_argument("--device", metavar="D", help="Warp device: cpu, cuda, cuda:N (overrides sim.device)")
     p.add_argument("--up-axis", choices=("Y", "Z"), help="up axis of the cache (overrides output.up_axis)")
@@ -447,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("preview", help="render frames of a cache to a PNG (or a GIF)",
                        description="Render frames of a USD cache as a contact sheet PNG or an animated GIF.")
     p.add_argument("cache", metavar="CACHE")
-    p.add_argument("-o", "--output", metavar="PICTURE",
+    p.add_argument("-o", "--output", type=_path, metavar="PICTURE",
                    help="picture to write: a .png (a .gif with --gif; the suffix names the format written, another "
                         "is refused); default: beside the cache")
     p.add_argument("--frames", type=_positive_int, metavar="N",

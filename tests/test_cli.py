@@ -56,7 +56,8 @@ def test_usage_errors_exit_2():
     for args, said in ((), "required: COMMAND"), (("fly",), "invalid choice: 'fly'"), \
             (("run", "--frames", "0"), "--frames: expected a positive integer"), \
             (("run", "--threads", "abc"), "--threads: expected an integer >= 0"), \
-            (("wedge", "--workers", "0"), "--workers: expected a positive integer"):
+            (("wedge", "--workers", "0"), "--workers: expected a positive integer"), \
+            (("run", "-o", ""), "--output: expected a path, got an empty one"):
         r = _hairwarp(*args)
         assert r.returncode == 2 and said in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
