@@ -61,19 +61,15 @@ def _cmd_run(args) -> int:
     from hairwarp.scene import Scene
 
     path = Path(args.scene) if args.scene else Scene.default_path()
-    overrides = list(args.set or [])
-    if args.frames is not None:
-        overrides.append(f"sim.frames={args.frames}")
-    if args.device is not None:
-        overrides.append(f"sim.device={args.device!r}")
-    if args.up_axis is not None:
-        overrides.append(f"output.up_axis={args.up_axis!r}")
-    if args.meters_per_unit is not None:
-        overrides.append(f"output.meters_per_unit={args.meters_per_unit!r}")
-    if args.start_frame is not None:
-        overrides.append(f"output.start_frame={args.start_frame}")
-    if args.threads is not None:
-        overrides.append(f"sim.threads={args.threads}")
+    overrides = _with_options(args.set, [
+        ("--frames", "sim.frames", args.frames),
+        ("--device", "sim.device", None if args.device is None else repr(args.device)),
+        ("--up-axis", "output.up_axis", None if args.up_axis is None else repr(args.up_axis)),
+        ("--meters-per-unit", "output.meters_per_unit",
+         None if args.meters_per_unit is None else repr(args.meters_per_unit)),
+        ("--start-frame", "output.start_frame", args.start_frame),
+        ("--threads", "sim.threads", args.threads),
+    ])
     scene = Scene.load(path, overrides=overrides)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
@@ -235,11 +231,22 @@ def _dask_missing(command: str) -> bool:
     return False
 
 
-def _common_overrides(args) -> list[str]:
-    overrides = list(args.set or [])
-    if args.frames is not None:
-        overrides.append(f"sim.frames={args.frames}")
+def _with_options(sets, options) -> list[str]:
+    """The ``-s`` overrides ``sets``, then one for each option given, ``(option, key, value or None)``. A key given
+    both ways is refused: the option's value won, and a bad ``-s`` value for it went unchecked."""
+    overrides = list(sets or [])
+    given = {o.split("=", 1)[0].strip(): o for o in overrides}
+    for option, key, value in options:
+        if value is None:
+            continue
+        if key in given:
+            raise ValueError(f"{key} is set twice, by -s {given[key]} and by {option}; give it once")
+        overrides.append(f"{key}={value}")
     return overrides
+
+
+def _common_overrides(args) -> list[str]:
+    return _with_options(args.set, [("--frames", "sim.frames", args.frames)])
 
 
 def _cmd_wedge(args) -> int:

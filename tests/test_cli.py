@@ -52,12 +52,14 @@ def test_version():
 
 
 def test_usage_errors_exit_2():
-    """Exit status 2 and one line naming the option, as every other error (argparse's usage block left out)."""
+    """Exit status 2 and one line naming the option, as every other error (argparse's usage block left out); a key
+    set by -s and by its option too is refused (the option won, and the -s value went unchecked)."""
     for args, said in ((), "required: COMMAND"), (("fly",), "invalid choice: 'fly'"), \
             (("run", "--frames", "0"), "--frames: expected a positive integer"), \
             (("run", "--threads", "abc"), "--threads: expected an integer >= 0"), \
             (("wedge", "--workers", "0"), "--workers: expected a positive integer"), \
-            (("run", "-o", ""), "--output: expected a path, got an empty one"):
+            (("run", "-o", ""), "--output: expected a path, got an empty one"), \
+            (("run", "--frames", "3", "-s", 'sim.frames="abc"'), 'sim.frames is set twice, by -s sim.frames="abc" and'):
         r = _hairwarp(*args)
         assert r.returncode == 2 and said in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
