@@ -83,8 +83,9 @@ def _cmd_run(args) -> int:
     resumed = ""
     if result.resumed_frames:
         resumed = f" after the {_counted(result.resumed_frames, 'frame')} of the stopped run"
-    print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s "
-          f"({result.seconds_per_frame:.3g} s a frame); {result.seconds:.2f} s in all, with the set-up and the preview")
+    rate = f" ({result.seconds_per_frame:.3g} s a frame)" if simulated else ""  # none: no time a frame to give
+    print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s{rate}; "
+          f"{result.seconds:.2f} s in all, with the set-up and the preview")
     return EXIT_OK
 
 
@@ -119,6 +120,8 @@ def _cmd_info(args) -> int:
     path = Path(args.file)
     if not path.exists():
         raise FileNotFoundError(f"{path.resolve()}: no such file")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; name a scene (.toml), a groom or a cache in it")
     suffix = path.suffix.lower()
     if args.set and suffix != ".toml":
         raise ValueError(f"{path}: -s overrides apply to a scene (.toml), not to {suffix or 'this file'}")

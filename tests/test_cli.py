@@ -59,7 +59,8 @@ def test_usage_errors_exit_2():
             (("run", "--threads", "abc"), "--threads: expected an integer >= 0"), \
             (("wedge", "--workers", "0"), "--workers: expected a positive integer"), \
             (("run", "-o", ""), "--output: expected a path, got an empty one"), \
-            (("run", "--frames", "3", "-s", 'sim.frames="abc"'), 'sim.frames is set twice, by -s sim.frames="abc" and'):
+            (("run", "--frames", "3", "-s", 'sim.frames="abc"'), 'sim.frames is set twice, by -s sim.frames="abc"'), \
+            (("info", "."), ".: is a folder; name a scene (.toml), a groom or a cache in it"):
         r = _hairwarp(*args)
         assert r.returncode == 2 and said in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
