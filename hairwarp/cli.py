@@ -207,13 +207,16 @@ def _cmd_preview(args) -> int:
     path = Path(args.cache)
     if not path.exists():
         raise FileNotFoundError(f"{path.resolve()}: no such file")
-    from hairwarp.preview import cache_frames, preview_cache
+    from hairwarp.preview import MAX_SHEET_FRAMES, cache_frames, preview_cache
 
     frames = _SHEET_FRAMES if args.frames is None else args.frames
     if args.frames is not None:  # what was asked and will not be shown is said, not dropped silently
         available = len(cache_frames(path))
         if args.gif:
             _note(f"--frames is for the contact sheet; the GIF shows every frame of the cache ({available})")
+        elif min(args.frames, available) > MAX_SHEET_FRAMES:
+            _note(f"a contact sheet shows at most {MAX_SHEET_FRAMES} frames: {MAX_SHEET_FRAMES} of the cache's "
+                  f"{available}, evenly spaced (--gif shows every frame)")
         elif args.frames > available:
             _note(f"the cache has {_counted(available, 'frame')}, fewer than --frames {args.frames}: the sheet "
                   f"shows {'it' if available == 1 else f'all {available}'}")

@@ -539,6 +539,11 @@ def frame_title(frame: float, seconds: float) -> str:
     return f"frame {label}   {seconds:.2f} s"
 
 
+#: Most frames a contact sheet shows: its width is held to 2400 px (``sheet_size``), 200 px a panel at this count
+#: (a sheet of 100 panels had none left to draw in). ``--gif`` shows every frame.
+MAX_SHEET_FRAMES = 12
+
+
 def sheet_size(panels: int) -> tuple[int, int]:
     """Pixel size of a contact sheet of ``panels`` frames (the run's preview and ``hairwarp preview`` alike)."""
     return (min(560 * panels, 2400), 600) if panels > 1 else (700, 700)
@@ -580,7 +585,8 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
     Args:
         cache_path: the USD cache.
         out_png: the picture to write, named ``.png`` (``.gif`` when ``gif``); default: beside the cache, same stem.
-        frames: how many evenly spaced frames to show (first and last included), or a list of frame numbers.
+        frames: how many evenly spaced frames to show (first and last included; at most :data:`MAX_SHEET_FRAMES`,
+            more are shown as that many), or a list of at most that many frame numbers.
         gif: write an animated GIF of every frame (at the cache's frame rate) instead of the contact sheet.
         view: a name from :data:`VIEWS` or (azimuth, elevation) in degrees.
         progress: show the GIF's frames drawn on stderr, as ``hairwarp run`` shows its frames.
@@ -606,6 +612,11 @@ def preview_cache(cache_path, out_png=None, *, frames=4, gif=False, view="three_
                          f"--gif for an animated GIF, named .gif)")
     if gif:
         return _write_gif(cache_path, out, view, progress, guides)
+    if isinstance(frames, int | np.integer):
+        frames = min(int(frames), MAX_SHEET_FRAMES)
+    elif len(frames) > MAX_SHEET_FRAMES:
+        raise ValueError(f"{len(frames)} frames: a contact sheet shows at most {MAX_SHEET_FRAMES} (a GIF shows every "
+                         f"frame)")
     data = read_frames(cache_path, _pick_frames(cache_path, frames))
     return render_frames([rendered_curves(d["curves"], guides) for d in data], out,
                          titles=[frame_title(d["frame"], d["time"]) for d in data],

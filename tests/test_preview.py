@@ -195,6 +195,20 @@ def test_preview_says_which_frames_it_cannot_show(tmp_path, capsys):
     assert capsys.readouterr().err == ""
 
 
+def test_a_contact_sheet_of_many_frames_shows_at_most_its_panels(tmp_path, capsys):
+    """A sheet is held to 2400 px: asked for 100 frames of a 30-frame cache it had no width left for a panel and
+    failed with the imaging library's message. It shows ``MAX_SHEET_FRAMES``, evenly spaced, and says so."""
+    from hairwarp.cli import main
+    from hairwarp.preview import MAX_SHEET_FRAMES
+
+    cache = _tiny_cache(tmp_path / "tiny.usdc", frames=30)
+    assert main(["preview", str(cache), "--frames", "100", "-o", str(tmp_path / "a.png")]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        f"hairwarp: note: a contact sheet shows at most {MAX_SHEET_FRAMES} frames: {MAX_SHEET_FRAMES} of the cache's "
+        "30, evenly spaced (--gif shows every frame)"]
+    assert Image.open(tmp_path / "a.png").size == (2400, 600)
+
+
 def test_preview_gif_shows_its_progress(tmp_path):
     """`hairwarp preview --gif` prints the frames drawn as `hairwarp run` prints its frames (a line per tenth when
     stderr is not a terminal), counted from 1: of 11 frames, 1/11 to 11/11 (a first 'frame 0/11' took the first
