@@ -309,7 +309,7 @@ def _run_farm(args, farm, tasks, out: Path, shared_framing: bool) -> int:
     for r in records:
         if r["status"] != farm.STATUS_OK:
             print(f"{r['status']:<8} {r['name']}: {r['message']}")
-    print(f"summary  {out / 'summary.csv'}  {out / 'summary.md'}")
+    print(f"summary  {out / 'summary.csv'}  {out / 'summary.md'}  {out / 'summary.json'}")
     if (out / "sheet.png").is_file() and not args.no_sheet:
         print(f"sheet    {out / 'sheet.png'}")
     reused = sum(1 for r in records if r.get("skipped"))

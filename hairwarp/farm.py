@@ -261,12 +261,15 @@ def _file_sizes(folder: Path) -> dict[str, int]:
 
 
 def _init_warp() -> None:
-    """Initialise Warp in this worker process without its banner (a worker's output goes to the terminal)."""
+    """Initialise Warp in this worker process without its banner, nor the missing CUDA driver's warning on a CPU
+    machine (a worker's output goes to the terminal, and a plain ``hairwarp run`` prints neither)."""
     import warp as wp
+
+    from hairwarp.cli import _init_warp_quietly
 
     wp.config.quiet = True
     wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
-    wp.init()
+    _init_warp_quietly(wp)
 
 
 def _ignore_interrupts() -> None:
