@@ -529,9 +529,8 @@ def link_response_gather(
     same with split factor 1, which every sweep of the step reads (``kernels.sweeps.link_sweep``); with
     ``keep_ends``, the ends' arms (``LinkEnds``).
 
-    The blocks are summed in closed form: with ``P`` in the segment's frame ``h k I + c n n^T`` and ``m = r x n``,
-    a point inertia ``h P`` at ``r`` has ``A = h (h k (|r|^2 I - r r^T) + c m m^T)``, ``B = h (h k [r]x + c m n^T)``,
-    ``C = h P``; the spin about the segment's axis is taken out of the sums (``point_damper_blocks``)."""
+    The blocks of each end come in closed form (``link_end_blocks``), no 3 x 3 product an end; the spin about the
+    segment's axis is taken out of the sums (``point_damper_blocks``)."""
     seg = tid_offset + wp.tid()
     a_first = seg_link_start[seg]
     a_last = seg_link_start[seg + 1]
@@ -560,21 +559,10 @@ def link_response_gather(
     xf = seg_xform[seg]
     R = wp.transform_get_rotation(xf)
     origin = wp.transform_get_translation(xf)
-    # the sums over the ends, split (s) and whole: of h k |r|^2, h k r r^T, c m m^T, h k r, c m n^T, c n n^T, h k
-    rr_s = float(0.0)
-    rr_1 = float(0.0)
-    Rr_s = wp.mat33()
-    Rr_1 = wp.mat33()
-    Mm_s = wp.mat33()
-    Mm_1 = wp.mat33()
-    r_s = wp.vec3()
-    r_1 = wp.vec3()
-    Mn_s = wp.mat33()
-    Mn_1 = wp.mat33()
-    Nn_s = wp.mat33()
-    Nn_1 = wp.mat33()
-    w_s = float(0.0)
-    w_1 = float(0.0)
+    # the blocks summed over the ends, split (s) and whole
+    A = wp.mat33()
+    B = wp.mat33()
+    C = wp.mat33()
     force = wp.vec3()
     torque = wp.vec3()
     for j in range(a_first, b_last - b_first + a_last):
@@ -582,7 +570,6 @@ def link_response_gather(
         if link_broken[link] == 0:
             xa = link_point_a[link]
             xb = link_point_b[link]
-            l = xb - xa
             split = link_split[link]
             p = xa
             s = split[0]
@@ -590,48 +577,45 @@ def link_response_gather(
                 p = xb
                 s = split[1]
             r = wp.quat_rotate_inv(R, p - origin)
-            n = wp.quat_rotate_inv(R, link_axis(l))
-            m = wp.cross(r, n)
-            kr = hk * r
-            cm = link_damping * m
-            cn = link_damping * n
-            rr_1 += wp.dot(kr, r)
-            rr_s += s * wp.dot(kr, r)
-            Rr_1 += wp.outer(kr, r)
-            Rr_s += s * wp.outer(kr, r)
-            Mm_1 += wp.outer(cm, m)
-            Mm_s += s * wp.outer(cm, m)
-            r_1 += kr
-            r_s += s * kr
-            Mn_1 += wp.outer(cm, n)
-            Mn_s += s * wp.outer(cm, n)
-            Nn_1 += wp.outer(cn, n)
-            Nn_s += s * wp.outer(cn, n)
-            w_1 += hk
-            w_s += s * hk
+            Ae, Be, Ce = link_end_blocks(h, hk, link_damping, r, wp.quat_rotate_inv(R, link_axis(xb - xa)))
+            A += s * Ae
+            B += s * Be
+            C += s * Ce
+            A1 += Ae
+            B1 += Be
+            C1 += Ce
             f = wp.quat_rotate_inv(R, side * link_force[link])
             force += f
             torque += spin_free_torque(r, f)
             if keep_ends != 0:
                 ends.arm[slot] = r
-    A, B, C = sum_damper_blocks(h, rr_s, Rr_s, Mm_s, r_s, Mn_s, Nn_s, w_s)
-    A1p, B1p, C1p = sum_damper_blocks(h, rr_1, Rr_1, Mm_1, r_1, Mn_1, Nn_1, w_1)
-    sweep_blocks.A[seg] = A1 + A1p
-    sweep_blocks.B[seg] = B1 + B1p
-    sweep_blocks.C[seg] = C1 + C1p
-    add_damper(dampers, seg, A, B, C, force, torque)
+    sweep_blocks.A[seg] = spin_free_rotation(A1)
+    sweep_blocks.B[seg] = spin_free_coupling(B1)
+    sweep_blocks.C[seg] = C1
+    add_damper(dampers, seg, spin_free_rotation(A), spin_free_coupling(B), C, force, torque)
 
 
 @wp.func
-def sum_damper_blocks(h: float, rr: float, Rr: wp.mat33, Mm: wp.mat33, r: wp.vec3, Mn: wp.mat33, Nn: wp.mat33,
-                      w: float):
-    """``link_response_gather``'s blocks from its sums over the ends (``rr`` = sum h k |r|^2, ``Rr`` = sum h k r r^T,
-    ``Mm`` = sum c m m^T, ``r`` = sum h k r, ``Mn`` = sum c m n^T, ``Nn`` = sum c n n^T, ``w`` = sum h k; each end
-    weighted by its split factor or not), the spin about the segment's axis taken out as ``point_damper_blocks``
-    takes it."""
-    A = h * (rr * wp.identity(n=3, dtype=float) - Rr + Mm)
-    B = h * (skew(r) + Mn)
-    C = h * (w * wp.identity(n=3, dtype=float) + Nn)
-    A = wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
-    B = wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
+def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
+    """The blocks of a link end's point inertia ``h P`` at ``r``, ``P = h k I + c n n^T`` (``hk`` = h k; ``r``, ``n`` in
+    the segment's frame), in closed form: with ``m = r x n``, ``A = -[r]x h P [r]x = h (h k (|r|^2 I - r r^T) + c m
+    m^T)``, ``B = [r]x h P = h (h k [r]x + c m n^T)``, ``C = h P``; the spin about the segment's axis still in them
+    (``spin_free_rotation``, ``spin_free_coupling`` take it out of the sums, as ``point_damper_blocks`` does)."""
+    eye = wp.identity(n=3, dtype=float)
+    m = wp.cross(r, n)
+    A = h * (hk * (wp.dot(r, r) * eye - wp.outer(r, r)) + c * wp.outer(m, m))
+    B = h * (hk * skew(r) + c * wp.outer(m, n))
+    C = h * (hk * eye + c * wp.outer(n, n))
     return A, B, C
+
+
+@wp.func
+def spin_free_rotation(A: wp.mat33):
+    """``A`` without its row and column of the spin about the segment's axis (local z)."""
+    return wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
+
+
+@wp.func
+def spin_free_coupling(B: wp.mat33):
+    """``B`` without its row of the spin about the segment's axis (local z)."""
+    return wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
