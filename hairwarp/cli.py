@@ -76,9 +76,9 @@ def _cmd_run(args) -> int:
     from hairwarp.runner import simulate
 
     result = simulate(scene, out, frames=args.frames, device=args.device, progress=True, resume=args.resume)
-    print(f"cache    {result.cache_path}")
+    print(f"cache    {Path(result.cache_path).absolute()}")  # as the set-up line names it
     if getattr(result, "preview_path", None):
-        print(f"preview  {result.preview_path}")
+        print(f"preview  {Path(result.preview_path).absolute()}")
     simulated = result.frames - result.resumed_frames
     resumed = ""
     if result.resumed_frames:
