@@ -898,11 +898,19 @@ def point_damper_blocks(r: wp.vec3, M: wp.mat33):
     turn it would set it spinning unseen (``kernels.links`` leaves it out of the links' torque for the same
     reason)."""
     rx = skew(r)
-    A = -(rx * M * rx)
-    B = rx * M
-    A = wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
-    B = wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
-    return A, B
+    return spin_free_rotation(-(rx * M * rx)), spin_free_coupling(rx * M)
+
+
+@wp.func
+def spin_free_rotation(A: wp.mat33):
+    """``A`` without its row and column of the spin about the segment's axis (local z; ``point_damper_blocks``)."""
+    return wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
+
+
+@wp.func
+def spin_free_coupling(B: wp.mat33):
+    """``B`` without its row of the spin about the segment's axis (local z; ``point_damper_blocks``)."""
+    return wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)
 
 
 @wp.func

@@ -22,6 +22,8 @@ from hairwarp.kernels.articulated import (
     add_damper,
     articulated_inverse_mass,
     shared_inverse_mass,
+    spin_free_coupling,
+    spin_free_rotation,
     spin_free_torque,
     split_factor,
 )
@@ -607,15 +609,3 @@ def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
     B = h * (hk * skew(r) + c * wp.outer(m, n))
     C = h * (hk * eye + c * wp.outer(n, n))
     return A, B, C
-
-
-@wp.func
-def spin_free_rotation(A: wp.mat33):
-    """``A`` without its row and column of the spin about the segment's axis (local z)."""
-    return wp.mat33(A[0, 0], A[0, 1], 0.0, A[1, 0], A[1, 1], 0.0, 0.0, 0.0, 0.0)
-
-
-@wp.func
-def spin_free_coupling(B: wp.mat33):
-    """``B`` without its row of the spin about the segment's axis (local z)."""
-    return wp.mat33(B[0, 0], B[0, 1], B[0, 2], B[1, 0], B[1, 1], B[1, 2], 0.0, 0.0, 0.0)

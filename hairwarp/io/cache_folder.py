@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hairwarp.io.usd_common import UsdFileError, _human_bytes, usd_error_text
+from hairwarp.io.usd_common import USD_SUFFIXES, UsdFileError, _human_bytes, usd_error_text
 
 __all__ = ["CacheBusyError", "CacheFolder", "CacheWriteError", "free_bytes"]
 
@@ -147,7 +147,7 @@ class CacheFolder:
         """
         final_clips = self.path.with_name(self.clips_name)
         if final_clips.exists():
-            for suffix in _USD_SUFFIXES:
+            for suffix in USD_SUFFIXES:
                 other = self.path.with_suffix(suffix)
                 if suffix != self.suffix and other.is_file():
                     raise UsdFileError(f"{self.path}: the cache {other} keeps its frames in {final_clips}, which this "
@@ -364,9 +364,6 @@ class CacheFolder:
         for entry in self.dir.iterdir():
             if entry != self.lock:
                 shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else _discard(entry)
-
-
-_USD_SUFFIXES = (".usd", ".usda", ".usdc")
 
 
 def _clip_file(name: str) -> bool:
