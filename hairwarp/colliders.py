@@ -452,8 +452,14 @@ class ColliderSet:
         col = self.colliders[i]
         if col.attach == "head":
             raise ColliderError(f"collider {col.name!r} rides on the head; set Control.head_xform instead")
-        self._set_world(i, _rigid_matrix(matrix, f"collider {col.name!r}"), np.asarray(linear_velocity, float),
-                        np.asarray(angular_velocity, float))
+        from hairwarp.state import _vector
+
+        pose = _rigid_matrix(matrix, f"collider {col.name!r}")
+        try:  # every check before the first change: a refused pose changes nothing
+            v, w = _vector("linear_velocity", linear_velocity), _vector("angular_velocity", angular_velocity)
+        except ValueError as e:
+            raise ColliderError(f"collider {col.name!r}: {e}") from None
+        self._set_world(i, pose, v, w)
         self.collider_xform.assign(self._xform_host)
         self.collider_velocity.assign(self._velocity_host)
 

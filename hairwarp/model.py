@@ -15,6 +15,30 @@ class ModelError(ValueError):
     """Invalid strand parameters or groom geometry; the message names the parameter or strand."""
 
 
+def resolve_device(device=None, key: str = "device"):
+    """The Warp device ``device`` names (the default device when None), or a ValueError in one line naming ``key``:
+    Warp's own error for a CUDA device on a machine without one prints driver messages first."""
+    if device is None or isinstance(device, wp.Device):
+        return wp.get_device(device)
+    name = str(device)
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"{key} = {name!r}: Warp finds no CUDA device on this machine; use \"cpu\"")
+    try:
+        return wp.get_device(name)
+    except (ValueError, RuntimeError) as exc:
+        raise ValueError(f"{key} = {name!r}: {exc}") from None
+
+
+def _finite_vector(name: str, value) -> tuple[float, float, float]:
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ModelError(f"{name} must be 3 finite numbers [m/s^2], got {value!r}")
+    return tuple(float(g) for g in v)
+
+
 @dataclass(frozen=True)
 class StrandParams:
     """Physical parameters of the guide strands (each guide stands for a wisp of hair).
@@ -116,23 +140,25 @@ class Model:
                 initial shape given by ``groom``.
         """
         params = params or StrandParams()
-        if int(segments) < 1:
-            raise ModelError(f"segments must be >= 1, got {segments}")
+        if isinstance(segments, bool) or not isinstance(segments, int | np.integer) or segments < 1:
+            raise ModelError(f"segments must be a whole number >= 1, got {segments!r}")
         S = int(segments)
+        gravity = _finite_vector("gravity", gravity)
+        device = resolve_device(device)
         verts = _vertices_of(groom, S)
         rest = verts if rest_vertices is None else _vertices_of(rest_vertices, S)
         if rest.shape != verts.shape:
             raise ModelError(f"rest_vertices has shape {rest.shape}, the groom {verts.shape}")
 
         self = object.__new__(cls)
-        self.device = wp.get_device(device)
+        self.device = device
         G = verts.shape[0]
         self.strand_count = G
         self.seg_per_strand = S
         self.seg_count = G * S
         self.vert_count = G * (S + 1)
         self.params = params
-        self._gravity = wp.vec3(*[float(g) for g in gravity])
+        self._gravity = wp.vec3(*gravity)
         self.drag = float(params.drag)
         self.rest_vertex_positions = rest
         self.root_uv = getattr(groom, "root_uv", None)
@@ -200,7 +226,7 @@ class Model:
 
     @gravity.setter
     def gravity(self, value):
-        self._gravity = wp.vec3(*[float(g) for g in value])
+        self._gravity = wp.vec3(*_finite_vector("gravity", value))
         self.chains.gravity = self._gravity
 
     def state(self) -> State:

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from hairwarp.kernels.types import Fault
-from hairwarp.model import Model
+from hairwarp.model import Model, resolve_device
 from hairwarp.motion import MotionSample
 from hairwarp.solver import SimulationFault, Solver
 
@@ -49,6 +49,8 @@ class Stepper:
         control: the :class:`hairwarp.Control` the steps read; ``before_step(t, control)`` may
             update it from the host before each step, with ``t`` the time at the step's end: the
             step puts the new state's roots on the head pose the control holds.
+        state: the :class:`hairwarp.State` to start from (a state of the solver's model, used in place as the
+            first of the two); default ``model.state()``, the groom's shape at rest.
         use_graph: capture one step per parity in a Warp graph and replay it; default on CUDA. Never on the
             CPU with a solver of more than one thread: a graph would replay on one.
     """
@@ -143,12 +145,20 @@ def _pose(sample):
 class Simulation:
     """Everything a scene asks for, built on one device, advanced frame by frame.
 
+    Args:
+        scene: a :class:`hairwarp.Scene`, a scene file's path, or its tables as a dict.
+        device: Warp device; default ``sim.device``.
+        threads: CPU threads; default ``sim.threads`` (0 or None there: every core this process may use).
+
     Attributes:
         scene, model, solver, stepper, motion, groom.
         frame_dt: time between output frames [s].
     """
 
     def __init__(self, scene, *, device=None, threads: int | None = None):
+        from hairwarp.scene import Scene
+
+        scene = Scene.coerce(scene)
         sim = scene.sim
         self.scene = scene
         self.groom = scene.build_groom()
@@ -401,6 +411,16 @@ class Simulation:
         self._ahead = {}
 
     def advance_frame(self) -> Fault:
+        """Simulate one output frame (the scene's substeps, the head and colliders posed for each).
+
+        Returns:
+            the frame's :class:`hairwarp.Fault` bits that did not stop it: ``CONTACT_OVERFLOW`` (more hair contacts
+            than the buffers hold; see :meth:`frame_stats`), else 0.
+
+        Raises:
+            SimulationFault: the frame left the solver's bounds (the message names the frame, the stage and what
+                to change).
+        """
         if self.contacts is not None and not self.contacts.detect_each_step:
             self.contacts.detect(self.model, self.stepper.state)  # pairs for this frame, within the margin
         # the head at the end of each of the frame's steps, sampled together before the kernels: the same Python
@@ -428,6 +448,8 @@ class Simulation:
 
     @property
     def state(self):
+        """The current :class:`hairwarp.State` (the one the last step wrote); read it, or edit its joints between
+        frames and call ``solver.forward_kinematics`` on it."""
         return self.stepper.state
 
     def checkpoint(self) -> dict[str, np.ndarray]:
@@ -445,7 +467,8 @@ class Simulation:
         return out
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
-        """Put the run back where :meth:`checkpoint` was taken (in place: captured graphs stay valid).
+        """Put the run back where :meth:`checkpoint` was taken (in place: captured graphs stay valid), the head,
+        root frames, wind and colliders posed for its time.
 
         Raises:
             ValueError: the arrays are not those of this simulation (another scene, groom or feature set).
@@ -473,6 +496,18 @@ class Simulation:
         st.time = time_s
         st.frame = int(frame)
         st.parity = int(parity)
+        # the head, the root frames, the wind and the colliders as the checkpoint's time has them: what is read
+        # before the next step (the dense hair, the colliders' meshes) follows the head there, not where the run was
+        _, sample, frames = self._applied(time_s)
+        control = st.control
+        control.set_motion(sample)
+        if frames is not None:
+            control.set_root_frames(*frames)
+        self._wind = self.scene.wind_at(time_s)
+        control.set_wind(self._wind)
+        self._applied_at_start = None
+        if self._moving_colliders:
+            self.collider_set.update(time_s)
 
     def guide_curves(self) -> tuple[np.ndarray, np.ndarray]:
         """Host copies of the guide vertex positions and velocities, (G*(S+1), 3) each."""
@@ -677,13 +712,7 @@ def _preflight(scene, out_path: Path, frames: int, device) -> None:
     if out_path.suffix.lower() not in USD_SUFFIXES:
         raise ValueError(f"{out_path}: a cache must end in one of {', '.join(USD_SUFFIXES)}, not "
                          f"{out_path.suffix or 'no suffix'!r}")
-    name = str(device or scene.sim.device)
-    if name.startswith("cuda") and not wp.is_cuda_available():
-        raise ValueError(f"sim.device = {name!r}: Warp finds no CUDA device on this machine; use \"cpu\"")
-    try:
-        wp.get_device(name)
-    except (ValueError, RuntimeError) as exc:
-        raise ValueError(f"sim.device = {name!r}: {exc}") from None
+    resolve_device(device or scene.sim.device, "sim.device")
     memory, _ = _estimate_bytes(scene, frames)
     available = _available_memory()
     if available is not None and memory > available:
@@ -830,9 +859,9 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     succeeds (see :mod:`hairwarp.io.cache`); SIGINT, SIGTERM and SIGHUP stop the run after the frame in flight.
 
     Args:
-        scene: a :class:`hairwarp.Scene`.
+        scene: a :class:`hairwarp.Scene`, a scene file's path, or its tables as a dict.
         out_path: the cache (.usdc, .usd or .usda).
-        frames: output frames after the first; default ``sim.frames``.
+        frames: output frames after the first (a whole number >= 0); default ``sim.frames``.
         device: Warp device; default ``sim.device``.
         progress: report progress on stderr.
         preview: render the preview picture; default ``output.preview``.
@@ -850,9 +879,13 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             written (the message says both).
     """
     from hairwarp.io.cache_folder import CacheWriteError
+    from hairwarp.scene import Scene
 
     t_start = time.perf_counter()
+    scene = Scene.coerce(scene)
     out_path = Path(out_path)
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 0):
+        raise ValueError(f"frames must be a whole number >= 0, got {frames!r}")
     frames = int(scene.sim.frames if frames is None else frames)
     preview = bool(scene.output.preview if preview is None else preview)
     _preflight(scene, out_path, frames, device)
@@ -927,16 +960,23 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                      all_stats, resumed, frame_seconds)
 
 
+USDA_BYTES_FACTOR = 4.0
+"""Bytes of a ``.usda`` cache per byte of its binary estimate, for the disk-space check: its numbers are text (a
+float32 written as 9-15 characters and a separator); measured 2.1-3.4 on the default scene's frames (3.46 MB against
+an estimate of 1.02 MB), 2.8 on its topology."""
+
 PREVIEW_BYTES_PER_PIXEL = 0.5
 """Bytes of a preview PNG per pixel, for the disk-space check: 0.33 measured on tiny's sheet, 0.47 on the default
 scene's (3,000 dense strands)."""
 
 
-def _disk_needed(scene, sim, frame_bytes: int, frames: int, start: int, preview: bool) -> dict[str, int]:
+def _disk_needed(scene, sim, frame_bytes: int, frames: int, start: int, preview: bool,
+                 text: float = 1.0) -> dict[str, int]:
     """Bytes the run still writes on the cache's disk, by part: the frames (twice where the cache's close rewrites
     them: flattened, or small frames gathered into clips), the topology layer (what its own space check asks: the
     collider meshes and the curves' static arrays, uncompressed), the state stored with each frame (two at once:
-    the last frame's goes once the next one's is in place) and the preview."""
+    the last frame's goes once the next one's is in place) and the preview. ``text``: the topology's bytes per byte
+    of its binary size (``USDA_BYTES_FACTOR`` for a text cache)."""
     from hairwarp.io.cache import CHUNK_BYTES
     from hairwarp.preview import sheet_size
 
@@ -949,8 +989,8 @@ def _disk_needed(scene, sim, frame_bytes: int, frames: int, start: int, preview:
             counts = sim.dense.curve_vertex_counts(scene.dense.basis == "linear")
             curves.append((len(counts), int(counts.sum())))
         meshes = sim.collider_meshes(0.0)
-        parts["topology"] = (sum(32 * n + 4 * v for n, v in curves)
-                             + sum(24 * len(faces) + 24 * len(verts) for _, verts, faces, _ in meshes))
+        parts["topology"] = int(text * (sum(32 * n + 4 * v for n, v in curves)
+                                        + sum(24 * len(faces) + 24 * len(verts) for _, verts, faces, _ in meshes)))
     state = {**sim.checkpoint(), RESUME_SCENE_KEY: np.array(_resume_scene(scene))}
     parts["state"] = 2 * sum(a.nbytes for a in state.values())
     if preview:
@@ -967,7 +1007,9 @@ def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool,
     from hairwarp.io.usd_common import _human_bytes
 
     _, frame_bytes = _estimate_bytes(scene, frames)
-    parts = _disk_needed(scene, sim, frame_bytes, frames, start, preview)
+    text = USDA_BYTES_FACTOR if Path(cache.path).suffix.lower() == ".usda" else 1.0
+    frame_bytes = int(frame_bytes * text)
+    parts = _disk_needed(scene, sim, frame_bytes, frames, start, preview, text)
     total = sum(parts.values()) + 65536  # each write's own check keeps this much spare
     count = frames + 1 - start
     listed = ", ".join(f"{name} {_human_bytes(n)}" for name, n in parts.items())

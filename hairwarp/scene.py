@@ -24,6 +24,7 @@ import copy
 import difflib
 import importlib.resources
 import math
+import os
 import re
 import sys
 from collections.abc import Callable, Iterable, Mapping
@@ -330,7 +331,8 @@ def _check_scene(values, given, error):
         # the cache's cubic curves take 4 vertices or more (hairwarp.io.cache); the interpolated strands have S + 1
         error("sim.segments", f"dense.basis = \"catmullRom\" needs curves of 4 vertices, 3 segments or more, got "
                               f"{segments}; raise sim.segments or set dense.basis = \"linear\"")
-    if head["shape"] in ("ellipsoid", "sphere") and (head["center"] is None or head["radii"] is None):
+    if head["shape"] in ("ellipsoid", "sphere") and (head["center"] is None or head["radii"] is None) \
+            and groom["file"] is not None:
         error("head", f"shape = \"{head['shape']}\" needs center and radii when the groom comes from a file")
     times = [k["time"] for k in mot["keys"]]
     if mot["kind"] == "keyframes" and times and None not in times and all(a < b for a, b in zip(times, times[1:])):
@@ -928,6 +930,18 @@ class Scene:
         return cls._build(copy.deepcopy(dict(d)), src, Path(base_dir).resolve(), label, overrides)
 
     @classmethod
+    def coerce(cls, scene, what: str = "scene") -> Scene:
+        """``scene`` as a Scene: a Scene as it is, a path (str or ``os.PathLike``) loaded, a dict validated."""
+        if isinstance(scene, Scene):
+            return scene
+        if isinstance(scene, str | os.PathLike):
+            return cls.load(scene)
+        if isinstance(scene, Mapping):
+            return cls.from_dict(scene)
+        raise TypeError(f"{what} must be a hairwarp Scene, a scene file's path or its tables as a dict, got "
+                        f"{type(scene).__name__}")
+
+    @classmethod
     def default_path(cls) -> Path:
         """The bundled default scene, ``long_hair.toml``."""
         return Path(str(importlib.resources.files("hairwarp.scenes") / "long_hair.toml"))
@@ -939,6 +953,9 @@ class Scene:
 
     @classmethod
     def _build(cls, raw: dict, source: Path | None, base_dir: Path, label: str, overrides: Iterable[str]) -> Scene:
+        if isinstance(overrides, str | bytes):
+            raise TypeError(f"overrides must be a list of \"key.path=value\" strings, got one string "
+                            f"{overrides!r} (write [{overrides!r}])")
         overrides = list(overrides)
         if overrides:
             raw = copy.deepcopy(raw)

@@ -106,6 +106,10 @@ class Solver:
         self.colliders = colliders
         self.links = links
         self.contacts = contacts
+        if isinstance(max_rotation_per_step, bool) \
+                or not isinstance(max_rotation_per_step, int | float | np.integer | np.floating) \
+                or not 0.0 < max_rotation_per_step < math.inf:
+            raise ValueError(f"max_rotation_per_step must be a finite angle > 0 [rad], got {max_rotation_per_step!r}")
         self.max_rotation_per_step = float(max_rotation_per_step)
         device = model.device
         n = model.seg_count
@@ -158,10 +162,16 @@ class Solver:
         self.seg_implicit_mass = wp.zeros(n if self.has_implicit_mass else 1, dtype=float, device=device)
         self.loads = self._loads(self.seg_force, self.seg_torque, self.has_forces, self.seg_implicit_mass,
                                  self.has_implicit_mass)
-        from hairwarp.colliders import body_contacts
+        from hairwarp.colliders import ColliderSet, body_contacts
+
+        if colliders is not None and not isinstance(colliders, ColliderSet):
+            raise TypeError(f"colliders must be a hairwarp ColliderSet, got {type(colliders).__name__}")
 
         has_colliders = colliders is not None and len(colliders) > 0
         if has_colliders and colliders.model is not model:
+            if colliders.model is not None:
+                raise ValueError("colliders: this ColliderSet is bound to another model, whose solver reads its "
+                                 "contacts; build a ColliderSet for each model")
             colliders.bind(model)
         for stage in (colliders, links, contacts):
             if stage is not None:
@@ -212,21 +222,28 @@ class Solver:
     def _check_step_arguments(self, state_in, state_out, control):
         """States of this model's size and a control: a kernel reading past a smaller state's arrays would crash the
         process, not raise."""
-        if control is None or not hasattr(control, "wind"):
-            raise TypeError(f"control must be a hairwarp Control (model.control()), got {type(control).__name__}")
-        joints = self.model.strand_count * self.model.seg_per_strand
-        vertices = self.model.strand_count * (self.model.seg_per_strand + 1)
+        self._check_control(control)
         for name, state in (("state_in", state_in), ("state_out", state_out)):
-            q = getattr(state, "joint_q", None)
-            x = getattr(state, "vertex_positions", None)
-            if q is None or x is None:
-                raise TypeError(f"{name} must be a hairwarp State (model.state()), got {type(state).__name__}")
-            if q.shape[0] != joints or x.shape[0] != vertices:
-                raise ValueError(f"{name} holds {q.shape[0]} joints and {x.shape[0]} vertices, this model "
-                                 f"{joints} and {vertices}: a state of another model (use model.state())")
+            self._check_state(name, state)
         if state_in is state_out:
             raise ValueError("state_in and state_out are the same state: a step reads the one while it writes the "
                              "other (use two, model.state(), and swap them after each step)")
+
+    def _check_state(self, name: str, state):
+        """``state`` a :class:`hairwarp.State` of this model: every array of the size a kernel indexes it by."""
+        sizes = {"joint_q": self.model.seg_count, "joint_qd": self.model.seg_count, "seg_xform": self.model.seg_count,
+                 "vertex_positions": self.model.vert_count, "vertex_velocities": self.model.vert_count, "fault": 1}
+        arrays = {key: getattr(state, key, None) for key in sizes}
+        if any(not isinstance(a, wp.array) for a in arrays.values()):
+            raise TypeError(f"{name} must be a hairwarp State (model.state()), got {type(state).__name__}")
+        wrong = [f"{key} {a.shape[0]}" for key, a in arrays.items() if a.shape[0] != sizes[key]]
+        if wrong:
+            raise ValueError(f"{name} holds {', '.join(wrong)} elements, this model {self.model.seg_count} joints and "
+                             f"{self.model.vert_count} vertices: a state of another model (use model.state())")
+
+    def _check_control(self, control):
+        if control is None or not hasattr(control, "wind"):
+            raise TypeError(f"control must be a hairwarp Control (model.control()), got {type(control).__name__}")
         frames = control.bases.xform.shape[0]
         if control.bases.per_strand and frames != self.model.strand_count:
             raise ValueError(f"control holds root frames of {frames} strands, this model has "
@@ -235,13 +252,16 @@ class Solver:
     def set_dt(self, dt: float):
         """Store the step size in the device array the kernels read (outside a capture)."""
         if dt != self._dt_host or self._dt_host is None:
-            if not isinstance(dt, int | float | np.floating | np.integer) or not 0.0 < dt < math.inf:
+            if isinstance(dt, bool) or not isinstance(dt, int | float | np.floating | np.integer) \
+                    or not 0.0 < dt < math.inf:
                 raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
             self.dt.fill_(float(dt))
             self._dt_host = dt
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""
+        self._check_state("state", state)
+        self._check_control(control)
         forward_kinematics(self.model, state, control, self.executor)
 
     def teleport(self, state, control):
@@ -252,6 +272,8 @@ class Solver:
         the state the next step reads, after setting the new pose on ``control`` (give it the head's velocity after
         the jump, usually zero). Host launches only: not for inside a captured graph.
         """
+        self._check_state("state", state)
+        self._check_control(control)
         state.joint_qd.zero_()
         forward_kinematics(self.model, state, control, self.executor)
         if self.body_contacts.enabled:
@@ -416,6 +438,8 @@ class Solver:
         integrator does with step ``dt``.
         """
         model = self.model
+        self._check_state("state", state)
+        self._check_control(control)
         self.dt.fill_(float(dt))
         self._dt_host = None
         if seg_force is not None:

@@ -30,8 +30,16 @@ class State:
         self.fault = wp.zeros(1, dtype=wp.int32, device=device)
 
     def assign(self, other: State):
-        """Copy every array of ``other`` into this state, in place."""
-        for name in ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault"):
+        """Copy every array of ``other`` (a state of the same model) into this state, in place."""
+        names = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
+        if not isinstance(other, State):
+            raise TypeError(f"other must be a hairwarp State, got {type(other).__name__}")
+        for name in names:  # every check before the first copy: a refused one changes nothing
+            mine, theirs = getattr(self, name), getattr(other, name)
+            if theirs.shape != mine.shape:
+                raise ValueError(f"other holds {theirs.shape[0]} elements of {name}, this state {mine.shape[0]}: a "
+                                 f"state of another model")
+        for name in names:
             wp.copy(getattr(self, name), getattr(other, name))
 
 
@@ -166,6 +174,9 @@ class Control:
 
     def set_motion(self, sample):
         """Set the head from a motion sample (``hairwarp.motion.MotionSample``)."""
+        if not all(hasattr(sample, k) for k in ("position", "rotation", "linear_velocity", "angular_velocity")):
+            raise TypeError(f"sample must be a hairwarp MotionSample (HeadMotion.evaluate(t)), got "
+                            f"{type(sample).__name__}")
         self.set_head(sample.position, sample.rotation, sample.linear_velocity, sample.angular_velocity,
                       sample.linear_acceleration, sample.angular_acceleration)
 

@@ -414,3 +414,113 @@ def test_checkpoint_restores_the_run_exactly():
             sim.restore({**saved, key: np.array(bad)})
     np.testing.assert_array_equal(sim.guide_curves()[0], before)
     assert sim.stepper.frame == 6
+
+
+def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, tmp_path):
+    """The calls a Warp programmer makes between steps check what the kernels would index past or take silently,
+    each in one line naming the argument, and change nothing when they refuse: another model's state given to
+    ``forward_kinematics``, ``teleport`` or ``joint_accelerations`` (a kernel reading past a smaller state's arrays
+    ended the process), a state whose ``joint_qd`` alone is short, ``State.assign`` across models, one ColliderSet
+    for two models, a collider velocity that is not 3 finite numbers, a gravity that is not finite, a fractional
+    segment count, a rotation bound that is not a positive angle, a bool step size, and arguments of the wrong
+    kind."""
+    from hairwarp.colliders import Collider, ColliderError, ColliderSet
+    from hairwarp.model import ModelError
+
+    sim = Simulation(tiny)
+    solver, model = sim.solver, sim.model
+    control = model.control()
+    small = hw.Model.build(hw.scalp_groom(count=2, length=0.2, points=8), segments=3)
+    for call in (solver.forward_kinematics, solver.teleport, solver.joint_accelerations):
+        with pytest.raises(ValueError, match="state holds .* a state of another model"):
+            call(small.state(), control)
+    short = model.state()
+    short.joint_qd = wp.zeros(3, dtype=wp.vec3)
+    with pytest.raises(ValueError, match="state_in holds joint_qd 3 elements"):
+        solver.step(short, model.state(), control, 1 / 240)
+    with pytest.raises(TypeError, match="state must be a hairwarp State"):
+        solver.teleport(None, control)
+
+    mine = model.state()
+    before = mine.joint_q.numpy().copy()
+    for other in (small.state(), hw.Model.build(hw.scalp_groom(count=400, length=0.2, points=8), segments=9).state()):
+        with pytest.raises(ValueError, match="a state of another model"):
+            mine.assign(other)
+    assert np.array_equal(mine.joint_q.numpy(), before)
+
+    ball = Collider.sphere(0.05, name="ball", center=(0.0, 0.0, -1.0), attach="world")
+    shared = ColliderSet([ball], "cpu")
+    hw.Solver(model, colliders=shared)
+    with pytest.raises(ValueError, match="bound to another model"):
+        hw.Solver(small, colliders=shared)
+    with pytest.raises(TypeError, match="colliders must be a hairwarp ColliderSet"):
+        hw.Solver(model, colliders=[ball])
+    posed = shared.world_matrices()
+    for velocity in ((0.0, np.nan, 0.0), (1.0, 2.0)):
+        with pytest.raises(ColliderError, match="collider 'ball': linear_velocity must be 3"):
+            shared.set_pose("ball", np.eye(4), linear_velocity=velocity)
+    assert np.array_equal(shared.world_matrices(), posed)  # refused: nothing set
+
+    groom = hw.scalp_groom(count=2, length=0.2, points=8)
+    with pytest.raises(ModelError, match="gravity must be 3 finite numbers"):
+        hw.Model.build(groom, segments=3, gravity=(0.0, 0.0, np.nan))
+    for segments in (2.7, "8", True):
+        with pytest.raises(ModelError, match="segments must be a whole number"):
+            hw.Model.build(groom, segments=segments)
+    for bound in (-1.0, 0.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="max_rotation_per_step must be a finite angle > 0"):
+            hw.Solver(model, max_rotation_per_step=bound)
+    with pytest.raises(ValueError, match="dt must be"):
+        solver.step(model.state(), model.state(), control, True)
+    with pytest.raises(TypeError, match="sample must be a hairwarp MotionSample"):
+        control.set_motion(None)
+    with pytest.raises(TypeError, match="overrides must be a list"):
+        hw.Scene.load(tiny.source, overrides="sim.frames=3")
+    with pytest.raises(TypeError, match="scene must be a hairwarp Scene, a scene file's path"):
+        Simulation(5)
+    for frames in (-3, 2.5):
+        with pytest.raises(ValueError, match="frames must be a whole number >= 0"):
+            simulate(tiny, tmp_path / "x.usdc", frames=frames, progress=False)
+    assert not any(tmp_path.iterdir())
+    if not wp.is_cuda_available():
+        with pytest.raises(ValueError, match="device = 'cuda': Warp finds no CUDA device on this machine"):
+            hw.Model.build(groom, segments=3, device="cuda")
+
+
+def test_a_simulation_takes_its_scene_as_a_path_or_a_dict(tiny):
+    """``Simulation`` and ``simulate`` take a scene file's path or its tables as well as a Scene: the same run."""
+    import tomllib
+
+    by_scene, by_path = Simulation(tiny), Simulation(str(tiny.source))
+    raw = tomllib.loads(Path(tiny.source).read_text())
+    by_dict = Simulation(hw.Scene.from_dict(raw, source=tiny.source))
+    for sim in (by_scene, by_path, by_dict):
+        sim.advance_frame()
+    x = by_scene.guide_curves()[0]
+    assert np.array_equal(by_path.guide_curves()[0], x) and np.array_equal(by_dict.guide_curves()[0], x)
+
+
+def test_restore_poses_the_head_for_the_checkpoints_time(tiny):
+    """After ``restore`` the control holds the head of the checkpoint's time, not of the frame the run had reached:
+    what is read before the next step (dense hair, collider meshes) follows it. The run from there is the same bits
+    as the run that took the checkpoint."""
+    sim = Simulation(tiny)
+    for _ in range(3):
+        sim.advance_frame()
+    saved = sim.checkpoint()
+    head = sim.stepper.control.head_xform.numpy().copy()
+    for _ in range(5):
+        sim.advance_frame()
+    assert not np.array_equal(sim.stepper.control.head_xform.numpy(), head)  # the head turned since
+    sim.restore(saved)
+    expected = sim.motion.evaluate(float(saved["stepper.time"])).matrix()
+    pose = sim.stepper.control.head_xform.numpy()[0]
+    assert np.allclose(pose[:3], expected[:3, 3], atol=1e-6)
+    from scipy.spatial.transform import Rotation
+
+    assert np.allclose(Rotation.from_quat(pose[3:]).as_matrix(), expected[:3, :3], atol=1e-6)
+    sim.advance_frame()
+    again = Simulation(tiny)
+    for _ in range(4):
+        again.advance_frame()
+    assert np.array_equal(sim.guide_curves()[0], again.guide_curves()[0])
