@@ -124,6 +124,13 @@ class Groom:
     widths: list[np.ndarray] | None = None
     surface_uv: np.ndarray | None = None
 
+    def __repr__(self) -> str:
+        # a summary: the dataclass's own repr printed every vertex (340,000 characters for 200 strands)
+        points = sum(len(s) for s in self.strands)
+        return (f"Groom({len(self.strands)} strands, {points} points, source={self.source!r}"
+                + (f", grid {self.grid_shape[0]} x {self.grid_shape[1]}" if self.grid_shape else "")
+                + (f", {len(self.dropped)} dropped" if self.dropped else "") + ")")
+
     @classmethod
     def from_polylines(
         cls,
