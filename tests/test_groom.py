@@ -558,7 +558,5 @@ def test_domain_types_import_no_file_format():
 def test_a_grooms_repr_is_a_summary():
     """``repr`` of a groom names its size and source in one line, not every vertex (it printed 340,000
     characters for 200 strands)."""
-    from hairwarp.groom import scalp_groom
-
     text = repr(scalp_groom(count=200))
     assert text.startswith("Groom(200 strands, ") and "scalp" in text and len(text) < 120 and "\n" not in text
