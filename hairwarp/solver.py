@@ -108,8 +108,9 @@ class Solver:
         self.contacts = contacts
         if isinstance(max_rotation_per_step, bool) \
                 or not isinstance(max_rotation_per_step, int | float | np.integer | np.floating) \
-                or not 0.0 < max_rotation_per_step < math.inf:
-            raise ValueError(f"max_rotation_per_step must be a finite angle > 0 [rad], got {max_rotation_per_step!r}")
+                or not max_rotation_per_step > 0.0:  # NaN fails too; inf: no bound
+            raise ValueError(f"max_rotation_per_step must be an angle > 0 [rad] (inf: no bound), got "
+                             f"{max_rotation_per_step!r}")
         self.max_rotation_per_step = float(max_rotation_per_step)
         device = model.device
         n = model.seg_count
