@@ -207,6 +207,8 @@ def _cmd_preview(args) -> int:
     path = Path(args.cache)
     if not path.exists():
         raise FileNotFoundError(f"{path.resolve()}: no such file")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; name the cache file in it")
     from hairwarp.preview import MAX_SHEET_FRAMES, cache_frames, preview_cache
 
     frames = _SHEET_FRAMES if args.frames is None else args.frames

@@ -64,6 +64,19 @@ def _translation(offset) -> np.ndarray:
     return m
 
 
+def _check_mesh_extent(vertices, what: str) -> None:
+    """A ColliderError naming the farthest vertex when one lies beyond ``MAX_COORDINATE`` of the origin (a mesh in
+    the wrong units: float32 resolves no millimetre there)."""
+    from hairwarp.model import MAX_COORDINATE
+
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) and np.abs(v).max() > MAX_COORDINATE:
+        i = int(np.abs(v).max(axis=1).argmax())
+        raise ColliderError(f"{what}: vertex {i} lies at ({', '.join(f'{x:.3g}' for x in v[i])}) m, beyond "
+                            f"{MAX_COORDINATE:g} m of the origin, where float32 resolves no millimetre: check the "
+                            f"file's units (scale)")
+
+
 def _rigid_matrix(matrix, what: str) -> np.ndarray:
     m = np.asarray(matrix, dtype=float)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
@@ -190,6 +203,7 @@ class Collider:
             raise ColliderError(f"{what}: a MESH collider needs a trimesh.Trimesh with faces")
         if not np.all(np.isfinite(self.mesh.vertices)):
             raise ColliderError(f"{what}: mesh has non-finite vertices")
+        _check_mesh_extent(self.mesh.vertices, what)
         closed = self.mesh.is_watertight
         if not closed:
             merged = self.mesh.copy()
@@ -276,6 +290,7 @@ class Collider:
             if bad.size:
                 raise ColliderError(f"{path}: vertex {int(bad[0])} is not finite "
                                     f"({', '.join(f'{x:g}' for x in mesh.vertices[bad[0]])})")
+            _check_mesh_extent(mesh.vertices * scale, str(path))  # before processing: its merge overflows there
             mesh.process()
             if axis == "Y":
                 v = mesh.vertices
@@ -283,6 +298,7 @@ class Collider:
                                        process=False)
         if scale != 1.0:
             mesh = trimesh.Trimesh(vertices=mesh.vertices * scale, faces=mesh.faces, process=False)
+        _check_mesh_extent(mesh.vertices, str(path))
         return cls.from_trimesh(mesh, name=path.stem if name is None else name, **options)
 
     @classmethod

@@ -365,6 +365,13 @@ class Groom:
             widths = [w * factor for w in widths]
         return replace(self, strands=strands, root_normal=normal, widths=widths)
 
+    def without_short(self, min_length: float) -> Groom:
+        """This groom less its strands shorter than ``min_length`` [m] (arc length), with the warning
+        :meth:`from_polylines` gives; for a groom whose units were set after it was read."""
+        return Groom.from_polylines(self.strands, min_length=min_length, source=self.source, root_uv=self.root_uv,
+                                    root_normal=self.root_normal, grid_shape=self.grid_shape, widths=self.widths,
+                                    surface_uv=self.surface_uv)
+
     def subset(self, indices) -> Groom:
         """The strands at ``indices`` (integer indices or a boolean mask of length G), in that order.
 

@@ -251,7 +251,9 @@ def _vertices_of(groom, segments: int) -> np.ndarray:
             raise ModelError(
                 f"vertex array must have shape (G, {segments + 1}, 3) for {segments} segments, got {verts.shape}"
             )
+        _check_extent(list(verts), "groom")
     else:
+        _check_extent(groom.strands, getattr(groom, "source", "groom"))
         verts = np.asarray(groom.resample(segments), dtype=np.float64)
     if verts.shape[0] == 0:
         raise ModelError("the groom has no strands")
@@ -259,6 +261,26 @@ def _vertices_of(groom, segments: int) -> np.ndarray:
     if bad.size:
         raise ModelError(f"strand {bad[0]} has non-finite vertices")
     return verts
+
+
+#: Farthest a guide vertex may lie from the origin [m]: float32 resolves no millimetre beyond it (its spacing there
+#: is 1 mm), and grooms read in the wrong units or scaled twice land there (a file at 1e18 passed every check and
+#: faulted at frame 1 with advice to raise the substeps).
+MAX_COORDINATE = 8000.0
+
+
+def _check_extent(strands, source: str) -> None:
+    for i, s in enumerate(strands):
+        a = np.abs(np.asarray(s, dtype=np.float64))
+        if a.size and np.nanmax(a) > MAX_COORDINATE:
+            j = int(np.nanargmax(a.max(axis=-1)))
+            raise ModelError(f"{source}: strand {i} vertex {j} lies at {_fmt_point(s[j])} m, beyond "
+                             f"{MAX_COORDINATE:g} m of the origin, where float32 resolves no millimetre: check the "
+                             f"file's units (groom.scale)")
+
+
+def _fmt_point(p) -> str:
+    return "(" + ", ".join(f"{float(x):.3g}" for x in p) + ")"
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -277,6 +277,15 @@ def _check_head(values, given, error):
             error("radii", f"a sphere needs three equal radii, got {_fmt(values['radii'])}")
     if values["shape"] == "mesh" and values["file"] is None:
         error("file", 'shape = "mesh" needs the mesh file')
+    _check_tfxmesh_up_axis(values, given, error)
+
+
+def _check_tfxmesh_up_axis(values, given, error):
+    """A ``.tfxmesh`` is Y up by definition and always turned: ``up_axis = "Z"`` asked for was ignored while the
+    groom's was honoured, and the hair sat 90 degrees off the body without a word."""
+    if "up_axis" in given and values["up_axis"] == "Z" and Path(values["file"] or "").suffix.lower() == ".tfxmesh":
+        error("up_axis", 'a .tfxmesh is Y up by definition (TressFX) and always turned to Z up: leave up_axis unset '
+                         'or "Y"')
 
 
 #: The ``[[colliders]]`` keys of one kind's shape and placement, besides :data:`_COLLIDER_COMMON`, which every kind
@@ -294,6 +303,7 @@ _COLLIDER_KEYS = {
 
 def _check_collider(values, given, error):
     kind = values["kind"]
+    _check_tfxmesh_up_axis(values, given, error)
     needs = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "ellipsoid": ("radii",),
              "mesh": ("file",), "usd": ("file",), "plane": ()}[kind]
     for key in needs:
@@ -750,6 +760,8 @@ class _Validator:
             if f.suffixes and resolved.suffix.lower() not in f.suffixes:
                 self.error(path, f"unsupported file type {resolved.suffix or '(none)'!r} of {resolved}; "
                                  f"expected one of {', '.join(f.suffixes)}")
+            elif resolved.is_dir():
+                self.error(path, f"{resolved} is a folder; name a file in it")
             elif not resolved.is_file():
                 self.error(path, f"file not found: {resolved} (relative paths start at {self.base_dir})")
             return str(resolved)
@@ -901,7 +913,7 @@ class Scene:
         """
         resolved = Path(path).expanduser().resolve()
         try:
-            text = resolved.read_text(encoding="utf-8")
+            text = resolved.read_text(encoding="utf-8-sig")  # a byte-order mark, as Windows editors write, is no TOML
         except FileNotFoundError:
             raise SceneError(str(resolved), [("", "scene file not found")]) from None
         except (OSError, UnicodeDecodeError) as exc:
@@ -1081,12 +1093,17 @@ class Scene:
             up = g["up_axis"].lower() if g["up_axis"] else None
             usd = Path(g["file"]).suffix.lower() in (".usd", ".usda", ".usdc", ".usdz")
             extra = {"purpose": g["purpose"]} if usd else {}
-            groom = _groom.Groom.load(g["file"], min_length=g["min_length"], up_axis=up, **extra)
-            if g["scale"] != 1.0 or any(g["translate"]):
+            scaled = g["scale"] != 1.0
+            # min_length is in metres: a scaled file's strands are measured once scaled (a centimetre file read with
+            # scale 0.01 kept its 0.5 mm strands, whose segments then faulted the step)
+            groom = _groom.Groom.load(g["file"], min_length=0.0 if scaled else g["min_length"], up_axis=up, **extra)
+            if scaled or any(g["translate"]):
                 m = np.eye(4)
                 m[:3, :3] *= g["scale"]
                 m[:3, 3] = g["translate"]
                 groom = groom.transformed(m)
+            if scaled:
+                groom = groom.without_short(g["min_length"])
         count = groom.strand_count
         if g["max_strands"] and count > g["max_strands"]:
             groom = groom.subset(np.arange(0, count, math.ceil(count / g["max_strands"])))

@@ -560,3 +560,55 @@ def test_dense_count_and_density_are_one_or_the_other():
     assert dense.dense.density == 20000 and dense.dense.count == 0
     with pytest.raises(SceneError, match="dense.density"):
         scene.with_overrides(["dense.density=20000", "dense.count=100"])
+
+
+def test_file_inputs_in_the_wrong_units_or_place_are_refused_or_read_in_metres(tmp_path):
+    """A groom file read with ``groom.scale`` drops the strands shorter than ``min_length`` in metres, not in the
+    file's units (a centimetre file kept its 0.5 mm strand, which then faulted the step); coordinates beyond
+    ``MAX_COORDINATE`` (a file in the wrong units) are refused naming the file, strand and vertex, for grooms and
+    collider meshes (they passed and faulted at frame 1 with advice about substeps); a folder named as a file is
+    called a folder; an up_axis of "Z" asked of a .tfxmesh, which is Y up and always turned, is refused (it was
+    ignored while the groom's was honoured); a scene saved with a byte-order mark loads."""
+    import trimesh
+
+    from hairwarp.colliders import Collider, ColliderError
+    from hairwarp.groom import Groom
+    from hairwarp.io.cem_hair import write_hair
+    from hairwarp.model import MAX_COORDINATE, Model, ModelError
+
+    strands = [np.stack([np.zeros(8), np.zeros(8), -np.linspace(0.0, length, 8)], axis=1) + (i, 0.0, 0.0)
+               for i, length in enumerate((10.0, 10.0, 0.05))]  # centimetres: two 10 cm strands and a 0.5 mm one
+    hair = tmp_path / "cm.hair"
+    write_hair(hair, Groom.from_polylines(strands, min_length=0.0))
+    raw = {"groom": {"file": str(hair), "scale": 0.01, "up_axis": "Z", "min_length": 0.001},
+           "head": {"shape": "none"}}
+    with pytest.warns(UserWarning, match="dropped 1 of 3 strands shorter than 0.001 m \\(strand 2\\)"):
+        groom = Scene.from_dict(raw).build_groom()
+    assert np.allclose(groom.lengths(), 0.1)
+
+    far = Groom.from_polylines([s * 1e4 for s in strands[:2]], min_length=0.0, source="far.hair")
+    with pytest.raises(ModelError, match=f"far.hair: strand 0 vertex 7 lies at .* beyond {MAX_COORDINATE:g} m"):
+        Model.build(far, segments=4)
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.apply_scale(1e5)
+    with pytest.raises(ColliderError, match="vertex .* lies at .* beyond"):
+        Collider.from_trimesh(box, name="box", attach="world")
+    obj = tmp_path / "huge.obj"
+    box.export(obj)
+    with pytest.raises(ColliderError, match=f"{obj}: vertex .* lies at"):
+        Collider.from_mesh_file(obj)
+
+    (tmp_path / "folder.tfx").mkdir()
+    with pytest.raises(SceneError, match="folder.tfx is a folder; name a file in it"):
+        Scene.from_dict({"groom": {"file": str(tmp_path / "folder.tfx")}, "head": {"shape": "none"}})
+    mesh = tmp_path / "body.tfxmesh"
+    mesh.write_text("# a placeholder: not read, the scene is refused first\n")
+    generated = {"groom": {"generator": "scalp"}}
+    with pytest.raises(SceneError, match='head.up_axis: a .tfxmesh is Y up by definition'):
+        Scene.from_dict({**generated, "head": {"shape": "mesh", "file": str(mesh), "up_axis": "Z"}})
+    with pytest.raises(SceneError, match='colliders\\[0\\].up_axis: a .tfxmesh is Y up'):
+        Scene.from_dict({**generated, "colliders": [{"kind": "mesh", "file": str(mesh), "up_axis": "Z"}]})
+
+    toml = tmp_path / "bom.toml"
+    toml.write_bytes(b"\xef\xbb\xbf" + b'[groom]\ngenerator = "scalp"\ncount = 4\n')
+    assert Scene.load(toml).groom.count == 4

@@ -803,3 +803,61 @@ def test_unpipelined_writer_completes_each_frame_before_returning(tmp_path):
         for f in range(3):
             cache.write_frame(f, {"c": (_strands(2, 4, f), None)})
             assert cache.last_frame == f and _root_frames(cache.partial_path) == (0, f)
+
+
+_TWO_CURVES = """#usda 1.0
+(
+    upAxis = "{up}"
+    metersPerUnit = {mpu}
+)
+{extra}
+def BasisCurves "hair"
+{{
+    uniform token type = "linear"
+    int[] curveVertexCounts = {counts}
+    point3f[] points = [(0,0,0),(0,0,-0.05),(0,0,-0.1),(0,0,-0.15),
+                        (0.01,0,0),(0.01,0,-0.05),(0.01,0,-0.1),(0.01,0,-0.15)]
+    {widths}
+}}
+"""
+
+
+def _groom_stage(tmp_path, name, *, up="Z", mpu="1", extra="", counts="[4, 4]", widths=""):
+    path = tmp_path / f"{name}.usda"
+    path.write_text(_TWO_CURVES.format(up=up, mpu=mpu, extra=extra, counts=counts, widths=widths))
+    return path
+
+
+def test_usd_grooms_other_tools_write_are_read_or_refused_in_one_line(tmp_path):
+    """Stage metadata that would mirror the groom (a negative metersPerUnit), make it NaN (0, nan) or be read as
+    another axis (X up) is refused naming the file and the value; a placeholder curves prim beside real ones is
+    skipped (it failed with zip's own message), an empty constant widths primvar is no widths (it raised an
+    IndexError with a traceback), and curve counts below 1 and scipy's knot errors name the file and the prim."""
+    from hairwarp.groom import Groom, GroomError
+
+    for mpu in ("-1", "0", "nan"):
+        with pytest.raises(UsdFileError, match=f"metersPerUnit = {mpu}.*; it must be a finite number > 0"):
+            read_curves(_groom_stage(tmp_path, f"mpu{mpu}", mpu=mpu))
+    with pytest.raises(UsdFileError, match="upAxis = 'X'; USD stages are Y or Z up"):
+        read_curves(_groom_stage(tmp_path, "xup", up="X"))
+    placeholder = 'def BasisCurves "placeholder"\n{\n    uniform token type = "linear"\n}'
+    groom = Groom.load(_groom_stage(tmp_path, "placeholder", extra=placeholder))
+    assert groom.strand_count == 2 and np.allclose(groom.lengths(), 0.15)
+    empty = 'float[] primvars:widths = [] (interpolation = "constant")'
+    groom = Groom.load(_groom_stage(tmp_path, "empty_widths", widths=empty))
+    assert groom.strand_count == 2 and groom.widths is None
+    for counts, value in (("[8, 0]", "0"), ("[10, -2]", "-2")):
+        with pytest.raises((UsdFileError, GroomError), match=f"/hair: curveVertexCounts holds {value} \\(curve 1\\)"):
+            Groom.load(_groom_stage(tmp_path, f"counts{value}", counts=counts))
+    nurbs = tmp_path / "nurbs.usda"
+    nurbs.write_text("""#usda 1.0
+def NurbsCurves "n"
+{
+    int[] curveVertexCounts = [4]
+    int[] order = [4]
+    double[] knots = [0, 0, 0, 0, 1, 0.5, 1, 1]
+    point3f[] points = [(0,0,0),(0,0,-0.05),(0,0,-0.1),(0,0,-0.15)]
+}
+""")
+    with pytest.raises((UsdFileError, GroomError), match=f"{nurbs}: /n: NURBS curve 0: "):
+        Groom.load(nurbs)

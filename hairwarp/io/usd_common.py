@@ -23,6 +23,7 @@ USD uses row vectors, ``p_world = [p, 1] @ M_usd``, so writers store ``M_usd = M
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import re
 from pathlib import Path
@@ -301,13 +302,25 @@ def _open_stage(path):
     return stage
 
 
-def _stage_to_metres_z(stage) -> np.ndarray:
-    """3x3 matrix taking this stage's units and up axis to metres, Z up."""
+def stage_units(stage) -> tuple[str, float]:
+    """The stage's up axis ("Y" or "Z") and metres per unit, or a UsdFileError naming the file and the value (a
+    negative ``metersPerUnit`` mirrored the stage without a word, 0 made every point NaN, and an X up axis was read
+    as Z)."""
     from pxr import UsdGeom
 
-    up = UsdGeom.GetStageUpAxis(stage)
-    mpu = UsdGeom.GetStageMetersPerUnit(stage)
-    return np.linalg.inv(_conversion("Y" if up == UsdGeom.Tokens.y else "Z", mpu))
+    where = stage.GetRootLayer().identifier
+    up = str(UsdGeom.GetStageUpAxis(stage))
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if up not in ("Y", "Z"):
+        raise UsdFileError(f"{where}: upAxis = {up!r}; USD stages are Y or Z up")
+    if not (math.isfinite(mpu) and mpu > 0.0):
+        raise UsdFileError(f"{where}: metersPerUnit = {mpu!r}; it must be a finite number > 0 (0.01 for centimetres)")
+    return up, mpu
+
+
+def _stage_to_metres_z(stage) -> np.ndarray:
+    """3x3 matrix taking this stage's units and up axis to metres, Z up."""
+    return np.linalg.inv(_conversion(*stage_units(stage)))
 
 
 def _prims(stage, schema):

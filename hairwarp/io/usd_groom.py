@@ -41,6 +41,7 @@ from hairwarp.io.usd_common import (
     _vec3f,
     _vertex_widths,
     _world_points,
+    stage_units,
 )
 
 __all__ = ["PURPOSES", "SAMPLES_PER_SEGMENT", "read_curves", "read_groom", "write_curves"]
@@ -161,7 +162,7 @@ def read_groom(path, *, purpose: str = "auto") -> dict:
         raise UsdFileError(f"{path}: purpose must be one of {', '.join(PURPOSES)}, not {purpose!r}")
     stage = _open_stage(path)
     conv = _stage_to_metres_z(stage)
-    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    _, mpu = stage_units(stage)
     prims = [p for p in _prims(stage, UsdGeom.Curves) if p.IsA(UsdGeom.BasisCurves) or p.IsA(UsdGeom.NurbsCurves)]
     if not prims:
         raise UsdFileError(f"{path}: no BasisCurves or NurbsCurves prim in the stage")
@@ -182,7 +183,12 @@ def read_groom(path, *, purpose: str = "auto") -> dict:
         pts = geom.GetPointsAttr().Get(time)
         pts = np.zeros((0, 3)) if pts is None else np.asarray(pts, dtype=np.float64)
         where = f"{path}: {prim.GetPath()}"
-        if counts.sum() != len(pts) or np.any(counts < 1):
+        if len(counts) == 0 and len(pts) == 0:
+            continue  # a placeholder prim: no curves
+        if np.any(counts < 1):
+            raise UsdFileError(f"{where}: curveVertexCounts holds {int(counts.min())} (curve "
+                               f"{int(np.argmin(counts))}); every curve needs a vertex or more")
+        if counts.sum() != len(pts):
             raise UsdFileError(f"{where} has {len(pts)} points but its curveVertexCounts add up to {int(counts.sum())}")
         world = _world_points(pts, xf, prim, conv)
         w_ctrl = _control_widths(geom, counts, time, where)
@@ -204,6 +210,9 @@ def read_groom(path, *, purpose: str = "auto") -> dict:
                               else np.full(len(line), wc[0] * mpu))
             names.append(str(prim.GetPath()))
         uvs.append(np.zeros((len(counts), 2)) if uv is None else uv)
+    if not curves:
+        raise UsdFileError(f"{path}: its curves prims ({', '.join(str(p.GetPath()) for p in prims[:3])}"
+                           f"{' ...' if len(prims) > 3 else ''}) hold no curves")
     return {"curves": curves, "widths": widths if any_width else None,
             "uv": np.concatenate(uvs) if any_uv else None, "prims": names}
 
@@ -221,6 +230,8 @@ def _control_widths(geom, counts: np.ndarray, time, where: str) -> np.ndarray | 
             return None
         values, interp = pv.ComputeFlattened(time), pv.GetInterpolation()
     w = np.asarray(values, dtype=np.float64).reshape(-1)
+    if len(w) == 0:
+        return None  # authored empty: no widths
     total, n = int(counts.sum()), len(counts)
     if len(w) == 1 or interp == UsdGeom.Tokens.constant:
         return np.full(total, w[0])
@@ -344,16 +355,21 @@ def _nurbs_polylines(curves, world: np.ndarray, counts, starts, time, where: str
         t = knots[k0:k0 + c + o]
         k0 += c + o
         k = int(o) - 1
-        if k < 1 or c < o:
+        if k < 1:
+            raise UsdFileError(f"{where}: a NURBS curve's order must be 2 or more, got {o}")
+        if c < o:
             raise UsdFileError(f"{where}: a NURBS curve of order {o} needs at least {o} vertices, got {c}")
         ctrl = world[s:s + c]
         spans = max(1, int(np.count_nonzero(np.diff(np.unique(t[k:c + 1])) > 0)))
         u = np.linspace(t[k], t[c], spans * SAMPLES_PER_SEGMENT + 1)
-        if weights is None:
-            pts = BSpline(t, ctrl, k)(u)
-        else:
-            w = weights[s:s + c]
-            h = BSpline(t, np.column_stack([ctrl * w[:, None], w]), k)(u)
-            pts = h[:, :3] / h[:, 3:]
+        try:
+            if weights is None:
+                pts = BSpline(t, ctrl, k)(u)
+            else:
+                w = weights[s:s + c]
+                h = BSpline(t, np.column_stack([ctrl * w[:, None], w]), k)(u)
+                pts = h[:, :3] / h[:, 3:]
+        except ValueError as e:  # scipy's own check of the knots, which names neither file nor curve
+            raise UsdFileError(f"{where}: NURBS curve {len(out)}: {e}") from None
         out.append((pts, (u - t[k]) / (t[c] - t[k])))
     return out
