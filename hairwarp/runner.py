@@ -705,8 +705,9 @@ def _available_memory() -> int | None:
 def _preflight(scene, out_path: Path, frames: int, device) -> None:
     """The checks a run makes before building anything; each raises ValueError with one line naming the key or
     the path: the cache's suffix and folder, the device, and memory for the arrays the scene asks for."""
-    from hairwarp.io.usd_common import USD_SUFFIXES, _human_bytes
+    from hairwarp.io.usd_common import USD_SUFFIXES, _human_bytes, check_usd_path
 
+    check_usd_path(out_path)
     if out_path.is_dir():
         raise ValueError(f"{out_path}: is a folder; name the cache file, e.g. {out_path / (scene.name + '.usdc')}")
     if out_path.suffix.lower() not in USD_SUFFIXES:

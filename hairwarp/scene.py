@@ -27,6 +27,7 @@ import math
 import os
 import re
 import sys
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -197,6 +198,11 @@ def _check_sim(values, given, error):
 def _changed(values, given, section: str, key: str) -> bool:
     """A key the file sets to something other than its default (so ``to_dict`` output reloads cleanly)."""
     return key in given and values[key] != SCHEMA[section].fields[key].default
+
+
+#: Longest guide strand [m] a groom file is taken to mean without a warning about its units (hair longer than
+#: 3 m is a centimetre file read as metres far more often than it is hair).
+LONGEST_PLAUSIBLE_STRAND = 3.0
 
 
 def _check_groom(values, given, error):
@@ -1104,6 +1110,11 @@ class Scene:
                 groom = groom.transformed(m)
             if scaled:
                 groom = groom.without_short(g["min_length"])
+            longest = float(groom.lengths().max())
+            if longest > LONGEST_PLAUSIBLE_STRAND:
+                # a centimetre export read as metres: 10-20 m strands ran without a word
+                warnings.warn(f"{g['file']}: strands up to {longest:.3g} m long; if the file is in centimetres, "
+                              f"set groom.scale = 0.01", UserWarning, stacklevel=2)
         count = groom.strand_count
         if g["max_strands"] and count > g["max_strands"]:
             groom = groom.subset(np.arange(0, count, math.ceil(count / g["max_strands"])))

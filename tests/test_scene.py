@@ -585,6 +585,9 @@ def test_file_inputs_in_the_wrong_units_or_place_are_refused_or_read_in_metres(t
     with pytest.warns(UserWarning, match="dropped 1 of 3 strands shorter than 0.001 m \\(strand 2\\)"):
         groom = Scene.from_dict(raw).build_groom()
     assert np.allclose(groom.lengths(), 0.1)
+    unscaled = {**raw, "groom": {**raw["groom"], "scale": 1.0}}  # read as metres: 10 m strands, a warning
+    with pytest.warns(UserWarning, match="strands up to 10 m long; if the file is in centimetres, set groom.scale"):
+        Scene.from_dict(unscaled).build_groom()
 
     far = Groom.from_polylines([s * 1e4 for s in strands[:2]], min_length=0.0, source="far.hair")
     with pytest.raises(ModelError, match=f"far.hair: strand 0 vertex 7 lies at .* beyond {MAX_COORDINATE:g} m"):

@@ -1,6 +1,8 @@
 """USD caches and grooms: everything written is read back with usd-core (pxr) directly, and the readers are checked
 against stages authored by hand with pxr and numbers worked out by hand."""
 
+import os
+
 import numpy as np
 import pytest
 import trimesh
@@ -861,3 +863,39 @@ def NurbsCurves "n"
 """)
     with pytest.raises((UsdFileError, GroomError), match=f"{nurbs}: /n: NURBS curve 0: "):
         Groom.load(nurbs)
+
+
+def test_head_motion_stages_with_values_a_run_cannot_take_are_refused_naming_the_file(tmp_path):
+    """A head prim keyed to NaN (numpy's 'SVD did not converge', naming nothing) or to 1e300 m (a run that faulted
+    at frame 1 with advice for the step API), and a negative timeCodesPerSecond (read as key times out of order), are
+    refused naming the file, the prim and the time code; a file name that is not UTF-8, which USD cannot take, is
+    named too (the codec's message named nothing)."""
+    from hairwarp.io.usd_anim import read_prim_motion
+    from hairwarp.io.usd_common import check_usd_path
+
+    def stage(name, last, rate=24):
+        path = tmp_path / f"{name}.usda"
+        path.write_text(f"""#usda 1.0
+(
+    metersPerUnit = 1
+    timeCodesPerSecond = {rate}
+    upAxis = "Z"
+)
+def Xform "Head"
+{{
+    double3 xformOp:translate.timeSamples = {{1: (0, 0, 0), 3: {last}}}
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}}
+""")
+        return path
+
+    times, poses = read_prim_motion(stage("ok", "(0.1, 0, 0)"), "/Head")
+    assert np.allclose(poses[-1][:3, 3], (0.1, 0.0, 0.0)) and np.allclose(times[-1] - times[0], 2 / 24)
+    with pytest.raises(UsdFileError, match="nan.usda: /Head: its world transform at time code 2 is not finite"):
+        read_prim_motion(stage("nan", "(nan, 0, 0)"), "/Head")
+    with pytest.raises(UsdFileError, match="far.usda: /Head: its world transform at time code 2 puts it at .* beyond"):
+        read_prim_motion(stage("far", "(1e300, 0, 0)"), "/Head")
+    with pytest.raises(UsdFileError, match="rate.usda: timeCodesPerSecond = -24.0; it must be a finite number > 0"):
+        read_prim_motion(stage("rate", "(0.1, 0, 0)", rate=-24), "/Head")
+    with pytest.raises(UsdFileError, match=r"o\\xffx.usdc: USD takes UTF-8 file names only"):
+        check_usd_path(os.fsdecode(b"out/o\xffx.usdc"))

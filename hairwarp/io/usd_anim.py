@@ -8,6 +8,7 @@ import difflib
 import numpy as np
 
 from hairwarp.io.usd_common import UsdFileError, _open_stage, _prims, _stage_to_metres_z, _triangles
+from hairwarp.model import MAX_COORDINATE
 
 __all__ = ["head_motion_from_usd", "mesh_motion", "read_animated_collider", "read_animated_mesh",
            "read_prim_motion", "read_surface_track"]
@@ -26,7 +27,11 @@ def _seconds(stage, codes) -> np.ndarray:
     if not len(codes):
         return np.zeros(1)
     origin = stage.GetStartTimeCode() if stage.HasAuthoredTimeCodeRange() else 0.0
-    return (np.asarray(codes, dtype=np.float64) - origin) / (stage.GetTimeCodesPerSecond() or 24.0)
+    rate = stage.GetTimeCodesPerSecond() or 24.0
+    if not (np.isfinite(rate) and rate > 0.0):
+        raise UsdFileError(f"{stage.GetRootLayer().identifier}: timeCodesPerSecond = {rate!r}; it must be a finite "
+                           f"number > 0")
+    return (np.asarray(codes, dtype=np.float64) - origin) / rate
 
 
 def _every_code(codes) -> list[float]:
@@ -150,6 +155,13 @@ def _rigid_poses(usd_matrices, codes, c4, where):
     for i, m_usd in enumerate(usd_matrices):
         # Row-vector USD matrix in stage units -> column convention in metres, Z up, acting on metre Z-up points.
         world = c4 @ m_usd.T @ c4_inv
+        at = f"at time code {codes[i]:g}" if i < len(codes) else "at its default time"
+        if not np.isfinite(world).all():
+            raise UsdFileError(f"{where}: its world transform {at} is not finite")
+        if np.abs(world[:3, 3]).max() > MAX_COORDINATE:
+            raise UsdFileError(f"{where}: its world transform {at} puts it at "
+                               f"({', '.join(f'{x:.3g}' for x in world[:3, 3])}) m, beyond {MAX_COORDINATE:g} m of "
+                               f"the origin, where float32 resolves no millimetre (the stage's units?)")
         rot, k = _rigid_factor(world[:3, :3])
         if scale is None:
             scale = k

@@ -286,13 +286,26 @@ def usd_error_text(exc: BaseException) -> str:
     return clean_usd_text(str(exc)) or type(exc).__name__
 
 
+def check_usd_path(path) -> None:
+    """A UsdFileError naming ``path`` when USD cannot take it: USD takes paths as UTF-8, and a name with bytes that
+    are not (an old Latin-1 file name) failed with the codec's message, naming nothing."""
+    try:
+        os.fspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise UsdFileError(f"{os.fsencode(path).decode('utf-8', 'backslashreplace')}: USD takes UTF-8 file names "
+                           f"only; rename it") from None
+
+
 def _open_stage(path):
     """Open a stage read-only, raising UsdFileError naming the file when it is missing or unreadable."""
     from pxr import Tf, Usd
 
     path = Path(path)
+    if path.is_dir():
+        raise UsdFileError(f"{path}: is a folder; name the USD file in it")
     if not path.is_file():
         raise UsdFileError(f"{path}: no such file")
+    check_usd_path(path)
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as e:
