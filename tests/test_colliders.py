@@ -220,6 +220,16 @@ def test_tfxmesh_errors(tmp_path):
         read_tfxmesh(bad)
     with pytest.raises(ColliderError, match="missing.obj"):
         Collider.from_mesh_file(tmp_path / "missing.obj")
+    # a tetrahedron, with a Latin-1 byte in a comment (no reason to refuse the file), then with a NaN coordinate
+    rows = ["0 0 0 0 0 0 1 0 0 0 0 1 0 0 0", "1 1 0 0 0 0 1 0 0 0 0 1 0 0 0", "2 0 1 0 0 0 1 0 0 0 0 1 0 0 0",
+            "3 0 0 1 0 0 1 0 0 0 0 1 0 0 0"]
+    tets = ["0 0 2 1", "1 0 1 3", "2 0 3 2", "3 1 2 3"]
+    text = "# caf\xe9\nnumOfBones 0\nnumOfVertices 4\n" + "\n".join(rows) + "\nnumOfTriangles 4\n" + "\n".join(tets)
+    bad.write_bytes(text.encode("latin-1"))
+    assert len(read_tfxmesh(bad).faces) == 4
+    bad.write_bytes(text.replace("2 0 1 0 0 0", "2 0 nan 0 0 0").encode("latin-1"))
+    with pytest.raises(TfxMeshError, match="bad.tfxmesh: vertex 2 is not finite \\(0, nan, 0\\) in the file"):
+        read_tfxmesh(bad)
 
 
 def test_collider_validation_and_open_mesh_warning():

@@ -113,8 +113,9 @@ def read_tfxmesh(path) -> Any:
 
     path = Path(path)
     try:
-        raw = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
+        # the format is ASCII numbers; a comment in another encoding (a Latin-1 byte) is no reason to refuse the file
+        raw = path.read_bytes().decode("utf-8", errors="replace").splitlines()
+    except OSError as exc:
         raise TfxMeshError(f"{path}: cannot read ({exc})") from exc
     lines = [(n + 1, line.split()) for n, line in enumerate(raw) if line.strip() and not line.lstrip().startswith("#")]
     pos = 0
@@ -148,7 +149,9 @@ def read_tfxmesh(path) -> Any:
     triangles = section("numOfTriangles", 4)
     points = vertices[:, 1:4]
     if not np.all(np.isfinite(points)):
-        raise TfxMeshError(f"{path}: non-finite vertex coordinates")
+        first = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+        raise TfxMeshError(f"{path}: vertex {first} is not finite ({', '.join(f'{x:g}' for x in points[first])}) "
+                           f"in the file")
     faces = triangles[:, 1:4]
     if len(faces) == 0 or len(points) == 0:
         raise TfxMeshError(f"{path}: no vertices or no triangles")
