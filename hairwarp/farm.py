@@ -490,6 +490,8 @@ def read_list(path) -> list[str]:
         lines = path.read_text().splitlines()
     except OSError as exc:
         raise FileNotFoundError(f"{path.resolve()}: cannot read the list of scenes ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path.resolve()}: is no list of scenes (not UTF-8 text: byte {exc.start})") from None
     out = []
     for line in lines:
         line = line.split("#", 1)[0].strip()

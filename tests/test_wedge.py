@@ -266,6 +266,11 @@ def test_batch_runs_shots_from_a_list_file(tmp_path):
 
 def test_bad_wedge_keys_and_unequal_zip_exit_2_with_one_line(tmp_path, capsys):
     out = tmp_path / "never"
+    binary = tmp_path / "binary.txt"
+    binary.write_bytes(b"\xff\xfe\x00bin")  # a list of scenes that is no text: named, not the codec's message alone
+    assert main(["batch", f"@{binary}", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{binary}: is no list of scenes (not UTF-8 text" in err[0], err
     assert main(["wedge", str(TINY), "-w", "strands.bend_stiffness=1e-4,1e-3", "-w", "strands.stifness=1,2",
                  "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
