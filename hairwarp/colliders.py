@@ -276,6 +276,7 @@ class Collider:
             from hairwarp.io.tfx import read_tfxmesh
 
             mesh = read_tfxmesh(path)
+            _check_mesh_extent(mesh.vertices * scale, str(path))
         else:
             if path.suffix.lower() == ".obj":
                 _check_obj_vertices(path)
@@ -298,7 +299,6 @@ class Collider:
                                        process=False)
         if scale != 1.0:
             mesh = trimesh.Trimesh(vertices=mesh.vertices * scale, faces=mesh.faces, process=False)
-        _check_mesh_extent(mesh.vertices, str(path))
         return cls.from_trimesh(mesh, name=path.stem if name is None else name, **options)
 
     @classmethod

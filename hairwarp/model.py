@@ -29,13 +29,14 @@ def resolve_device(device=None, key: str = "device"):
         raise ValueError(f"{key} = {name!r}: {exc}") from None
 
 
-def _finite_vector(name: str, value) -> tuple[float, float, float]:
+def _gravity(value) -> tuple[float, float, float]:
+    """``value`` as 3 finite floats [m/s^2], or a ModelError naming gravity."""
     try:
         v = np.asarray(value, dtype=float).reshape(-1)
     except (TypeError, ValueError):
         v = np.zeros(0)
     if v.shape != (3,) or not np.isfinite(v).all():
-        raise ModelError(f"{name} must be 3 finite numbers [m/s^2], got {value!r}")
+        raise ModelError(f"gravity must be 3 finite numbers [m/s^2], got {value!r}")
     return tuple(float(g) for g in v)
 
 
@@ -143,7 +144,7 @@ class Model:
         if isinstance(segments, bool) or not isinstance(segments, int | np.integer) or segments < 1:
             raise ModelError(f"segments must be a whole number >= 1, got {segments!r}")
         S = int(segments)
-        gravity = _finite_vector("gravity", gravity)
+        gravity = _gravity(gravity)
         device = resolve_device(device)
         verts = _vertices_of(groom, S)
         rest = verts if rest_vertices is None else _vertices_of(rest_vertices, S)
@@ -226,7 +227,7 @@ class Model:
 
     @gravity.setter
     def gravity(self, value):
-        self._gravity = wp.vec3(*_finite_vector("gravity", value))
+        self._gravity = wp.vec3(*_gravity(value))
         self.chains.gravity = self._gravity
 
     def state(self) -> State:

@@ -948,7 +948,7 @@ class Scene:
         return cls._build(copy.deepcopy(dict(d)), src, Path(base_dir).resolve(), label, overrides)
 
     @classmethod
-    def coerce(cls, scene, what: str = "scene") -> Scene:
+    def coerce(cls, scene) -> Scene:
         """``scene`` as a Scene: a Scene as it is, a path (str or ``os.PathLike``) loaded, a dict validated."""
         if isinstance(scene, Scene):
             return scene
@@ -956,7 +956,7 @@ class Scene:
             return cls.load(scene)
         if isinstance(scene, Mapping):
             return cls.from_dict(scene)
-        raise TypeError(f"{what} must be a hairwarp Scene, a scene file's path or its tables as a dict, got "
+        raise TypeError(f"scene must be a hairwarp Scene, a scene file's path or its tables as a dict, got "
                         f"{type(scene).__name__}")
 
     @classmethod

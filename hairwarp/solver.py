@@ -114,6 +114,9 @@ class Solver:
         self.max_rotation_per_step = float(max_rotation_per_step)
         device = model.device
         n = model.seg_count
+        # the length a kernel indexes each array of a State by (``_check_state``)
+        self._state_sizes = (("joint_q", n), ("joint_qd", n), ("seg_xform", n), ("vertex_positions", model.vert_count),
+                             ("vertex_velocities", model.vert_count), ("fault", 1))
 
         self.dt = wp.zeros(1, dtype=float, device=device)
         self._dt_host = None
@@ -231,16 +234,18 @@ class Solver:
                              "other (use two, model.state(), and swap them after each step)")
 
     def _check_state(self, name: str, state):
-        """``state`` a :class:`hairwarp.State` of this model: every array of the size a kernel indexes it by."""
-        sizes = {"joint_q": self.model.seg_count, "joint_qd": self.model.seg_count, "seg_xform": self.model.seg_count,
-                 "vertex_positions": self.model.vert_count, "vertex_velocities": self.model.vert_count, "fault": 1}
-        arrays = {key: getattr(state, key, None) for key in sizes}
-        if any(not isinstance(a, wp.array) for a in arrays.values()):
-            raise TypeError(f"{name} must be a hairwarp State (model.state()), got {type(state).__name__}")
-        wrong = [f"{key} {a.shape[0]}" for key, a in arrays.items() if a.shape[0] != sizes[key]]
-        if wrong:
-            raise ValueError(f"{name} holds {', '.join(wrong)} elements, this model {self.model.seg_count} joints and "
-                             f"{self.model.vert_count} vertices: a state of another model (use model.state())")
+        """``state`` a :class:`hairwarp.State` of this model: every array of the size a kernel indexes it by (run at
+        every step: one pass over the arrays, the message built only on a failure)."""
+        sizes = self._state_sizes
+        for key, size in sizes:
+            a = getattr(state, key, None)
+            if not isinstance(a, wp.array):
+                raise TypeError(f"{name} must be a hairwarp State (model.state()), got {type(state).__name__}")
+            if a.shape[0] != size:
+                wrong = [f"{k} {getattr(state, k).shape[0]}" for k, n in sizes
+                         if isinstance(getattr(state, k, None), wp.array) and getattr(state, k).shape[0] != n]
+                raise ValueError(f"{name} holds {', '.join(wrong)} elements, this model {self.model.seg_count} joints "
+                                 f"and {self.model.vert_count} vertices: a state of another model (use model.state())")
 
     def _check_control(self, control):
         if control is None or not hasattr(control, "wind"):
