@@ -561,6 +561,20 @@ def test_threads_report_states_goals_and_efficiency():
     assert "- frame: 1.25x (goal >= 1.8x on 2 cores: not met)" in text and "keeps 69 %" in text
 
 
+
+def test_threads_sweep_counts_and_its_goal_at_16():
+    from hairwarp.benchmarks.threads import md_sweep, sweep_counts
+
+    assert sweep_counts(1) == [1] and sweep_counts(2) == [1, 2] and sweep_counts(6) == [1, 2, 4, 6]
+    assert sweep_counts(16) == [1, 2, 4, 8, 16]
+    rows = [{"threads": n, "dynamics_ms": 20.0 / s, "dynamics_speedup": s, "frame_ms": 40.0 / f, "frame_speedup": f}
+            for n, s, f in ((1, 1.0, 1.0), (16, 11.5, 5.0))]
+    text = "\n".join(md_sweep({"dynamics": "2228 x 31", "frame": "long_hair.toml", "rows": rows}))
+    assert "| 16 | 1.739 | 11.50x | 8.00 | 5.00x |" in text
+    assert "dynamics at 16 threads: 11.5x (goal >= 12x: not met)" in text
+    # no 16 in the sweep (a smaller machine): no verdict
+    assert "goal" not in "\n".join(md_sweep({"dynamics": "d", "frame": "f", "rows": rows[:1]}))
+
 def test_wedge_report_compares_workers_at_one_thread_and_the_threaded_worker():
     from hairwarp.benchmarks.wedge import md_wedge
 

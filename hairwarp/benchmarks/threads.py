@@ -25,6 +25,12 @@ from pathlib import Path
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 GOALS = {"dynamics": 1.9, "frame": 1.8}
 
+#: The sweep's dynamics: the scaling suite's largest size, strands x segments (a whole groom's guides).
+SWEEP_SIZE = (2228, 31)
+
+#: Goal of the sweep at 16 threads: the dynamics of :data:`SWEEP_SIZE` at least this much faster than on one.
+SWEEP_GOAL_16 = 12.0
+
 
 def _stages(sim):
     """name -> a function running that stage once on ``sim`` (state and control as the run has them)."""
@@ -206,8 +212,88 @@ def suite_threads(config, out, log=lambda message: None) -> dict:
         results["scenes"].append(bench_scene(ratboy, threads, rounds=rounds, min_s=min_s, device=config.device))
     except (FileNotFoundError, ValueError) as e:
         results["skipped"] = f"ratboy_mohawk: {e}"
-    results["files"] = [str(chart_threads(results, Path(out) / "threads.png"))]
+    counts = sweep_counts(threads)
+    log(f"threads: sweep over {counts} threads (dynamics {SWEEP_SIZE[0]} x {SWEEP_SIZE[1]}, default scene's frame)")
+    results["sweep"] = sweep(counts, rounds=rounds, min_s=min_s, overrides=over)
+    results["files"] = [str(chart_threads(results, Path(out) / "threads.png")),
+                        str(chart_sweep(results["sweep"], Path(out) / "threads_sweep.png"))]
     return results
+
+
+def sweep_counts(threads: int) -> list[int]:
+    """1, 2, 4, ... up to ``threads``, and ``threads`` itself."""
+    counts, n = [], 1
+    while n < threads:
+        counts.append(n)
+        n *= 2
+    return [*counts, threads]
+
+
+def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
+    """Speed-up against one thread at each of ``counts`` threads: the dynamics step of :data:`SWEEP_SIZE` (the
+    dynamics suite's canonical strands) and a whole frame of the default scene, best of interleaved rounds."""
+    from hairwarp.benchmarks.common import BENCH_DT
+    from hairwarp.benchmarks.ours import canonical_model
+    from hairwarp.runner import Simulation
+    from hairwarp.scene import Scene
+    from hairwarp.solver import Solver
+
+    G, S = SWEEP_SIZE
+    model = canonical_model(G, S, "cpu")
+    control = model.control()
+    steps = {}
+    for n in counts:
+        solver, states = Solver(model, "implicit_joints", threads=n), [model.state(), model.state()]
+
+        def step(solver=solver, states=states):
+            solver.step(states[0], states[1], control, BENCH_DT)
+            states.reverse()
+
+        step()
+        steps[n] = step
+    scene = Scene.load(SCENES / "long_hair.toml", overrides=["output.preview=false", *overrides])
+    sims = {n: Simulation(scene, threads=n) for n in counts}
+    saved = {}
+    for n, sim in sims.items():
+        for _ in range(WARMUP_FRAMES):
+            sim.advance_frame()
+        saved[n] = sim.checkpoint()
+    best = {n: [float("inf"), float("inf")] for n in counts}
+    for _ in range(rounds):
+        for n in counts:
+            best[n][0] = min(best[n][0], _time(steps[n], min_s))
+            best[n][1] = min(best[n][1], _time_frames(sims[n], saved[n], sims[n].advance_frame))
+    one = best[counts[0]]
+    return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
+            "guides": sims[counts[0]].model.strand_count, "rows": [
+                {"threads": n, "dynamics_ms": 1e3 * best[n][0], "dynamics_speedup": one[0] / best[n][0],
+                 "frame_ms": 1e3 * best[n][1], "frame_speedup": one[1] / best[n][1]} for n in counts]}
+
+
+def chart_sweep(data: dict, path: Path) -> Path:
+    """Speed-up against threads, both figures of :func:`sweep`, with the ideal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["threads"] for r in data["rows"]]
+    fig, ax = plt.subplots(figsize=(5.5, 4.0))
+    ax.plot(n, n, "k--", lw=0.8, label="ideal")
+    ax.plot(n, [r["dynamics_speedup"] for r in data["rows"]], "o-", label=f"dynamics {data['dynamics']}")
+    ax.plot(n, [r["frame_speedup"] for r in data["rows"]], "s-", label=f"frame of {data['frame']}")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log", base=2)
+    ax.set_xticks(n, [str(k) for k in n])
+    ax.set_xlabel("threads")
+    ax.set_ylabel("speed-up against 1 thread")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def chart_threads(data: dict, path: Path) -> Path:
@@ -229,7 +315,7 @@ def chart_threads(data: dict, path: Path) -> Path:
         ax.set_xlabel(f"speed-up, {s['threads']} threads against 1")
         ax.set_title(f"{s['scene']} ({s['guides']} x {s['segments']}), load {s['load_before'][0]}", fontsize=10)
         ax.invert_yaxis()
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8, frameon=False)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize=8, frameon=False)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -269,7 +355,25 @@ def md_threads(data: dict) -> list[str]:
         lines += _verdicts(s, data.get("goals", GOALS))
     if data.get("skipped"):
         lines += [f"Skipped: {data['skipped']}.", ""]
+    if data.get("sweep"):
+        lines += md_sweep(data["sweep"])
     return lines
+
+
+def md_sweep(sweep_data: dict) -> list[str]:
+    """The sweep's table and its goal at 16 threads."""
+    d = sweep_data
+    lines = [f"### Threads sweep: dynamics of {d['dynamics']} (`implicit_joints`, dt 1 ms) and a frame of "
+             f"{d['frame']}", "", "![speed-up against threads](threads_sweep.png)", "",
+             "| threads | dynamics [ms] | speed-up | frame [ms] | speed-up |", "|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['threads']} | {r['dynamics_ms']:.3f} | {r['dynamics_speedup']:.2f}x | {r['frame_ms']:.2f} | "
+              f"{r['frame_speedup']:.2f}x |" for r in d["rows"]]
+    at16 = [r for r in d["rows"] if r["threads"] == 16]
+    if at16:
+        met = "met" if at16[0]["dynamics_speedup"] >= SWEEP_GOAL_16 else "not met"
+        lines += ["", f"- dynamics at 16 threads: {at16[0]['dynamics_speedup']:.1f}x (goal >= {SWEEP_GOAL_16:g}x: "
+                      f"{met})."]
+    return [*lines, ""]
 
 
 def _verdicts(scene: dict, goals: dict) -> list[str]:
