@@ -68,10 +68,6 @@ MIN_CHUNK = 64
 #: chunk leaves the others idle for at most its own time (an eighth of a thread's share).
 CHUNKS_PER_THREAD = 8
 
-#: Chunks of a scatter stage (a partition fixed by the work alone; see ``Executor.fixed_chunks``): enough for
-#: 8 threads, few enough that the private buffers stay small.
-SCATTER_CHUNKS = 8
-
 #: How long a pool thread waits for the next launch, spinning, before it sleeps [s]: longer than the host work
 #: between the launches of a step (the default scene's longest gap is about 0.15 ms), short enough that an idle
 #: pool gives its cores back at once (OpenMP's threads spin for a similar while).
