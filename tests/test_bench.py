@@ -369,6 +369,36 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
     assert chart_grid(sweep, tmp_path / "grid.png").stat().st_size > 0
 
 
+
+def test_robustness_rest_redraws_a_missed_ratio_and_judges_the_means(monkeypatch):
+    from hairwarp.benchmarks import robustness as rb
+
+    # the figures alone: four pairs, the ratio of their means (not the mean of their ratios)
+    d = rb.rest_redraws((1.4, 1.0), [(1.0, 1.0), (0.6, 0.5), (1.0, 1.5)])
+    assert d["ratios"] == pytest.approx([1.4, 1.0, 1.2, 2.0 / 3.0])
+    assert d["ratio_of_means"] == pytest.approx(4.0 / 4.0)
+    assert d["perturbations"] == [0.0, *rb.REST_REDRAWS]
+    assert rb.rest_redraws((1.0, 1.0), [(None, 1.0)])["ratio_of_means"] is None  # a faulted run judges nothing
+    # through the suite: a goal every run misses makes the tiny scene redraw; its runs are the perturbed scenes
+    monkeypatch.setattr(rb, "GOAL_REST_RATIO", 0.0)
+    seen = []
+    real = rb._rest_second
+
+    def spy(raw, name, duration, second):
+        seen.append((raw["sim"]["gravity"][2], bool(raw.get("head", {}).get("shape") == "none")))
+        return real(raw, name, duration, second)
+
+    monkeypatch.setattr(rb, "_rest_second", spy)
+    (row,) = rb.bench_rest(["tiny"], duration=1.0, second=1)["rows"]
+    r = row["redraws"]
+    assert len(r["ratios"]) == 4 and r["ratios"][0] == pytest.approx(row["ratio"])
+    assert r["ratio_of_means"] == pytest.approx(sum(r["colliders_mm_s"]) / sum(r["no_colliders_mm_s"]))
+    assert row["meets_ratio"] is False
+    g = -9.81
+    assert sorted(seen) == sorted((g * (1.0 + k * rb.PERTURBATION), free) for k in rb.REST_REDRAWS
+                                  for free in (False, True))
+    assert "4 draws" in rb._ratio_cell(row) and "of the means" in rb._ratio_cell(row)
+
 def test_robustness_grid_runs_cells_near_the_limit_again_and_counts_them(monkeypatch):
     """A cell whose fastest vertex comes near the burst speed runs again with gravity changed (here every cell: the
     share set to 0); a rerun that bursts fails the grid although every cell of the grid itself is ok."""
