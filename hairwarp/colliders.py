@@ -327,6 +327,19 @@ class Collider:
 STRAND_MIN_CHUNK = 16
 
 
+def _collider_size(col) -> float:
+    """The farthest [m] a point of ``col`` lies from its origin (0 for a plane, which no turn moves along itself)."""
+    if col.kind == ColliderKind.MESH and col.mesh is not None:
+        return float(np.linalg.norm(np.asarray(col.mesh.vertices, dtype=float), axis=1).max())
+    if col.kind == ColliderKind.ELLIPSOID and col.radii is not None:
+        return float(np.max(col.radii))
+    if col.kind == ColliderKind.CAPSULE:
+        return float(col.radius + col.half_height)
+    if col.kind == ColliderKind.SPHERE:
+        return float(col.radius)
+    return 0.0
+
+
 class ColliderSet:
     """Colliders on the device and the per-step strand projection.
 
@@ -362,6 +375,10 @@ class ColliderSet:
         self._xform_host = np.zeros((count, 7), dtype=np.float32)
         self._velocity_host = np.zeros((count, 6), dtype=np.float32)
         self._world_host = np.tile(np.eye(4), (count, 1, 1))
+        #: the fastest [m/s] a world collider has moved any point of itself (origin speed + angular speed times its
+        #: size), over every pose set so far: the hair speed fault's bound takes it in (``Solver.speed_bound``)
+        self.peak_speed = 0.0
+        self._size = [_collider_size(c) for c in self.colliders]
         bound_lo = np.zeros((count, 3), dtype=np.float32)
         bound_hi = np.zeros((count, 3), dtype=np.float32)
         far = np.zeros(count, dtype=np.float32)
@@ -447,6 +464,10 @@ class ColliderSet:
         self._xform_host[i] = matrix_to_transform(matrix)
         self._velocity_host[i, :3] = angular_velocity
         self._velocity_host[i, 3:] = linear_velocity
+        if self.colliders[i].attach == "world":  # a head-attached one moves with the head, which the control tracks
+            speed = float(np.linalg.norm(linear_velocity) + np.linalg.norm(angular_velocity) * self._size[i])
+            if speed > self.peak_speed:
+                self.peak_speed = speed
 
     def _pose_from_sample(self, i: int, col: Collider, sample):
         parent = np.asarray(sample.matrix(), dtype=float)

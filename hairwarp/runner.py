@@ -188,6 +188,7 @@ class Simulation:
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
+                             speed_margin=float(sim.speed_margin),
                              threads=int(sim.threads) if threads is None else threads)
         control = self.model.control(root_frames=self.surface is not None)
         control.set_motion(self.motion.evaluate(0.0))
@@ -496,6 +497,7 @@ class Simulation:
         st.time = time_s
         st.frame = int(frame)
         st.parity = int(parity)
+        self.solver.measure_start_speed(st.state)  # the hair speed check's start: the checkpoint's own motion
         # the head, the root frames, the wind and the colliders as the checkpoint's time has them: what is read
         # before the next step (the dense hair, the colliders' meshes) follows the head there, not where the run was
         _, sample, frames = self._applied(time_s)

@@ -31,6 +31,36 @@ DRAG_MIN_CHUNK = 4096
 EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
 
 
+#: ``max_rotation_per_step``'s default [rad] (``sim.max_rotation_per_step``): a fault under a bound set below it names
+#: the bound first.
+DEFAULT_MAX_ROTATION = 1.0
+
+#: Free-step rate (step times ``sqrt(k / m)``, :meth:`Solver._rates`) of the static links past which a fault of the
+#: free step is theirs: on ``long_hair`` at 8 substeps links of 10 N/m (2.0) run, 20 N/m (2.8) whip at 18 m/s and
+#: 30 N/m (3.5) go non-finite, while ``links.enabled = false`` or ``links.response = "step"`` runs.
+LINK_RATE_LIMIT = 2.0
+
+#: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
+#: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m (7.5) runs and 1,000
+#: N/m (13.7) goes non-finite; the shipped mohawk's contacts take 4.2.
+CONTACT_RATE_LIMIT = 7.5
+
+#: The vertex-face stiffness's largest density factor (``TriangleStrips.tri_stiffness_scale``, clamped to [1/4, 4]).
+CONTACT_DENSITY_FACTOR = 4.0
+
+#: Step times the air drag's rate ``drag L / m`` past which a fault is the drag's: the shipped scenes take 0.008-0.013,
+#: ``tiny`` with ``strands.density = 1e-3`` takes 1e4 and whips at 35 m/s (``strands.drag = 0`` runs).
+DRAG_RATE_LIMIT = 1.0
+
+#: The hair speed fault's bound over the speed the run's motion explains (:meth:`Solver.speed_bound`). The fastest
+#: guide vertex at the end of any frame, as a multiple of that speed, measured on the shipped scenes under their
+#: motions: 0.27-1.36 (the mohawk's tail tips slapping the body at 5.8 m/s); under harder ones on ``tiny`` and
+#: ``long_hair`` (a turn at ten times the shipped speed, 1.15; a 3 rev/s spin, 1.66; a 5 Hz slide of 0.1 m, ten g,
+#: 2.30). Blow-ups that ran to the end unreported measured 4.7-53 times it (light strands 4.7-13, undamped twist
+#: 16-53, stiff links 6.8-55). 3 sits between the two.
+SPEED_MARGIN = 3.0
+
+
 class SimulationFault(RuntimeError):
     """A simulation left its bounds; the message names the frame, the stage and what to change."""
 
@@ -90,6 +120,8 @@ class Solver:
         max_rotation_per_step: fault bound [rad]: a joint bending further than this in one step (or in
             one of the parts a step is split into where segments turn fast: at most 16) means the step no
             longer resolves the motion.
+        speed_margin: fault bound on the guides' speed, as a multiple of the speed the motion explains
+            (:meth:`speed_bound`; default :data:`SPEED_MARGIN`, inf: no bound).
         threads: CPU threads the launches of a step run on (:class:`hairwarp.executor.Executor`); None or 0:
             every core this process may use. Results are the same bits for any count. Ignored on CUDA.
 
@@ -99,7 +131,8 @@ class Solver:
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
-                 max_rotation_per_step: float = 1.0, threads: int | None = None):
+                 max_rotation_per_step: float = DEFAULT_MAX_ROTATION, speed_margin: float = SPEED_MARGIN,
+                 threads: int | None = None):
         self.model = model
         self.executor = Executor(model.device, threads)
         self.integrator = _integrator(integrator)
@@ -112,6 +145,10 @@ class Solver:
             raise ValueError(f"max_rotation_per_step must be an angle > 0 [rad] (inf: no bound), got "
                              f"{max_rotation_per_step!r}")
         self.max_rotation_per_step = float(max_rotation_per_step)
+        if isinstance(speed_margin, bool) or not isinstance(speed_margin, int | float | np.integer | np.floating) \
+                or not speed_margin > 0.0:
+            raise ValueError(f"speed_margin must be a number > 0 (inf: no bound), got {speed_margin!r}")
+        self.speed_margin = float(speed_margin)
         device = model.device
         n = model.seg_count
         # the length a kernel indexes each array of a State by (``_check_state``)
@@ -119,6 +156,17 @@ class Solver:
                              ("vertex_velocities", model.vert_count), ("fault", 1))
 
         self.dt = wp.zeros(1, dtype=float, device=device)
+        # the hair speed check of every output frame (``check``): each strand's fastest vertex, and the bound
+        self.strand_speed = wp.zeros(model.strand_count, dtype=float, device=device)
+        self._speed_bound = wp.zeros(1, dtype=float, device=device)
+        self._longest_strand = float(model.seg_length.numpy().reshape(model.strand_count, -1).sum(axis=1).max())
+        # the hair's own speed where the run starts (a state given velocities, a checkpoint): measured after the first
+        # step, or by ``measure_start_speed``, into its own array, read at the next check
+        self._start_speed = wp.zeros(model.strand_count, dtype=float, device=device)
+        self._start_bound = wp.array([math.inf], dtype=float, device=device)
+        self._start_fault = wp.zeros(1, dtype=wp.int32, device=device)
+        self._start_pending = True
+        self._start_speed_host = 0.0
         self._dt_host = None
         self._control = None  # the control of the last step, read back only on a fault, to name non-finite input
         scratch = articulated.AbaScratch()
@@ -222,6 +270,9 @@ class Solver:
                 self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
         if self.responders:
             self._respond(state_in, state_out, control, project=body)
+        if self._start_pending:
+            # after the first step, whose fused kinematics give the vertex velocities of joint velocities a user set
+            self.measure_start_speed(state_out)
 
     def _check_step_arguments(self, state_in, state_out, control):
         """States of this model's size and a control: a kernel reading past a smaller state's arrays would crash the
@@ -491,12 +542,56 @@ class Solver:
             out["contacts.contact_overflow"] = self.contacts.contact_overflow
         return out
 
+    def measure_start_speed(self, state):
+        """Take the speed of ``state``'s vertices as the run's start (the first step does, on its result; a run
+        restored from a checkpoint calls it): hair set moving at the start is explained by its start
+        (``speed_terms``)."""
+        self._check_state("state", state)
+        launch(self.executor, articulated.hair_speed, self.model.strand_count,
+               [self.model.seg_per_strand, self._start_bound, state.vertex_velocities],
+               [self._start_speed, self._start_fault], device=self.model.device, min_chunk=INTEGRATE_MIN_CHUNK,
+               private_or=[4])
+        self._start_pending = False
+        self._start_speed_host = None  # read at the next check, outside the step
+
+    def speed_terms(self, control=None) -> dict[str, float]:
+        """The speeds [m/s] :meth:`speed_bound` adds up: ``carried``, the fastest the head or the root frames have
+        carried a point of the hair (``Control.carried_speed``); ``colliders``, the fastest a world collider has
+        moved a point of itself; ``wind``, the strongest wind; ``fall``, ``sqrt(2 |g| L)`` for the longest strand
+        ``L`` (a strand swinging down from level under gravity); ``start``, the fastest vertex where the run started
+        (:meth:`measure_start_speed`). ``control``: default the last step's."""
+        control = self._control if control is None else control
+        g = self.model.gravity
+        if self._start_speed_host is None:
+            speeds = self._start_speed.numpy()
+            self._start_speed_host = float(speeds.max()) if np.isfinite(speeds).all() else 0.0
+        return {
+            "start": self._start_speed_host,
+            "carried": float(getattr(control, "carried_speed", 0.0)),
+            "colliders": float(getattr(self.colliders, "peak_speed", 0.0)) if self.colliders is not None else 0.0,
+            "wind": float(getattr(control, "wind_speed", 0.0)),
+            "fall": math.sqrt(2.0 * math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]) * self._longest_strand),
+        }
+
+    def speed_bound(self, control=None) -> float:
+        """The fastest [m/s] a guide vertex may move at the end of a frame: ``speed_margin`` times the sum of
+        :meth:`speed_terms`, the speed the run's own motion explains. Hair that whips faster than a few times what
+        moves it is a blow-up that has not yet turned into a non-finite state."""
+        return self.speed_margin * sum(self.speed_terms(control).values())
+
     def check(self, state, frame: int, *, substeps: int | None = None):
         """Raise :class:`SimulationFault` if a stage flagged a fault; call once per output frame.
 
-        Reads one integer from the device. Contact overflow is not fatal and is returned as the
+        First checks the speed of every guide vertex against :meth:`speed_bound` (one launch, after a step has
+        run), then reads one integer from the device. Contact overflow is not fatal and is returned as the
         bit so the caller can report it.
         """
+        if self._control is not None and self.speed_margin < math.inf:
+            self._check_state("state", state)
+            self._speed_bound.fill_(self.speed_bound())
+            self.executor.launch(articulated.hair_speed, self.model.strand_count,
+                                 [self.model.seg_per_strand, self._speed_bound, state.vertex_velocities],
+                                 [self.strand_speed, state.fault], min_chunk=INTEGRATE_MIN_CHUNK, private_or=[4])
         bits = int(state.fault.numpy()[0])
         fatal = bits & ~int(Fault.CONTACT_OVERFLOW)
         if fatal:
@@ -526,64 +621,193 @@ class Solver:
         return float(reach / (2.0 * rate[fastest].max())), fastest
 
     def _fault(self, bits: Fault, frame: int, substeps: int | None) -> SimulationFault:
-        """The fault of the stage that set its bits, with advice that works for that stage.
+        """The fault of the stage that drives it, with advice that works for that stage.
 
-        The integrator checks the free joint velocities, the body contact response its corrected ones: a
-        fault of the contact response alone names collision, with advice for colliders.
+        The bits say where a bound was crossed; the stage that drives the crossing is found from the step's
+        parameters (``_dynamics_driver``): the integrate stage is where links, hair contacts, air drag or an
+        undamped twist show up first, and the body contact response is where hair blown or whipped into a still
+        collider does. Each piece of advice was run on the case it names (``tests/test_faults.py``).
         """
         dt = self._dt_host
         per_frame = f" ({substeps} substep{'s' if substeps != 1 else ''} per frame)" if substeps else ""
         step = f"dt = {dt:.3g} s{per_frame}"
         more = "raise sim.substeps" if substeps else "use a smaller dt"
+        bound = f"{self.max_rotation_per_step:g} rad in one step (sim.max_rotation_per_step)"
+        fatal = bits & ~Fault.CONTACT_OVERFLOW
+        rotation_only = not fatal & ~(Fault.JOINT_SPEED | Fault.COLLISION_SPEED)
         bad_input = _nonfinite_control(self._control)
         if bad_input:
             stage = "control input"
             what = f"the control's {bad_input} held non-finite values, which the step took"
             advice = ("give the control finite values (set_head, set_wind and set_root_frames refuse others; an "
                       "array written in place is not checked)")
-        elif bits & (Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
-            stage = "dynamics (aba + integrate)"
-            what = ("the joint state became non-finite" if bits & Fault.NONFINITE_DYNAMICS
-                    else f"a joint bent more than {self.max_rotation_per_step} rad in one step")
-            stiff = bool(np.any(self.model.joint_stiffness.numpy() > 0.0))
-            if self.integrator in (Integrator.SEMI_IMPLICIT, Integrator.RK4) and stiff:
-                name = self.integrator.name.lower()
-                bound, seg = self._explicit_step_limit()
-                count = math.ceil(dt * substeps / bound) if substeps else 0
-                need = (f"sim.substeps = {count} or more, now {substeps}" if substeps
-                        else f"dt <= {bound:.2g} s, now {dt:.3g} s")
-                S = self.model.seg_per_strand
-                shortest = float(self.model.seg_length.numpy()[seg])
-                advice = (f"{name} takes the joint springs and damping explicitly, and these strands need steps of "
-                          f"about {bound:.2g} s for them ({need}; the fastest joint is on strand {seg // S}, whose "
-                          f"segments are {shortest * 1e3:.3g} mm): use integrator = \"implicit_joints\" (no such "
-                          f"bound)")
-                if count <= EXPLICIT_SUBSTEPS_WORTH_NAMING:
-                    advice += (", that many substeps, or lower strands.damping and strands.twist_stiffness (the twist "
-                               "about a strand's own axis has the least inertia, m r^2 / 2, and sets the bound)")
-            elif not stiff:
-                advice = (f"a chain without joint stiffness whips freely: give strands.bend_stiffness a value, raise "
-                          f"strands.damping or strands.drag, or {more} (now {step})")
-            else:
-                advice = f"{more} (now {step}), raise strands.drag or strands.damping, or slow the head motion"
-        elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED):
-            stage = "collision (body contact)"
-            what = ("the body contact response produced an invalid strand" if bits & Fault.NONFINITE_COLLISION
-                    else f"the body contact response bent a joint more than {self.max_rotation_per_step} rad "
-                         f"in one step")
-            advice = (f"a collider moved or jumped too far for the step: set head.teleport_distance for cuts and "
-                      f"jumps, slow the collider, or {more} (now {step})")
+        elif rotation_only and self.max_rotation_per_step < DEFAULT_MAX_ROTATION:
+            # a bound set below its default: the bound, not the hair, is what the run crossed
+            stage = ("collision (body contact)" if bits & Fault.COLLISION_SPEED and not bits & Fault.JOINT_SPEED
+                     else "dynamics (aba + integrate)")
+            what = f"a joint bent more than {bound}"
+            advice = (f"raise sim.max_rotation_per_step (now {self.max_rotation_per_step:g}, default "
+                      f"{DEFAULT_MAX_ROTATION:g}; a bound it sets below the default stops hair that is fine), or "
+                      f"{more} (now {step})")
         elif bits & Fault.INTERACTION_RESPONSE:
             stage = "links and hair contacts (response)"
             what = "their response after the free step changed a joint by more than half a turn, or left it non-finite"
-            advice = (f"lower links.stiffness or interactions.stiffness, {more} (now {step}), or set "
-                      f"links.response = \"link\" and interactions.response = \"mass\"")
+            parts = []
+            if self.links is not None:
+                parts.append(f"lower links.stiffness (now {self.links.stiffness:g} N/m)")
+            if self.contacts is not None:
+                parts.append(f"lower interactions.stiffness (now {self.contacts.stiffness:g} N/m)")
+            off = " or ".join(f"{name}.enabled = false" for name, part in (("links", self.links),
+                                                                          ("interactions", self.contacts))
+                              if part is not None)
+            advice = ", ".join(parts) + (f", or turn them off ({off})" if off else "")
+            if self.links is not None and self.links.response:
+                advice += ', or solve the links in the free step (links.response = "link")'
+        elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED) and not bits & (
+                Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
+            what = ("the body contact response produced an invalid strand" if bits & Fault.NONFINITE_COLLISION
+                    else f"the body contact response bent a joint more than {bound}")
+            stage, advice = self._collision_advice(dt, more, step)
         else:
-            stage = "unknown"
-            what = f"fault bits {int(bits)}"
-            advice = more
+            if bits & Fault.NONFINITE_DYNAMICS:
+                what = "the joint state became non-finite"
+            elif bits & Fault.JOINT_SPEED:
+                what = f"a joint bent more than {bound}"
+            else:
+                what = self._speed_report()
+            stage, advice = self._dynamics_driver(dt, substeps, more, step)
         message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
+
+    def _speed_report(self) -> str:
+        """What the hair speed check found: the fastest guide vertex against the bound and its terms."""
+        speeds = self.strand_speed.numpy()
+        strand = int(np.argmax(speeds))
+        terms = self.speed_terms()
+        parts = ", ".join(f"{name} {value:.3g}" for name, value in (
+            ("start", terms["start"]), ("head and roots", terms["carried"]), ("colliders", terms["colliders"]),
+            ("wind", terms["wind"]), ("free fall", terms["fall"])) if value > 0.0)
+        return (f"a guide vertex moved at {float(speeds[strand]):.3g} m/s (strand {strand}), more than "
+                f"sim.speed_margin = {self.speed_margin:g} times the {sum(terms.values()):.3g} m/s the motion "
+                f"explains ({parts} m/s)")
+
+    def _rates(self, dt: float) -> dict[str, float]:
+        """Each free-step force stage's rate times the step (a stiff explicit spring: ``h sqrt(k/m)``), for
+        ``_dynamics_driver``; a stage that is off or solved after the free step (its response) has none."""
+        model = self.model
+        mass = model.seg_mass.numpy().astype(np.float64)
+        typical = float(np.median(mass))
+        rates = {}
+        links = self.links
+        if links is not None and not links.response and links.link_count > 0 and links.stiffness > 0.0:
+            ends = np.concatenate([links.link_seg_a.numpy()[:links.link_count],
+                                   links.link_seg_b.numpy()[:links.link_count]])
+            per_segment = np.bincount(ends, minlength=model.seg_count).max()
+            rates["links"] = dt * math.sqrt(per_segment * links.stiffness / typical)
+        contacts = self.contacts
+        if contacts is not None and not contacts.response and contacts.stiffness > 0.0:
+            # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR
+            rates["contacts"] = dt * math.sqrt(CONTACT_DENSITY_FACTOR * contacts.stiffness / typical)
+        if model.drag > 0.0:
+            rates["drag"] = dt * float((model.drag * model.seg_length.numpy() / mass).max())
+        return rates
+
+    def _dynamics_driver(self, dt: float, substeps: int | None, more: str, step: str) -> tuple[str, str]:
+        """The stage that drives a fault of the free step (a non-finite joint, a joint or a vertex too fast), and
+        advice that works for it, in this order: links or hair contacts stiffer than the free step holds, air drag
+        on strands too light for it, an undamped twist, an explicit integrator's step bound, then the step."""
+        model = self.model
+        rates = self._rates(dt)
+        stiff_links = rates.get("links", 0.0) > LINK_RATE_LIMIT
+        stiff_contacts = rates.get("contacts", 0.0) > CONTACT_RATE_LIMIT
+        if stiff_links or stiff_contacts:
+            names, fixes = [], []
+            if stiff_links:
+                k = self.links.stiffness
+                ok = k * (LINK_RATE_LIMIT / rates["links"]) ** 2
+                names.append("static links")
+                fixes.append(f'links.response = "step" (solved after the free step), links.stiffness <= {ok:.3g} '
+                             f'N/m (now {k:g}), or links.enabled = false')
+            if stiff_contacts:
+                k = self.contacts.stiffness
+                ok = k * (CONTACT_RATE_LIMIT / rates["contacts"]) ** 2
+                names.append("hair contacts")
+                fixes.append(f'interactions.response = "step" (solved after the free step), interactions.stiffness '
+                             f'<= {ok:.3g} N/m (now {k:g}), or interactions.enabled = false')
+            stage = " and ".join(names) + " (forces in the free step)"
+            advice = (f"their springs are too stiff for the free step at {step}, which takes them explicitly; "
+                      f"more substeps do not help. Set " + "; and ".join(fixes))
+            return stage, advice
+        if rates.get("drag", 0.0) > DRAG_RATE_LIMIT:
+            linear = float((model.seg_mass.numpy() / model.seg_length.numpy()).min())
+            stage = "air drag (strands.drag) on light strands"
+            advice = (f"the strands weigh {linear:.3g} kg/m, so light that the air drag (strands.drag = "
+                      f"{model.drag:g}) would stop them {rates['drag']:.3g} times over within one step (drag L / m "
+                      f"times the step; it is taken explicitly), which neither more substeps nor more drag resolve: "
+                      f"give them the weight of a wisp of hair "
+                      f"(raise strands.density or strands.radius), or set strands.drag = 0")
+            return stage, advice
+        stiffness = model.joint_stiffness.numpy()
+        damping = model.joint_damping.numpy()
+        stiff = bool(np.any(stiffness > 0.0))
+        free_twist = stiff and not np.any(stiffness[:, 2] > 0.0) and not np.any(damping > 0.0)
+        explicit = self.integrator in (Integrator.SEMI_IMPLICIT, Integrator.RK4)
+        stage = "dynamics (aba + integrate)"
+        if free_twist:
+            advice = ("without damping or twist stiffness the twist about each segment's own axis, which has the "
+                      "least inertia (m r^2 / 2), is free and undamped, and no step size holds it: give "
+                      "strands.damping a value (2e-7, the default, holds it)")
+            if explicit:
+                advice += (f' and use integrator = "implicit_joints" ({self.integrator.name.lower()} takes the '
+                           f"joint springs explicitly, and more substeps alone do not help)")
+            return stage, advice
+        if explicit and stiff:
+            name = self.integrator.name.lower()
+            bound, seg = self._explicit_step_limit()
+            count = math.ceil(dt * substeps / bound) if substeps else 0
+            need = (f"sim.substeps = {count} or more, now {substeps}" if substeps
+                    else f"dt <= {bound:.2g} s, now {dt:.3g} s")
+            S = model.seg_per_strand
+            shortest = float(model.seg_length.numpy()[seg])
+            advice = (f"{name} takes the joint springs and damping explicitly, and these strands need steps of "
+                      f"about {bound:.2g} s for them ({need}; the fastest joint is on strand {seg // S}, whose "
+                      f"segments are {shortest * 1e3:.3g} mm): use integrator = \"implicit_joints\" (no such "
+                      f"bound)")
+            if count <= EXPLICIT_SUBSTEPS_WORTH_NAMING:
+                advice += (", that many substeps, or lower strands.damping and strands.twist_stiffness (the twist "
+                           "about a strand's own axis has the least inertia, m r^2 / 2, and sets the bound)")
+            return stage, advice
+        if not stiff:
+            return stage, (f"a chain without joint stiffness whips freely: give strands.bend_stiffness a value, raise "
+                           f"strands.damping or strands.drag, or {more} (now {step})")
+        return stage, f"{more} (now {step}), raise strands.drag or strands.damping, or slow the head motion"
+
+    def _collision_advice(self, dt: float, more: str, step: str) -> tuple[str, str]:
+        """Stage and advice of a body contact fault: a collider that moved too fast for the step (its own speed,
+        known from the control and the collider poses), or hair that reached a slow one too fast, and what drove
+        the hair."""
+        terms = self.speed_terms()
+        collider = terms["carried"] + terms["colliders"]
+        # a vertex stopped at speed u by a contact on a segment of length l turns it at u / l: the bound is crossed
+        # from u = max_rotation_per_step * l / dt on
+        length = float(self.model.seg_length.numpy().min())
+        resolved = self.max_rotation_per_step * length / dt
+        stage = "collision (body contact)"
+        if collider >= 0.5 * resolved:
+            return stage, (f"the head or a collider moved at up to {collider:.3g} m/s, too far for the step (a contact "
+                           f"resolves about {resolved:.3g} m/s): set head.teleport_distance for cuts and jumps, slow "
+                           f"the collider, or {more} (now {step})")
+        hair = float(self.strand_speed.numpy().max()) if self._control is not None else 0.0
+        hair = (f"; guides at up to {hair:.3g} m/s" if math.isfinite(hair) and hair > 0.0
+                else "; some guides non-finite" if not math.isfinite(hair) else "")
+        lead = (f"the head and colliders moved at most {collider:.3g} m/s, but the hair reached them faster than a "
+                f"contact resolves in one step (about {resolved:.3g} m/s{hair})")
+        if terms["wind"] >= 0.5 * resolved:
+            return "air drag (wind.velocity)", (
+                f"{lead}, blown by the wind at {terms['wind']:.3g} m/s: lower wind.velocity, or {more} (now {step}; "
+                f"a contact resolves speeds in proportion to the substeps)")
+        driver, advice = self._dynamics_driver(dt, None, more, step)
+        return driver, f"{lead}: {advice}"
 
 
 def _nonfinite_control(control) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -107,6 +109,25 @@ def _unit_quaternions(xforms: np.ndarray) -> np.ndarray:
     return xforms
 
 
+def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectors ``v`` (n, 3) rotated by unit quaternions ``q`` (n, 4; x, y, z, w)."""
+    u, w = q[:, :3], q[:, 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _carried_speed(pose, velocity, centre, reach: float) -> float:
+    """The fastest [m/s] a head pose and velocity (``_head_values``) move a point of a ball of radius ``reach``
+    about ``centre`` (head frame): ``|v + w x R c| + |w| reach``. Plain floats: it runs at every step."""
+    x, y, z, qw = pose[3:7].tolist()
+    wx, wy, wz, vx, vy, vz = velocity.tolist()
+    cx, cy, cz = centre
+    tx, ty, tz = 2.0 * (y * cz - z * cy), 2.0 * (z * cx - x * cz), 2.0 * (x * cy - y * cx)
+    rx, ry, rz = cx + qw * tx + y * tz - z * ty, cy + qw * ty + z * tx - x * tz, cz + qw * tz + x * ty - y * tx
+    ux, uy, uz = vx + wy * rz - wz * ry, vy + wz * rx - wx * rz, vz + wx * ry - wy * rx
+    return math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(wx * wx + wy * wy + wz * wz) * reach
+
+
 class Control:
     """Animated inputs of a step; device arrays updated in place so captured graphs see new values.
 
@@ -120,6 +141,10 @@ class Control:
         wind: wind velocity [m/s], world, vec3 (1,); acts through the air drag.
         bases: the frames the strands' roots ride on (``hairwarp.kernels.articulated.StrandBases``): the head
             arrays themselves, or with ``root_frames=True`` one frame per strand, set by :meth:`set_root_frames`.
+        carried_speed: the fastest [m/s] any head or root frame set so far carried a point of the hair in its rest
+            shape (host float; set by :meth:`set_head` and :meth:`set_root_frames`, not by writes into the arrays).
+        wind_speed: the strongest wind [m/s] :meth:`set_wind` set so far. Both feed the hair speed fault's bound
+            (``Solver.speed_bound``).
 
     Args:
         model: the :class:`hairwarp.Model`.
@@ -135,6 +160,17 @@ class Control:
         self.wind = wp.zeros(1, dtype=wp.vec3, device=device)
         self._host_views = None
         self.strand_count = int(model.strand_count)
+        # what the hair speed fault's bound needs of the groom (``Solver.speed_bound``): its centre and reach in the
+        # head frame, each root and each strand's length for root frames
+        rest = np.asarray(model.rest_vertex_positions, dtype=float).reshape(self.strand_count, -1, 3)
+        points = rest.reshape(-1, 3)
+        centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+        self._hair_centre = centre.tolist()
+        self._hair_reach = float(np.linalg.norm(points - centre, axis=1).max())
+        self._roots = rest[:, 0]
+        self._strand_reach = np.linalg.norm(rest - rest[:, :1], axis=2).max(axis=1)
+        self.carried_speed = 0.0
+        self.wind_speed = 0.0
         from hairwarp.kernels.articulated import StrandBases
 
         self.bases = StrandBases()
@@ -161,6 +197,10 @@ class Control:
         """Set the head pose (rotation as quaternion x, y, z, w) and its world velocities and accelerations."""
         values = _head_values(position, rotation, angular_velocity, linear_velocity, angular_acceleration,
                               linear_acceleration)
+        if not self.root_frames:
+            speed = _carried_speed(values[0], values[1], self._hair_centre, self._hair_reach)
+            if speed > self.carried_speed:
+                self.carried_speed = speed
         arrays = (self.head_xform, self.head_velocity, self.head_acceleration)
         if self.head_xform.device.is_cpu:
             # straight into the arrays' host memory: three assigns cost ~50 us, paid every step
@@ -210,8 +250,19 @@ class Control:
                                  f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])})")
             if name == "xforms":
                 a = _unit_quaternions(a)
+                frames = a
+            elif name == "velocities":
+                # each root's velocity, v + w x (R r), and its strand turned rigidly about it
+                w, v = a[:, :3].astype(float), a[:, 3:].astype(float)
+                roots = _rotate(frames[:, 3:].astype(float), self._roots)
+                speed = float((np.linalg.norm(v + np.cross(w, roots), axis=1)
+                               + np.linalg.norm(w, axis=1) * self._strand_reach).max())
+                if speed > self.carried_speed:
+                    self.carried_speed = speed
             target.assign(a)
 
     def set_wind(self, velocity):
         """Set the wind velocity [m/s], world."""
-        self.wind.assign(np.asarray([_vector("wind velocity", velocity)], dtype=np.float32))
+        wind = _vector("wind velocity", velocity)
+        self.wind_speed = max(self.wind_speed, float(np.linalg.norm(wind)))
+        self.wind.assign(np.asarray([wind], dtype=np.float32))

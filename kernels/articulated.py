@@ -1416,10 +1416,42 @@ def air_drag(
     seg_torque[i] = seg_torque[i] + wp.cross(0.5 * (x1 - x0), F)
 
 
+@wp.kernel
+def hair_speed(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    # In:
+    speed_bound: wp.array(dtype=float),
+    # State in:
+    vertex_velocities: wp.array(dtype=wp.vec3),
+    # Out:
+    strand_speed: wp.array(dtype=float),
+    fault: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: the fastest of its vertices [m/s, world] into ``strand_speed`` (its own element; inf
+    for a non-finite velocity), and ``Fault.HAIR_SPEED`` when that exceeds ``speed_bound[0]``. Run once per output
+    frame by ``Solver.check``; ``fault`` is ORed, private per chunk on the CPU."""
+    strand = tid_offset + wp.tid()
+    first = strand * (seg_per_strand + 1)
+    fastest = float(0.0)
+    for k in range(seg_per_strand + 1):
+        v = vertex_velocities[first + k]
+        speed = wp.length(v)
+        if not wp.isfinite(v):
+            speed = float(wp.inf)
+        fastest = wp.max(fastest, speed)
+    strand_speed[strand] = fastest
+    if fastest > speed_bound[0]:
+        wp.atomic_or(fault, 0, int(Fault.HAIR_SPEED))
+
+
 __all__ = [
     "aba_accelerations",
     "air_drag",
     "forward_kinematics",
+    "hair_speed",
     "integrate_euler",
     "integrate_rk4",
 ]

@@ -50,6 +50,10 @@ class Fault(enum.IntFlag):
         INTERACTION_RESPONSE: the response of the links, hair contacts and body contacts after the free step
             (``interaction_response``) produced a non-finite joint, or changed a joint's velocity by more than half
             a turn of bend over the step.
+        HAIR_SPEED: a guide vertex moved faster than the run's speed bound (``Solver.speed_bound``: a few times the
+            fastest the head, the root frames, the colliders and the wind carried the hair, plus a free fall over
+            the longest strand), read at the end of an output frame (``articulated.hair_speed``): hair that whips
+            at tens of m/s on a head moving at a few is a blow-up that had not yet turned into a non-finite state.
     """
 
     NONE = 0
@@ -59,6 +63,7 @@ class Fault(enum.IntFlag):
     COLLISION_SPEED = 8
     CONTACT_OVERFLOW = 16
     INTERACTION_RESPONSE = 32
+    HAIR_SPEED = 64
 
 
 class ColliderKind(enum.IntEnum):
