@@ -420,7 +420,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "gravity": Field("vec3", (0.0, 0.0, -9.81), "gravitational acceleration, world", "m/s^2"),
             "max_rotation_per_step": Field("float", 1.0, "fault bound on a joint's bend in one step", "rad",
                                            range="(0, inf)"),
-            "speed_margin": Field("float", 3.0, "fault bound on the guides' speed at a frame's end, as a multiple of "
+            "speed_margin": Field("float", 4.0, "fault bound on the guides' speed at a frame's end, as a multiple of "
                                                 "the speed the head, colliders, wind and a free fall over the longest "
                                                 "strand explain (inf: no bound)", range="(0, inf]"),
             "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),

@@ -1,0 +1,170 @@
+"""Faults name the stage that drives them, with advice that runs: each test provokes one on a small scene, checks the
+stage and the advice, and runs the advice. The hair speed check is compared with the velocities read back, and the
+speed it takes as explained with finite differences of the head's poses."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hairwarp as hw
+from hairwarp.motion import quat_to_matrix
+from hairwarp.runner import Simulation
+from hairwarp.solver import SimulationFault
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+TINY = SCENES / "tiny.toml"
+LONG_HAIR = SCENES / "long_hair.toml"
+
+
+def _run(path, overrides, frames):
+    """Advance a scene ``frames`` frames; the fault it raised, or None when it ran to the end."""
+    sim = Simulation(hw.Scene.load(path, ["output.preview=false", *overrides]))
+    try:
+        for _ in range(frames):
+            sim.advance_frame()
+    except SimulationFault as fault:
+        return fault
+    return None
+
+
+def _advice(fault) -> str:
+    return str(fault).split("To fix:", 1)[1]
+
+
+def test_hair_speed_check_matches_the_velocities_read_back():
+    """The per-strand speeds the check writes are the norms of the vertex velocities (a non-finite one reads inf),
+    and the fault bit is set exactly when one exceeds the bound."""
+    sim = Simulation(hw.Scene.load(TINY, ["output.preview=false"]))
+    sim.advance_frame()
+    solver, state = sim.solver, sim.stepper.state
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    bound = solver.speed_bound()
+    rng = np.random.default_rng(3)
+    v = rng.normal(0.0, 0.2 * bound, (G, S + 1, 3))
+    v[2, 5] = [0.0, 0.0, 1.5 * bound]  # one vertex past the bound
+    v[4, 1] = [np.nan, 0.0, 0.0]
+    state.vertex_velocities.assign(v.reshape(-1, 3).astype(np.float32))
+    with pytest.raises(SimulationFault) as info:
+        solver.check(state, 2)
+    expected = np.linalg.norm(v.astype(np.float32), axis=2).max(axis=1)
+    expected[4] = np.inf
+    np.testing.assert_allclose(solver.strand_speed.numpy(), expected, rtol=1e-6)
+    assert info.value.bits & hw.Fault.HAIR_SPEED and "sim.speed_margin" in str(info.value)
+    # below the bound: no fault
+    state.fault.zero_()
+    state.vertex_velocities.assign(np.full((G * (S + 1), 3), 0.1 * bound, dtype=np.float32))
+    assert solver.check(state, 3) == hw.Fault.NONE
+
+
+def test_carried_speed_bounds_the_head_motion_by_finite_differences():
+    """``Control.carried_speed`` is at least the fastest a point of the hair at rest moves with the head, taken by
+    central differences of the motion's poses, and not much more (it bounds the hair by a ball). Teleports off: the
+    nod moves the head's origin, 1.5 m below the pivot, farther than ``head.teleport_distance`` in a frame."""
+    sim = Simulation(hw.Scene.load(TINY, ["output.preview=false", "head.teleport_distance=inf"]))
+    rest = sim.model.rest_vertex_positions.reshape(-1, 3)
+    motion, h = sim.motion, 1e-5
+    fastest = 0.0
+    for _ in range(6):
+        sim.advance_frame()
+    for t in np.arange(1, 6 * 8 + 1) * sim.scene.step_dt:
+        ends = []
+        for s in (t - h, t + h):
+            position, rotation = motion.pose(s)
+            ends.append(rest @ quat_to_matrix(np.asarray(rotation)).T + np.asarray(position))
+        fastest = max(fastest, float(np.linalg.norm(ends[1] - ends[0], axis=1).max() / (2 * h)))
+    carried = sim.stepper.control.carried_speed
+    assert fastest > 0.1 and fastest * (1 - 1e-3) <= carried <= 2.0 * fastest
+
+
+def test_light_strands_name_the_air_drag_and_drag_zero_runs():
+    """Strands of 1e-3 kg/m^3 whip at tens of m/s that stay finite (exit 0 before): the speed check stops them,
+    names the air drag, and says more substeps do not help (measured: 32 and 128 fault earlier); drag 0 runs."""
+    fault = _run(TINY, ["strands.density=1e-3"], 10)
+    assert fault is not None and fault.stage.startswith("air drag") and fault.bits & hw.Fault.HAIR_SPEED
+    assert "strands.drag = 0" in _advice(fault) and "neither more substeps" in _advice(fault)
+    assert _run(TINY, ["strands.density=1e-3", "sim.substeps=32"], 10) is not None
+    assert _run(TINY, ["strands.density=1e-3", "strands.drag=0"], 10) is None
+
+
+@pytest.mark.parametrize("integrator", ["implicit_joints", "semi_implicit"])
+def test_undamped_free_twist_asks_for_damping_not_substeps(integrator):
+    """No damping and no twist stiffness: the twist whips at any step (16 substeps, and 704 under semi_implicit,
+    faulted before), so the advice is damping, and implicit_joints for an explicit integrator; both run."""
+    base = ["strands.damping=0", "strands.twist_stiffness=0", f'sim.integrator="{integrator}"']
+    fault = _run(TINY, [*base, "sim.substeps=16"], 10)
+    assert fault is not None and fault.stage == "dynamics (aba + integrate)"
+    advice = _advice(fault)
+    assert "strands.damping" in advice and "sim.substeps =" not in advice
+    assert ('"implicit_joints"' in advice) == (integrator == "semi_implicit")
+    fixed = ["strands.damping=2e-7", "strands.twist_stiffness=0", 'sim.integrator="implicit_joints"']
+    assert _run(TINY, [*fixed, "sim.substeps=16"], 10) is None
+
+
+def test_stiff_links_in_the_free_step_name_the_links_and_their_response_runs():
+    """Links of 1,000 N/m taken explicitly in the free step (8 substeps) blow up; the fault names the links, and
+    solving them after the free step, the stiffness it names, or no links runs."""
+    scene = [f"groom.count={60}", "dense.count=0", "interactions.enabled=false"]
+    fault = _run(LONG_HAIR, [*scene, "links.stiffness=1000"], 6)
+    assert fault is not None and fault.stage.startswith("static links"), fault
+    advice = _advice(fault)
+    assert 'links.response = "step"' in advice and "links.enabled = false" in advice
+    stiffness = float(advice.split("links.stiffness <= ")[1].split()[0])
+    assert _run(LONG_HAIR, [*scene, "links.stiffness=1000", 'links.response="step"'], 6) is None
+    assert _run(LONG_HAIR, [*scene, f"links.stiffness={stiffness}"], 6) is None
+    assert _run(LONG_HAIR, [*scene, "links.stiffness=1000", "links.enabled=false"], 6) is None
+
+
+def test_stiff_hair_contacts_in_the_free_step_name_the_contacts():
+    fault = _run(TINY, ["interactions.enabled=true", "interactions.stiffness=1e4"], 6)
+    assert fault is not None and fault.stage.startswith("hair contacts"), fault
+    advice = _advice(fault)
+    stiffness = float(advice.split("interactions.stiffness <= ")[1].split()[0])
+    assert _run(TINY, ["interactions.enabled=true", "interactions.stiffness=1e4", 'interactions.response="step"'],
+                6) is None
+    assert _run(TINY, ["interactions.enabled=true", f"interactions.stiffness={stiffness}"], 6) is None
+
+
+def test_body_contact_fault_on_a_still_head_names_the_wind():
+    """A still head in a 500 m/s wind faulted as "a collider moved or jumped too far": the head's own speed is
+    known, so the fault names the wind; more substeps run."""
+    still = ['head.motion.kind="still"', "wind.velocity=[500.0, 0.0, 0.0]"]
+    fault = _run(TINY, still, 6)
+    assert fault is not None and fault.stage == "air drag (wind.velocity)", fault
+    assert "moved at most 0 m/s" in str(fault) and "wind.velocity" in _advice(fault)
+    assert _run(TINY, [*still, "sim.substeps=16"], 6) is None
+
+
+def test_a_bound_set_below_its_default_is_named():
+    fault = _run(TINY, ["sim.max_rotation_per_step=0.01", "sim.substeps=32"], 4)
+    assert fault is not None and "sim.max_rotation_per_step (now 0.01" in _advice(fault)
+    assert _run(TINY, ["sim.substeps=32"], 4) is None
+
+
+def test_frames_kept_before_a_speed_fault_are_those_of_the_run_and_resume_finishes(tmp_path):
+    """The frames written before a speed fault hold the velocities the same run had at those frames, all within
+    the bound, and the fault frame is the first whose velocities (read back) exceed it; a resume with the advice
+    (no drag) finishes from the last kept frame."""
+    from pxr import Usd, UsdGeom
+
+    from hairwarp.runner import simulate
+
+    light = ["output.preview=false", "strands.density=1e-3"]
+    out = tmp_path / "tiny.usdc"
+    with pytest.raises(SimulationFault) as info:
+        simulate(hw.Scene.load(TINY, light), out, frames=10, progress=False)
+    frame = info.value.frame
+    # the same run unchecked: the fastest vertex and the bound of every frame
+    sim = Simulation(hw.Scene.load(TINY, [*light, "sim.speed_margin=inf"]))
+    speeds, bounds = [], []
+    for _ in range(frame):
+        sim.advance_frame()
+        speeds.append(np.linalg.norm(sim.stepper.state.vertex_velocities.numpy(), axis=1).max())
+        bounds.append(hw.Scene.load(TINY).sim.speed_margin * sum(sim.solver.speed_terms().values()))
+    assert speeds[-1] > bounds[-1] and all(s <= b for s, b in zip(speeds[:-1], bounds[:-1]))
+    stage = Usd.Stage.Open(str(tmp_path / "tiny.partial" / "tiny.usdc"))
+    guides = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides"))
+    kept = [np.linalg.norm(np.asarray(guides.GetVelocitiesAttr().Get(f)), axis=1).max() for f in range(1, frame)]
+    np.testing.assert_allclose(kept, speeds[:-1], rtol=1e-5)
+    simulate(hw.Scene.load(TINY, [*light, "strands.drag=0"]), out, frames=10, progress=False, resume=True)
+    assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 10.0
