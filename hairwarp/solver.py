@@ -653,16 +653,16 @@ class Solver:
         elif bits & Fault.INTERACTION_RESPONSE:
             stage = "links and hair contacts (response)"
             what = "their response after the free step changed a joint by more than half a turn, or left it non-finite"
-            parts = []
-            if self.links is not None:
-                parts.append(f"lower links.stiffness (now {self.links.stiffness:g} N/m)")
-            if self.contacts is not None:
-                parts.append(f"lower interactions.stiffness (now {self.contacts.stiffness:g} N/m)")
-            off = " or ".join(f"{name}.enabled = false" for name, part in (("links", self.links),
-                                                                          ("interactions", self.contacts))
-                              if part is not None)
-            advice = ", ".join(parts) + (f", or turn them off ({off})" if off else "")
-            if self.links is not None and self.links.response:
+            # the stiffer of the two for its segments' mass (within a factor 10 of the stiffest, both)
+            rates = self._rates(dt, responders=True)
+            top = max(rates.get("links", 0.0), rates.get("contacts", 0.0))
+            parts, off = [], []
+            for name, key, part in (("links", "links", self.links), ("contacts", "interactions", self.contacts)):
+                if part is not None and rates.get(name, 0.0) >= 0.1 * top:
+                    parts.append(f"lower {key}.stiffness (now {part.stiffness:g} N/m)")
+                    off.append(f"{key}.enabled = false")
+            advice = ", ".join(parts) + (f", or turn them off ({' or '.join(off)})" if off else "")
+            if self.links is not None and self.links.response and "links.enabled = false" in off:
                 advice += ', or solve the links in the free step (links.response = "link")'
         elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED) and not bits & (
                 Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
@@ -693,21 +693,23 @@ class Solver:
                 f"sim.speed_margin = {self.speed_margin:g} times the {sum(terms.values()):.3g} m/s the motion "
                 f"explains ({parts} m/s)")
 
-    def _rates(self, dt: float) -> dict[str, float]:
+    def _rates(self, dt: float, responders: bool = False) -> dict[str, float]:
         """Each free-step force stage's rate times the step (a stiff explicit spring: ``h sqrt(k/m)``), for
-        ``_dynamics_driver``; a stage that is off or solved after the free step (its response) has none."""
+        ``_dynamics_driver``; a stage that is off, or solved after the free step (its response) unless
+        ``responders``, has none."""
         model = self.model
         mass = model.seg_mass.numpy().astype(np.float64)
         typical = float(np.median(mass))
         rates = {}
         links = self.links
-        if links is not None and not links.response and links.link_count > 0 and links.stiffness > 0.0:
+        if links is not None and (responders or not links.response) and links.link_count > 0 \
+                and links.stiffness > 0.0:
             ends = np.concatenate([links.link_seg_a.numpy()[:links.link_count],
                                    links.link_seg_b.numpy()[:links.link_count]])
             per_segment = np.bincount(ends, minlength=model.seg_count).max()
             rates["links"] = dt * math.sqrt(per_segment * links.stiffness / typical)
         contacts = self.contacts
-        if contacts is not None and not contacts.response and contacts.stiffness > 0.0:
+        if contacts is not None and (responders or not contacts.response) and contacts.stiffness > 0.0:
             # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR
             rates["contacts"] = dt * math.sqrt(CONTACT_DENSITY_FACTOR * contacts.stiffness / typical)
         if model.drag > 0.0:
