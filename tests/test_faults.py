@@ -173,3 +173,14 @@ def test_frames_kept_before_a_speed_fault_are_those_of_the_run_and_resume_finish
     np.testing.assert_allclose(kept, speeds[:-1], rtol=1e-5)
     simulate(hw.Scene.load(TINY, [*light, "strands.drag=0"]), out, frames=10, progress=False, resume=True)
     assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 10.0
+
+
+def test_response_fault_advises_the_stiff_part_only():
+    """Links of 1e5 N/m solved after the free step (2 substeps) fault in the response; the advice is the links'
+    (the contacts keep their shipped 20 N/m), and solving the links in the free step, which it offers, runs."""
+    scene = ["groom.count=60", "dense.count=0", "sim.substeps=2", "links.stiffness=1e5"]
+    fault = _run(LONG_HAIR, scene, 8)
+    assert fault is not None and fault.bits & hw.Fault.INTERACTION_RESPONSE, fault
+    advice = _advice(fault)
+    assert "links.stiffness" in advice and "interactions.stiffness" not in advice
+    assert _run(LONG_HAIR, [*scene, 'links.response="link"'], 8) is None
