@@ -514,9 +514,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                                "pushed-out vertices land this far above it", "m", range="[0, inf)"),
             "friction": Field("float", 0.3, "0 = hair slides freely, 1 = the head carries it along (full match)",
                               range="[0, 1]"),
-            "teleport_distance": Field("float", 0.2, "a head that moves farther than this within one frame (a cut, a "
-                                                     "respawn) carries the hair rigidly and resets its velocities; "
-                                                     "inf = never", "m", range="(0, inf]"),
+            "teleport_distance": Field("float", 0.2, "a head that carries the middle of its hair farther than this "
+                                                     "within one frame (a cut, a respawn) carries the hair rigidly "
+                                                     "and resets its velocities; inf = never", "m", range="(0, inf]"),
             "teleport_angle_deg": Field("float", 60.0, "the same for a head that turns farther than this within one "
                                                        "frame", "deg", range="(0, 180]"),
             "motion": Section(

@@ -116,14 +116,29 @@ def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return v + w * t + np.cross(u, t)
 
 
+def hair_ball(model) -> tuple[list[float], float]:
+    """A ball holding the groom's rest shape in the head frame: its centre (the middle of the bounding box, a list
+    of 3 floats [m]) and radius [m]. How fast a head motion moves the hair, and how far, is bounded by that ball's
+    motion (the hair speed fault's bound, the teleport test)."""
+    points = np.asarray(model.rest_vertex_positions, dtype=float).reshape(-1, 3)
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return centre.tolist(), float(np.linalg.norm(points - centre, axis=1).max())
+
+
+def rotate_floats(q, v) -> list[float]:
+    """The vector ``v`` (3 floats) rotated by the unit quaternion ``q`` (x, y, z, w) in plain floats: for the host
+    tests that run at every step, where numpy's per-call cost is larger than the arithmetic."""
+    x, y, z, w = q
+    vx, vy, vz = v
+    tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
+    return [vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx]
+
+
 def _carried_speed(pose, velocity, centre, reach: float) -> float:
     """The fastest [m/s] a head pose and velocity (``_head_values``) move a point of a ball of radius ``reach``
     about ``centre`` (head frame): ``|v + w x R c| + |w| reach``. Plain floats: it runs at every step."""
-    x, y, z, qw = pose[3:7].tolist()
     wx, wy, wz, vx, vy, vz = velocity.tolist()
-    cx, cy, cz = centre
-    tx, ty, tz = 2.0 * (y * cz - z * cy), 2.0 * (z * cx - x * cz), 2.0 * (x * cy - y * cx)
-    rx, ry, rz = cx + qw * tx + y * tz - z * ty, cy + qw * ty + z * tx - x * tz, cz + qw * tz + x * ty - y * tx
+    rx, ry, rz = rotate_floats(pose[3:7].tolist(), centre)
     ux, uy, uz = vx + wy * rz - wz * ry, vy + wz * rx - wx * rz, vz + wx * ry - wy * rx
     return math.sqrt(ux * ux + uy * uy + uz * uz) + math.sqrt(wx * wx + wy * wy + wz * wz) * reach
 
@@ -163,10 +178,7 @@ class Control:
         # what the hair speed fault's bound needs of the groom (``Solver.speed_bound``): its centre and reach in the
         # head frame, each root and each strand's length for root frames
         rest = np.asarray(model.rest_vertex_positions, dtype=float).reshape(self.strand_count, -1, 3)
-        points = rest.reshape(-1, 3)
-        centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
-        self._hair_centre = centre.tolist()
-        self._hair_reach = float(np.linalg.norm(points - centre, axis=1).max())
+        self._hair_centre, self._hair_reach = hair_ball(model)
         self._roots = rest[:, 0]
         self._strand_reach = np.linalg.norm(rest - rest[:, :1], axis=2).max(axis=1)
         self.carried_speed = 0.0

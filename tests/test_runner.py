@@ -364,6 +364,45 @@ def test_head_jump_carries_the_hair_and_it_settles(gap):
         previous = x
 
 
+
+def test_a_nod_about_a_distant_pivot_is_no_teleport_a_jump_is():
+    """The teleport test measures how far the hair's middle moves in a frame, not the head frame's origin: the
+    shipped tiny nods about a pivot 1.5 m above its origin, which then swings ~0.2 m a frame while the hair moves
+    centimetres (41 of its 80 steps were taken for teleports, the hair carried rigidly and stopped). The hair's own
+    motion is read back from the run: no step teleports, and the fastest root moves far less than the threshold."""
+    from hairwarp.runner import is_teleport
+
+    sim = Simulation(hw.Scene.load(hw.Scene.default_path().parent / "tiny.toml", ["output.preview=false"]))
+    teleports = []
+    real = sim.solver.teleport
+    sim.solver.teleport = lambda *a: (teleports.append(sim.stepper.time), real(*a))
+    roots = [sim.guide_curves()[0].reshape(sim.model.strand_count, -1, 3)[:, 0].astype(float)]
+    for _ in range(10):
+        sim.advance_frame()
+        roots.append(sim.guide_curves()[0].reshape(sim.model.strand_count, -1, 3)[:, 0].astype(float))
+    assert teleports == []
+    distance = sim.scene.head.teleport_distance
+    assert np.linalg.norm(np.diff(roots, axis=0), axis=-1).max() < 0.5 * distance
+    # the same nod, measured at the head frame's origin (the old test), crosses the threshold
+    motion = sim.motion
+    frame = 1.0 / sim.scene.sim.fps
+    crossed = [is_teleport(motion.pose(t), motion.pose(t + frame), distance, 60.0)
+               for t in np.arange(0.0, 0.3, frame / 8)]
+    assert any(crossed)
+    # a jump of the hair's middle past the threshold is one, in any direction; a turn past the angle is one
+    centre = (0.0, 0.0, 1.5)
+    still = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    assert is_teleport(still, ((0.0, 0.3, 0.0), (0.0, 0.0, 0.0, 1.0)), 0.2, 60.0, centre)
+    assert not is_teleport(still, ((0.0, 0.1, 0.0), (0.0, 0.0, 0.0, 1.0)), 0.2, 60.0, centre)
+    half = np.radians(70.0) / 2
+    assert is_teleport(still, ((0.0, 0.0, 0.0), (0.0, 0.0, np.sin(half), np.cos(half))), 0.2, 60.0, centre)
+    # a 20 degree turn about an axis through the hair's middle moves it nowhere: no teleport however far the origin
+    half = np.radians(20.0) / 2
+    q = np.array([np.sin(half), 0.0, 0.0, np.cos(half)])
+    from scipy.spatial.transform import Rotation
+    origin = np.array(centre) - Rotation.from_quat(q).apply(centre)  # the turned frame keeps the centre in place
+    assert np.linalg.norm(origin) > 0.2 and not is_teleport(still, (origin, q), 0.2, 60.0, centre)
+
 def test_solver_teleport_keeps_the_shape_relative_to_the_head():
     """``Solver.teleport`` moves the strands with the head pose and stops them."""
     import hairwarp as hw
