@@ -45,6 +45,11 @@ LINK_RATE_LIMIT = 2.0
 #: N/m (13.7) goes non-finite; the shipped mohawk's contacts take 4.2.
 CONTACT_RATE_LIMIT = 7.5
 
+#: The rate (as :data:`LINK_RATE_LIMIT`'s) past which links or hair contacts solved after the free step drive a fault
+#: of the dynamics or of the hair's speed: the shipped scenes run at up to 16 (the mohawk's links) and 33 (its
+#: contacts) at one step a frame; ``long_hair``'s links of 1e5 N/m at 2 substeps (727) whip at 12 m/s.
+RESPONSE_RATE_LIMIT = 100.0
+
 #: The vertex-face stiffness's largest density factor (``TriangleStrips.tri_stiffness_scale``, clamped to [1/4, 4]).
 CONTACT_DENSITY_FACTOR = 4.0
 
@@ -160,14 +165,13 @@ class Solver:
         # the hair speed check of every output frame (``check``): each strand's fastest vertex, and the bound
         self.strand_speed = wp.zeros(model.strand_count, dtype=float, device=device)
         self._speed_bound = wp.zeros(1, dtype=float, device=device)
-        self._longest_strand = float(model.seg_length.numpy().reshape(model.strand_count, -1).sum(axis=1).max())
-        # the hair's own speed where the run starts (a state given velocities, a checkpoint): measured after the first
-        # step, or by ``measure_start_speed``, into its own array, read at the next check
-        self._start_speed = wp.zeros(model.strand_count, dtype=float, device=device)
-        self._start_bound = wp.array([math.inf], dtype=float, device=device)
-        self._start_fault = wp.zeros(1, dtype=wp.int32, device=device)
+        # the hair's own speed where the run starts (a state given velocities, a checkpoint): measured before the
+        # first step, or by ``measure_start_speed``
         self._start_pending = True
         self._start_speed_host = 0.0
+        length = model.seg_length.numpy().astype(np.float64).reshape(model.strand_count, -1)
+        self._reach = np.cumsum(length[:, ::-1], axis=1)[:, ::-1]  # from each joint to its strand's tip [m]
+        self._longest_strand = float(self._reach[:, 0].max())
         self._dt_host = None
         self._control = None  # the control of the last step, read back only on a fault, to name non-finite input
         scratch = articulated.AbaScratch()
@@ -257,6 +261,10 @@ class Solver:
         self._check_step_arguments(state_in, state_out, control)
         self.set_dt(dt)
         self._control = control
+        if self._start_pending:
+            # the speed the run starts with, before the first step: measured after it, a step that blows up would
+            # raise the bound it is checked against
+            self.measure_start_speed(state_in)
         body = self.body_contacts.enabled
         self._force_passes(state_in, control, detect_body=body)
         # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
@@ -271,9 +279,6 @@ class Solver:
                 self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
         if self.responders:
             self._respond(state_in, state_out, control, project=body)
-        if self._start_pending:
-            # after the first step, whose fused kinematics give the vertex velocities of joint velocities a user set
-            self.measure_start_speed(state_out)
 
     def _check_step_arguments(self, state_in, state_out, control):
         """States of this model's size and a control: a kernel reading past a smaller state's arrays would crash the
@@ -544,16 +549,18 @@ class Solver:
         return out
 
     def measure_start_speed(self, state):
-        """Take the speed of ``state``'s vertices as the run's start (the first step does, on its result; a run
+        """Take ``state``'s own motion as the run's start (the first step does, on the state it starts from; a run
         restored from a checkpoint calls it): hair set moving at the start is explained by its start
-        (``speed_terms``)."""
+        (``speed_terms``). The larger of its fastest vertex and what its joint velocities move a tip at most
+        (``sum |w_k| r_k``, ``r_k`` from joint k to the tip), so joint velocities set without
+        :meth:`forward_kinematics` count too. Reads the state from the device, once."""
         self._check_state("state", state)
-        launch(self.executor, articulated.hair_speed, self.model.strand_count,
-               [self.model.seg_per_strand, self._start_bound, state.vertex_velocities],
-               [self._start_speed, self._start_fault], device=self.model.device, min_chunk=INTEGRATE_MIN_CHUNK,
-               private_or=[4])
+        G = self.model.strand_count
+        w = np.linalg.norm(state.joint_qd.numpy().astype(np.float64).reshape(G, -1, 3), axis=2)
+        v = np.linalg.norm(state.vertex_velocities.numpy().astype(np.float64), axis=1)
+        speeds = np.concatenate([(w * self._reach).sum(axis=1), v])
+        self._start_speed_host = float(speeds.max()) if np.isfinite(speeds).all() else 0.0
         self._start_pending = False
-        self._start_speed_host = None  # read at the next check, outside the step
 
     def speed_terms(self, control=None) -> dict[str, float]:
         """The speeds [m/s] :meth:`speed_bound` adds up: ``carried``, the fastest the head or the root frames have
@@ -563,9 +570,6 @@ class Solver:
         (:meth:`measure_start_speed`). ``control``: default the last step's."""
         control = self._control if control is None else control
         g = self.model.gravity
-        if self._start_speed_host is None:
-            speeds = self._start_speed.numpy()
-            self._start_speed_host = float(speeds.max()) if np.isfinite(speeds).all() else 0.0
         return {
             "start": self._start_speed_host,
             "carried": float(getattr(control, "carried_speed", 0.0)),
@@ -653,17 +657,7 @@ class Solver:
         elif bits & Fault.INTERACTION_RESPONSE:
             stage = "links and hair contacts (response)"
             what = "their response after the free step changed a joint by more than half a turn, or left it non-finite"
-            # the stiffer of the two for its segments' mass (within a factor 10 of the stiffest, both)
-            rates = self._rates(dt, responders=True)
-            top = max(rates.get("links", 0.0), rates.get("contacts", 0.0))
-            parts, off = [], []
-            for name, key, part in (("links", "links", self.links), ("contacts", "interactions", self.contacts)):
-                if part is not None and rates.get(name, 0.0) >= 0.1 * top:
-                    parts.append(f"lower {key}.stiffness (now {part.stiffness:g} N/m)")
-                    off.append(f"{key}.enabled = false")
-            advice = ", ".join(parts) + (f", or turn them off ({' or '.join(off)})" if off else "")
-            if self.links is not None and self.links.response and "links.enabled = false" in off:
-                advice += ', or solve the links in the free step (links.response = "link")'
+            advice = self._response_advice(dt)
         elif bits & (Fault.NONFINITE_COLLISION | Fault.COLLISION_SPEED) and not bits & (
                 Fault.NONFINITE_DYNAMICS | Fault.JOINT_SPEED):
             what = ("the body contact response produced an invalid strand" if bits & Fault.NONFINITE_COLLISION
@@ -676,9 +670,31 @@ class Solver:
                 what = f"a joint bent more than {bound}"
             else:
                 what = self._speed_report()
-            stage, advice = self._dynamics_driver(dt, substeps, more, step)
+            rates = self._rates(dt, responders=True)
+            if max(rates.get("links", 0.0), rates.get("contacts", 0.0)) > RESPONSE_RATE_LIMIT and (
+                    (self.links is not None and self.links.response) or (self.contacts is not None
+                                                                         and self.contacts.response)):
+                # springs this stiff whip the hair even solved after the free step (``RESPONSE_RATE_LIMIT``)
+                stage, advice = "links and hair contacts (response)", self._response_advice(dt)
+            else:
+                stage, advice = self._dynamics_driver(dt, substeps, more, step)
         message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
+
+    def _response_advice(self, dt: float) -> str:
+        """Advice for a fault the links' and hair contacts' response drives: lower the stiffer of the two for its
+        segments' mass (both, within a factor 10 of each other), turn it off, or take the links in the free step."""
+        rates = self._rates(dt, responders=True)
+        top = max(rates.get("links", 0.0), rates.get("contacts", 0.0))
+        parts, off = [], []
+        for name, key, part in (("links", "links", self.links), ("contacts", "interactions", self.contacts)):
+            if part is not None and rates.get(name, 0.0) >= 0.1 * top:
+                parts.append(f"lower {key}.stiffness (now {part.stiffness:g} N/m)")
+                off.append(f"{key}.enabled = false")
+        advice = ", ".join(parts) + (f", or turn them off ({' or '.join(off)})" if off else "")
+        if self.links is not None and self.links.response and "links.enabled = false" in off:
+            advice += ', or solve the links in the free step (links.response = "link")'
+        return advice
 
     def _speed_report(self) -> str:
         """What the hair speed check found: the fastest guide vertex against the bound and its terms."""
