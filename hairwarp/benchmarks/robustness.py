@@ -1317,7 +1317,7 @@ def summary(data: dict) -> list[str]:
         if row.get("status") == "ok":
             out.append(f"rest {row['scene']}: {_f(row['colliders']['second_mm_s'])} mm/s in second "
                        f"{data['rest']['second']} (goal <= {GOAL_REST_MM_S:g}) {_v(row['meets_speed'])}, ratio "
-                       f"{_f(row['ratio'])} (goal <= {GOAL_REST_RATIO:g}) {_v(row['meets_ratio'])}")
+                       f"(goal <= {GOAL_REST_RATIO:g}) {_ratio_cell(row)}")
     sw = data["sweep"]
     out.append(f"sweep: {sw['counts']['ok']}/{len(sw['cells'])} cells ok {_v(sw['meets'])}")
     for label, v in data["convergence"]["variants"].items():
