@@ -738,23 +738,16 @@ class Solver:
         on strands too light for it, an undamped twist, an explicit integrator's step bound, then the step."""
         model = self.model
         rates = self._rates(dt)
-        stiff_links = rates.get("links", 0.0) > LINK_RATE_LIMIT
-        stiff_contacts = rates.get("contacts", 0.0) > CONTACT_RATE_LIMIT
-        if stiff_links or stiff_contacts:
-            names, fixes = [], []
-            if stiff_links:
-                k = self.links.stiffness
-                ok = k * (LINK_RATE_LIMIT / rates["links"]) ** 2
-                names.append("static links")
-                fixes.append(f'links.response = "step" (solved after the free step), links.stiffness <= {ok:.3g} '
-                             f'N/m (now {k:g}), or links.enabled = false')
-            if stiff_contacts:
-                k = self.contacts.stiffness
-                ok = k * (CONTACT_RATE_LIMIT / rates["contacts"]) ** 2
-                names.append("hair contacts")
-                fixes.append(f'interactions.response = "step" (solved after the free step), interactions.stiffness '
-                             f'<= {ok:.3g} N/m (now {k:g}), or interactions.enabled = false')
-            stage = " and ".join(names) + " (forces in the free step)"
+        stiff = [(label, key, part, rates[rate], limit) for label, key, rate, part, limit in (
+            ("static links", "links", "links", self.links, LINK_RATE_LIMIT),
+            ("hair contacts", "interactions", "contacts", self.contacts, CONTACT_RATE_LIMIT))
+            if rates.get(rate, 0.0) > limit]
+        if stiff:
+            # the rate goes as sqrt(k): the stiffness at the limit is k (limit / rate)^2
+            fixes = [f'{key}.response = "step" (solved after the free step), {key}.stiffness <= '
+                     f'{part.stiffness * (limit / rate) ** 2:.3g} N/m (now {part.stiffness:g}), or '
+                     f'{key}.enabled = false' for _, key, part, rate, limit in stiff]
+            stage = " and ".join(label for label, *_ in stiff) + " (forces in the free step)"
             advice = (f"their springs are too stiff for the free step at {step}, which takes them explicitly; "
                       f"more substeps do not help. Set " + "; and ".join(fixes))
             return stage, advice

@@ -101,33 +101,31 @@ def test_undamped_free_twist_asks_for_damping_not_substeps(integrator):
     assert _run(TINY, [*fixed, "sim.substeps=16"], 10) is None
 
 
-def test_stiff_links_in_the_free_step_name_the_links_and_their_response_runs():
-    """Links of 1,000 N/m taken explicitly in the free step (8 substeps) blow up; the fault names the links, and
-    solving them after the free step, the stiffness it names, or no links runs."""
-    scene = [f"groom.count={60}", "dense.count=0", "interactions.enabled=false"]
-    fault = _run(LONG_HAIR, [*scene, "links.stiffness=1000"], 6)
-    assert fault is not None and fault.stage.startswith("static links"), fault
+def _free_step_fault_and_its_advice(path, scene, key: str, stiffness: str, stage: str):
+    """Springs of ``key`` (links / interactions) too stiff for the free step fault naming ``stage``; each way out the
+    advice gives runs: their response after the free step, the stiffness it computes, turning them off."""
+    fault = _run(path, [*scene, f"{key}.stiffness={stiffness}"], 6)
+    assert fault is not None and fault.stage.startswith(stage), fault
     advice = _advice(fault)
-    assert 'links.response = "step"' in advice and "links.enabled = false" in advice
-    stiffness = float(advice.split("links.stiffness <= ")[1].split()[0])
-    assert _run(LONG_HAIR, [*scene, "links.stiffness=1000", 'links.response="step"'], 6) is None
-    assert _run(LONG_HAIR, [*scene, f"links.stiffness={stiffness}"], 6) is None
-    assert _run(LONG_HAIR, [*scene, "links.stiffness=1000", "links.enabled=false"], 6) is None
+    assert "more substeps do not help" in advice and f"{key}.enabled = false" in advice
+    assert f'{key}.response = "step"' in advice
+    computed = float(advice.split(f"{key}.stiffness <= ")[1].split()[0])
+    assert _run(path, [*scene, f"{key}.stiffness={stiffness}", f'{key}.response="step"'], 6) is None
+    assert _run(path, [*scene, f"{key}.stiffness={computed}"], 6) is None
+    assert _run(path, [*scene, f"{key}.stiffness={stiffness}", f"{key}.enabled=false"], 6) is None
+
+
+def test_stiff_links_in_the_free_step_name_the_links_and_their_response_runs():
+    """Links of 1,000 N/m taken explicitly in the free step (8 substeps) blow up; the fault names the links."""
+    _free_step_fault_and_its_advice(LONG_HAIR, ["groom.count=60", "dense.count=0", "interactions.enabled=false"],
+                                    "links", "1000", "static links")
 
 
 @pytest.mark.parametrize("step", [["sim.substeps=8"], ["sim.substeps=4", 'interactions.response="mass"']])
 def test_stiff_hair_contacts_in_the_free_step_name_the_contacts(step):
     """Contacts of 1e5 N/m in the free step (8 substeps with the automatic response, or 4 with the mass form) were
-    blamed on the dynamics with "raise substeps"; the fault names the contacts, and their response after the free
-    step or the stiffness it names runs."""
-    contacts = ["interactions.enabled=true", *step]
-    fault = _run(TINY, [*contacts, "interactions.stiffness=1e5"], 6)
-    assert fault is not None and fault.stage.startswith("hair contacts"), fault
-    advice = _advice(fault)
-    assert "more substeps do not help" in advice and "interactions.enabled = false" in advice
-    stiffness = float(advice.split("interactions.stiffness <= ")[1].split()[0])
-    assert _run(TINY, [*contacts, "interactions.stiffness=1e5", 'interactions.response="step"'], 6) is None
-    assert _run(TINY, [*contacts, f"interactions.stiffness={stiffness}"], 6) is None
+    blamed on the dynamics with "raise substeps"; the fault names the contacts."""
+    _free_step_fault_and_its_advice(TINY, ["interactions.enabled=true", *step], "interactions", "1e5", "hair contacts")
 
 
 def test_body_contact_fault_on_a_still_head_names_the_wind():
