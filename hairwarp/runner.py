@@ -112,6 +112,11 @@ class Stepper:
         return self.solver.check(self.state, self.frame, substeps=self.substeps)
 
 
+#: The checkpoint's entry for the hair speed fault's bound (``Solver.speed_terms``), and the terms it holds, in order.
+SPEED_KEY = "solver.speed_terms"
+SPEED_TERMS = ("start", "carried", "colliders", "wind")
+
+
 def is_teleport(before, after, distance: float, angle_deg: float, centre=(0.0, 0.0, 0.0)) -> bool:
     """Whether the head jumped between two motion samples (or ``(position, rotation)`` poses): it carried the point
     ``centre`` (head frame; the middle of the hair, :func:`hairwarp.state.hair_ball`) farther than ``distance`` [m],
@@ -476,6 +481,9 @@ class Simulation:
         out["stepper.frame"] = np.array(st.frame, dtype=np.int64)
         out["stepper.parity"] = np.array(st.parity, dtype=np.int64)
         out.update({f"solver.{k}": _host_copy(a) for k, a in self.solver.persistent_arrays().items()})
+        # what the hair speed fault's bound has seen so far (host floats): a resumed run checks against the same bound
+        terms = self.solver.speed_terms(st.control)
+        out[SPEED_KEY] = np.array([terms[k] for k in SPEED_TERMS], dtype=np.float64)
         return out
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
@@ -489,7 +497,7 @@ class Simulation:
         targets = {f"state{i}.{name}": getattr(s, name) for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
         targets.update({f"solver.{k}": a for k, a in self.solver.persistent_arrays().items()})
         expected = set(targets) | {"stepper.time", "stepper.frame", "stepper.parity"}
-        if set(arrays) != expected:
+        if set(arrays) - {SPEED_KEY} != expected:
             raise ValueError(f"the checkpoint does not fit this scene: it holds {sorted(set(arrays) - expected)} "
                              f"more and {sorted(expected - set(arrays))} less than the simulation")
         for key, target in targets.items():  # every check before the first change: a refused one changes nothing
@@ -508,7 +516,12 @@ class Simulation:
         st.time = time_s
         st.frame = int(frame)
         st.parity = int(parity)
-        self.solver.measure_start_speed(st.state)  # the hair speed check's start: the checkpoint's own motion
+        speeds = np.asarray(arrays.get(SPEED_KEY, ()), dtype=np.float64).reshape(-1)
+        if len(speeds) == len(SPEED_TERMS) and np.isfinite(speeds).all():
+            # the bound the run had (a checkpoint written before these were kept: the checkpoint's own motion)
+            self.solver.restore_speed_terms(st.control, dict(zip(SPEED_TERMS, speeds.tolist())))
+        else:
+            self.solver.measure_start_speed(st.state)
         # the head, the root frames, the wind and the colliders as the checkpoint's time has them: what is read
         # before the next step (the dense hair, the colliders' meshes) follows the head there, not where the run was
         _, sample, frames = self._applied(time_s)

@@ -578,6 +578,16 @@ class Solver:
             "fall": math.sqrt(2.0 * math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]) * self._longest_strand),
         }
 
+    def restore_speed_terms(self, control, terms: dict[str, float]):
+        """Put back what :meth:`speed_terms` had seen (``start``, ``carried``, ``colliders``, ``wind``), as a
+        checkpoint holds them: a restored run is checked against the bound it had."""
+        self._start_speed_host = float(terms["start"])
+        self._start_pending = False
+        control.carried_speed = float(terms["carried"])
+        control.wind_speed = float(terms["wind"])
+        if self.colliders is not None:
+            self.colliders.peak_speed = float(terms["colliders"])
+
     def speed_bound(self, control=None) -> float:
         """The fastest [m/s] a guide vertex may move at the end of a frame: ``speed_margin`` times the sum of
         :meth:`speed_terms`, the speed the run's own motion explains. Hair that whips faster than a few times what

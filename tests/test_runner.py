@@ -431,18 +431,21 @@ def test_checkpoint_restores_the_run_exactly():
     checkpoint followed the run and ``restore`` went back to nowhere, 54 mm off on the tiny scene.)"""
     sim = Simulation(hw.Scene.load(hw.Scene.default_path().parent / "long_hair.toml",
                                    ["groom.count=40", "dense.count=0", "output.preview=false"]))
-    for _ in range(3):
+    for _ in range(10):  # into the turn's ramp: the head speeds up over the next frames
         sim.advance_frame()
     saved = sim.checkpoint()
     at_checkpoint = sim.guide_curves()[0].copy()
+    bound = sim.solver.speed_bound()
     ahead = []
     for _ in range(3):
         sim.advance_frame()
         ahead.append(sim.guide_curves()[0].copy())
     assert not np.array_equal(ahead[-1], at_checkpoint)  # the run moved on
+    assert sim.solver.speed_bound() > bound  # the turn speeds up: the speed fault's bound grew with it
     sim.restore(saved)
-    assert sim.stepper.frame == 3
+    assert sim.stepper.frame == 10
     np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
+    assert sim.solver.speed_bound() == bound  # the bound the run had there, not a fresh one
     for expected in ahead:
         sim.advance_frame()
         np.testing.assert_array_equal(sim.guide_curves()[0], expected)
@@ -452,7 +455,13 @@ def test_checkpoint_restores_the_run_exactly():
         with pytest.raises(ValueError, match="stepper.time, frame and parity"):
             sim.restore({**saved, key: np.array(bad)})
     np.testing.assert_array_equal(sim.guide_curves()[0], before)
-    assert sim.stepper.frame == 6
+    assert sim.stepper.frame == 13
+    # a checkpoint written before the bound was kept in it restores too, the bound then from its own motion
+    from hairwarp.runner import SPEED_KEY
+    sim.restore({k: v for k, v in saved.items() if k != SPEED_KEY})
+    np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
+    v = np.linalg.norm(sim.guide_curves()[1], axis=1).max()
+    assert sim.solver.speed_terms()["start"] >= v * (1.0 - 1e-6)
 
 
 def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, tmp_path):
