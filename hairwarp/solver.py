@@ -567,7 +567,7 @@ class Solver:
         """The speeds [m/s] :meth:`speed_bound` adds up: ``carried``, the fastest the head or the root frames have
         carried a point of the hair (``Control.carried_speed``); ``colliders``, the fastest a world collider has
         moved a point of itself; ``wind``, the strongest wind; ``fall``, ``sqrt(2 |g| L)`` for the longest strand
-        ``L`` (a strand swinging down from level under gravity); ``start``, the fastest vertex where the run started
+        ``L`` (a strand swinging down from level under gravity); ``start``, the hair's own speed where the run started
         (:meth:`measure_start_speed`). ``control``: default the last step's."""
         control = self._control if control is None else control
         g = self.model.gravity
@@ -681,14 +681,7 @@ class Solver:
                 what = f"a joint bent more than {bound}"
             else:
                 what = self._speed_report()
-            rates = self._rates(dt, responders=True)
-            if max(rates.get("links", 0.0), rates.get("contacts", 0.0)) > RESPONSE_RATE_LIMIT and (
-                    (self.links is not None and self.links.response) or (self.contacts is not None
-                                                                         and self.contacts.response)):
-                # springs this stiff whip the hair even solved after the free step (``RESPONSE_RATE_LIMIT``)
-                stage, advice = "links and hair contacts (response)", self._response_advice(dt)
-            else:
-                stage, advice = self._dynamics_driver(dt, substeps, more, step)
+            stage, advice = self._dynamics_driver(dt, substeps, more, step)
         message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
 
@@ -745,8 +738,9 @@ class Solver:
 
     def _dynamics_driver(self, dt: float, substeps: int | None, more: str, step: str) -> tuple[str, str]:
         """The stage that drives a fault of the free step (a non-finite joint, a joint or a vertex too fast), and
-        advice that works for it, in this order: links or hair contacts stiffer than the free step holds, air drag
-        on strands too light for it, an undamped twist, an explicit integrator's step bound, then the step."""
+        advice that works for it, in this order: links or hair contacts stiffer than the free step holds, or far
+        stiffer than even their response after it holds, air drag on strands too light for it, an undamped twist, an
+        explicit integrator's step bound, then the step."""
         model = self.model
         rates = self._rates(dt)
         stiff = [(label, key, part, rates[rate], limit) for label, key, rate, part, limit in (
@@ -762,6 +756,11 @@ class Solver:
             advice = (f"their springs are too stiff for the free step at {step}, which takes them explicitly; "
                       f"more substeps do not help. Set " + "; and ".join(fixes))
             return stage, advice
+        responding = self._rates(dt, responders=True)
+        if any(part is not None and part.response and responding.get(name, 0.0) > RESPONSE_RATE_LIMIT
+               for name, part in (("links", self.links), ("contacts", self.contacts))):
+            # springs this stiff whip the hair even solved after the free step (``RESPONSE_RATE_LIMIT``)
+            return "links and hair contacts (response)", self._response_advice(dt)
         if rates.get("drag", 0.0) > DRAG_RATE_LIMIT:
             linear = float((model.seg_mass.numpy() / model.seg_length.numpy()).min())
             stage = "air drag (strands.drag) on light strands"

@@ -49,6 +49,7 @@ def test_hair_speed_check_matches_the_velocities_read_back():
         solver.check(state, 2)
     expected = np.linalg.norm(v.astype(np.float32), axis=2).max(axis=1)
     expected[4] = np.inf
+    # the kernel's float32 norm against numpy's of the same float32 vectors: a few ulps apart
     np.testing.assert_allclose(solver.strand_speed.numpy(), expected, rtol=1e-6)
     assert info.value.bits & hw.Fault.HAIR_SPEED and "sim.speed_margin" in str(info.value)
     # below the bound: no fault
@@ -59,8 +60,8 @@ def test_hair_speed_check_matches_the_velocities_read_back():
 
 def test_carried_speed_bounds_the_head_motion_by_finite_differences():
     """``Control.carried_speed`` is at least the fastest a point of the hair at rest moves with the head, taken by
-    central differences of the motion's poses, and not much more (it bounds the hair by a ball). Teleports off: the
-    nod moves the head's origin, 1.5 m below the pivot, farther than ``head.teleport_distance`` in a frame."""
+    central differences of the motion's poses, and not much more (it bounds the hair by a ball). Teleports off, so
+    every step's head sample is the motion's own (a teleport hands the control a still head)."""
     sim = Simulation(hw.Scene.load(TINY, ["output.preview=false", "head.teleport_distance=inf"]))
     rest = sim.model.rest_vertex_positions.reshape(-1, 3)
     motion, h = sim.motion, 1e-5
@@ -74,6 +75,8 @@ def test_carried_speed_bounds_the_head_motion_by_finite_differences():
             ends.append(rest @ quat_to_matrix(np.asarray(rotation)).T + np.asarray(position))
         fastest = max(fastest, float(np.linalg.norm(ends[1] - ends[0], axis=1).max() / (2 * h)))
     carried = sim.stepper.control.carried_speed
+    # 1e-3: central differences at h = 1e-5 s of a float64 pose are good to far better than that, while the
+    # control's head pose and velocity are float32 (about 1e-7 relative)
     assert fastest > 0.1 and fastest * (1 - 1e-3) <= carried <= 2.0 * fastest
 
 
@@ -168,6 +171,7 @@ def test_frames_kept_before_a_speed_fault_are_those_of_the_run_and_resume_finish
     stage = Usd.Stage.Open(str(tmp_path / "tiny.partial" / "tiny.usdc"))
     guides = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides"))
     kept = [np.linalg.norm(np.asarray(guides.GetVelocitiesAttr().Get(f)), axis=1).max() for f in range(1, frame)]
+    # the cache holds float32 velocities, the same the run had; 1e-5 covers the norm taken in another order
     np.testing.assert_allclose(kept, speeds[:-1], rtol=1e-5)
     simulate(hw.Scene.load(TINY, [*light, "strands.drag=0"]), out, frames=10, progress=False, resume=True)
     assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 10.0
