@@ -179,12 +179,13 @@ class CacheFolder:
         if owner.get("host") != socket.gethostname():
             return owner  # another machine's process cannot be checked: assume it runs
         try:
-            os.kill(int(owner["pid"]), 0)
+            pid = int(owner["pid"])
+            os.kill(pid, 0)
         except ProcessLookupError:
             return None
         except (PermissionError, ValueError, KeyError, TypeError):
             return owner
-        return owner
+        return None if _exited(pid) else owner
 
     def release(self) -> None:
         """Drop the lock; remove the working folder when it holds no complete frame."""
@@ -396,3 +397,17 @@ def _frame_of(entry: Path) -> int | None:
 def layer_markers(first: int, last: int, chunked: bool = False) -> dict:
     """The root layer's ``customLayerData`` entries that say which frames it holds."""
     return {_FIRST_KEY: int(first), _FRAME_KEY: int(last), **({_CHUNKED_KEY: True} if chunked else {})}
+
+
+def _exited(pid: int) -> bool:
+    """Whether process ``pid`` has ended and waits only to be reaped (a zombie: it answers signal 0 like a live
+    one). A run killed with SIGKILL whose parent has not yet collected it, as when its parent was gone and the
+    system's first process reaps it (a second or more on some machines), no longer writes anything. Linux
+    (``/proc``); elsewhere a process that answers counts as live."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    # "pid (command) state ...": the command may hold spaces and parentheses, the state follows the last ")"
+    fields = stat[stat.rfind(")") + 1:].split()
+    return bool(fields) and fields[0] in ("Z", "X")
