@@ -989,6 +989,7 @@ class Scene:
                 except ValueError as exc:
                     problems.append(exc.args[0])
             _switch_collider_kinds(raw, keys)
+            _switch_motion_kind(raw, keys)
             _switch_dense_amount(raw, keys)
             if problems:
                 raise SceneError(label, problems)
@@ -1256,9 +1257,23 @@ def _unread_motion_overrides(kind: str, keys: set[str]) -> list[tuple[str, str]]
                 and leaf not in read:
             kinds = [k for k, keys in _motion.MOTION_KEYS.items() if leaf in keys]
             if kinds:
+                fix = "drop this override" if "head.motion.kind" in keys else "set head.motion.kind too"
                 errors.append((key, f"is read by kind = {' or '.join(repr(k) for k in kinds)} only "
-                                    f"(kind is {kind!r}); set head.motion.kind too"))
+                                    f"(kind is {kind!r}); {fix}"))
     return errors
+
+
+def _switch_motion_kind(raw: dict, keys: set[str]):
+    """An override of ``head.motion.kind`` drops the file's ``[head.motion]`` keys the new kind does not read:
+    ``-s 'head.motion.kind="still"'`` holds the head of a keyframed scene still (its ``[[head.motion.keys]]`` were
+    refused as keys of another kind, and no override can remove a table). Keys the overrides set themselves stay,
+    and are reported if the kind does not read them."""
+    motion = raw.get("head", {}).get("motion") if isinstance(raw.get("head"), dict) else None
+    if "head.motion.kind" not in keys or not isinstance(motion, dict):
+        return
+    read = set(_motion.MOTION_KEYS.get(motion.get("kind"), ())) | {"kind"}
+    for name in [k for k in motion if k not in read and f"head.motion.{k}" not in keys]:
+        del motion[name]
 
 
 def _switch_dense_amount(raw: dict, keys: set[str]):

@@ -314,6 +314,24 @@ def test_a_motion_key_overridden_for_a_kind_that_ignores_it_is_refused():
     assert scene.with_overrides(["head.motion.kind='still'"]).head.motion.kind == "still"
 
 
+def test_a_keyframed_head_is_held_still_by_overriding_its_kind_alone():
+    """-s head.motion.kind=still on a scene of [[head.motion.keys]] drops its keys (no override can remove a table; they
+    were refused as keys of another kind); the head then stays at the pose the keys start from, the identity. A key
+    the overrides set for a kind that does not read it is still refused, with advice that fits."""
+    keyed = Scene.load(SCENES / "long_hair_shoulders.toml")
+    assert keyed.head.motion.kind == "keyframes" and keyed.head.motion.keys
+    still = keyed.with_overrides(["head.motion.kind='still'"])
+    assert still.head.motion.kind == "still" and not still.head.motion.keys
+    motion = still.head_motion()
+    for t in (0.0, 0.7, 2.5):
+        position, rotation = motion.pose(t)[:2]
+        assert np.allclose(position, 0.0) and np.allclose(np.abs(rotation), [0.0, 0.0, 0.0, 1.0])
+    with pytest.raises(SceneError) as info:
+        keyed.with_overrides(["head.motion.kind='still'", "head.motion.keys=[]"])
+    assert info.value.errors == [("head.motion.keys", "is read by kind = 'keyframes' only (kind is 'still'); "
+                                                      "drop this override")]
+
+
 def test_keys_of_the_other_groom_source_are_rejected(tmp_path):
     err = _errors(_write(tmp_path, MINIMAL + "scale = 0.01\n"))
     assert err.errors == [("groom.scale", "applies to groom.file only, not to a generator")]
