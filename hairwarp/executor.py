@@ -8,10 +8,9 @@ pool thread is free; Warp's CPU kernels run without the GIL, so the chunks run a
 Results never depend on the thread count:
 
 - a kernel whose every element is written by one thread only (a strand, a segment, a dense vertex) gives the same
-  bits whatever its range, so such launches are split into ranges that shrink as the launch goes (each a share of
-  what is left, the last ones a quarter of ``min_chunk``, the size below which a launch is not split at all), taken
-  by the threads as they come free: the large first ones cost few hand-offs, the small last ones even out strands
-  of unequal cost, so no thread waits long for the last;
+  bits whatever its range, so such launches are split into a few ranges per thread (no smaller than ``min_chunk``
+  elements, below which a chunk costs more to hand to a thread than it runs), taken by the threads as they come
+  free, which evens out strands of unequal cost;
 - small integer arrays that threads OR or add into (fault bits, counters) are given to each chunk as a private
   zeroed copy and folded into the real array after the chunks join (integer OR and sums are exact, so the order
   does not matter): ``private_or`` and ``private_add``;
@@ -46,7 +45,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import ctypes
-import math
 import os
 import threading
 import time
@@ -65,18 +63,10 @@ from hairwarp.kernels.chunks import pool_call
 #: thread costs more than it saves (measured on the default scene's kernels, ``hairwarp bench threads``).
 MIN_CHUNK = 64
 
-#: A chunk of a launch whose elements write only themselves takes this share of the elements left over the thread
-#: count (a guided schedule): 1/4 of the launch first on two threads, then 3/16, 9/64, ... The threads take the
-#: chunks in turn as they come free, so a thread whose strands cost more (more contacts, longer strands) takes fewer;
-#: the last chunks are small, and the others wait at most for one of them. Equal chunks, 8 a thread, left a thread
-#: idle for up to an eighth of its share at the end: the mohawk's dynamics ran 1.74-1.92x faster on two threads,
-#: with these 1.94-1.98x (two independent copies: 1.96x; ``hairwarp bench threads``).
-GUIDED_SHARE = 0.5
-
-#: The smallest chunk of a guided launch, as a fraction of its ``min_chunk``: ``min_chunk`` is where splitting a
-#: launch at all pays (below it one thread runs it); once the threads run a launch's table, a further chunk costs
-#: them one compare-and-swap (``kernels.chunks``), far less than a quarter of ``min_chunk`` elements' work.
-TAIL_FRACTION = 0.25
+#: Chunks per thread of a launch whose elements write only themselves: the threads take them as they come free,
+#: so a thread whose strands cost more (more contacts, longer strands) does not keep the others waiting; the last
+#: chunk leaves the others idle for at most its own time (an eighth of a thread's share).
+CHUNKS_PER_THREAD = 8
 
 #: How long a pool thread waits for the next launch, spinning, before it sleeps [s]: longer than the host work
 #: between the launches of a step (the default scene's longest gap is about 0.15 ms), short enough that an idle
@@ -350,13 +340,17 @@ class Executor:
     Args:
         device: the Warp device; on CUDA every launch is one launch and ``threads`` is 1.
         threads: CPU threads; None or 0: every core this process may use.
-        min_chunk: fewest elements a launch is split into chunks from (see :data:`MIN_CHUNK`).
+        min_chunk: fewest elements in a chunk (see :data:`MIN_CHUNK`).
+        chunks_per_thread: chunks per thread of a launch whose elements write only themselves (see
+            :data:`CHUNKS_PER_THREAD`).
     """
 
-    def __init__(self, device=None, threads=None, *, min_chunk: int = MIN_CHUNK):
+    def __init__(self, device=None, threads=None, *, min_chunk: int = MIN_CHUNK,
+                 chunks_per_thread: int = CHUNKS_PER_THREAD):
         self.device = wp.get_device(device)
         self.threads = 1 if self.device.is_cuda else resolve_threads(threads)
         self.min_chunk = max(1, int(min_chunk))
+        self.chunks_per_thread = max(1, int(chunks_per_thread))
         self._workers = None
         self._private = {}
         self._prepared = {}
@@ -405,19 +399,15 @@ class Executor:
     # -- partitions ----------------------------------------------------------------------
 
     def chunks(self, n: int, min_chunk: int | None = None, per_thread: int | None = None) -> list[tuple[int, int]]:
-        """``(start, count)`` of the ranges a launch of ``n`` elements that write only themselves runs as; one range
-        when there is one thread or fewer than two ``min_chunk`` elements.
-
-        By default a guided schedule: each range :data:`GUIDED_SHARE` of the elements left over the thread count,
-        none below :data:`TAIL_FRACTION` of ``min_chunk`` (:func:`_guided`). With ``per_thread``, that many equal
-        ranges per thread (to within one element), none below ``min_chunk``: for launches whose every chunk has a
-        buffer of its own (the hair contacts' detection), where the count of chunks is what costs."""
-        m = self.min_chunk if min_chunk is None else max(1, int(min_chunk))
-        if self.threads <= 1 or n < 2 * m:
+        """``(start, count)`` of the ranges a launch of ``n`` elements that write only themselves runs as: up to
+        ``chunks_per_thread`` per thread, equal to within one element, none below ``min_chunk`` (one range when
+        ``n`` is small or there is one thread)."""
+        if self.threads <= 1:
             return [(0, n)]
-        if per_thread is not None:
-            return _split(n, max(1, min(self.threads * int(per_thread), n // m)))
-        return _guided(n, self.threads, max(1, int(m * TAIL_FRACTION)))
+        m = self.min_chunk if min_chunk is None else max(1, int(min_chunk))
+        per_thread = self.chunks_per_thread if per_thread is None else per_thread
+        k = max(1, min(self.threads * per_thread, n // m))
+        return _split(n, k)
 
     @staticmethod
     def fixed_chunks(n: int, count: int) -> list[tuple[int, int]]:
@@ -726,17 +716,6 @@ def _capturing(device) -> bool:
 def _pack(kernel, index, value, device):
     arg = kernel.adj.args[index]
     return _pack_arg(kernel, arg.type, arg.label, value, device, False)
-
-
-def _guided(n: int, threads: int, tail: int) -> list[tuple[int, int]]:
-    """Ranges of ``n`` elements, each :data:`GUIDED_SHARE` of those left over ``threads``, none below ``tail``."""
-    out, start = [], 0
-    while start < n:
-        left = n - start
-        count = min(left, max(tail, math.ceil(GUIDED_SHARE * left / threads)))
-        out.append((start, count))
-        start += count
-    return out
 
 
 def _split(n: int, k: int) -> list[tuple[int, int]]:
