@@ -454,7 +454,8 @@ def test_robustness_convergence_floor_on_the_tiny_scene():
     gravity = raw_scene("tiny").get("sim", {}).get("gravity", [0.0, 0.0, -9.81])
     assert perturbed(raw_scene("tiny"))["sim"]["gravity"] == [g * (1.0 + PERTURBATION) for g in gravity]
     conv = bench_convergence((1, 2), 4, 0.3, scene_name="tiny")
-    assert conv["perturbation"] == PERTURBATION and set(conv["variants"]) == {"links", "no links"}
+    assert conv["perturbation"] == PERTURBATION
+    assert set(conv["variants"]) == {"links", "no links", "free hair", "colliders only"}
     for v in conv["variants"].values():
         assert v["reference_fault"] is None and all(r["fault"] is None for r in v["rows"])
         assert 0.0 < v["reference_again_mm"] < min(r["tip_rms_mm"] for r in v["rows"])
