@@ -585,8 +585,10 @@ def test_threads_report_states_goals_and_efficiency():
             {"stage": "frame (detection, substeps, dense)", "t1_ms": 50.0, "tn_ms": 40.0, "speedup": 1.25,
              "copies_speedup": 1.8, "efficiency": 1.25 / 1.8}]
     scene = {"scene": "s.toml", "guides": 3, "segments": 4, "substeps": 8, "threads": 2, "rows": rows,
-             "load_before": [0.0], "load_after": [0.0]}
+             "load_before": [0.0], "load_after": [0.0],
+             "gate": {"rounds_under_load": 1, "rounds": 5, "others_busy_cores_max": 0.9, "threshold_cores": 0.35}}
     text = "\n".join(md_threads({"threads": 2, "cores": 2, "scenes": [scene]}))
+    assert "after; 1 of 5 rounds began with other programs busy on >= 0.35 cores)" in text
     assert "| dynamics (aba + integrate) | 2.000 | 1.000 | 2.00x | 1.60x | 125 % |" in text
     assert "- dynamics: 2.00x (goal >= 1.9x on 2 cores: met); 2 independent copies reach 1.60x" in text
     assert "- frame: 1.25x (goal >= 1.8x on 2 cores: not met)" in text and "keeps 69 %" in text
