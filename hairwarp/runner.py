@@ -102,8 +102,30 @@ class Stepper:
         self.parity = 1 - self.parity
         self.time += self.dt
 
-    def advance_frame(self, before_step=None):
-        """Run one frame of substeps, then check for faults (one integer read from the device)."""
+    def advance_frame(self, before_step=None, substeps: int | None = None):
+        """Run one frame of substeps, then check for faults (one integer read from the device).
+
+        With ``substeps`` (this frame only) the frame is taken in that many equal steps instead, eagerly (a graph
+        replays the steps it was captured with); the frame ends at the time the usual steps reach.
+        """
+        if substeps is None or substeps == self.substeps:
+            return self._frame(before_step)
+        if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
+            raise ValueError(f"substeps must be an integer >= 1 (steps in this frame), got {substeps!r}")
+        n, dt, graph = self.substeps, self.dt, self.use_graph
+        end = self.time
+        for _ in range(n):
+            end += dt  # the time the frame's usual steps reach, to the bit
+        self.substeps, self.dt, self.use_graph = int(substeps), dt * n / int(substeps), False
+        try:
+            bits = self._frame(before_step)
+        finally:
+            self.substeps, self.dt, self.use_graph = n, dt, graph
+            self.solver.set_dt(dt)  # a graph replays without setting it
+        self.time = end
+        return bits
+
+    def _frame(self, before_step):
         for _ in range(self.substeps):
             if before_step is not None:
                 before_step(self.time + self.dt, self.control)
