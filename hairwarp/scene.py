@@ -576,6 +576,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "damping": Field("float", 0.01, "spring damping k_d", "N s/m", range="[0, inf)"),
             "break_length": Field("float", 0.03, "a link stretched past this breaks for good", "m",
                                   range="(0, inf)"),
+            "break_step": Field("float", 1.0 / 120.0, "longest step a link may break at: a frame of longer steps in "
+                                "which a link breaks is taken again in steps this long, and its breaks are that "
+                                "frame's (0: links break at any step)", "s", range="[0, inf)"),
             "response": Field("str", "auto", "link forces solved after the free step, inside the strands' dynamics, on "
                               "the relative motion of their ends (step), or each link alone against its free "
                               "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
