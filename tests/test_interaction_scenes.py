@@ -366,6 +366,22 @@ def test_a_frame_taken_again_is_the_frame_a_run_at_the_break_step_takes():
                                           err_msg=f"frame {frame}: {name}")
 
 
+def test_frames_taken_again_in_a_run_replaying_captured_steps_are_the_eager_runs():
+    """With the steps replayed from captured graphs (CPU capture, one thread; the default on CUDA) a frame taken
+    again runs eagerly at the break step and the graphs then replay the scene's own step again: the same frames
+    are taken again and the run is the same bits as the eager one."""
+    runs = {}
+    for graph in (False, True):
+        sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", [*_NODS, "sim.substeps=1", "sim.threads=1"]))
+        sim.stepper.use_graph = graph
+        for _ in range(12):
+            sim.advance_frame()
+        runs[graph] = sim.refined_frames, sim.checkpoint()
+    assert runs[True][0] == runs[False][0] > 0
+    for key, value in runs[False][1].items():
+        np.testing.assert_array_equal(runs[True][1][key], value, err_msg=key)
+
+
 def test_steps_no_longer_than_the_break_step_are_left_as_they_were():
     """At 4 substeps (1/120 s, the break step itself) nothing is taken again: the run is the same bits as with
     ``links.break_step = 0``."""
