@@ -1134,37 +1134,6 @@ def damper_solve(
 
 
 @wp.func
-def keep_free_spin(chains: StrandChains, strand: int, joint_q: wp.array(dtype=wp.quat),
-                   w_free: wp.array(dtype=wp.vec3), joint_qd: wp.array(dtype=wp.vec3)):
-    """Take out of a response's answer ``joint_qd`` (in place) its change of each segment's spin about its own axis,
-    the free velocities being ``w_free`` and ``joint_q`` the joint rotations its solve was linearised at: every
-    vertex velocity of that solve stays as it was (a segment's spin moves no point on its axis).
-
-    No damper of the response sees that spin (``point_damper_blocks``), and it weighs m r^2 / 2; the solve moves it
-    only through the implicit joints' armature ``h C + h^2 K``, which a curved strand rolling about its own axis
-    relieves of the bend rates the dampers impose. Limp hair at one step a frame (``long_hair``, EI 1e-7, 64
-    segments: an armature 14,000 times the spin inertia) rolled at up to 12 rad/s, 0.4 rad over the step, and the
-    update ``q exp(h dw)`` at those angles turned the roll into bending: the strand's tip left the response at 2.2
-    m/s (3.8 a frame later) where the solve's own linearisation gave 0.43, its kinetic energy 26 times the free
-    step's where the solve took 11 % of it out. Without the roll the update gives 0.26 m/s.
-
-    In the segment's frame the answer's change of its angular velocity is ``W_k = R_k^T W_(k-1) + dw_k``, its spin
-    ``s_k = W_k . z``; without the spins, ``dw_k' = dw_k - s_k z + s_(k-1) R_k^T z``."""
-    S = chains.seg_per_strand
-    change = wp.vec3()  # the answer's change of the parent's angular velocity, as solved, in the parent's frame
-    spin = float(0.0)  # ... its spin about the parent's axis
-    z = wp.vec3(0.0, 0.0, 1.0)
-    for k in range(S):
-        i = strand * S + k
-        q = joint_q[i]
-        dw = joint_qd[i] - w_free[i]
-        change = wp.quat_rotate_inv(q, change) + dw
-        own = change[2]
-        joint_qd[i] = w_free[i] + dw - own * z + spin * wp.quat_rotate_inv(q, z)
-        spin = own
-
-
-@wp.func
 def finish_response(
     chains: StrandChains,
     strand: int,
@@ -1172,7 +1141,6 @@ def finish_response(
     V_base: wp.spatial_vector,
     h: float,
     scratch: AbaScratch,
-    joint_q_in: wp.array(dtype=wp.quat),
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
     seg_xform_out: wp.array(dtype=wp.transform),
@@ -1183,11 +1151,8 @@ def finish_response(
 ):
     """The end of a strand's response (``interaction_response``, ``kernels.sweeps.link_sweep``):
     ``q <- q exp(h dw)`` with ``dw`` the answer's change of the free velocities
-    (kept in ``scratch.qdd``) without its change of the segments' spins (``keep_free_spin``, at the step's start
-    ``joint_q_in``, where the answer was solved), the response's fault checks, and the forward kinematics of the
-    strand."""
+    (kept in ``scratch.qdd``), the response's fault checks, and the forward kinematics of the strand."""
     S = chains.seg_per_strand
-    keep_free_spin(chains, strand, joint_q_in, scratch.qdd, joint_qd_out)
     changed = always_fk
     for k in range(S):
         i = strand * S + k
@@ -1263,7 +1228,7 @@ def interaction_response(
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]  # the free velocities, for dw
     body_contact_solve(chains, strand, h, h, implicit, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
                        scratch, dampers, 1)
-    finish_response(chains, strand, X_base, V_base, h, scratch, joint_q_in, joint_q_out, joint_qd_out, seg_xform_out,
+    finish_response(chains, strand, X_base, V_base, h, scratch, joint_q_out, joint_qd_out, seg_xform_out,
                     vertex_positions_out, vertex_velocities_out, fault, 0)
 
 

@@ -256,8 +256,8 @@ def link_sweep(
     damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse)
     if last != 0:
         b = strand * bases.per_strand
-        finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_in, joint_q_out,
-                        joint_qd_out, seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
+        finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
+                        seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
     answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd_out, free_qd, free_velocities, answered_velocities)
     if contacts_swept != 0:
         copy_answer(strand, S, answered_velocities, answered_after)
