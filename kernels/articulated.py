@@ -447,6 +447,30 @@ MIDPOINT_ROTATION = wp.constant(0.05)
 MIDPOINT_ITERATIONS = wp.constant(2)
 
 
+#: Spin inertia that the response's solve (``interaction_response``, ``damper_solve``) gives each segment about its
+#: own axis, in multiples of its joint's largest armature ``h C + h^2 K`` (``spin_hold``). No damper of the response
+#: sees that spin (``point_damper_blocks``) and it weighs m r^2 / 2, but a curved strand rolling about its own axis
+#: relieves the armature of the bend rates the dampers impose: a joint bent by theta is relieved of a bend rate d by a
+#: roll of ``d / theta``, unbounded on a straight strand. Limp hair of 64 segments at one step a frame (``long_hair``,
+#: EI 1e-7: an armature 14,000 times the spin inertia) rolled at up to 12 rad/s, 0.4 rad over the step, and the update
+#: ``q exp(h dw)`` turned the roll into bending (a tip left at 2.2 m/s where the solve's own linearisation gave 0.43,
+#: 3.8 m/s a frame later: the robustness grid's burst). With a spin inertia equal to the armature the roll is
+#: ``theta d / (1 + theta^2)``, at most half the bend rate it relieves, so it turns a segment no farther than the step
+#: bends it. Held a hundred times harder, the response of strands of few segments stiffened against their dampers:
+#: limp hair of 8 segments at one step a frame burst in 3 of 17 draws (3.1-4.7 m/s; none without the hold, none with
+#: it at 1).
+SPIN_HOLD = wp.constant(1.0)
+
+
+@wp.func
+def spin_hold(chains: StrandChains, i: int, h: float, implicit: int):
+    """The rotational block [kg m^2, segment frame] that holds segment ``i``'s spin about its own axis in the
+    response's solve: ``SPIN_HOLD`` times the largest armature of its joint (zero without ``implicit``, where the
+    spin has no armature to relieve and the solve leaves it alone)."""
+    a = joint_armature(chains, i, h, implicit)
+    return wp.diag(wp.vec3(0.0, 0.0, SPIN_HOLD * wp.max(a[0], wp.max(a[1], a[2]))))
+
+
 @wp.func
 def contact_projector(n: wp.vec3, beta: float):
     """``n n^T + beta (I - n n^T)``: the contact damper's directions, normal whole, tangential by ``beta``."""
@@ -473,8 +497,8 @@ def body_contact_solve(
 ):
     """Body contact as part of the step: correct the free joint velocities ``joint_qd`` (in place) by impulses
     computed with the strand's own articulated inertia. With ``with_dampers`` the hair interactions' dampers
-    (``InteractionResponse``) join the solve; ``interaction_response`` runs it so with ``contacts`` disabled, on the
-    dampers alone.
+    (``InteractionResponse``) join the solve, each segment's spin held (``spin_hold``); ``interaction_response`` runs
+    it so with ``contacts`` disabled, on the dampers alone.
 
     Each vertex whose free end-of-step velocity would take it into a collider's contact layer (deeper than its
     ``gap`` allows) gets a damper ``F = -c P (v - v_target)`` toward the surface point's velocity, normal whole
@@ -590,7 +614,7 @@ def body_contact_solve(
             n_ = wp.spatial_top(p) + cn
             f = wp.spatial_bottom(p) + cf
             if with_dampers != 0:
-                A = A + dampers.A[i]
+                A = A + dampers.A[i] + spin_hold(chains, i, dt, implicit)
                 B = B + dampers.B[i]
                 C = C + dampers.C[i]
                 n_ = n_ - dampers.torque[i]
@@ -1082,10 +1106,10 @@ def damper_solve(
     reuse: int,
 ):
     """``body_contact_solve`` without body contacts, the same bits: ``(M_eff + h J^T C J) dw = J^T F`` with the
-    dampers' point inertias and forces, ``joint_qd`` corrected in place. Its inward pass keeps the matrix's factors
-    (``factors``; ``D^-1 A``, ``D^-1 B`` in ``scratch``); with ``reuse`` it reads them instead, for the same
-    matrix with other forces (the links' sweeps after their first: O(S) vector work, no 3 x 3 inverse or block
-    product)."""
+    dampers' point inertias and forces and the segments' spins held (``spin_hold``), ``joint_qd`` corrected in place.
+    Its inward pass keeps the matrix's factors (``factors``; ``D^-1 A``, ``D^-1 B`` in ``scratch``); with ``reuse`` it
+    reads them instead, for the same matrix with other forces (the links' sweeps after their first: O(S) vector work,
+    no 3 x 3 inverse or block product)."""
     S = chains.seg_per_strand
     cA = wp.mat33()
     cB = wp.mat33()
@@ -1102,7 +1126,7 @@ def damper_solve(
         Dinv = wp.mat33()
         if reuse == 0:
             A, B, C = segment_articulated_blocks(chains, loads, i, cA, cB, cC)
-            A = A + dampers.A[i]
+            A = A + dampers.A[i] + spin_hold(chains, i, h, implicit)
             B = B + dampers.B[i]
             C = C + dampers.C[i]
             Dinv, DA, DB, cA, cB, cC = factor_joint(chains, i, k, h, implicit, joint_q, A, B, C)
@@ -1212,7 +1236,8 @@ def interaction_response(
     acceleration (at one step a frame it made a third of ``fast_turn``'s segments a hundred times heavier).
     ``(M_eff + h J^T C J) dw = J^T F`` is ``body_contact_solve`` with the dampers' point inertias and forces per
     segment (``InteractionResponse``) added, ``contacts`` disabled: one inward and one outward pass, ``M_eff`` the
-    step's own (implicit joint armature included), linearised at the step's start. Then ``w += dw``,
+    step's own (implicit joint armature included) with each segment's spin held (``SPIN_HOLD``), linearised at the
+    step's start. Then ``w += dw``,
     ``q <- q exp(h dw)`` and the forward kinematics of the corrected strand; the push-out after the step keeps the
     strands out of the bodies. (Holding the body contacts of the free step in this solve too cost one step a frame
     its stability: ``long_hair_shoulders`` faulted.) With links, this is the first pass; Gauss-Seidel sweeps over the
