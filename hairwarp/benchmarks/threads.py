@@ -2,7 +2,12 @@
 for whole frames, on the default scene and the Ratboy mohawk, against one thread, in one run.
 
 One thread and N threads run the same simulation (two ``Simulation`` objects, each warmed up), timed in
-interleaved rounds (1, N, 1, N, ...) so a change of the machine's load hits both; each figure is the best round.
+interleaved rounds (1, N, 1, N, ...), each stage on one thread and then on N; a speed-up is the median over the
+rounds of each round's ratio, so a change of the machine between rounds (a single busy core clocks higher than two:
+one-thread timings of the same stage here spread by 1.9-2.7 ms between rounds of a quiet machine) hits both of
+its timings and a round that caught one side at its best is outvoted. (The best round of each side, divided, put
+one-thread and N-thread timings of different rounds against each other: the same suite gave 1.76x and 2.22x for the
+same stage in two runs.) The times shown are the medians of the rounds.
 A whole frame is timed over the same frames on every side: each timing restores the run's checkpoint and runs
 :data:`FRAMES_PER_TIMING` frames (timed back to back instead, the faster side ran later frames of the motion, with
 other contacts).
@@ -71,6 +76,10 @@ FRAME_STAGE = "frame (detection, substeps, dense)"
 #: Frames each timing of a whole frame runs from the checkpoint.
 FRAMES_PER_TIMING = 4
 
+#: Timings of a whole frame on each side in every round (one thread, N, the copies; then again): a frame's timing
+#: lasts a few tenths of a second, the machine's pace changes over seconds, and more pairs steady the median.
+FRAME_PAIRS = 3
+
 #: Frames every simulation runs before the timings (kernels loaded, buffers sized); the checkpoint is taken there.
 WARMUP_FRAMES = 2
 
@@ -137,6 +146,16 @@ def _time_copies(fns, min_s: float) -> float:
     return 1.0 / sum(n / dt for n, dt in zip(counts, spans))
 
 
+def _median(values) -> float:
+    v = sorted(values)
+    return 0.5 * (v[(len(v) - 1) // 2] + v[len(v) // 2])
+
+
+def _paired(one, other) -> float:
+    """Median over the rounds of each round's ratio ``one / other`` (seconds of the same round)."""
+    return _median([a / b for a, b in zip(one, other)])
+
+
 def _on_threads(run, count: int):
     """Call ``run(k)`` for k = 0 .. count - 1 at once: 0 on this thread, the others on threads of their own."""
     workers = [threading.Thread(target=run, args=(k,)) for k in range(1, count)]
@@ -148,7 +167,8 @@ def _on_threads(run, count: int):
 
 
 def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: float = 0.2, device="cpu") -> dict:
-    """Per-stage seconds on 1 and ``threads`` threads (best of ``rounds`` interleaved rounds) and the speed-ups."""
+    """Per-stage seconds on 1 and ``threads`` threads (medians of ``rounds`` interleaved rounds) and the speed-ups
+    (medians of the rounds' ratios)."""
     from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
@@ -163,33 +183,34 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
     copy_stages = [_stages(sim) for sim in copies]
     # every whole-frame timing starts from the same frame of the motion (checkpoints taken after the warm-up)
     saved = {id(sim): sim.checkpoint() for sim in [*sims.values(), *copies[1:]]}
-    best = {t: {name: float("inf") for name in stages[t]} for t in sims}
-    best_copies = {name: float("inf") for name in stages[1]}
+    spent_in = {t: {name: [] for name in stages[t]} for t in sims}
+    spent_copies = {name: [] for name in stages[1]}
     load_before = list(os.getloadavg())
     gates = []
     for _ in range(rounds):
         gates.append(GATE.wait())  # each round begins once other programs leave the cores alone (or says not)
-        for name in stages[1]:
+        for name in [n for n in stages[1] for _ in range(FRAME_PAIRS if n == FRAME_STAGE else 1)]:
             for t, sim in sims.items():
                 if name == FRAME_STAGE:
                     spent = _time_frames(sim, saved[id(sim)], stages[t][name])
                 else:
                     spent = _time(stages[t][name], min_s)
-                best[t][name] = min(best[t][name], spent)
+                spent_in[t][name].append(spent)
             if threads > 1:
                 if name == FRAME_STAGE:
                     spent = _time_frames_copies(copies, [saved[id(c)] for c in copies],
                                                 [c[name] for c in copy_stages])
                 else:
                     spent = _time_copies([c[name] for c in copy_stages], min_s)
-                best_copies[name] = min(best_copies[name], spent)
+                spent_copies[name].append(spent)
     load_after = list(os.getloadavg())
     rows = []
     for name in stages[1]:
-        row = {"stage": name, "t1_ms": 1e3 * best[1][name], "tn_ms": 1e3 * best[threads][name],
-               "speedup": best[1][name] / best[threads][name]}
+        one = spent_in[1][name]
+        row = {"stage": name, "t1_ms": 1e3 * _median(one), "tn_ms": 1e3 * _median(spent_in[threads][name]),
+               "speedup": _paired(one, spent_in[threads][name])}
         if threads > 1:
-            row["copies_speedup"] = best[1][name] / best_copies[name]
+            row["copies_speedup"] = _paired(one, spent_copies[name])
             row["efficiency"] = row["speedup"] / row["copies_speedup"]
         rows.append(row)
     m = sims[1].model
@@ -212,7 +233,7 @@ def suite_threads(config, out, log=lambda message: None) -> dict:
 
     threads = int(getattr(config, "threads", 0) or 0) or default_threads()
     quick = bool(config.quick)
-    rounds, min_s = (2, 0.05) if quick else (5, 0.3)
+    rounds, min_s = (2, 0.05) if quick else (7, 0.3)
     results = {"threads": threads, "cores": default_threads(), "goals": GOALS, "scenes": []}
     log(f"threads: default scene, 1 against {threads} threads, {rounds} interleaved rounds")
     over = ["groom.count=100", "dense.count=500"] if quick else []
@@ -243,7 +264,8 @@ def sweep_counts(threads: int) -> list[int]:
 
 def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
     """Speed-up against one thread at each of ``counts`` threads: the dynamics step of :data:`SWEEP_SIZE` (the
-    dynamics suite's canonical strands) and a whole frame of the default scene, best of interleaved rounds."""
+    dynamics suite's canonical strands) and a whole frame of the default scene: medians of interleaved rounds, each
+    speed-up the median of the rounds' ratios to the first count."""
     from hairwarp.benchmarks.common import BENCH_DT
     from hairwarp.benchmarks.ours import canonical_model
     from hairwarp.runner import Simulation
@@ -270,18 +292,20 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
         for _ in range(WARMUP_FRAMES):
             sim.advance_frame()
         saved[n] = sim.checkpoint()
-    best = {n: [float("inf"), float("inf")] for n in counts}
+    dyn = {n: [] for n in counts}
+    frame = {n: [] for n in counts}
     gates = []
     for _ in range(rounds):
         gates.append(GATE.wait())
         for n in counts:
-            best[n][0] = min(best[n][0], _time(steps[n], min_s))
-            best[n][1] = min(best[n][1], _time_frames(sims[n], saved[n], sims[n].advance_frame))
-    one = best[counts[0]]
+            dyn[n].append(_time(steps[n], min_s))
+            frame[n].append(_time_frames(sims[n], saved[n], sims[n].advance_frame))
+    first = counts[0]
     return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
-            "guides": sims[counts[0]].model.strand_count, "gate": _gate_summary(gates), "rows": [
-                {"threads": n, "dynamics_ms": 1e3 * best[n][0], "dynamics_speedup": one[0] / best[n][0],
-                 "frame_ms": 1e3 * best[n][1], "frame_speedup": one[1] / best[n][1]} for n in counts]}
+            "guides": sims[first].model.strand_count, "gate": _gate_summary(gates), "rows": [
+                {"threads": n, "dynamics_ms": 1e3 * _median(dyn[n]), "dynamics_speedup": _paired(dyn[first], dyn[n]),
+                 "frame_ms": 1e3 * _median(frame[n]), "frame_speedup": _paired(frame[first], frame[n])}
+                for n in counts]}
 
 
 def chart_sweep(data: dict, path: Path) -> Path:
@@ -340,8 +364,10 @@ def chart_threads(data: dict, path: Path) -> Path:
 def md_threads(data: dict) -> list[str]:
     """A report section for :func:`suite_threads`'s results."""
     lines = ["## Every core of the CPU (`hairwarp bench threads`)", "",
-             f"N = {data['threads']} threads against 1 ({data['cores']} cores this process may use), best of "
-             f"interleaved rounds; a whole frame: the mean of frames {WARMUP_FRAMES + 1}-"
+             f"N = {data['threads']} threads against 1 ({data['cores']} cores this process may use), "
+             f"{_rounds_words(data)}interleaved rounds, each stage timed on one "
+             "thread and then on N: a speed-up is the median of the rounds' ratios (each round's two timings taken "
+             f"moments apart), the times the rounds' medians; a whole frame: the mean of frames {WARMUP_FRAMES + 1}-"
              f"{WARMUP_FRAMES + FRAMES_PER_TIMING} of the run, restored from a checkpoint for every timing so every "
              "side runs the same frames. Goals on 2 cores: dynamics >= 1.9x, a whole frame >= 1.8x. The 1-minute load "
              "average before and after each scene is part of the figure: the machine is shared (the suite's own "
@@ -392,6 +418,11 @@ def md_sweep(sweep_data: dict) -> list[str]:
         lines += ["", f"- dynamics at 16 threads: {at16[0]['dynamics_speedup']:.1f}x (goal >= {SWEEP_GOAL_16:g}x: "
                       f"{met})."]
     return [*lines, ""]
+
+
+def _rounds_words(data: dict) -> str:
+    counts = sorted({s["rounds"] for s in data.get("scenes", []) if "rounds" in s})
+    return f"{', '.join(map(str, counts))} " if counts else ""
 
 
 def _gate_words(gate: dict | None) -> str:
