@@ -74,9 +74,9 @@ def run_suites(suites, config, out: Path, log=_log_to_stderr) -> dict:
         except (OSError, ValueError):
             pass
     machine = common.machine_info()
-    # The report's header describes the main suites' machine: a run of suites named alone (each keeps its own
-    # machine in its section) leaves it as it was.
-    keep_header = old_machine is not None and not any(name in SUITES for name in suites)
+    # The report's header describes the machine of the last run of every main suite; a run of some suites (each
+    # names its own machine in its section's footer) leaves it as it was.
+    keep_header = old_machine is not None and not set(SUITES) <= set(suites)
     results["machine"] = old_machine if keep_header else machine
     t_all = time.perf_counter()
     done = 0

@@ -657,3 +657,18 @@ def test_a_failing_suite_leaves_the_report_of_those_that_finished(tmp_path, monk
         bench.run_suites(["first", "second"], BenchConfig.quick_preset("cpu"), tmp_path, log=lambda m: None)
     assert written == [["first"]]
     assert json.loads((tmp_path / bench.JSON_NAME).read_text())["suites"]["first"]["figure"] == 1.0
+
+
+def test_each_suite_names_the_machine_it_ran_on():
+    """Suites of one report run at different times, on more than one kind of machine: each footer names its CPU,
+    and the header lists which suites ran where when there is more than one."""
+    from hairwarp.benchmarks.common import machine_words
+    from hairwarp.benchmarks.report import _suite_machines
+
+    assert machine_words({"cpu": "AMD EPYC", "cores": 2}) == " on AMD EPYC, 2 cores"
+    assert machine_words({}) == ""
+    one = {"a": {"machine": {"cpu": "X"}}, "b": {"machine": {"cpu": "X"}}}
+    assert _suite_machines(one) == []
+    two = {**one, "c": {"machine": {"cpu": "Y"}}}
+    (line,) = _suite_machines(two)
+    assert "X: a, b; Y: c" in line

@@ -282,6 +282,14 @@ def load_average() -> list[float] | None:
         return None
 
 
+def machine_words(sm: dict) -> str:
+    """Where a suite ran, for its section's footer (" on AMD EPYC, 2 cores"): a report gathers suites run at
+    different times, and not always on the same kind of machine."""
+    if not sm.get("cpu"):
+        return ""
+    return f" on {sm['cpu']}" + (f", {sm['cores']} cores" if sm.get("cores") else "")
+
+
 def machine_info() -> dict:
     """CPU, cores, Python and package versions, date, load average: what a figure depends on."""
     import warp as wp

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hairwarp.benchmarks.common import machine_words
+
 # Write times below this are within the frames' scatter: no ratio is taken of them [s].
 NOISE_S = 2e-3
 
@@ -462,7 +464,9 @@ def md_dense(data: dict) -> list[str]:
             lines[-1] += (f" Where it takes more than 1.1x ({where}): the frame layer, its fsyncs and the root "
                           "cost more than appending to one layer that keeps every frame's arrays in memory, whose "
                           "fresh copies outweigh them at larger frames.")
-    lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s.*"]
+    sm = data.get("machine", {})
+    lines += ["", f"*Suite `dense`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s"
+                  + (f" on {sm['date']}{machine_words(sm)}" if sm.get("date") else "") + ".*"]
     return lines
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from hairwarp.benchmarks.common import machine_words
+
 REPORT_NAME = "benchmarks.md"
 CHARTS = {
     "dynamics": "bench_dynamics.png",
@@ -254,6 +256,19 @@ def _machine(m: dict) -> list[str]:
         f"- Date {m.get('date')}; hairwarp {m.get('hairwarp')} (commit {m.get('git_commit')}); load average at start "
         f"{m.get('load_average_start')}, at end {m.get('load_average_end')}",
     ]
+
+
+def _suite_machines(s: dict) -> list[str]:
+    """Which CPU each suite ran on, where the suites of this report ran on more than one (their ratios are taken
+    within one run, on one machine; their absolute times are not comparable across them)."""
+    by_cpu: dict[str, list[str]] = {}
+    for name, data in s.items():
+        by_cpu.setdefault(str(data.get("machine", {}).get("cpu")), []).append(name)
+    if len(by_cpu) < 2:
+        return []
+    return ["- The suites ran on more than one machine (the footer of each section says which): "
+            + "; ".join(f"{cpu}: {', '.join(names)}" for cpu, names in by_cpu.items())
+            + ". Ratios are taken within one run; times in ms compare only within a suite."]
 
 
 def _peer_figure(r: dict) -> str:
@@ -605,7 +620,7 @@ def md_other(name: str, data: dict, out: Path) -> list[str]:
         figures = _stage_figures(value)
         lines.append(f"- {sub}: {figures if figures != '–' else 'see benchmarks.json'}")
     sm = data.get("machine", {})
-    lines += ["", f"*Suite `{name}`: {data.get('wall_s')} s on {sm.get('date')}"
+    lines += ["", f"*Suite `{name}`: {data.get('wall_s')} s on {sm.get('date')}{machine_words(sm)}"
                   + ("; quick sizes" if data.get("quick") else "") + ".*"]
     return lines
 
@@ -791,7 +806,7 @@ def write_report(results: dict, out: Path) -> Path:
     quick = [k for k, v in s.items() if v.get("quick")]
     if quick:
         lines += [f"**Quick (smoke) sizes for: {', '.join(quick)}** — not the reference figures.", ""]
-    lines += _machine(m) + [""]
+    lines += _machine(m) + _suite_machines(s) + [""]
     lines += _summary_md(s)
     for name, fn in (("dynamics", md_dynamics), ("accuracy", md_accuracy), ("stability", md_stability),
                      ("scaling", md_scaling), ("budget", md_budget)):
@@ -803,14 +818,19 @@ def write_report(results: dict, out: Path) -> Path:
                 gate = (f" Before each of its {qg['timings']} timings it waited for other programs to leave the "
                         f"cores ({qg['waited_s']} s in all); {qg['timings_under_load']} still started with others "
                         f"using ≥ {qg['threshold_cores']} core (marked †).")
-            lines += fn(s[name]) + ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}, load "
+            lines += fn(s[name]) + ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}"
+                                        f"{machine_words(sm)}, load "
                                         f"average {sm.get('load_average_start')} → {sm.get('load_average_end')}."
                                         f"{gate}*", ""]
     for name in s:
         if name in ("dynamics", "accuracy", "stability", "scaling", "budget"):
             continue
         section = _extra_section(name)
-        lines += (section(s[name]) if section else md_other(name, s[name], out)) + [""]
+        body = section(s[name]) if section else md_other(name, s[name], out)
+        if not any(line.startswith("*Suite `") for line in body):  # when and where it ran, as every suite says
+            sm = s[name].get("machine", {})
+            body += ["", f"*Suite `{name}`: {s[name].get('wall_s')} s on {sm.get('date')}{machine_words(sm)}.*"]
+        lines += body + [""]
     lines += md_cuda(s) + [""]
     lines += ["## Reproduce", "", "```", "hairwarp bench                 # all suites, about 15 min on 2 cores; "
               "writes docs/", "hairwarp bench dynamics --out /tmp/b   # one suite", "hairwarp bench --quick"

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hairwarp.benchmarks.common import fit_exponent, ratboy_assets, run_child
+from hairwarp.benchmarks.common import fit_exponent, machine_words, ratboy_assets, run_child
 from hairwarp.scene import tomllib  # tomli before Python 3.11
 
 CHART_REST = "bench_robustness_rest.png"
@@ -1322,7 +1322,8 @@ def md_robustness(data: dict) -> list[str]:
     lines += [""] + [f"- {k}: {v}." for k, v in peers["not_modelled"].items()]
     pw = data.get("part_wall_s", {})
     lines += ["", f"*Suite `robustness`: {data.get('wall_s')} s (" + ", ".join(f"{k} {v} s" for k, v in pw.items())
-              + f") on {sm.get('date')}, load average {sm.get('load_average_start')} → {sm.get('load_average_end')}"
+              + f") on {sm.get('date')}{machine_words(sm)}, load average {sm.get('load_average_start')} → "
+              f"{sm.get('load_average_end')}"
               + ("; quick sizes" if data.get("quick") else "") + "."
               + _rerun_note(data.get("rerun")) + "*"]
     return lines

@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from hairwarp.benchmarks.common import machine_words
+
 # 8 variants: 4 bend stiffnesses (EI [N m^2]) x 2 link stiffnesses [N/m] around the shipped 2e-4 and 1.0.
 PARAMS = {"strands.bend_stiffness": [1e-4, 2e-4, 4e-4, 8e-4], "links.stiffness": [0.5, 1.0]}
 FRAMES = 60
@@ -265,7 +267,7 @@ def md_wedge(data: dict) -> list[str]:
               "*other programs* column says by how much the machine was taken."]
     sm = data.get("machine", {})
     lines += ["", f"*Suite `wedge`{' (quick sizes)' if data.get('quick') else ''}: {data.get('wall_s')} s on "
-                  f"{sm.get('date')}, load average at the end {sm.get('load_average_end')}.*"]
+                  f"{sm.get('date')}{machine_words(sm)}, load average at the end {sm.get('load_average_end')}.*"]
     return lines
 
 
