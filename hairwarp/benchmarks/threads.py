@@ -3,9 +3,9 @@ for whole frames, on the default scene and the Ratboy mohawk, against one thread
 
 One thread and N threads run the same simulation (two ``Simulation`` objects, each warmed up), timed in
 interleaved rounds (1, N, 1, N, ...), each stage on one thread and then on N; a speed-up is the median over the
-rounds of each round's ratio, so a change of the machine between rounds (a single busy core clocks higher than two:
-one-thread timings of the same stage here spread by 1.9-2.7 ms between rounds of a quiet machine) hits both of
-its timings and a round that caught one side at its best is outvoted. (The best round of each side, divided, put
+rounds of each round's ratio, so a change of the machine's pace between rounds (one-thread timings of the same
+stage spread by 1.6-2.7 ms between rounds seconds apart on a quiet 2-core machine) hits both of its timings and a
+round that caught one side at its best is outvoted. (The best round of each side, divided, put
 one-thread and N-thread timings of different rounds against each other: the same suite gave 1.76x and 2.22x for the
 same stage in two runs.) The times shown are the medians of the rounds.
 A whole frame is timed over the same frames on every side: each timing restores the run's checkpoint and runs
@@ -23,6 +23,7 @@ core give less than N), and the executor's speed-up over it is its efficiency.
 from __future__ import annotations
 
 import os
+import statistics
 import threading
 import time
 from pathlib import Path
@@ -146,14 +147,9 @@ def _time_copies(fns, min_s: float) -> float:
     return 1.0 / sum(n / dt for n, dt in zip(counts, spans))
 
 
-def _median(values) -> float:
-    v = sorted(values)
-    return 0.5 * (v[(len(v) - 1) // 2] + v[len(v) // 2])
-
-
 def _paired(one, other) -> float:
     """Median over the rounds of each round's ratio ``one / other`` (seconds of the same round)."""
-    return _median([a / b for a, b in zip(one, other)])
+    return statistics.median([a / b for a, b in zip(one, other)])
 
 
 def _on_threads(run, count: int):
@@ -207,8 +203,9 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
     rows = []
     for name in stages[1]:
         one = spent_in[1][name]
-        row = {"stage": name, "t1_ms": 1e3 * _median(one), "tn_ms": 1e3 * _median(spent_in[threads][name]),
-               "speedup": _paired(one, spent_in[threads][name])}
+        many = spent_in[threads][name]
+        row = {"stage": name, "t1_ms": 1e3 * statistics.median(one), "tn_ms": 1e3 * statistics.median(many),
+               "speedup": _paired(one, many)}
         if threads > 1:
             row["copies_speedup"] = _paired(one, spent_copies[name])
             row["efficiency"] = row["speedup"] / row["copies_speedup"]
@@ -303,8 +300,9 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
     first = counts[0]
     return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
             "guides": sims[first].model.strand_count, "gate": _gate_summary(gates), "rows": [
-                {"threads": n, "dynamics_ms": 1e3 * _median(dyn[n]), "dynamics_speedup": _paired(dyn[first], dyn[n]),
-                 "frame_ms": 1e3 * _median(frame[n]), "frame_speedup": _paired(frame[first], frame[n])}
+                {"threads": n, "dynamics_ms": 1e3 * statistics.median(dyn[n]),
+                 "dynamics_speedup": _paired(dyn[first], dyn[n]),
+                 "frame_ms": 1e3 * statistics.median(frame[n]), "frame_speedup": _paired(frame[first], frame[n])}
                 for n in counts]}
 
 
