@@ -102,6 +102,13 @@ class Stepper:
         self.parity = 1 - self.parity
         self.time += self.dt
 
+    def step_dt(self, substeps: int | None = None) -> float:
+        """The step [s] of a frame taken in ``substeps`` equal steps (None, or the stepper's own count: its step).
+        :class:`Simulation` samples the head at the ends of these steps, keyed by the times this stepper reaches."""
+        if substeps is None or substeps == self.substeps:
+            return self.dt
+        return self.dt * self.substeps / int(substeps)
+
     def advance_frame(self, before_step=None, substeps: int | None = None):
         """Run one frame of substeps, then check for faults (one integer read from the device).
 
@@ -116,7 +123,7 @@ class Stepper:
         end = self.time
         for _ in range(n):
             end += dt  # the time the frame's usual steps reach, to the bit
-        self.substeps, self.dt, self.use_graph = int(substeps), dt * n / int(substeps), False
+        self.substeps, self.dt, self.use_graph = int(substeps), self.step_dt(substeps), False
         try:
             bits = self._frame(before_step)
         finally:
@@ -508,8 +515,7 @@ class Simulation:
         # the head at the end of each of the frame's steps, sampled together before the kernels: the same Python
         # between them ran 3-6 times slower (its caches cold), on one thread while the others waited
         st, t = self.stepper, self.stepper.time
-        n = st.substeps if substeps is None else substeps
-        dt = st.dt * st.substeps / n if substeps is not None else st.dt
+        n, dt = (st.substeps if substeps is None else substeps), st.step_dt(substeps)
         ahead = {}
         for _ in range(n):
             t_end = t + dt  # as Stepper.advance_frame forms it, and then its time

@@ -361,7 +361,7 @@ def test_a_frame_taken_again_is_the_frame_a_run_at_the_break_step_takes():
         # the frame ends at the time the run's own steps reach (the sum of 4 quarter steps may differ in its last bit)
         assert float(refined["stepper.time"]) == float(saved["stepper.time"]) + probe.stepper.dt
         for name in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
-            np.testing.assert_array_equal(fine.state.__getattribute__(name).numpy(),
+            np.testing.assert_array_equal(getattr(fine.state, name).numpy(),
                                           refined[f"state{int(refined['stepper.parity'])}.{name}"],
                                           err_msg=f"frame {frame}: {name}")
 
@@ -401,7 +401,7 @@ def test_ratboy_mohawk_at_two_steps_a_frame_breaks_no_link_the_fine_steps_keep()
     """The Ratboy mohawk at 2 substeps (its links and hair contacts solved after the free step, 16 sweeps): 8 links
     between the tail tips of four strands tore in the last shake (33-37 mm against 27 mm at most at 16 substeps),
     though neither a 16-substep run nor one with gravity changed by 1e-5 breaks them. Every link that breaks at 2
-    substeps now breaks in one of those (none does: 4 break against their 22), and the tips stay within the goal."""
+    substeps now breaks in one of those (none does: 3 break against their 23-25), and the tips stay within the goal."""
     from hairwarp.benchmarks import robustness as R
 
     if R.missing_assets("ratboy_mohawk"):
