@@ -310,14 +310,14 @@ class Collider:
         ``subdivisions`` a closed mesh instead, the icosphere of that many subdivisions scaled to ``radii``.
         ``local_xform`` (4x4, rigid) places it turned in its parent instead of at ``center``.
         """
-        import trimesh
-
         r = np.asarray(radii, dtype=float)
         if r.shape != (3,) or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
             raise ColliderError(f"collider {name!r}: radii must be three numbers > 0, got {radii!r}")
         place = _translation(center) if local_xform is None else np.asarray(local_xform, dtype=float)
         if subdivisions is None:
             return cls(name=name, kind=ColliderKind.ELLIPSOID, radii=r, local_xform=place, **options)
+        import trimesh
+
         sphere = trimesh.creation.icosphere(subdivisions=int(subdivisions))
         mesh = trimesh.Trimesh(vertices=sphere.vertices * r, faces=sphere.faces, process=False)
         return cls.from_trimesh(mesh, local_xform=place, name=name, **options)

@@ -845,23 +845,54 @@ def _mesh_collider(path, up_axis, scale, translate, rotate_deg, name, options):
 
 
 def _display_mesh(col) -> tuple[np.ndarray, np.ndarray]:
-    """A triangle mesh of a collider in its local frame (analytic shapes tessellated for display)."""
-    import trimesh
+    """A triangle mesh of a collider in its local frame (analytic shapes tessellated for display).
 
+    The analytic shapes are tessellated here in numpy (a latitude-longitude grid) rather than by trimesh: a run whose
+    colliders are all analytic then never imports trimesh and scipy, 0.7 s of every ``hairwarp run``'s start-up."""
     from hairwarp.kernels.types import ColliderKind
 
     if col.kind == ColliderKind.MESH:
-        mesh = col.mesh
-    elif col.kind == ColliderKind.SPHERE:
-        mesh = trimesh.creation.icosphere(subdivisions=3, radius=col.radius)
-    elif col.kind == ColliderKind.CAPSULE:
-        mesh = trimesh.creation.capsule(height=2.0 * col.half_height, radius=col.radius, count=[16, 16])
-    elif col.kind == ColliderKind.ELLIPSOID:
-        sphere = trimesh.creation.icosphere(subdivisions=4)
-        mesh = trimesh.Trimesh(vertices=sphere.vertices * col.radii, faces=sphere.faces, process=False)
-    else:
-        mesh = trimesh.creation.box(extents=(1.0, 1.0, 1e-3))  # a 1 m square of the plane z = 0
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
+        return np.asarray(col.mesh.vertices, dtype=np.float64), np.asarray(col.mesh.faces, dtype=np.int32)
+    if col.kind == ColliderKind.SPHERE:
+        return _lat_long_mesh(np.full(3, col.radius), 0.0)
+    if col.kind == ColliderKind.CAPSULE:
+        return _lat_long_mesh(np.full(3, col.radius), col.half_height)
+    if col.kind == ColliderKind.ELLIPSOID:
+        return _lat_long_mesh(np.asarray(col.radii, dtype=np.float64), 0.0)
+    # a 1 m square of the plane z = 0, 1 mm thick
+    corners = np.array([[x, y, z] for z in (-5e-4, 5e-4) for y in (-0.5, 0.5) for x in (-0.5, 0.5)])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    faces = [(a, b, c) for a, b, c, d in quads] + [(a, c, d) for a, b, c, d in quads]
+    return corners, np.asarray(faces, dtype=np.int32)
+
+
+def _lat_long_mesh(radii, half_height: float, rings: int = 16, sectors: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """A closed latitude-longitude mesh of the ellipsoid of ``radii`` about z, its upper half lifted by
+    ``half_height`` and its lower half lowered by as much (a capsule; 0: the ellipsoid). ``rings`` is even and
+    ``sectors`` a multiple of 4, so the poles, the equator and the four axis points lie on it: the mesh reaches
+    every radius exactly."""
+    theta = np.linspace(0.0, np.pi, rings + 1)[1:-1]  # from the +z pole, poles excluded
+    if half_height > 0.0:
+        theta = np.insert(theta, rings // 2, np.pi / 2)  # the equator twice: the capsule's cylinder between
+    phi = np.linspace(0.0, 2.0 * np.pi, sectors, endpoint=False)
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    ring = np.stack([st * np.cos(phi), st * np.sin(phi), np.broadcast_to(ct, (len(theta), sectors))], axis=-1)
+    ring = ring * radii
+    lift = np.where(np.arange(len(theta)) < rings // 2, half_height, -half_height)
+    ring[..., 2] += lift[:, None]
+    verts = np.concatenate([[[0.0, 0.0, radii[2] + half_height]], ring.reshape(-1, 3),
+                            [[0.0, 0.0, -radii[2] - half_height]]])
+    n, last = len(theta), len(verts) - 1
+    j = np.arange(sectors)
+    jn = (j + 1) % sectors
+    faces = [np.stack([np.zeros(sectors, int), 1 + j, 1 + jn], axis=1)]
+    for r in range(n - 1):
+        a, b = 1 + r * sectors, 1 + (r + 1) * sectors
+        faces.append(np.stack([a + j, b + j, b + jn], axis=1))
+        faces.append(np.stack([a + j, b + jn, a + jn], axis=1))
+    base = 1 + (n - 1) * sectors
+    faces.append(np.stack([np.full(sectors, last), base + jn, base + j], axis=1))
+    return verts, np.concatenate(faces).astype(np.int32)
 
 
 def _merged_world_mesh(meshes):
