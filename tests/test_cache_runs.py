@@ -420,16 +420,17 @@ def test_a_full_disk_at_the_preview_keeps_the_complete_cache_and_exits_3(tmp_pat
     from hairwarp.cli import main
 
     monkeypatch.setattr(runner, "_check_disk_space", lambda *args, **kwargs: None)
+    # the cache takes 52 KiB in the disk's 4 KiB blocks; a sheet of 8 frames 290 KiB, the GIF 278 KiB
     with _tmpfs(tmp_path / "small", "size=300k") as mnt:
         out = mnt / "tiny.usdc"
-        assert main(["run", str(TINY), "-o", str(out)]) == 3
+        assert main(["run", str(TINY), "-o", str(out), "-s", "output.preview_frames=8"]) == 3
         err = capsys.readouterr().err
         assert f"the cache {out} is complete (11 frames), the preview is missing: no space left on {mnt}" in err, err
         assert "Traceback" not in err
         assert sorted(p.name for p in mnt.iterdir()) == ["tiny.clips", "tiny.usdc"]
         assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 10.0
-        for extra in ([], ["--gif"]):
-            picture = mnt / ("x.gif" if extra else "x.png")
+        for extra in (["--frames", "8"], ["--gif"]):
+            picture = mnt / ("x.gif" if "--gif" in extra else "x.png")
             assert main(["preview", str(out), "-o", str(picture), *extra]) == 3
             err = capsys.readouterr().err
             assert f"no space left on {mnt} for the picture {picture}: it needs" in err, err
