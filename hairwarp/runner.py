@@ -866,7 +866,7 @@ def _display_mesh(col) -> tuple[np.ndarray, np.ndarray]:
     return corners, np.asarray(faces, dtype=np.int32)
 
 
-def _lat_long_mesh(radii, half_height: float, rings: int = 16, sectors: int = 32) -> tuple[np.ndarray, np.ndarray]:
+def _lat_long_mesh(radii, half_height: float, rings: int = 32, sectors: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """A closed latitude-longitude mesh of the ellipsoid of ``radii`` about z, its upper half lifted by
     ``half_height`` and its lower half lowered by as much (a capsule; 0: the ellipsoid). ``rings`` is even and
     ``sectors`` a multiple of 4, so the poles, the equator and the four axis points lie on it: the mesh reaches

@@ -420,7 +420,7 @@ def test_a_full_disk_at_the_preview_keeps_the_complete_cache_and_exits_3(tmp_pat
     from hairwarp.cli import main
 
     monkeypatch.setattr(runner, "_check_disk_space", lambda *args, **kwargs: None)
-    # the cache takes 52 KiB in the disk's 4 KiB blocks; a sheet of 8 frames 290 KiB, the GIF 278 KiB
+    # the cache takes 88 KiB in the disk's 4 KiB blocks; a sheet of 8 frames 345 KiB, the GIF 348 KiB
     with _tmpfs(tmp_path / "small", "size=300k") as mnt:
         out = mnt / "tiny.usdc"
         assert main(["run", str(TINY), "-o", str(out), "-s", "output.preview_frames=8"]) == 3
