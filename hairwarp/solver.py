@@ -756,6 +756,10 @@ class Solver:
             advice = (f"their springs are too stiff for the free step at {step}, which takes them explicitly; "
                       f"more substeps do not help. Set " + "; and ".join(fixes))
             return stage, advice
+        # the wind's drag changes a vertex's velocity by up to (drag L / m) h |wind| a step, explicitly
+        windy = self._wind_driver(dt, more, step, kick=rates.get("drag", 0.0) * self.speed_terms()["wind"])
+        if windy is not None:
+            return windy
         responding = self._rates(dt, responders=True)
         if any(part is not None and part.response and responding.get(name, 0.0) > RESPONSE_RATE_LIMIT
                for name, part in (("links", self.links), ("contacts", self.contacts))):
@@ -805,6 +809,29 @@ class Solver:
                            f"strands.damping or strands.drag, or {more} (now {step})")
         return stage, f"{more} (now {step}), raise strands.drag or strands.damping, or slow the head motion"
 
+    def _resolved_speed(self, dt: float) -> float:
+        """The speed [m/s] at which a vertex stopped (by a contact) or swung within one step turns the shortest
+        segment by ``max_rotation_per_step``: ``max_rotation_per_step * l / dt``."""
+        return self.max_rotation_per_step * float(self.model.seg_length.numpy().min()) / dt
+
+    def _wind_driver(self, dt: float, more: str, step: str, lead: str = "", kick: float | None = None
+                     ) -> tuple[str, str] | None:
+        """The wind as the stage that drove a fault, with its advice, where ``kick`` (the speed it gives a vertex in
+        a step; default the wind's own, which hair it blows reaches) is at least half the speed a step resolves
+        (``_resolved_speed``); else None. Raising the drag, the advice for hair that swings too fast, would blow
+        such hair harder."""
+        wind = self.speed_terms()["wind"]
+        resolved = self._resolved_speed(dt)
+        if (wind if kick is None else kick) < 0.5 * resolved:
+            return None
+        if not lead:
+            lead = (f"the wind at {wind:.3g} m/s changes the strands' velocities by up to {kick:.3g} m/s a step, "
+                    f"more than a step resolves (about {resolved:.3g} m/s)")
+        else:
+            lead = f"{lead}, blown by the wind at {wind:.3g} m/s"
+        return "air drag (wind.velocity)", (f"{lead}: lower wind.velocity, or {more} (now {step}; a step resolves "
+                                            f"speeds in proportion to the substeps)")
+
     def _collision_advice(self, dt: float, more: str, step: str) -> tuple[str, str]:
         """Stage and advice of a body contact fault: a collider that moved too fast for the step (its own speed,
         known from the control and the collider poses), or hair that reached a slow one too fast, and what drove
@@ -813,8 +840,7 @@ class Solver:
         collider = terms["carried"] + terms["colliders"]
         # a vertex stopped at speed u by a contact on a segment of length l turns it at u / l: the bound is crossed
         # from u = max_rotation_per_step * l / dt on
-        length = float(self.model.seg_length.numpy().min())
-        resolved = self.max_rotation_per_step * length / dt
+        resolved = self._resolved_speed(dt)
         stage = "collision (body contact)"
         if collider >= 0.5 * resolved:
             return stage, (f"the head or a collider moved at up to {collider:.3g} m/s, too far for the step (a contact "
@@ -825,10 +851,9 @@ class Solver:
                 else "; some guides non-finite" if not math.isfinite(hair) else "")
         lead = (f"the head and colliders moved at most {collider:.3g} m/s, but the hair reached them faster than a "
                 f"contact resolves in one step (about {resolved:.3g} m/s{hair})")
-        if terms["wind"] >= 0.5 * resolved:
-            return "air drag (wind.velocity)", (
-                f"{lead}, blown by the wind at {terms['wind']:.3g} m/s: lower wind.velocity, or {more} (now {step}; "
-                f"a contact resolves speeds in proportion to the substeps)")
+        windy = self._wind_driver(dt, more, step, lead)
+        if windy is not None:
+            return windy
         driver, advice = self._dynamics_driver(dt, None, more, step)
         return driver, f"{lead}: {advice}"
 

@@ -141,6 +141,19 @@ def test_body_contact_fault_on_a_still_head_names_the_wind():
     assert _run(TINY, [*still, "sim.substeps=16"], 6) is None
 
 
+def test_a_free_step_fault_a_strong_wind_drives_names_the_wind():
+    """A still head in a 3000 m/s wind: its drag changes a vertex's velocity by 23 m/s in a step of 8 substeps, where
+    a step resolves 4.9 m/s, and the free step goes non-finite in the first frame. The fault names the wind and
+    advises a lower wind or more substeps, not the dynamics' more drag, which would blow the hair harder; with a
+    tenth of the wind the scene runs."""
+    still = ['head.motion.kind="still"', "wind.velocity=[3000.0, 0.0, 0.0]"]
+    fault = _run(TINY, still, 3)
+    assert fault is not None and fault.stage == "air drag (wind.velocity)", fault
+    assert "23 m/s a step" in str(fault)
+    assert "wind.velocity" in _advice(fault) and "strands.drag" not in _advice(fault)
+    assert _run(TINY, ['head.motion.kind="still"', "wind.velocity=[300.0, 0.0, 0.0]"], 3) is None
+
+
 def test_a_bound_set_below_its_default_is_named():
     fault = _run(TINY, ["sim.max_rotation_per_step=0.01", "sim.substeps=32"], 4)
     assert fault is not None and "sim.max_rotation_per_step (now 0.01" in _advice(fault)
@@ -178,7 +191,7 @@ def test_frames_kept_before_a_speed_fault_are_those_of_the_run_and_resume_finish
 
 
 def test_response_fault_advises_the_stiff_part_only():
-    """Links of 1e5 N/m solved after the free step (2 substeps) whip the hair (12 m/s by frame 4) and then fault in
+    """Links of 1e5 N/m solved after the free step (2 substeps) whip the hair (4.5 m/s by frame 4) and then fault in
     the response: either way the stage named is the response, the advice is the links' (the contacts keep their
     shipped 20 N/m), and solving the links in the free step, which it offers, runs."""
     scene = ["groom.count=60", "dense.count=0", "sim.substeps=2", "links.stiffness=1e5"]
