@@ -824,9 +824,9 @@ class Solver:
         resolved = self._resolved_speed(dt)
         if (wind if kick is None else kick) < 0.5 * resolved:
             return None
-        if not lead:
-            lead = (f"the wind at {wind:.3g} m/s changes the strands' velocities by up to {kick:.3g} m/s a step, "
-                    f"more than a step resolves (about {resolved:.3g} m/s)")
+        if kick is not None:
+            lead = ((f"{lead}, " if lead else "") + f"the wind at {wind:.3g} m/s changes the strands' velocities by "
+                    f"up to {kick:.3g} m/s a step, more than a step resolves (about {resolved:.3g} m/s)")
         else:
             lead = f"{lead}, blown by the wind at {wind:.3g} m/s"
         return "air drag (wind.velocity)", (f"{lead}: lower wind.velocity, or {more} (now {step}; a step resolves "
