@@ -618,12 +618,13 @@ def test_body_contact_solve_matches_float64(beta):
         rhs -= hc * J.T @ P @ (J @ w - v_obj[j])
     dw = np.linalg.solve(lhs, rhs)
     # Compared where it acts, on the vertex velocities: float32 against float64 of a stiff system (the dampers
-    # against the segments' tiny spin inertia, condition ~1e6) leaves the joint spins a few % off, the vertices
-    # within 2 % of the largest approach speed (CONTACT_STIFFNESS explains the choice).
+    # against the segments' tiny spin inertia) leaves the joint spins off by more than the vertices. Measured: the
+    # vertices within 6.5e-5 of the largest approach speed at the shipped stiffness, 1.5e-2 at ten times it
+    # (CONTACT_STIFFNESS explains the choice); 1e-3 holds the first with room and fails the second.
     v_ref = (Jv @ (w + dw)).reshape(-1, 3)
     v_end = (Jv @ qd.numpy().ravel().astype(float)).reshape(-1, 3)
     speed = np.linalg.norm(rel[held], axis=1).max()
-    np.testing.assert_allclose(v_end, v_ref, atol=2e-2 * speed)
+    np.testing.assert_allclose(v_end, v_ref, atol=1e-3 * speed)
     # normal dampers alone stop every approach (with tangential ones too, the random targets of two neighbours
     # cannot all be met by a rigid segment)
     if beta == 0.0:
