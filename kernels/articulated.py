@@ -516,17 +516,17 @@ def body_contact_solve(
     the vertex's share ``beta`` is scaled so that its next step's damper meets the cone (static friction holds
     while the force stays within it). Writes ``contacts.beta`` and ``contacts.force`` of every vertex.
 
-    Contacts only push: the solve treats the held dampers as two-sided, so a pass in which a vertex's damper
-    pulls it toward the body (its neighbours' stops carried it in) is undone and the strand solved again from
-    its free velocities without that vertex; a vertex released that the solve without it takes into the body
-    faster than its gap allows is taken back for good, without the force of its last step (with which it pulled;
-    held with it, strands stayed on a frictionless sphere), a contact new in this step along its normal alone
-    (stopping its slip can lift it off, and the damper then pull it in: energy rose). Where a pass holds nothing
-    else, the released vertex that its free velocity takes in fastest is the one taken back (returned from there,
-    the strand went into the body at its free velocity, up to 0.15 m/s on ``long_hair``, and only the push-out moved
-    it back). At most ``CONTACT_PASSES`` solves (an active set; each one more inward and outward pass, on the
-    strands that need it). Two-sided, such pulls sucked stiff strands
-    onto the head and whipped their tails (4-5 m/s at 64 segments and 240 steps a second, 0.3 m/s now).
+    Contacts only push: the solve treats the held dampers as two-sided, so a pass in which a vertex's damper pulls
+    it toward the body (its neighbours' stops carried it in) is undone and the strand solved again from its free
+    velocities without that vertex; a vertex released that the solve without it takes into the body faster than its
+    gap allows is taken back for good, without the force of its last step (with which it pulled; held with it,
+    strands stayed on a frictionless sphere), a contact new in this step along its normal alone (stopping its slip
+    can lift it off, and the damper then pull it in: energy rose). Where a pass holds nothing else, the released
+    vertex that its free velocity takes in fastest is the one taken back (returned from there, the strand went into
+    the body at its free velocity, up to 0.15 m/s on ``long_hair``, and only the push-out moved it back). At most
+    ``CONTACT_PASSES`` solves (an active set; each one more inward and outward pass, on the strands that need it).
+    Two-sided, such pulls sucked stiff strands onto the head and whipped their tails (4-5 m/s at 64 segments and 240
+    steps a second, 0.3 m/s now).
     """
     S = chains.seg_per_strand
     vbase = strand * (S + 1)
