@@ -199,7 +199,7 @@ def test_response_fault_advises_the_stiff_part_only():
     """Links of 1e6 N/m solved after the free step (2 substeps) fault in the response in the first frame: the stage
     named is the response, the advice is the links' (the contacts keep their shipped 20 N/m), and solving the links
     in the free step, which it offers, runs. (At 1e5 N/m the hair whipped to 4.5 m/s and faulted at frame 6 while
-    the body contact's dampers were 100 times the strand's mass; at 10 times it runs, at 0.94 m/s at most.)"""
+    the body contact's dampers were 100 times the strand's mass; at 10 times it runs, at 0.96 m/s at most.)"""
     scene = ["groom.count=60", "dense.count=0", "sim.substeps=2", "links.stiffness=1e6"]
     fault = _run(LONG_HAIR, scene, 8)
     assert fault is not None and fault.stage == "links and hair contacts (response)", fault
