@@ -516,17 +516,12 @@ def body_contact_solve(
     the vertex's share ``beta`` is scaled so that its next step's damper meets the cone (static friction holds
     while the force stays within it). Writes ``contacts.beta`` and ``contacts.force`` of every vertex.
 
-    Contacts only push: the solve treats the held dampers as two-sided, so a pass in which a vertex's damper pulls
-    it toward the body (its neighbours' stops carried it in) is undone and the strand solved again from its free
-    velocities without that vertex; a vertex released that the solve without it takes into the body faster than its
-    gap allows is taken back for good, without the force of its last step (with which it pulled; held with it,
-    strands stayed on a frictionless sphere), a contact new in this step along its normal alone (stopping its slip
-    can lift it off, and the damper then pull it in: energy rose). Where a pass holds nothing else, the released
-    vertex that its free velocity takes in fastest is the one taken back (returned from there, the strand went into
-    the body at its free velocity, up to 0.15 m/s on ``long_hair``, and only the push-out moved it back). At most
-    ``CONTACT_PASSES`` solves (an active set; each one more inward and outward pass, on the strands that need it).
-    Two-sided, such pulls sucked stiff strands onto the head and whipped their tails (4-5 m/s at 64 segments and 240
-    steps a second, 0.3 m/s now).
+    Contacts only push: the solve treats the held dampers as two-sided, so a pass in which a vertex's damper
+    pulls it toward the body (its neighbours' stops carried it in) is undone and the strand solved again from
+    its free velocities without that vertex; a vertex released that the solve without it takes into the body
+    faster than its gap allows is taken back for good. At most ``CONTACT_PASSES`` solves (an active set; each
+    one more inward and outward pass, on the strands that need it). Two-sided, such pulls sucked stiff strands
+    onto the head and whipped their tails (4-5 m/s at 64 segments and 240 steps a second, 0.3 m/s now).
     """
     S = chains.seg_per_strand
     vbase = strand * (S + 1)
@@ -540,8 +535,6 @@ def body_contact_solve(
     # An active set over the contacts (see the docstring): at most CONTACT_PASSES solves.
     for it in range(CONTACT_PASSES):
         any_pulled = int(0)
-        goes_in = int(-1)  # of the released vertices the free velocity takes in, the fastest (its k), if any
-        deepest = float(0.0)
         # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
         R = wp.transform_get_rotation(X_head)
         omega = wp.spatial_top(V_head)
@@ -569,23 +562,8 @@ def body_contact_solve(
                 warm = contacts.force[vi]
             if wp.length_sq(n) > 0.0:
                 target = -wp.max(contacts.gap[vi], 0.0) / step_dt  # a part of a step closes its share of the gap
-                if wp.dot(v - contacts.object_velocity[vi], n) < target:
-                    if released <= 0.0:
-                        held = 1.0
-                        if released < 0.0:
-                            # taken back for good: without last step's force, with which it pulled; a contact new
-                            # this step along its normal only (stopping its slip can lift it off, the damper then
-                            # pulling it in)
-                            if wp.dot(warm, n) <= 0.0:
-                                beta = 0.0
-                            warm = wp.vec3()
-                    else:
-                        # released, and its free velocity takes it in: where nothing else holds the strand in
-                        # this pass, that is the solve's answer, and the fastest in is held again for good (below)
-                        approach = target - wp.dot(v - contacts.object_velocity[vi], n)
-                        if approach > deepest:
-                            deepest = approach
-                            goes_in = k
+                if released <= 0.0 and wp.dot(v - contacts.object_velocity[vi], n) < target:
+                    held = 1.0
             scratch.c[i] = wp.spatial_vector(held, target, beta, released, 0.0, 0.0)
             M = wp.mat33()
             F = wp.vec3()
@@ -602,16 +580,6 @@ def body_contact_solve(
             if with_dampers != 0:
                 if wp.trace(dampers.C[i]) > 0.0:
                     active = 1
-        if active == 0 and goes_in >= 0 and it < CONTACT_PASSES - 1:
-            # Nothing holds the strand but released vertices whose free velocities take them in (its only
-            # contacts, released in the pass before): the fastest in is held again for good, and the strand solved
-            # again, the others released as before. (Returned from here, the strand went into the body at its free
-            # velocity, and the push-out moved it back without a velocity.)
-            i = strand * S + goes_in
-            flags = scratch.c[i]
-            top = wp.spatial_top(flags)
-            scratch.c[i] = wp.spatial_vector(top[0], top[1], top[2], -1.0, 0.0, 0.0)
-            continue
         if active == 0:
             if contacts.enabled != 0:
                 for k in range(S):
@@ -691,9 +659,7 @@ def body_contact_solve(
                 target = wp.spatial_top(flags)[1]
                 beta = wp.spatial_top(flags)[2]
                 rel = v - contacts.object_velocity[vi] - target * n
-                force = -c * (contact_projector(n, beta) * rel)
-                if state >= 0.0:
-                    force = force + contacts.force[vi]  # last step's, but for one taken back
+                force = contacts.force[vi] - c * (contact_projector(n, beta) * rel)
                 fn = wp.dot(force, n)
                 beta = 1.0
                 if fn <= 0.0:

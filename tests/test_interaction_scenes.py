@@ -401,7 +401,7 @@ def test_ratboy_mohawk_at_two_steps_a_frame_breaks_no_link_the_fine_steps_keep()
     """The Ratboy mohawk at 2 substeps (its links and hair contacts solved after the free step, 16 sweeps): 8 links
     between the tail tips of four strands tore in the last shake (33-37 mm against 27 mm at most at 16 substeps),
     though neither a 16-substep run nor one with gravity changed by 1e-5 breaks them. Every link that breaks at 2
-    substeps now breaks in one of those (none does: in the robustness suite 5 break against their 20-21), and the tips
+    substeps now breaks in one of those (none does: in the robustness suite 3 break against their 21-26), and the tips
     stay within the goal."""
     from hairwarp.benchmarks import robustness as R
 
