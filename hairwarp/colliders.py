@@ -592,7 +592,8 @@ class ColliderSet:
     def reset_contacts(self):
         """Forget the contacts' friction history (after a teleport)."""
         if self.contacts is not None and self.count:
-            self.contacts.beta.fill_(1.0)
+            self.contacts.slip.fill_(0.0)
+            self.contacts.share.fill_(1.0)
             self.contacts.force.zero_()
             self.contacts.normal.zero_()
 
@@ -660,7 +661,8 @@ def body_contacts(vert_count: int, device, *, enabled: bool = True):
     c.object_velocity = wp.zeros(n, dtype=wp.vec3, device=device)
     c.gap = wp.zeros(n, dtype=float, device=device)
     c.friction = wp.zeros(n, dtype=float, device=device)
-    c.beta = wp.full(n, 1.0, dtype=float, device=device)
+    c.slip = wp.zeros(n, dtype=float, device=device)
+    c.share = wp.full(n, 1.0, dtype=float, device=device)
     c.force = wp.zeros(n, dtype=wp.vec3, device=device)
     return c
 

@@ -28,7 +28,8 @@ from hairwarp.state import hair_ball, rotate_floats
 #: instead of 9,830), where the semi-implicit mass made a third of the segments a hundred times heavier. From 3 to
 #: 6 substeps the finer-step forms broke links by the thousand (the mohawk: 4,870, 2,583, 1,495 and 610 broken in
 #: its 2.5 s, against 168, 128, 117 and 69 with the response; ``fast_turn`` at 4: 458 against 4); at the shipped
-#: 8 substeps they settle hair at rest sooner (``docs/interactions.md``).
+#: 8 substeps they settle hair at rest sooner (``docs/interactions.md``). The body contacts' friction changes law at
+#: the same step (``kernels.articulated.CONTINUOUS_FRICTION_STEP``).
 AUTO_RESPONSE_DT = 1.0 / 220.0
 
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
@@ -144,6 +145,23 @@ class Stepper:
 #: The checkpoint's entry for the hair speed fault's bound (``Solver.speed_terms``), and the terms it holds, in order.
 SPEED_KEY = "solver.speed_terms"
 SPEED_TERMS = ("start", "carried", "colliders", "wind")
+
+
+def _upgraded(arrays: dict) -> dict:
+    """A checkpoint as this version keeps it. Earlier versions kept each body contact's friction share alone
+    (``solver.body_contacts.beta``, 1 sticking, less sliding), which this one keeps as ``share`` beside the contact's
+    slip speed (``solver.body_contacts.slip``): a sticking vertex had none, a sliding one is taken as sliding
+    (``kernels.articulated.STICK_SLIP``)."""
+    old = "solver.body_contacts.beta"
+    if old not in arrays or "solver.body_contacts.slip" in arrays:
+        return arrays
+    from hairwarp.kernels.articulated import STICK_SLIP
+
+    out = dict(arrays)
+    share = np.asarray(out.pop(old), dtype=np.float32)
+    out["solver.body_contacts.share"] = share
+    out["solver.body_contacts.slip"] = np.where(share >= 1.0, 0.0, 2.0 * float(STICK_SLIP)).astype(np.float32)
+    return out
 
 
 def is_teleport(before, after, distance: float, angle_deg: float, centre=(0.0, 0.0, 0.0)) -> bool:
@@ -567,6 +585,7 @@ class Simulation:
             ValueError: the arrays are not those of this simulation (another scene, groom or feature set).
         """
         st = self.stepper
+        arrays = _upgraded(arrays)
         targets = {f"state{i}.{name}": getattr(s, name) for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
         targets.update({f"solver.{k}": a for k, a in self.solver.persistent_arrays().items()})
         expected = set(targets) | {"stepper.time", "stepper.frame", "stepper.parity"}

@@ -532,12 +532,14 @@ class Solver:
             ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
             ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
             frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
-            or step from the state), ``body_contacts.beta`` and ``body_contacts.force`` (each vertex's friction
-            share and the force its collider put on it last step, warm-starting the next).
+            or step from the state), ``body_contacts.slip``, ``body_contacts.share`` and ``body_contacts.force``
+            (each vertex's speed over its collider, its friction share at long steps and the force the collider put
+            on it last step, from which the next step starts).
         """
         out = {}
         if self.body_contacts.enabled:
-            out["body_contacts.beta"] = self.body_contacts.beta
+            out["body_contacts.slip"] = self.body_contacts.slip
+            out["body_contacts.share"] = self.body_contacts.share
             out["body_contacts.force"] = self.body_contacts.force
         if self.links is not None:
             out["links.link_broken"] = self.links.link_broken

@@ -328,12 +328,6 @@ def test_strand_dropped_on_sphere_comes_to_rest():
     assert np.sqrt((high ** 2).mean()) < REST_RMS_HIGHPASS
 
 
-@pytest.mark.xfail(strict=True, reason="the three strands come to rest on three frictionless contacts each (0.1 mm/s "
-                   "after 1.5 s) instead of sliding off sideways: the contact solve holds a vertex it takes back "
-                   "with last step's force, with which it had pulled (held without it they slide off, but tips "
-                   "resting on the shoulders then slide on after a nod, or the mohawk breaks links by the step; "
-                   "docs/collision.md); the incline tests of test_colliders.py check frictionless sliding against "
-                   "the closed form")
 def test_strand_on_frictionless_sphere_slides_off():
     """With friction 0 the same strands slide down the sphere and hang from their roots, clear of it."""
     model, sphere, stepper = laid_on_sphere(0.0)
@@ -349,7 +343,8 @@ def test_strand_on_frictionless_sphere_slides_off():
 
 # Tips resting on the shoulders over the last second, head still (before the push-out landed vertices
 # on the surface instead of the top of the contact layer: 253 mm/s RMS, 0.9 mm high-pass, 2 mm
-# peak-to-peak; now about 5.5 mm/s, 1.8 um and 0).
+# peak-to-peak; now about 3.8 mm/s, 0.4 um and 1 um). 11 tips stay within the contact layer and 1 mm over that second
+# (10 at 32 substeps), 0.7-1.7 s after the scene's nod; 15-17 did when a new contact stuck in its first step.
 JITTER_RMS_SPEED = 0.02  # [m/s]
 JITTER_RMS_HIGHPASS = 1.0e-5  # [m]
 JITTER_MEDIAN_PTP = 2.0e-4  # [m]
@@ -360,7 +355,7 @@ def test_tips_resting_on_shoulders_do_not_jitter():
 
     result = bench_resting_jitter(scene=SCENES / "long_hair_shoulders.toml", overrides=["output.preview=false"])
     assert result["fault_bits"] == 0
-    assert result["resting_tips"] >= 15
+    assert result["resting_tips"] >= 8
     rest = result["resting"]
     assert rest["rms_speed"] < JITTER_RMS_SPEED
     assert rest["rms_highpass"] < JITTER_RMS_HIGHPASS

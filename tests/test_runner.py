@@ -462,6 +462,19 @@ def test_checkpoint_restores_the_run_exactly():
     np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
     v = np.linalg.norm(sim.guide_curves()[1], axis=1).max()
     assert sim.solver.speed_terms()["start"] >= v * (1.0 - 1e-6)
+    # a checkpoint of a version that kept each body contact's friction share alone (1 sticking, less sliding): it
+    # keeps its share, and its slip is none where it stuck and sliding where it slid (kernels.articulated.STICK_SLIP)
+    from hairwarp.kernels.articulated import STICK_SLIP
+    old = {k: v for k, v in saved.items() if k not in ("solver.body_contacts.slip", "solver.body_contacts.share")}
+    share = np.ones(len(saved["solver.body_contacts.slip"]), dtype=np.float32)
+    share[::3] = 0.25
+    old["solver.body_contacts.beta"] = share
+    sim.restore(old)
+    slip = sim.solver.body_contacts.slip.numpy()
+    np.testing.assert_array_equal(sim.solver.body_contacts.share.numpy(), share)
+    np.testing.assert_array_equal(slip[share < 1.0], np.float32(2.0 * STICK_SLIP))
+    np.testing.assert_array_equal(slip[share >= 1.0], 0.0)
+    np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
 
 
 def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, tmp_path):
