@@ -528,14 +528,17 @@ def contact_friction(warm: wp.vec3, n: wp.vec3, slip: float, free_slip: float, f
 
 
 @wp.func
-def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free_slip: float, c: float, matched: int):
+def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free: wp.vec3, fall: wp.vec3, c: float,
+                  matched: int):
     """What a held vertex's damper starts from: the force it holds before the damper answers the step's motion
     (the last step's normal force, and the friction ``contact_friction`` carries over), and the damper's share
-    ``beta`` along the surface; with ``matched`` the last step's whole force and the share it kept
+    ``beta`` along the surface, given the vertex's ``free`` velocity over the surface and what gravity adds to it
+    over the step (``fall``); with ``matched`` the last step's whole force and the share it kept
     (``matched_friction``). Returns ``(force, beta)``."""
     warm = contacts.force[vi]
     if matched != 0:
         return warm, contacts.share[vi]
+    free_slip = wp.length(free - wp.dot(free, n) * n) - wp.length(fall - wp.dot(fall, n) * n)
     carried, beta = contact_friction(warm, n, contacts.slip[vi], free_slip, contacts.friction[vi], c)
     return wp.max(wp.dot(warm, n), 0.0) * n + carried, beta
 
@@ -661,9 +664,8 @@ def body_contact_solve(
             F = wp.vec3()
             if held > 0.0:
                 active = 1
-                free = v - contacts.object_velocity[vi]
-                fall = h * wp.length(chains.gravity - wp.dot(chains.gravity, n) * n)
-                start, beta = contact_start(contacts, vi, n, wp.length(free - wp.dot(free, n) * n) - fall, c, matched)
+                start, beta = contact_start(contacts, vi, n, v - contacts.object_velocity[vi], h * chains.gravity, c,
+                                            matched)
                 n_b = wp.quat_rotate_inv(R, n)
                 P = contact_projector(n_b, beta)
                 M = hc * P
@@ -756,8 +758,9 @@ def body_contact_solve(
                 n = contacts.normal[vi]
                 target = wp.spatial_top(flags)[1]
                 rel = v - contacts.object_velocity[vi] - target * n
-                # the force it started from, and the damper's share as the solve had it
-                start, unused = contact_start(contacts, vi, n, 0.0, c, matched)
+                # the force it started from (the free velocity moves only the share), and the damper's share as
+                # the solve had it
+                start, unused = contact_start(contacts, vi, n, wp.vec3(), wp.vec3(), c, matched)
                 beta = wp.spatial_top(flags)[2]
                 force = start - c * (contact_projector(n, beta) * rel)
                 fn = wp.dot(force, n)

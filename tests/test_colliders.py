@@ -666,6 +666,7 @@ def test_body_contact_solve_matches_float64(case):
         assert f_ref @ n > 0.0  # every one pushes: none released
         # the stored force is c times the velocities' difference: the same 1e-3 of the speed, in force
         np.testing.assert_allclose(forces[j], f_ref, atol=1e-3 * c * speed)
+        # the slip is the length of the vertex's velocity less the surface's, each within 1e-3 of the speed above
         t = v_ref[j] - v_obj[j] - ((v_ref[j] - v_obj[j]) @ n) * n
         assert abs(slips[j] - np.linalg.norm(t)) <= 2e-3 * speed
     if case == "frictionless":
