@@ -564,6 +564,12 @@ class ColliderSet:
         self.vert_exempt = wp.array(bits.ravel(), dtype=wp.int32, device=self.device)
         self.contacts = body_contacts(model.vert_count, self.device, enabled=self.count > 0)
         self.start_clearance = wp.zeros(model.vert_count if self.count > 0 else 1, dtype=float, device=self.device)
+        # each vertex's last query of each collider (detect_body_contacts): its point and the distance found
+        from hairwarp.kernels.body_collision import UNBOUNDED
+
+        memo = max(model.vert_count * self.count, 1)
+        self.memo_point = wp.zeros(memo, dtype=wp.vec3, device=self.device)
+        self.memo_distance = wp.full(memo, -UNBOUNDED, dtype=float, device=self.device)
         self.model = model
 
     @property
@@ -585,7 +591,7 @@ class ColliderSet:
         launch(self.executor, detect_body_contacts, model.strand_count, [
             model.seg_per_strand, model.seg_length, self.shapes, model.chains.gravity, self.collider_xform,
             self.collider_velocity, control.head_xform, control.head_velocity, dt_array,
-            state.vertex_positions, state.vertex_velocities, self.vert_exempt,
+            state.vertex_positions, state.vertex_velocities, self.vert_exempt, self.memo_point, self.memo_distance,
         ], [c.normal, c.object_velocity, c.gap, c.friction, self.start_clearance], device=self.device,
                min_chunk=STRAND_MIN_CHUNK)
 

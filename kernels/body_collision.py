@@ -468,6 +468,9 @@ def detect_body_contacts(
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
     vert_exempt: wp.array(dtype=wp.int32),
+    # Read and updated:
+    memo_point: wp.array(dtype=wp.vec3),
+    memo_distance: wp.array(dtype=float),
     # Out:
     contact_normal: wp.array(dtype=wp.vec3),
     contact_object_velocity: wp.array(dtype=wp.vec3),
@@ -487,7 +490,11 @@ def detect_body_contacts(
     lets the vertices that the step cannot have taken near a collider skip their queries);
     ``articulated.body_contact_solve`` decides from the free velocities which of them hold. Vertices inside a
     collider at rest (exempt) are no candidates of it. Signed distances are 1-Lipschitz, so a vertex far from
-    every collider skips the queries.
+    every collider skips the queries: the bound comes from the vertex before it along the strand, and from the
+    vertex's own last query of each collider (``memo_point``, the query point in the collider's frame, and
+    ``memo_distance``, a lower bound of the signed distance there; -UNBOUNDED: none), which stays a bound for good
+    because a collider's shape is fixed in its own frame. The latter also proves a vertex outside, so a mesh
+    skips the rays that would tell whether a point it finds no surface near is deep inside.
     """
     strand = tid_offset + wp.tid()
     S = seg_per_strand
@@ -518,16 +525,26 @@ def detect_body_contacts(
             reach = 2.0 * (h * wp.length(v - v_object) + fall) + LIPSCHITZ_SLOP
             start = x + h * v_object
             shift = h * wp.length(v_object)
-            if bound - shift >= thickness + reach:
-                clearance = wp.min(clearance, bound)
-                at_start = wp.min(at_start, bound - shift)
+            # lower bounds of the signed distance at the start point: along the strand, and from the last query
+            memo = vi * shapes.count + c
+            local = wp.transform_point(wp.transform_inverse(X), start)
+            known = memo_distance[memo] - wp.length(local - memo_point[memo]) - LIPSCHITZ_SLOP
+            lower = wp.max(bound - shift, known)
+            if lower >= thickness + reach:
+                clearance = wp.min(clearance, lower + shift)
+                at_start = wp.min(at_start, lower)
                 continue
             if c < MAX_EXEMPT_COLLIDERS and (exempt & (1 << c)) != 0:
                 # no distance known to this collider: the next vertex queries
                 clearance = float(-UNBOUNDED)
                 at_start = float(-UNBOUNDED)
                 continue
-            s = shape_surface(shapes, c, wp.transform_point(wp.transform_inverse(X), start), thickness + reach, 0)
+            outside = int(0)
+            if known > -(thickness + reach):
+                outside = 1  # not that deep inside: no rays
+            s = shape_surface(shapes, c, local, thickness + reach, outside)
+            memo_point[memo] = local
+            memo_distance[memo] = s.distance
             # ``clearance`` bounds the distance at the vertex (the next one's bound), ``at_start`` at its start point
             clearance = wp.min(clearance, s.distance - shift)
             at_start = wp.min(at_start, s.distance)

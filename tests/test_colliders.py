@@ -1084,6 +1084,55 @@ def test_push_out_skips_only_what_cannot_have_met_a_collider(subdivisions, monke
         np.testing.assert_array_equal(skipping[key], querying[key])
 
 
+@pytest.mark.parametrize("subdivisions", [None, 3], ids=["analytic", "mesh"])
+def test_detection_memo_skips_only_what_cannot_be_a_contact(subdivisions, monkeypatch):
+    """The detection bounds a vertex's distance from its own last query of each collider (the collider's shape is
+    fixed in its frame, so the bound holds for good) and skips the query, or a mesh's rays, where the bound allows.
+    Against a solver that forgets every query before each step: the same contacts and the same bits on a head
+    nodding fast into its hair and a shoulder plane, with contacts held and the memo in use."""
+    import hairwarp as hw
+    from hairwarp.kernels.body_collision import UNBOUNDED
+
+    radii = (0.085, 0.1, 0.11)
+    groom = hw.scalp_groom(40, 0.25, points=11, scalp_center=(0.0, 0.0, 0.0), scalp_radii=radii, seed=5)
+    detect = ColliderSet.detect
+    results = []
+    for memo in (True, False):
+        if not memo:
+            def forgetful(self, *a, **k):
+                self.memo_distance.fill_(-UNBOUNDED)
+                return detect(self, *a, **k)
+            monkeypatch.setattr(ColliderSet, "detect", forgetful)
+        model = hw.Model.build(groom, segments=10, device="cpu")
+        head = Collider.ellipsoid((0.0, 0.0, 0.0), radii, subdivisions, thickness=1e-3, friction=0.3)
+        shoulders = Collider.plane(point=(0.0, 0.0, -0.14), thickness=1e-3, friction=0.3)
+        colliders = ColliderSet([head, shoulders], "cpu", model=model)
+        solver = hw.Solver(model, colliders=colliders, threads=1)
+        control = model.control()
+        states = [model.state(), model.state()]
+        dt, omega = 1.0 / 240.0, 6.0
+        held = 0
+        queried = 0  # queries made: the memo points written
+        for step in range(60):
+            w = omega * np.cos(2.0 * step * dt)
+            angle = omega * np.sin(2.0 * step * dt) / 2.0
+            control.set_head(rotation=(np.sin(angle / 2), 0.0, 0.0, np.cos(angle / 2)), angular_velocity=(w, 0, 0))
+            before = colliders.memo_point.numpy().copy()
+            solver.step(states[0], states[1], control, dt)
+            held += int(np.count_nonzero(np.linalg.norm(colliders.contacts.force.numpy(), axis=1)))
+            queried += int(np.count_nonzero(np.any(colliders.memo_point.numpy() != before, axis=1)))
+            states.reverse()
+        assert states[0].fault.numpy()[0] == 0
+        results.append((held, queried, {k: getattr(states[0], k).numpy() for k in ("joint_q", "joint_qd",
+                                                                                   "vertex_positions")}
+                        | {k: getattr(colliders.contacts, k).numpy() for k in ("normal", "force", "slip")}))
+    (held, queried, kept), (held_all, queried_all, forgot) = results
+    assert held > 0 and held == held_all
+    assert queried < 0.5 * queried_all  # the memo carried bounds across steps
+    for key in kept:
+        np.testing.assert_array_equal(kept[key], forgot[key], err_msg=key)
+
+
 def test_fault_names_the_collision_stage():
     """A collider that hits the hair faster than a step resolves trips the contact response's own bit, and the
     message names collision with collision advice, not the dynamics."""
