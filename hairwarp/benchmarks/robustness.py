@@ -894,8 +894,11 @@ def bench_peers(duration: float, second: int, timeout_s: float = 240.0) -> dict:
     _second_figures(nw, second)
     not_modelled = {
         "mujoco": "sweep, frame rate and teleport: the chain of peers.py is one strand without static links, hair "
-                  "contacts or a groom on a head, so the long_hair cases have no counterpart there",
-        "newton": "sweep, frame rate and teleport, as for MuJoCo: one VBD rod, no links, hair contacts or groom",
+                  "contacts or a groom on a head, so the long_hair cases have no counterpart there; how large a step "
+                  "the chain itself takes is the stability suite's map (section 3: the largest stable step per bend "
+                  "stiffness, Euler, implicitfast and discrete against hairwarp's integrators)",
+        "newton": "sweep, frame rate and teleport, as for MuJoCo: one VBD rod, no links, hair contacts or groom; the "
+                  "rod's largest stable step per bend stiffness is on the same map (section 3)",
     }
     return {"mujoco_rest": r, "newton_rest": nw, "second": second, "not_modelled": not_modelled}
 
