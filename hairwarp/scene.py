@@ -583,10 +583,11 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                               "the relative motion of their ends (step), or each link alone against its free "
                               "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
                               choices=("auto", "step", "link")),
-            "sweeps": Field("int", 2, "with the step response, at steps up to 1/45 s: Gauss-Seidel sweeps over "
-                            "the strands' links and hair contacts after the first pass, per step of up to 1/240 s (a "
-                            "step k times as long takes k^1.5 times as many: 16 at 1/60 s); more hold the hair "
-                            "nearer its backward-Euler step, each costs about one more response solve",
+            "sweeps": Field("int", 2, "with the step response: Gauss-Seidel sweeps over the strands' links and "
+                            "hair contacts after the first pass, per step of up to 1/240 s (a step k times as long "
+                            "takes k^1.5 times as many: 16 at 1/60 s, and steps longer than 1/45 s that step's 25); "
+                            "more hold the hair nearer its backward-Euler step, each costs about one more response "
+                            "solve",
                             range="[1, 64]"),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",

@@ -428,7 +428,7 @@ class Solver:
         ex.launch(articulated.strand_inverse_inertia, model.strand_count,
                   [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
                   min_chunk=INTEGRATE_MIN_CHUNK)
-        # the sweeps this step takes (none beyond ``sweeps.SWEEP_MAX_STEP``)
+        # the sweeps this step takes (``StaticLinks.sweeps_at``)
         count = links.sweeps_at(self._dt_host) if links is not None else 0
         for part in self.responders:
             if part is self.links:
