@@ -32,7 +32,6 @@ import warp as wp
 from hairwarp.executor import _capturing, launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
-from hairwarp.kernels.sweeps import SWEEP_GROWTH_STEP
 from hairwarp.kernels.types import Fault
 
 # Strip triangles narrower than this fraction of the median width would make the density-scaled
@@ -155,6 +154,16 @@ SWEEP_REFERENCE_STEP = 1.0 / 240.0
 #: times as many (8 at 1/60 s) the error was 4.4-4.9 mm/s, and the mohawk broke 29-46 links in five runs with
 #: gravity changed by 1e-5 (21-25 at 16 substeps); with 16, 16-32.
 SWEEP_GROWTH = 1.5
+
+#: Longest step [s] whose sweep count grows with it (:meth:`StaticLinks.sweeps_at`); longer steps take its count (25
+#: with the default 2 sweeps). The sweeps run at every step. They once stood aside beyond this step, where limp hair
+#: (EI 1e-7) on their answer burst at one step a frame (3.5-16 m/s at 16-64 segments). Then the first, Jacobi pass
+#: alone put energy into linked hair there: five strands tied side by side and parted by a still sphere gained 20 %
+#: of their energy in a frame, and ``long_hair`` with its head collider off and the head still swung on at 150 mm/s
+#: RMS, tips up to 1.4 m/s. On the sweeps the rise is 1 % and that hair comes to rest (0.013 mm/s in the 8th
+#: second); the tips at one step a frame run 5.2 mm RMS from 16 substeps instead of 11.8, and the limp cells peak
+#: at 1.35-1.94 m/s (the first pass alone reached 2.65). On 2 sweeps the 64-segment limp cell burst (3.6 m/s).
+SWEEP_GROWTH_STEP = 1.0 / 45.0
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
@@ -407,8 +416,8 @@ class StaticLinks:
     def sweeps_at(self, dt: float) -> int:
         """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to
         :data:`SWEEP_REFERENCE_STEP`, and a step k times as long k ** :data:`SWEEP_GROWTH` times as many (rounded
-        up), up to ``kernels.sweeps.SWEEP_GROWTH_STEP``; longer steps take that step's count (25 with the default 2,
-        at one step a frame: on 2 sweeps there limp hair of 64 segments burst, 3.6 m/s, where 25 hold it to 1.8)."""
+        up), up to :data:`SWEEP_GROWTH_STEP`; longer steps take that step's count (25 with the default 2, at one
+        step a frame)."""
         growth = (min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
         return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
 

@@ -26,15 +26,6 @@ from hairwarp.kernels.links import LinkEnds, end_slot, seg_point_velocity
 
 wp.set_module_options({"enable_backward": False})
 
-# Longest step [s] whose sweep count grows with it (``StaticLinks.sweeps_at``); longer steps take its count. The sweeps
-# run at every step: at one step a frame (1/30 s) the first, Jacobi pass alone put energy into linked hair (five
-# strands tied side by side and parted by a still sphere gained 20 % of their energy in a frame; ``long_hair`` with
-# its head collider off kept swinging at 150 mm/s RMS, tips up to 1.4 m/s, with the head still), and on its answer
-# the tips ran 11.8 mm RMS from 16 substeps. With the sweeps: a rise of 1 % at most, the hair at rest (0.013 mm/s in
-# the 8th second), 4.9 mm. Limp hair (EI 1e-7, 8-64 segments) that once burst on the sweeps' answer at 1/30 s
-# (3.5-16 m/s) now peaks at 1.4-1.9 m/s there, below the first pass's 2.0-2.7.
-SWEEP_GROWTH_STEP = wp.constant(1.0 / 45.0)
-
 
 @wp.func
 def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
