@@ -569,6 +569,15 @@ def contact_projector(n: wp.vec3, beta: float):
 
 
 @wp.func
+def release_contacts(contacts: BodyContacts, vbase: int, S: int):
+    """A strand none of whose vertices 1..S a collider holds in this step: no slip, force or share to carry over."""
+    for k in range(S):
+        contacts.slip[vbase + k + 1] = 0.0
+        contacts.share[vbase + k + 1] = 1.0
+        contacts.force[vbase + k + 1] = wp.vec3()
+
+
+@wp.func
 def body_contact_solve(
     chains: StrandChains,
     strand: int,
@@ -680,10 +689,7 @@ def body_contact_solve(
                     active = 1
         if active == 0:
             if contacts.enabled != 0:
-                for k in range(S):
-                    contacts.slip[vbase + k + 1] = 0.0
-                    contacts.share[vbase + k + 1] = 1.0
-                    contacts.force[vbase + k + 1] = wp.vec3()
+                release_contacts(contacts, vbase, S)
             return
 
         # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
@@ -943,10 +949,7 @@ def integrate_euler(
             if wp.length_sq(contacts.normal[vbase + k + 1]) > 0.0:
                 touching = 1
         if touching == 0:
-            for k in range(S):
-                contacts.slip[vbase + k + 1] = 0.0
-                contacts.share[vbase + k + 1] = 1.0
-                contacts.force[vbase + k + 1] = wp.vec3()
+            release_contacts(contacts, vbase, S)
     t_left = h
     part = int(0)
     collided = int(0)
