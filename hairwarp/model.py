@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -104,7 +105,8 @@ class Model:
         joint_rest_q: rest rotation of each joint (parent from child), quat (G*S,).
         joint_stiffness: (bend, bend, twist) [N m/rad], vec3 (G*S,), child frame.
         joint_damping: (bend, bend, twist) [N m s/rad], vec3 (G*S,), child frame.
-        joint_q0: initial joint rotations, quat (G*S,) (the groom's own shape).
+        joint_q0: initial joint rotations, quat (G*S,) (the groom's own shape); with ``hold_shape`` the
+            equilibrium of the joints at ``joint_rest_q`` under gravity.
         gravity: [m/s^2], world.
         drag: air drag per unit length [N s/m^2] (0: off).
         rest_vertex_positions: numpy (G, S+1, 3) float64, world pose at build time (head at identity).
@@ -127,6 +129,7 @@ class Model:
         device=None,
         gravity=(0.0, 0.0, -9.81),
         rest_vertices=None,
+        hold_shape: bool = False,
     ) -> Model:
         """Build a model from a groom, resampled to ``segments`` equal segments per strand.
 
@@ -139,6 +142,10 @@ class Model:
             gravity: gravitational acceleration [m/s^2], world.
             rest_vertices: optional (G, segments+1, 3) rest shape when it differs from the
                 initial shape given by ``groom``.
+            hold_shape: make the groom's shape the strands' equilibrium under ``gravity`` with the head at
+                its build pose: each joint's rest bend is offset by the bend that takes the weight of the
+                strand beyond it (:func:`gravity_rest_bends`), so the hair starts at rest as drawn instead of
+                sagging from it. Not with ``rest_vertices``.
         """
         params = params or StrandParams()
         if isinstance(segments, bool) or not isinstance(segments, int | np.integer) or segments < 1:
@@ -150,6 +157,8 @@ class Model:
         rest = verts if rest_vertices is None else _vertices_of(rest_vertices, S)
         if rest.shape != verts.shape:
             raise ModelError(f"rest_vertices has shape {rest.shape}, the groom {verts.shape}")
+        if hold_shape and rest_vertices is not None:
+            raise ModelError("hold_shape makes the groom's shape the rest under gravity: give it or rest_vertices")
 
         self = object.__new__(cls)
         self.device = device
@@ -170,9 +179,6 @@ class Model:
         short = np.flatnonzero(lengths.min(axis=1) <= 0.0)
         if short.size:
             raise ModelError(f"strand {short[0]} has a zero-length segment after resampling to {S} segments")
-        rest_q = rest_joint_rotations(rest)
-        q0 = rest_q if rest_vertices is None else rest_joint_rotations(verts)
-
         r = params.radius
         mass = params.density * math.pi * r * r * lengths
         i_perp = mass * (3.0 * r * r + lengths**2) / 12.0
@@ -191,6 +197,18 @@ class Model:
         stiffness = np.stack([bend, bend, twist], axis=-1)
         damp = params.damping / l_joint * scale
         damping = np.stack([damp, damp, damp], axis=-1)
+
+        q0 = rest_joint_rotations(verts)
+        if hold_shape:
+            bends, limp = gravity_rest_bends(verts, mass, stiffness, gravity)
+            if limp.any():
+                warnings.warn(f"hold_shape: {int(limp.sum())} of {G} strands are too limp to hold the groom's shape "
+                              f"under gravity (first: strand {int(np.flatnonzero(limp)[0])}; a rest bend of more "
+                              f"than {math.degrees(MAX_REST_BEND):.0f} deg would be needed); they sag from it "
+                              f"(raise the bend stiffness)", stacklevel=2)
+            rest_q = rest_joint_rotations(verts, bends)
+        else:
+            rest_q = q0 if rest_vertices is None else rest_joint_rotations(rest)
 
         def arr(a, dtype):
             return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=self.device)
@@ -348,10 +366,67 @@ def segment_rotations(vertices: np.ndarray) -> np.ndarray:
     return R
 
 
-def rest_joint_rotations(vertices: np.ndarray) -> np.ndarray:
-    """Joint rotations (G, S, 4) (x, y, z, w) that reproduce the vertices with the head at identity."""
+def rest_joint_rotations(vertices: np.ndarray, bends: np.ndarray | None = None) -> np.ndarray:
+    """Joint rotations (G, S, 4) (x, y, z, w) that reproduce the vertices with the head at identity; with ``bends``
+    (G, S, 3), rotation vectors in each joint's child frame [rad], the rotations ``q`` with ``log(q^-1 q_v) =
+    bends``, ``q_v`` the vertices' own (the rest that the joint springs, ``-K log(q_rest^-1 q)``, hold the vertices
+    away from by ``K bends``)."""
     R = segment_rotations(vertices)
     parent = np.empty_like(R)
     parent[:, 0] = np.eye(3)
     parent[:, 1:] = R[:, :-1]
-    return matrix_to_quat(np.swapaxes(parent, -1, -2) @ R)
+    relative = np.swapaxes(parent, -1, -2) @ R
+    if bends is not None:
+        relative = relative @ rotation_matrices(-np.asarray(bends, dtype=np.float64))
+    return matrix_to_quat(relative)
+
+
+def rotation_matrices(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle [rad]; Rodrigues)."""
+    v = np.asarray(v, dtype=np.float64)
+    angle = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0 - angle**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+#: Largest rest bend [rad] that ``gravity_rest_bends`` gives a joint: a strand that would need more is too limp to
+#: hold its shape (the springs' law, ``-K log(q_rest^-1 q)``, turns back at pi), and its joints keep the bound.
+MAX_REST_BEND = 0.5 * math.pi
+
+
+def gravity_rest_bends(vertices: np.ndarray, mass: np.ndarray, stiffness: np.ndarray, gravity) -> tuple:
+    """The joints' rest bends that make the polylines ``vertices`` (G, S+1, 3) the strands' static equilibrium
+    under ``gravity`` [m/s^2] (inverse statics; Derouet-Jourdan et al. 2010, *Stable inverse dynamic curves*).
+
+    At rest every joint's spring takes the weight of the strand beyond it: joint i (at vertex i) carries the torque
+    ``tau_i = sum_{j >= i} (c_j - x_i) x m_j g`` of the segments' weights (``c_j`` their centres, ``mass`` (G, S)
+    [kg]), which in the joint's child frame the spring balances with ``K theta_i = R_i^T tau_i`` (``stiffness``
+    (G, S, 3) [N m/rad] per axis). O(S) per strand by suffix sums of ``m_j`` and ``m_j c_j``.
+
+    Returns:
+        ``(bends, limp)``: ``theta`` (G, S, 3) [rad] for :func:`rest_joint_rotations`, each joint's at most
+        :data:`MAX_REST_BEND` (scaled down to it, and none about an axis without stiffness); ``limp`` (G,) bool,
+        the strands one of whose joints needed more.
+    """
+    x = np.asarray(vertices, dtype=np.float64)
+    m = np.asarray(mass, dtype=np.float64)
+    K = np.asarray(stiffness, dtype=np.float64)
+    centres = 0.5 * (x[:, :-1] + x[:, 1:])
+    outboard_mass = np.cumsum(m[:, ::-1], axis=1)[:, ::-1]
+    outboard_moment = np.cumsum((m[..., None] * centres)[:, ::-1], axis=1)[:, ::-1]
+    torque = np.cross(outboard_moment - outboard_mass[..., None] * x[:, :-1], np.asarray(gravity, dtype=np.float64))
+    local = np.einsum("gsji,gsj->gsi", segment_rotations(x), torque)
+    stiff = K > 0.0
+    bends = np.where(stiff, local / np.where(stiff, K, 1.0), 0.0)
+    scale = 1e-9 * np.abs(torque).max(initial=0.0)  # torques below this are round-off
+    unheld = (~stiff & (np.abs(local) > scale)).any(axis=2)
+    angle = np.linalg.norm(bends, axis=2)
+    over = angle > MAX_REST_BEND
+    bends[over] *= (MAX_REST_BEND / angle[over])[:, None]
+    return bends, (over | unheld).any(axis=1)

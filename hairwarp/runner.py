@@ -232,7 +232,8 @@ class Simulation:
         if bound is not None:
             self.groom, self.surface = bound
         self.model = Model.build(self.groom, scene.strand_params(), segments=int(sim.segments),
-                                 device=device or sim.device, gravity=tuple(sim.gravity))
+                                 device=device or sim.device, gravity=tuple(sim.gravity),
+                                 hold_shape=bool(scene.groom.hold_shape))
         self.frame_dt = scene.frame_dt
         self.colliders = self._build_colliders(scene)
         collider_set = None

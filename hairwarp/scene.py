@@ -456,6 +456,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "min_length": Field("float", 0.001, "drop strands shorter than this", "m", range="[0, inf)"),
             "max_strands": Field("int", 0, "keep every n-th strand so at most this many remain (0 = all)",
                                  range="[0, inf)"),
+            "hold_shape": Field("bool", False, "the groom as drawn is the strands' rest under gravity: each joint's "
+                                               "rest bend takes the weight beyond it (inverse statics), so the hair "
+                                               "starts at rest as drawn; false: the drawn shape is unloaded and sags"),
             "purpose": Field("str", "auto", "file, USD: the curves to read by UsdGeom purpose: guide, render (all "
                                             "but guides), all, or auto (the guides when the stage has both)",
                              choices=("auto", "guide", "render", "all")),

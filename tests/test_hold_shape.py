@@ -1,0 +1,110 @@
+"""A groom held as drawn (``groom.hold_shape``, ``Model.build(hold_shape=True)``): the rest bends that make the drawn
+shape the strands' equilibrium under gravity, against Pinocchio's gravity torques, and the simulator holding it."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from _reference import chain_model, joint_torques
+from conftest import require_ratboy
+
+from hairwarp.model import MAX_REST_BEND, Model, StrandParams
+from hairwarp.runner import Simulation
+from hairwarp.scene import Scene
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def curled_strands(S=12):
+    """Three strands drawn in 3D: a helix hanging sideways, a strand standing up and bending over, an S curve; their
+    segments of unequal length."""
+    t = np.linspace(0.0, 1.0, S + 1)
+    helix = np.stack([0.03 * np.cos(6.0 * t) + 0.12 * t, 0.03 * np.sin(6.0 * t), -0.1 * t**1.3], axis=1)
+    spike = np.stack([0.08 * t**2, 0.01 * t, 0.15 * np.sin(2.0 * t)], axis=1)
+    wave = np.stack([0.2 * t, 0.02 * np.sin(9.0 * t), -0.05 * t - 0.02 * np.sin(5.0 * t)], axis=1)
+    return np.stack([helix, spike + [0.05, 0.0, 0.0], wave + [0.0, 0.05, 0.0]])
+
+
+def spring_torques(model, strand):
+    """Each joint's spring torque (S, 3) at the model's initial pose, -K log(q_rest^-1 q0), in float64."""
+    S = model.seg_per_strand
+    part = slice(strand * S, (strand + 1) * S)
+    q0 = model.joint_q0.numpy()[part].astype(float)
+    rest = model.joint_rest_q.numpy()[part].astype(float)
+    K = model.joint_stiffness.numpy()[part].astype(float)
+    return joint_torques(q0, np.zeros((S, 3)), rest, K, np.zeros((S, 3)))
+
+
+@pytest.mark.parametrize("root_scale", [1.0, 4.0])
+def test_held_rest_bends_balance_the_weight_by_pinocchio(device, root_scale):
+    # At the drawn pose every joint's spring must give the generalised force that holds the chain still, which is
+    # Pinocchio's gravity term g(q) (M qdd + C qd + g = tau at qd = qdd = 0), in float64 from our own geometry.
+    # The rest rotations are stored in float32: about 6e-8 in a quaternion, 1.2e-7 rad in a bend, times K (under
+    # 0.04 N m/rad here) is under 1e-8 N m against torques of 1e-4 to 1e-2 N m; the bound is 1e-5 of the largest.
+    params = StrandParams(bend_stiffness=2e-4, root_stiffness_scale=root_scale)
+    held = Model.build(curled_strands(), params, segments=12, device=device, hold_shape=True)
+    free = Model.build(curled_strands(), params, segments=12, device=device)
+    S = held.seg_per_strand
+    for g in range(held.strand_count):
+        part = slice(g * S, (g + 1) * S)
+        pm = chain_model(held.seg_length.numpy()[part].astype(float), held.seg_mass.numpy()[part].astype(float),
+                         held.seg_inertia.numpy()[part].astype(float), held.strand_root_pos.numpy()[g].astype(float))
+        q = held.joint_q0.numpy()[part].astype(float).reshape(-1)
+        weight = pin.computeGeneralizedGravity(pm, pm.createData(), q).reshape(S, 3)
+        scale = np.abs(weight).max()
+        assert scale > 1e-4  # the strands are loaded: their joints carry 1e-4 N m or more
+        np.testing.assert_allclose(spring_torques(held, g), weight, rtol=0.0, atol=1e-5 * scale)
+        # drawn as the unloaded rest, the springs give nothing at the drawn pose
+        assert np.abs(spring_torques(free, g)).max() < 1e-6 * scale
+
+
+def settle(scene_name, overrides, frames):
+    """Vertex positions (G, S+1, 3) after each of ``frames`` frames with the head still, and the drawn ones."""
+    sim = Simulation(Scene.load(SCENES / f"{scene_name}.toml", ['head.motion.kind="still"', *overrides]))
+    S = sim.model.seg_per_strand
+    out = []
+    for _ in range(frames):
+        sim.advance_frame()
+        out.append(sim.stepper.state.vertex_positions.numpy().reshape(-1, S + 1, 3).copy())
+    return np.array(out), sim.model.rest_vertex_positions, sim
+
+
+def test_a_held_groom_stays_as_drawn_with_the_head_still():
+    # The simulator's own equilibrium is the drawn shape: 1 s with the head still and its collider on, every vertex
+    # within 20 um of where it was drawn (float32 forward kinematics of 1.6 m coordinates, 1.2e-7 m apart, summed
+    # over 16 segments, gives a few um), where the unheld groom sags by centimetres.
+    held, drawn, _ = settle("tiny", ["groom.hold_shape=true"], 30)
+    sag, _, _ = settle("tiny", [], 30)
+    assert np.linalg.norm(held - drawn, axis=3).max() < 2e-5
+    assert np.linalg.norm(sag[-1, :, -1] - drawn[:, -1], axis=1).max() > 0.01
+
+
+def test_a_strand_too_limp_to_hold_its_shape_is_named_and_bounded(device):
+    # EI 1e-8 would need rest bends of many radians: the model warns, names a strand and keeps each bend within
+    # MAX_REST_BEND, past which the springs' law turns back.
+    params = StrandParams(bend_stiffness=1e-8)
+    with pytest.warns(UserWarning, match=r"hold_shape: 3 of 3 strands are too limp .* \(first: strand 0;"):
+        model = Model.build(curled_strands(), params, segments=12, device=device, hold_shape=True)
+    for g in range(model.strand_count):
+        bend = np.linalg.norm(spring_torques(model, g) / model.joint_stiffness.numpy()[g * 12:(g + 1) * 12], axis=1)
+        assert bend.max() <= MAX_REST_BEND * (1 + 1e-6) and bend.max() > 0.9 * MAX_REST_BEND
+    with pytest.raises(ValueError, match="hold_shape .* rest_vertices"):
+        Model.build(curled_strands(), params, segments=12, device=device, hold_shape=True,
+                    rest_vertices=curled_strands())
+
+
+def test_the_mohawk_held_as_drawn_keeps_its_links_with_the_head_still():
+    # The Ratboy mohawk drawn as the unloaded rest sags 4 cm at its tips in its first frames and stretches 4 of its
+    # links past their 3 cm break length by frame 8 with the head still; held as drawn, it keeps every link.
+    require_ratboy("Ratboy_mohawk.tfx")
+    require_ratboy("Ratboy_body.tfxmesh")
+    for hold, broken in (("true", 0), ("false", None)):
+        x, drawn, sim = settle("ratboy_mohawk", [f"groom.hold_shape={hold}"], 8)
+        if broken is not None:
+            assert sim.links.broken_count() == broken
+            assert np.linalg.norm(x[-1] - drawn, axis=2).max() < 1e-4
+        else:
+            assert sim.links.broken_count() > 0
+            assert math.sqrt((np.linalg.norm(x[-1, :, -1] - drawn[:, -1], axis=1) ** 2).mean()) > 0.02
