@@ -130,6 +130,7 @@ class Model:
         gravity=(0.0, 0.0, -9.81),
         rest_vertices=None,
         hold_shape: bool = False,
+        hold_rotation=None,
     ) -> Model:
         """Build a model from a groom, resampled to ``segments`` equal segments per strand.
 
@@ -142,10 +143,13 @@ class Model:
             gravity: gravitational acceleration [m/s^2], world.
             rest_vertices: optional (G, segments+1, 3) rest shape when it differs from the
                 initial shape given by ``groom``.
-            hold_shape: make the groom's shape the strands' equilibrium under ``gravity`` with the head at
-                its build pose: each joint's rest bend is offset by the bend that takes the weight of the
-                strand beyond it (:func:`gravity_rest_bends`), so the hair starts at rest as drawn instead of
-                sagging from it. Not with ``rest_vertices``.
+            hold_shape: make the groom's shape the strands' equilibrium under ``gravity``: each joint's rest
+                bend is offset by the bend that takes the weight of the strand beyond it
+                (:func:`gravity_rest_bends`), so the hair starts at rest as drawn instead of sagging from it.
+                Not with ``rest_vertices``.
+            hold_rotation: with ``hold_shape``, the rotation from the groom's frame to the world at which the
+                shape is held: the head's first pose (a quaternion (x, y, z, w) or a 3 x 3 matrix), or each
+                strand's root frame's (G, 4) or (G, 3, 3); default the identity (the head at its build pose).
         """
         params = params or StrandParams()
         if isinstance(segments, bool) or not isinstance(segments, int | np.integer) or segments < 1:
@@ -200,7 +204,7 @@ class Model:
 
         q0 = rest_joint_rotations(verts)
         if hold_shape:
-            bends, limp = gravity_rest_bends(verts, mass, stiffness, gravity)
+            bends, limp = gravity_rest_bends(verts, mass, stiffness, _gravity_in_groom(gravity, hold_rotation, G))
             if limp.any():
                 warnings.warn(f"hold_shape: {int(limp.sum())} of {G} strands are too limp to hold the groom's shape "
                               f"under gravity (first: strand {int(np.flatnonzero(limp)[0])}; a rest bend of more "
@@ -395,6 +399,25 @@ def rotation_matrices(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
+def _gravity_in_groom(gravity, rotation, strands: int) -> np.ndarray:
+    """``gravity`` (world) in the groom's frame held at ``rotation`` (see ``Model.build``'s ``hold_rotation``):
+    (3,) for one rotation, (G, 3) for one per strand."""
+    g = np.asarray(gravity, dtype=np.float64)
+    if rotation is None:
+        return g
+    R = np.asarray(rotation, dtype=np.float64)
+    if R.shape in ((4,), (strands, 4)) and np.isfinite(R).all():
+        q = R / np.linalg.norm(R, axis=-1, keepdims=True)
+        x, y, z, w = np.moveaxis(q, -1, 0)
+        R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                      np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                      np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+    if R.shape not in ((3, 3), (strands, 3, 3)) or not np.isfinite(R).all():
+        raise ModelError(f"hold_rotation must be a quaternion (x, y, z, w) or a 3 x 3 rotation, one or one per "
+                         f"strand ({strands}), got shape {np.shape(rotation)}")
+    return np.einsum("...ji,j->...i", R, g)
+
+
 #: Largest rest bend [rad] that ``gravity_rest_bends`` gives a joint: a strand that would need more is too limp to
 #: hold its shape (the springs' law, ``-K log(q_rest^-1 q)``, turns back at pi), and its joints keep the bound.
 MAX_REST_BEND = 0.5 * math.pi
@@ -402,7 +425,8 @@ MAX_REST_BEND = 0.5 * math.pi
 
 def gravity_rest_bends(vertices: np.ndarray, mass: np.ndarray, stiffness: np.ndarray, gravity) -> tuple:
     """The joints' rest bends that make the polylines ``vertices`` (G, S+1, 3) the strands' static equilibrium
-    under ``gravity`` [m/s^2] (inverse statics; Derouet-Jourdan et al. 2010, *Stable inverse dynamic curves*).
+    under ``gravity`` [m/s^2] in their frame, (3,) or one per strand (G, 3) (inverse statics; Derouet-Jourdan et
+    al. 2010, *Stable inverse dynamic curves*).
 
     At rest every joint's spring takes the weight of the strand beyond it: joint i (at vertex i) carries the torque
     ``tau_i = sum_{j >= i} (c_j - x_i) x m_j g`` of the segments' weights (``c_j`` their centres, ``mass`` (G, S)
@@ -420,7 +444,8 @@ def gravity_rest_bends(vertices: np.ndarray, mass: np.ndarray, stiffness: np.nda
     centres = 0.5 * (x[:, :-1] + x[:, 1:])
     outboard_mass = np.cumsum(m[:, ::-1], axis=1)[:, ::-1]
     outboard_moment = np.cumsum((m[..., None] * centres)[:, ::-1], axis=1)[:, ::-1]
-    torque = np.cross(outboard_moment - outboard_mass[..., None] * x[:, :-1], np.asarray(gravity, dtype=np.float64))
+    g = np.asarray(gravity, dtype=np.float64)
+    torque = np.cross(outboard_moment - outboard_mass[..., None] * x[:, :-1], g[:, None, :] if g.ndim == 2 else g)
     local = np.einsum("gsji,gsj->gsi", segment_rotations(x), torque)
     stiff = K > 0.0
     bends = np.where(stiff, local / np.where(stiff, K, 1.0), 0.0)

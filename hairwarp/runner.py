@@ -231,9 +231,14 @@ class Simulation:
         self.surface = None  # hairwarp.surface.ScalpBinding: roots on a deforming scalp
         if bound is not None:
             self.groom, self.surface = bound
+        # a groom held as drawn is held at the first pose: the head's, or each root's frame on a bound scalp
+        hold_rotation = None
+        if scene.groom.hold_shape:
+            hold_rotation = (self.surface.root_frames(0.0)[0][:, 3:] if self.surface is not None
+                             else self.motion.evaluate(0.0).rotation)
         self.model = Model.build(self.groom, scene.strand_params(), segments=int(sim.segments),
                                  device=device or sim.device, gravity=tuple(sim.gravity),
-                                 hold_shape=bool(scene.groom.hold_shape))
+                                 hold_shape=bool(scene.groom.hold_shape), hold_rotation=hold_rotation)
         self.frame_dt = scene.frame_dt
         self.colliders = self._build_colliders(scene)
         collider_set = None

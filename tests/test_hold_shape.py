@@ -81,6 +81,38 @@ def test_a_held_groom_stays_as_drawn_with_the_head_still():
     assert np.linalg.norm(sag[-1, :, -1] - drawn[:, -1], axis=1).max() > 0.01
 
 
+def test_a_groom_is_held_at_the_heads_first_pose():
+    # A head that starts tilted 60 deg about x (and stays so) sees gravity tilted in its frame: the shape is held
+    # for that pose, within the same 20 um, where bends made for the upright head let the hair move by millimetres.
+    tilted = ['head.motion.kind="keyframes"', "head.motion.keys=[{time = 0.0, rotate_deg = [60.0, 0.0, 0.0]}, "
+              "{time = 5.0, rotate_deg = [60.0, 0.0, 0.0]}]", "groom.hold_shape=true"]
+    sim = Simulation(Scene.load(SCENES / "tiny.toml", tilted))
+    pose = sim.motion.evaluate(0.0)
+    x, y, z, w = pose.rotation
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    assert abs(math.degrees(math.acos((np.trace(R) - 1) / 2)) - 60.0) < 1e-6
+    S = sim.model.seg_per_strand
+    drawn = sim.model.rest_vertex_positions @ R.T + pose.position
+    for _ in range(30):
+        sim.advance_frame()
+    held = sim.stepper.state.vertex_positions.numpy().reshape(-1, S + 1, 3)
+    assert np.linalg.norm(held - drawn, axis=2).max() < 2e-5
+    upright = Model.build(sim.model.rest_vertex_positions, sim.model.params, segments=S, hold_shape=True)
+    assert np.abs(upright.joint_rest_q.numpy() - sim.model.joint_rest_q.numpy()).max() > 1e-3
+    # one rotation per strand (roots on a scalp mesh, each on its own frame) as the same for all; matrices as
+    # quaternions; a wrong shape named
+    G = sim.model.strand_count
+    for rotation in (np.tile(pose.rotation, (G, 1)), R, np.tile(R, (G, 1, 1))):
+        each = Model.build(sim.model.rest_vertex_positions, sim.model.params, segments=S, hold_shape=True,
+                           hold_rotation=rotation)
+        np.testing.assert_allclose(each.joint_rest_q.numpy(), sim.model.joint_rest_q.numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match=r"hold_rotation must be .* got shape \(2, 4\)"):
+        Model.build(sim.model.rest_vertex_positions, sim.model.params, segments=S, hold_shape=True,
+                    hold_rotation=np.tile(pose.rotation, (2, 1)))
+
+
 def test_a_strand_too_limp_to_hold_its_shape_is_named_and_bounded(device):
     # EI 1e-8 would need rest bends of many radians: the model warns, names a strand and keeps each bend within
     # MAX_REST_BEND, past which the springs' law turns back.
