@@ -107,6 +107,9 @@ class Model:
         joint_damping: (bend, bend, twist) [N m s/rad], vec3 (G*S,), child frame.
         joint_q0: initial joint rotations, quat (G*S,) (the groom's own shape); with ``hold_shape`` the
             equilibrium of the joints at ``joint_rest_q`` under gravity.
+        hold_unstable: with ``hold_shape``, numpy bool (G,): the strands whose held shape is an unstable rest on
+            their own springs (they buckle under their weight; :func:`unstable_strands`), which links to stiffer
+            neighbours or a body under them may still hold; None without ``hold_shape``.
         gravity: [m/s^2], world.
         drag: air drag per unit length [N s/m^2] (0: off).
         rest_vertex_positions: numpy (G, S+1, 3) float64, world pose at build time (head at identity).
@@ -175,6 +178,7 @@ class Model:
         self._gravity = wp.vec3(*gravity)
         self.drag = float(params.drag)
         self.rest_vertex_positions = rest
+        self.hold_unstable = None
         self.root_uv = getattr(groom, "root_uv", None)
         self.root_normal = getattr(groom, "root_normal", None)
         self.grid_shape = getattr(groom, "grid_shape", None)
@@ -204,7 +208,9 @@ class Model:
 
         q0 = rest_joint_rotations(verts)
         if hold_shape:
-            bends, limp = gravity_rest_bends(verts, mass, stiffness, _gravity_in_groom(gravity, hold_rotation, G))
+            held_gravity = _gravity_in_groom(gravity, hold_rotation, G)
+            bends, limp = gravity_rest_bends(verts, mass, stiffness, held_gravity)
+            self.hold_unstable = unstable_strands(verts, mass, stiffness, bends, held_gravity) & ~limp
             if limp.any():
                 warnings.warn(f"hold_shape: {int(limp.sum())} of {G} strands are too limp to hold the groom's shape "
                               f"under gravity (first: strand {int(np.flatnonzero(limp)[0])}; a rest bend of more "
@@ -439,13 +445,9 @@ def gravity_rest_bends(vertices: np.ndarray, mass: np.ndarray, stiffness: np.nda
         the strands one of whose joints needed more.
     """
     x = np.asarray(vertices, dtype=np.float64)
-    m = np.asarray(mass, dtype=np.float64)
     K = np.asarray(stiffness, dtype=np.float64)
-    centres = 0.5 * (x[:, :-1] + x[:, 1:])
-    outboard_mass = np.cumsum(m[:, ::-1], axis=1)[:, ::-1]
-    outboard_moment = np.cumsum((m[..., None] * centres)[:, ::-1], axis=1)[:, ::-1]
     g = np.asarray(gravity, dtype=np.float64)
-    torque = np.cross(outboard_moment - outboard_mass[..., None] * x[:, :-1], g[:, None, :] if g.ndim == 2 else g)
+    torque = np.cross(_outboard_moments(x, mass), g[:, None, :] if g.ndim == 2 else g)
     local = np.einsum("gsji,gsj->gsi", segment_rotations(x), torque)
     stiff = K > 0.0
     bends = np.where(stiff, local / np.where(stiff, K, 1.0), 0.0)
@@ -455,3 +457,80 @@ def gravity_rest_bends(vertices: np.ndarray, mass: np.ndarray, stiffness: np.nda
     over = angle > MAX_REST_BEND
     bends[over] *= (MAX_REST_BEND / angle[over])[:, None]
     return bends, (over | unheld).any(axis=1)
+
+
+def _outboard_moments(x: np.ndarray, mass) -> np.ndarray:
+    """``d_i = sum_{j >= i} m_j (c_j - x_i)`` (G, S, 3) [kg m]: the first moment of the strand beyond joint i about
+    it, whose weight's torque there is ``d_i x g``."""
+    m = np.asarray(mass, dtype=np.float64)
+    centres = 0.5 * (x[:, :-1] + x[:, 1:])
+    outboard_mass = np.cumsum(m[:, ::-1], axis=1)[:, ::-1]
+    outboard_moment = np.cumsum((m[..., None] * centres)[:, ::-1], axis=1)[:, ::-1]
+    return outboard_moment - outboard_mass[..., None] * x[:, :-1]
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def gravity_stiffness(vertices: np.ndarray, mass, gravity) -> np.ndarray:
+    """How the weight's generalised force on each joint changes as each joint turns: ``dtau_i / ddelta_k``
+    (G, 3S, 3S) [N m/rad], ``delta_k`` a turn of joint k about its child frame's axes (as its velocity is given)
+    and ``tau_i`` in joint i's child frame, at the polylines ``vertices`` (G, S+1, 3) under ``gravity`` (3,) or (G, 3).
+
+    Turning joint k by ``w`` (world) turns everything beyond it about its joint: for ``k <= i`` joint i's frame and
+    moment ``d_i`` turn with it and the torque changes by ``[d_i] [g] w``; for ``k > i`` only the part beyond k moves,
+    ``d_i`` by ``w x d_k``, and the torque by ``[g] [d_k] w`` (``d`` of :func:`_outboard_moments`)."""
+    x = np.asarray(vertices, dtype=np.float64)
+    G, S = x.shape[0], x.shape[1] - 1
+    g = np.broadcast_to(np.asarray(gravity, dtype=np.float64), (G, 3))
+    d = _outboard_moments(x, mass)
+    R = segment_rotations(x)
+    dg = _skew(d) @ _skew(g)[:, None]  # row i, columns k <= i
+    gd = _skew(g)[:, None] @ _skew(d)  # column k, rows i < k
+    blocks = np.where((np.arange(S)[:, None] >= np.arange(S)[None, :])[None, :, :, None, None],
+                      dg[:, :, None], gd[:, None, :])
+    blocks = np.swapaxes(R, -1, -2)[:, :, None] @ blocks @ R[:, None, :]
+    return blocks.transpose(0, 1, 3, 2, 4).reshape(G, 3 * S, 3 * S)
+
+
+def _log_jacobian_inverse(theta: np.ndarray) -> np.ndarray:
+    """``J_r^-1(theta)`` (..., 3, 3): ``log(exp(theta) exp(delta)) = theta + J_r^-1 delta`` to first order."""
+    a = np.linalg.norm(theta, axis=-1)[..., None, None]
+    W = _skew(theta)
+    small = a < 1e-6
+    safe = np.where(small, 1.0, a)
+    c = np.where(small, 1.0 / 12.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    return np.eye(3) + 0.5 * W + c * (W @ W)
+
+
+def unstable_strands(vertices: np.ndarray, mass, stiffness, bends, gravity, chunk: int = 128) -> np.ndarray:
+    """Whether each strand held at ``vertices`` (G, S+1, 3) by joint springs ``stiffness`` (G, S, 3) bent ``bends``
+    (G, S, 3) from their rest (:func:`gravity_rest_bends`) would fall from there: (G,) bool.
+
+    The drawn shape of a held groom is an equilibrium, but a standing strand too soft for its weight buckles from it
+    (a heavy column taller than Greenhill's height, ``(7.84 EI / (rho A g))^(1/3)``, as a flagpole does). Its
+    stiffness against small turns of its joints is the springs' ``K J_r^-1(theta)`` (``J_r`` the rotation log's
+    Jacobian) less what the weight gives (:func:`gravity_stiffness`); the rest is stable where the symmetric part is
+    positive definite (Derouet-Jourdan et al. 2010 check the same of their inverse statics). O(S^3) per strand, in
+    chunks of ``chunk`` strands."""
+    x = np.asarray(vertices, dtype=np.float64)
+    G, S = x.shape[0], x.shape[1] - 1
+    g = np.broadcast_to(np.asarray(gravity, dtype=np.float64), (G, 3))
+    K = np.asarray(stiffness, dtype=np.float64)
+    springs = K[..., :, None] * _log_jacobian_inverse(np.asarray(bends, dtype=np.float64))  # (G, S, 3, 3)
+    out = np.zeros(G, dtype=bool)
+    for first in range(0, G, chunk):
+        part = slice(first, min(first + chunk, G))
+        H = -gravity_stiffness(x[part], np.asarray(mass)[part], g[part])
+        n = H.shape[0]
+        H = H.reshape(n, S, 3, S, 3)
+        H[:, np.arange(S), :, np.arange(S), :] += np.swapaxes(springs[part], 0, 1)
+        H = H.reshape(n, 3 * S, 3 * S)
+        H = 0.5 * (H + np.swapaxes(H, -1, -2))
+        scale = np.abs(H).max(axis=(1, 2))
+        out[part] = np.linalg.eigvalsh(H)[:, 0] < -1e-9 * scale
+    return out

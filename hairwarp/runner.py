@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -239,6 +240,12 @@ class Simulation:
         self.model = Model.build(self.groom, scene.strand_params(), segments=int(sim.segments),
                                  device=device or sim.device, gravity=tuple(sim.gravity),
                                  hold_shape=bool(scene.groom.hold_shape), hold_rotation=hold_rotation)
+        unstable = self.model.hold_unstable
+        if unstable is not None and unstable.any() and not scene.links.enabled:
+            warnings.warn(f"groom.hold_shape: {int(unstable.sum())} of {self.model.strand_count} strands cannot stand "
+                          f"as drawn (first: strand {int(np.flatnonzero(unstable)[0])}): too soft for their weight, "
+                          f"they buckle and fall from it (raise strands.bend_stiffness, tie them with links, or let "
+                          f"the groom sag: groom.hold_shape = false)", stacklevel=2)
         self.frame_dt = scene.frame_dt
         self.colliders = self._build_colliders(scene)
         collider_set = None

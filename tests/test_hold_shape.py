@@ -2,6 +2,7 @@
 shape the strands' equilibrium under gravity, against Pinocchio's gravity torques, and the simulator holding it."""
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +11,10 @@ import pytest
 from _reference import chain_model, joint_torques
 from conftest import require_ratboy
 
-from hairwarp.model import MAX_REST_BEND, Model, StrandParams
+from hairwarp.model import MAX_REST_BEND, Model, StrandParams, gravity_stiffness
 from hairwarp.runner import Simulation
 from hairwarp.scene import Scene
+from hairwarp.solver import Solver
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
@@ -140,3 +142,67 @@ def test_the_mohawk_held_as_drawn_keeps_its_links_with_the_head_still():
         else:
             assert sim.links.broken_count() > 0
             assert math.sqrt((np.linalg.norm(x[-1, :, -1] - drawn[:, -1], axis=1) ** 2).mean()) > 0.02
+
+
+def test_the_weights_stiffness_is_pinocchios_gravity_derivative(device):
+    # How the weight's torques change as the joints turn, which decides whether a held shape stands: against
+    # Pinocchio's derivative of its gravity term (dg/dq, g = -tau), float64 from our float32 geometry; the bound
+    # is 1e-6 of the largest entry (the geometry's float32 rounding, 1e-7, times lever sums).
+    model = Model.build(curled_strands(), StrandParams(), segments=12, device=device)
+    S = model.seg_per_strand
+    mass = model.seg_mass.numpy().astype(float).reshape(-1, S)
+    ours = gravity_stiffness(model.rest_vertex_positions, mass, (0.0, 0.0, -9.81))
+    for g in range(model.strand_count):
+        part = slice(g * S, (g + 1) * S)
+        pm = chain_model(model.seg_length.numpy()[part].astype(float), mass[g],
+                         model.seg_inertia.numpy()[part].astype(float), model.strand_root_pos.numpy()[g].astype(float))
+        dg = pin.computeGeneralizedGravityDerivatives(pm, pm.createData(), model.joint_q0.numpy()[part].astype(float)
+                                                     .reshape(-1))
+        np.testing.assert_allclose(ours[g], -dg, rtol=0.0, atol=1e-6 * np.abs(dg).max())
+
+
+def test_a_standing_strand_taller_than_greenhills_height_is_named_and_falls(device):
+    # A straight heavy column clamped upright stands when shorter than Greenhill's height (7.837 EI / (rho A g))^(1/3)
+    # (the first root of J_{-1/3}; Timoshenko & Gere, Theory of Elastic Stability, 2.9) and buckles when taller. The
+    # model names the strands at 1.03 times that height as unstable and keeps those at 0.97 (40 segments: the
+    # discrete chain's threshold lies within 3 %). Pushed at 0.5 mm/s and let go for 2 s, a strand at 0.8 times the
+    # height stands within 0.1 mm, one at 1.5 times falls past 1 cm.
+    EI, S = 2e-4, 40
+    params = StrandParams(bend_stiffness=EI, damping=0.0)
+    height = (7.837 * EI / (params.density * math.pi * params.radius**2 * 9.81)) ** (1.0 / 3.0)
+    factors = (0.97, 1.03, 0.8, 1.5)
+    verts = np.zeros((len(factors), S + 1, 3))
+    for g, f in enumerate(factors):
+        verts[g, :, 0] = 0.05 * g
+        verts[g, :, 2] = np.linspace(0.0, f * height, S + 1)
+    model = Model.build(verts, params, segments=S, device=device, hold_shape=True)
+    assert model.hold_unstable.tolist() == [False, True, False, True]
+    solver = Solver(model, "implicit_joints")
+    s0, s1, control = model.state(), model.state(), model.control()
+    push = np.zeros((len(factors) * S, 3))
+    push[S - 1::S, 0] = 1e-3 / (0.05 * height)  # the tip segments turning: 0.5 mm/s at the tips
+    s0.joint_qd.assign(push.astype(np.float32))
+    for _ in range(480):
+        solver.step(s0, s1, control, 1.0 / 240.0)
+        s0, s1 = s1, s0
+    tips = s0.vertex_positions.numpy().reshape(len(factors), S + 1, 3)[:, -1]
+    moved = np.linalg.norm(tips - verts[:, -1], axis=1)
+    assert moved[2] < 1e-4 and moved[3] > 0.01, moved
+
+
+def test_a_run_names_the_held_strands_that_would_fall_unless_links_tie_them():
+    # long_hair at half its stiffness, held as drawn: its strands standing up from the crown buckle under their weight
+    # alone, which the run says in one warning naming a strand; with the scene's links tying them no warning is given
+    # (the model still lists them), and at its own stiffness none of these 120 is unstable.
+    soft = ["groom.hold_shape=true", "strands.bend_stiffness=1e-4", "groom.count=120"]
+    with pytest.warns(UserWarning, match=r"groom.hold_shape: \d+ of 120 strands cannot stand as drawn \(first: strand "
+                                         r"\d+\): too soft for their weight"):
+        alone = Simulation(Scene.load(SCENES / "long_hair.toml", [*soft, "links.enabled=false"]))
+    assert alone.model.hold_unstable.sum() > 5
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="groom.hold_shape")
+        tied = Simulation(Scene.load(SCENES / "long_hair.toml", soft))
+        stiff = Simulation(Scene.load(SCENES / "long_hair.toml", ["groom.hold_shape=true", "groom.count=120",
+                                                                  "links.enabled=false"]))
+    assert tied.model.hold_unstable.sum() == alone.model.hold_unstable.sum()
+    assert not stiff.model.hold_unstable.any()
