@@ -39,6 +39,10 @@ SCENES = ("tiny", "long_hair", "long_hair_shoulders", "fast_turn", "ratboy_mohaw
 # Goals of hair that holds up: at rest when the head is still, whole at speed, stable at frame rate.
 GOAL_REST_MM_S = 2.0  # guide tip RMS speed in the 6th second, head still [mm/s]
 GOAL_REST_RATIO = 1.2  # ... and at most this times the same scene without colliders
+# Tips slower than this [mm/s] are still, whatever the ratio: 10 um/s is invisible, and float32 coordinates near 1 m
+# resolve 0.12 um, 3.6 um/s at 30 fps, so between two still runs the ratio is one of round-off (a groom held as
+# drawn, ``groom.hold_shape``, rests at 0.002 mm/s with its colliders and without).
+REST_STILL_MM_S = 0.01
 # Friction of the rest suite's third run (mu = 4): a vertex that still moves there is not sliding at its cone's edge.
 STICKY_FRICTION = 0.8
 GOAL_RESTING_MM = 0.05  # largest per-frame motion of a vertex resting on a collider [mm]
@@ -310,7 +314,8 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
                 row["sticky"]["resting"] = resting_motion(run["sim"], run["vertices"])
         c, n = row["colliders"]["second_mm_s"], row["no_colliders"]["second_mm_s"]
         row["ratio"] = c / n if c is not None and n else None
-        if row["ratio"] is not None and row["ratio"] > GOAL_REST_RATIO:
+        row["still"] = c is not None and c <= REST_STILL_MM_S
+        if row["ratio"] is not None and row["ratio"] > GOAL_REST_RATIO and not row["still"]:
             more = [(_rest_second(perturbed(raw, k), name, duration, second),
                      _rest_second(without_colliders(perturbed(raw, k)), name, duration, second)) for k in REST_REDRAWS]
             row["redraws"] = rest_redraws((c, n), more)
@@ -321,7 +326,7 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
         row["sticky"]["ratio"] = k / n if k is not None and n else None
         row["meets_speed"] = c is not None and c <= GOAL_REST_MM_S
         judged = row["redraws"]["ratio_of_means"] if row.get("redraws") else row["ratio"]
-        row["meets_ratio"] = judged is not None and judged <= GOAL_REST_RATIO
+        row["meets_ratio"] = row["still"] or (judged is not None and judged <= GOAL_REST_RATIO)
         rmax = row["resting"]["max_mm"]
         row["meets_resting"] = rmax is None or rmax < GOAL_RESTING_MM
         rows.append(row)
@@ -329,7 +334,7 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
             f"moving tips {_pct(row['colliders']['moving_tips_fraction'])}, resting vertices "
             f"{row['resting']['vertices']} max {_f(rmax)} mm/frame")
     return {"duration_s": duration, "second": second, "goal_mm_s": GOAL_REST_MM_S, "goal_ratio": GOAL_REST_RATIO,
-            "sticky_friction": STICKY_FRICTION,
+            "still_mm_s": REST_STILL_MM_S, "sticky_friction": STICKY_FRICTION,
             "goal_resting_mm": GOAL_RESTING_MM, "moving_mm": MOVING_MM, "resting_slack_m": RESTING_SLACK_M,
             "rows": rows}
 
@@ -1038,6 +1043,8 @@ def _f(x, digits: int = 3) -> str:
 def _ratio_cell(row: dict) -> str:
     """The rest table's ratio: one pair's, or with redraws their range and the ratio of the means judged."""
     d = row.get("redraws")
+    if row.get("still"):
+        return f"{_f(row['ratio'])}, still (under {REST_STILL_MM_S:g} mm/s) {_v(row['meets_ratio'])}"
     if not d:
         return f"{_f(row['ratio'])} {_v(row['meets_ratio'])}"
     got = [x for x in d["ratios"] if x is not None]
@@ -1107,7 +1114,9 @@ def md_robustness(data: dict) -> list[str]:
              "vertices' largest motion). *Redraws*: a scene whose ratio misses the goal runs three more pairs with "
              f"gravity changed by {', '.join(f'{k:+g}' for k in REST_REDRAWS)} x {PERTURBATION:g} (relative): hair "
              "leaning on hair settles into one of several nearby states, which moves the speed in that second by tens "
-             "of per cent with and without colliders alike; the goal is checked on the ratio of the four pairs' means.",
+             "of per cent with and without colliders alike; the goal is checked on the ratio of the four pairs' means. "
+             f"*Still*: tips under {REST_STILL_MM_S:g} mm/s with the colliders meet the ratio whatever it is: both "
+             "runs are then still, and their ratio is one of float32 round-off.",
              "",
              f"![rest]({CHART_REST})", "",
              f"| scene | second {s} [mm/s] (goal ≤ {GOAL_REST_MM_S:g}) | without colliders [mm/s] | ratio (goal ≤ "
