@@ -86,6 +86,8 @@ def _cmd_run(args) -> int:
     rate = f" ({result.seconds_per_frame:.3g} s a frame)" if simulated else ""  # none: no time a frame to give
     print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s{rate}; "
           f"{result.seconds:.2f} s in all, with the set-up and the preview")
+    for note in result.notes:  # what the run noticed: buffers that overflowed, frames taken again, a held groom
+        print(f"note     {note}")
     return EXIT_OK
 
 

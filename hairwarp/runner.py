@@ -1268,6 +1268,10 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         report.update(frame, stats)
         if stops.requested is not None and frame < frames:
             raise RunStopped(f"stopped by {_signal_name(stops.requested)} after frame {frame}.", stops.requested)
+    unstable = sim.model.hold_unstable
+    if unstable is not None and unstable.any() and sim.links is not None:  # without links the build warned
+        notes.append(f"groom.hold_shape: {int(unstable.sum())} of {sim.model.strand_count} guides would buckle from "
+                     f"their drawn shape on their own springs; only their links hold them up")
     if sim.refined_frames:
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")

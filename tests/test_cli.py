@@ -362,6 +362,7 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
         frame_seconds = 0.25
         seconds_per_frame = 0.125
         resumed_frames = 0
+        notes = ["frame 1: a note of the run"]
 
     def fake(scene, out, **kw):
         seen.update(scene=scene, out=out, **kw)
@@ -375,6 +376,19 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2
     out = capsys.readouterr().out
     assert "tiny.usdc" in out and "tiny.png" in out
+    assert "note     frame 1: a note of the run" in out
+
+
+def test_run_prints_what_the_run_noticed(tmp_path, capsys):
+    # A run's notes (contact buffers that overflowed, frames taken again, a resume that changed the simulation) end
+    # its summary; the command dropped them before, so an overflow went unseen. 4 contact slots overflow at once.
+    from hairwarp.cli import main
+
+    out = tmp_path / "lh.usdc"
+    assert main(["run", str(SCENES / "long_hair.toml"), "--frames", "2", "-s", "interactions.capacity=4", "-s",
+                 "dense.count=0", "-s", "output.preview=false", "--output", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "note     frame 1: contact buffers overflowed; raise interactions.capacity" in lines
 
 
 @pytest.mark.skipif(not (_has("hairwarp.groom") and _has("hairwarp.io.usd_inspect")),

@@ -190,7 +190,7 @@ def test_a_standing_strand_taller_than_greenhills_height_is_named_and_falls(devi
     assert moved[2] < 1e-4 and moved[3] > 0.01, moved
 
 
-def test_a_run_names_the_held_strands_that_would_fall_unless_links_tie_them():
+def test_a_run_names_the_held_strands_that_would_fall_unless_links_tie_them(tmp_path):
     # long_hair at half its stiffness, held as drawn: its strands standing up from the crown buckle under their weight
     # alone, which the run says in one warning naming a strand; with the scene's links tying them no warning is given
     # (the model still lists them), and at its own stiffness none of these 120 is unstable.
@@ -206,3 +206,11 @@ def test_a_run_names_the_held_strands_that_would_fall_unless_links_tie_them():
                                                                   "links.enabled=false"]))
     assert tied.model.hold_unstable.sum() == alone.model.hold_unstable.sum()
     assert not stiff.model.hold_unstable.any()
+    # with links the run's notes say it instead (``hairwarp run`` prints them after its summary)
+    from hairwarp.runner import simulate
+
+    result = simulate(Scene.load(SCENES / "long_hair.toml", [*soft, "dense.count=0", "output.preview=false"]),
+                      tmp_path / "tied.usdc", frames=1, progress=False)
+    count = int(tied.model.hold_unstable.sum())
+    assert (f"groom.hold_shape: {count} of 120 guides would buckle from their drawn shape on their own springs; only "
+            f"their links hold them up") in result.notes
