@@ -1189,6 +1189,8 @@ class Scene:
                                                                                                       "the stage's")
             lines.append(f"groom      file {g['file']} (up {up}, scale {g['scale']:g}{cut}): "
                          f"{len(self.build_groom().strands)} guides, {sim['segments']} segments per guide")
+        if g["hold_shape"]:
+            lines[-1] += ", held as drawn under gravity"
         if g["surface"]["file"] is not None:
             lines.append(f"roots      on the scalp mesh {g['surface']['prim']} of {g['surface']['file']} (each on its "
                          f"triangle's frame)")

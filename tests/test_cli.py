@@ -106,7 +106,9 @@ def test_info_scene():
     # overrides are checked as a run would take them; on a cache they are refused
     r = _hairwarp("info", SCENES / "long_hair.toml", "-s", "sim.frames=12", "-s", "head.motion.kind='nod'")
     assert r.returncode == 0, r.stderr
-    assert "12 frames" in r.stdout and "Nod(" in r.stdout
+    assert "12 frames" in r.stdout and "Nod(" in r.stdout and "held as drawn" not in r.stdout
+    r = _hairwarp("info", SCENES / "long_hair.toml", "-s", "groom.hold_shape=true")
+    assert r.returncode == 0 and "300 guides x 0.35 m, 12 segments each, held as drawn under gravity" in r.stdout
     r = _hairwarp("info", REPO / "docs" / "tunnelling.json", "-s", "sim.frames=12")
     assert r.returncode == 2 and "-s overrides apply to a scene" in r.stderr
 
