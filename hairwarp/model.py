@@ -413,11 +413,9 @@ def _gravity_in_groom(gravity, rotation, strands: int) -> np.ndarray:
         return g
     R = np.asarray(rotation, dtype=np.float64)
     if R.shape in ((4,), (strands, 4)) and np.isfinite(R).all():
-        q = R / np.linalg.norm(R, axis=-1, keepdims=True)
-        x, y, z, w = np.moveaxis(q, -1, 0)
-        R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-                      np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-                      np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+        from hairwarp.motion import quat_to_matrix
+
+        R = quat_to_matrix(R / np.linalg.norm(R, axis=-1, keepdims=True))
     if R.shape not in ((3, 3), (strands, 3, 3)) or not np.isfinite(R).all():
         raise ModelError(f"hold_rotation must be a quaternion (x, y, z, w) or a 3 x 3 rotation, one or one per "
                          f"strand ({strands}), got shape {np.shape(rotation)}")

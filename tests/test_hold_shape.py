@@ -10,6 +10,7 @@ import pinocchio as pin
 import pytest
 from _reference import chain_model, joint_torques
 from conftest import require_ratboy
+from scipy.spatial.transform import Rotation
 
 from hairwarp.model import MAX_REST_BEND, Model, StrandParams, gravity_stiffness
 from hairwarp.runner import Simulation
@@ -90,10 +91,7 @@ def test_a_groom_is_held_at_the_heads_first_pose():
               "{time = 5.0, rotate_deg = [60.0, 0.0, 0.0]}]", "groom.hold_shape=true"]
     sim = Simulation(Scene.load(SCENES / "tiny.toml", tilted))
     pose = sim.motion.evaluate(0.0)
-    x, y, z, w = pose.rotation
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    R = Rotation.from_quat(pose.rotation).as_matrix()
     assert abs(math.degrees(math.acos((np.trace(R) - 1) / 2)) - 60.0) < 1e-6
     S = sim.model.seg_per_strand
     drawn = sim.model.rest_vertex_positions @ R.T + pose.position
