@@ -214,8 +214,8 @@ class Model:
             if limp.any():
                 warnings.warn(f"hold_shape: {int(limp.sum())} of {G} strands are too limp to hold the groom's shape "
                               f"under gravity (first: strand {int(np.flatnonzero(limp)[0])}; a rest bend of more "
-                              f"than {math.degrees(MAX_REST_BEND):.0f} deg would be needed); they sag from it "
-                              f"(raise the bend stiffness)", stacklevel=2)
+                              f"than {math.degrees(MAX_REST_BEND):.0f} deg, or one about an axis without stiffness, "
+                              f"would be needed); they sag from it (raise the bend or twist stiffness)", stacklevel=2)
             rest_q = rest_joint_rotations(verts, bends)
         else:
             rest_q = q0 if rest_vertices is None else rest_joint_rotations(rest)

@@ -122,6 +122,10 @@ def test_a_strand_too_limp_to_hold_its_shape_is_named_and_bounded(device):
     for g in range(model.strand_count):
         bend = np.linalg.norm(spring_torques(model, g) / model.joint_stiffness.numpy()[g * 12:(g + 1) * 12], axis=1)
         assert bend.max() <= MAX_REST_BEND * (1 + 1e-6) and bend.max() > 0.9 * MAX_REST_BEND
+    # a strand drawn in 3D puts part of its weight about its segments' own axes: without twist stiffness nothing
+    # there can hold it
+    with pytest.warns(UserWarning, match=r"hold_shape: 3 of 3 strands .* or one about an axis without stiffness"):
+        Model.build(curled_strands(), StrandParams(twist_stiffness=0.0), segments=12, device=device, hold_shape=True)
     with pytest.raises(ValueError, match="hold_shape .* rest_vertices"):
         Model.build(curled_strands(), params, segments=12, device=device, hold_shape=True,
                     rest_vertices=curled_strands())
