@@ -73,3 +73,22 @@ def test_shipped_character_stage_is_the_generated_one(tmp_path):
             assert attr.GetTimeSamples() == theirs.GetTimeSamples()
             for t in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
                 assert attr.Get(t) == theirs.Get(t), (attr.GetPath(), t)
+
+
+def test_a_head_motion_that_leaves_the_scalp_behind_is_named():
+    """The character's roots ride on its scalp mesh as the stage animates it. Held still by an override of the head's
+    motion, the head and its collider stop while the scalp, and the hair on it, go on turning (up to 40 degrees in
+    the first second): the run says so in one warning naming the key; as shipped, the two move together and
+    nothing is said."""
+    import warnings
+
+    over = ["dense.count=0", "output.preview=false"]
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*groom.surface")
+        shipped = hw.Simulation(hw.Scene.load(SCENES / "character.toml", over))
+    assert shipped.surface is not None
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        hw.Simulation(hw.Scene.load(SCENES / "character.toml", [*over, 'head.motion.kind="still"']))
+    named = [str(w.message) for w in seen if "groom.surface" in str(w.message)]
+    assert len(named) == 1 and "/Character/Head/Scalp" in named[0] and "head.motion (still)" in named[0], named
