@@ -44,8 +44,8 @@ def spring_torques(model, strand):
 def test_held_rest_bends_balance_the_weight_by_pinocchio(device, root_scale):
     # At the drawn pose every joint's spring must give the generalised force that holds the chain still, which is
     # Pinocchio's gravity term g(q) (M qdd + C qd + g = tau at qd = qdd = 0), in float64 from our own geometry.
-    # The rest rotations are stored in float32: about 6e-8 in a quaternion, 1.2e-7 rad in a bend, times K (under
-    # 0.04 N m/rad here) is under 1e-8 N m against torques of 1e-4 to 1e-2 N m; the bound is 1e-5 of the largest.
+    # The rest rotations are stored in float32: about 6e-8 in a quaternion, 1.2e-7 rad in a bend, times K (at most
+    # 0.1 N m/rad here) is about 1e-8 N m against torques of 1e-4 to 1e-2 N m; the bound is 1e-5 of the largest.
     params = StrandParams(bend_stiffness=2e-4, root_stiffness_scale=root_scale)
     held = Model.build(curled_strands(), params, segments=12, device=device, hold_shape=True)
     free = Model.build(curled_strands(), params, segments=12, device=device)
@@ -77,7 +77,7 @@ def settle(scene_name, overrides, frames):
 def test_a_held_groom_stays_as_drawn_with_the_head_still():
     # The simulator's own equilibrium is the drawn shape: 1 s with the head still and its collider on, every vertex
     # within 20 um of where it was drawn (float32 forward kinematics of 1.6 m coordinates, 1.2e-7 m apart, summed
-    # over 16 segments, gives a few um), where the unheld groom sags by centimetres.
+    # over its 8 segments, gives a few um), where the unheld groom sags by centimetres.
     held, drawn, _ = settle("tiny", ["groom.hold_shape=true"], 30)
     sag, _, _ = settle("tiny", [], 30)
     assert np.linalg.norm(held - drawn, axis=3).max() < 2e-5
