@@ -165,7 +165,7 @@ def test_the_weights_stiffness_is_pinocchios_gravity_derivative(device):
 
 def test_a_standing_strand_taller_than_greenhills_height_is_named_and_falls(device):
     # A straight heavy column clamped upright stands when shorter than Greenhill's height (7.837 EI / (rho A g))^(1/3)
-    # (the first root of J_{-1/3}; Timoshenko & Gere, Theory of Elastic Stability, 2.9) and buckles when taller. The
+    # (from the first root of J_{-1/3}; Timoshenko & Gere, Theory of Elastic Stability) and buckles when taller. The
     # model names the strands at 1.03 times that height as unstable and keeps those at 0.97 (40 segments: the
     # discrete chain's threshold lies within 3 %). Pushed at 0.5 mm/s and let go for 2 s, a strand at 0.8 times the
     # height stands within 0.1 mm, one at 1.5 times falls past 1 cm.
@@ -193,9 +193,9 @@ def test_a_standing_strand_taller_than_greenhills_height_is_named_and_falls(devi
 
 
 def test_a_run_names_the_held_strands_that_would_fall_unless_links_tie_them(tmp_path):
-    # long_hair at half its stiffness, held as drawn: its strands standing up from the crown buckle under their weight
-    # alone, which the run says in one warning naming a strand; with the scene's links tying them no warning is given
-    # (the model still lists them), and at its own stiffness none of these 120 is unstable.
+    # long_hair at half its stiffness, held as drawn: some of its strands buckle from the drawn shape under their
+    # weight alone, which the run says in one warning naming a strand; with the scene's links tying them no warning
+    # is given (the model still lists them), and at its own stiffness none of these 120 is unstable.
     soft = ["groom.hold_shape=true", "strands.bend_stiffness=1e-4", "groom.count=120"]
     with pytest.warns(UserWarning, match=r"groom.hold_shape: \d+ of 120 strands cannot stand as drawn \(first: strand "
                                          r"\d+\): too soft for their weight"):
