@@ -9,6 +9,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import warp as wp
 
+from hairwarp.motion import quat_to_matrix, right_jacobian_inv, skew
 from hairwarp.state import Control, State
 
 
@@ -327,9 +328,7 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         p[weak] = np.cross(a[flip][weak], [0.0, 1.0, 0.0])
         axis[flip] = p / np.linalg.norm(p, axis=1, keepdims=True)
     angle = np.arctan2(s, d)
-    K = np.zeros((len(a), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
+    K = skew(axis)
     eye = np.broadcast_to(np.eye(3), K.shape)
     sa, ca = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
     return eye + sa * K + (1.0 - ca) * (K @ K)
@@ -395,7 +394,7 @@ def rotation_matrices(v: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis times angle [rad]; Rodrigues)."""
     v = np.asarray(v, dtype=np.float64)
     angle = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = _skew(v)
+    K = skew(v)
     small = angle < 1e-8
     safe = np.where(small, 1.0, angle)
     a = np.where(small, 1.0 - angle**2 / 6.0, np.sin(safe) / safe)
@@ -411,8 +410,6 @@ def _gravity_in_groom(gravity, rotation, strands: int) -> np.ndarray:
         return g
     R = np.asarray(rotation, dtype=np.float64)
     if R.shape in ((4,), (strands, 4)) and np.isfinite(R).all():
-        from hairwarp.motion import quat_to_matrix
-
         R = quat_to_matrix(R / np.linalg.norm(R, axis=-1, keepdims=True))
     if R.shape not in ((3, 3), (strands, 3, 3)) or not np.isfinite(R).all():
         raise ModelError(f"hold_rotation must be a quaternion (x, y, z, w) or a 3 x 3 rotation, one or one per "
@@ -465,14 +462,6 @@ def _outboard_moments(x: np.ndarray, mass) -> np.ndarray:
     return outboard_moment - outboard_mass[..., None] * x[:, :-1]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3): ``_skew(a) @ b = a x b``."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
 def gravity_stiffness(vertices: np.ndarray, mass, gravity) -> np.ndarray:
     """How the weight's generalised force on each joint changes as each joint turns: ``dtau_i / ddelta_k``
     (G, 3S, 3S) [N m/rad], ``delta_k`` a turn of joint k about its child frame's axes (as its velocity is given)
@@ -486,22 +475,12 @@ def gravity_stiffness(vertices: np.ndarray, mass, gravity) -> np.ndarray:
     g = np.broadcast_to(np.asarray(gravity, dtype=np.float64), (G, 3))
     d = _outboard_moments(x, mass)
     R = segment_rotations(x)
-    dg = _skew(d) @ _skew(g)[:, None]  # row i, columns k <= i
-    gd = _skew(g)[:, None] @ _skew(d)  # column k, rows i < k
+    dg = skew(d) @ skew(g)[:, None]  # row i, columns k <= i
+    gd = skew(g)[:, None] @ skew(d)  # column k, rows i < k
     blocks = np.where((np.arange(S)[:, None] >= np.arange(S)[None, :])[None, :, :, None, None],
                       dg[:, :, None], gd[:, None, :])
     blocks = np.swapaxes(R, -1, -2)[:, :, None] @ blocks @ R[:, None, :]
     return blocks.transpose(0, 1, 3, 2, 4).reshape(G, 3 * S, 3 * S)
-
-
-def _log_jacobian_inverse(theta: np.ndarray) -> np.ndarray:
-    """``J_r^-1(theta)`` (..., 3, 3): ``log(exp(theta) exp(delta)) = theta + J_r^-1 delta`` to first order."""
-    a = np.linalg.norm(theta, axis=-1)[..., None, None]
-    W = _skew(theta)
-    small = a < 1e-6
-    safe = np.where(small, 1.0, a)
-    c = np.where(small, 1.0 / 12.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
-    return np.eye(3) + 0.5 * W + c * (W @ W)
 
 
 def unstable_strands(vertices: np.ndarray, mass, stiffness, bends, gravity, chunk: int = 128) -> np.ndarray:
@@ -518,7 +497,7 @@ def unstable_strands(vertices: np.ndarray, mass, stiffness, bends, gravity, chun
     G, S = x.shape[0], x.shape[1] - 1
     g = np.broadcast_to(np.asarray(gravity, dtype=np.float64), (G, 3))
     K = np.asarray(stiffness, dtype=np.float64)
-    springs = K[..., :, None] * _log_jacobian_inverse(np.asarray(bends, dtype=np.float64))  # (G, S, 3, 3)
+    springs = K[..., :, None] * right_jacobian_inv(bends)  # (G, S, 3, 3)
     out = np.zeros(G, dtype=bool)
     for first in range(0, G, chunk):
         part = slice(first, min(first + chunk, G))

@@ -151,18 +151,26 @@ def _quat_log(q: np.ndarray) -> np.ndarray:
     return q[:3] * (2.0 * math.atan2(s, q[3]) / s)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors ``v`` (..., 3): ``skew(a) @ b = a x b``."""
+    v = np.asarray(v, dtype=np.float64)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
 
 
-def _right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
-    """Inverse right Jacobian of SO(3): body angular velocity of ``R0 exp(phi)`` is ``J_r(phi) dphi/dt``."""
-    th = float(np.linalg.norm(phi))
-    K = _skew(phi)
-    if th < 1.0e-4:
-        c = 1.0 / 12.0 + th * th / 720.0
-    else:
-        c = 1.0 / (th * th) - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SO(3), (..., 3, 3) for rotation vectors ``phi`` (..., 3): body angular velocity of
+    ``R0 exp(phi)`` is ``J_r(phi) dphi/dt``, and ``log(exp(phi) exp(delta)) = phi + J_r^-1(phi) delta`` to first
+    order."""
+    phi = np.asarray(phi, dtype=np.float64)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = th < 1.0e-4
+    safe = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th * th / 720.0,
+                 1.0 / (safe * safe) - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
     return np.eye(3) + 0.5 * K + c * (K @ K)
 
 
@@ -778,7 +786,7 @@ class Keyframes(_PivotMotion):
                 self._slope0[i] = self._slope1[i] = self._delta[i]
                 continue
             self._slope0[i] = h * quat_rotate(_conj(q[i]), self._omega[i])
-            self._slope1[i] = h * (_right_jacobian_inv(self._delta[i]) @ quat_rotate(_conj(q[i + 1]),
+            self._slope1[i] = h * (right_jacobian_inv(self._delta[i]) @ quat_rotate(_conj(q[i + 1]),
                                                                                      self._omega[i + 1]))
 
     @classmethod
