@@ -971,7 +971,7 @@ def wedge(scene, params: Mapping[str, Sequence], *, mode: str = "grid", out=None
     Example::
 
         records = hw.wedge("scenes/long_hair.toml",
-                           {"strands.bend_stiffness": [1e-4, 3e-4, 1e-3], "links.stiffness": [0.5, 1.0]},
+                           {"strands.bend_stiffness": [1e-4, 3e-4, 1e-3], "links.stiffness": [0.2, 0.35]},
                            out="out/wedge", overrides=["sim.frames=30"])
 
     Args:

@@ -32,7 +32,7 @@ import warp as wp
 from hairwarp.executor import _capturing, launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
-from hairwarp.kernels.types import Fault
+from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault
 
 # Strip triangles narrower than this fraction of the median width would make the density-scaled
 # vertex-face stiffness k0 s0 / s unbounded; wider than its inverse they would make it vanish. A strip quad
@@ -205,7 +205,10 @@ class StaticLinks:
         rest_offset: numpy float64 (L, 3), r0 = x_b - x_a at rest [m], head frame.
         rest_axis: numpy float64 (L, 3), unit axis of segment a at rest, head frame; the offset follows a's axis from
             it by the least rotation (see ``kernels.links``).
-        stiffness: k_s [N/m]. damping: k_d [N s/m]. break_length: |l| [m] beyond which a link breaks for good.
+        stiffness: k_s [N/m], damping: k_d [N s/m], of a link between segments :data:`REFERENCE_SEGMENT_LENGTH` long.
+        scale: numpy float64 (L,), each link's factor on them, the mean length of its two segments over
+            :data:`REFERENCE_SEGMENT_LENGTH`; link_scale: the same on the device.
+        break_length: |l| [m] beyond which a link breaks for good.
         implicit_springs: whether each link's force is solved implicitly over the step (``kernels.links.link_forces``).
         link_seg_a, link_seg_b, link_frac_a, link_frac_b, link_rest_offset: the same on the device.
         seg_rest_axis: vec3 (G*S,) on the device, every segment's rest axis; seg_transport: quat (G*S,), scratch
@@ -250,8 +253,9 @@ class StaticLinks:
                 model's ``rest_vertex_positions``): rest offsets and axes are kept in that frame.
             neighbours: links made per segment (n of the seed).
             radius: largest segment-segment distance that gets a link [m].
-            stiffness: spring stiffness k_s [N/m].
-            damping: damping k_d [N s/m].
+            stiffness: spring stiffness k_s [N/m] of a link between segments :data:`REFERENCE_SEGMENT_LENGTH` long;
+                each link takes it times the mean length of its two segments over that length (:attr:`scale`).
+            damping: damping k_d [N s/m], scaled the same way.
             break_length: a link breaks for good when |l| exceeds this [m].
             implicit_springs: each link's force is its backward-Euler force over the step against a bound of the
                 inverse masses at its ends (``kernels.links.link_forces``), which keeps stiff links stable at
@@ -314,6 +318,8 @@ class StaticLinks:
         links.frac_b = fb
         links.rest_offset = r0
         links.rest_axis = axis
+        # each link's share of the lattice: the mean length of the segments it joins against REFERENCE_SEGMENT_LENGTH
+        links.scale = 0.5 * (length[a] + length[b]) / REFERENCE_SEGMENT_LENGTH
         links.link_count = len(a)
         n = max(links.link_count, 1)
         dev = links.device
@@ -323,6 +329,7 @@ class StaticLinks:
         links.link_frac_b = wp.array(fb if len(a) else np.zeros(n), dtype=float, device=dev)
         links.link_rest_offset = wp.array(r0 if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
         links.link_rest_axis = wp.array(axis if len(a) else np.zeros((n, 3)), dtype=wp.vec3, device=dev)
+        links.link_scale = wp.array(links.scale if len(a) else np.zeros(n), dtype=float, device=dev)
         links.link_broken = wp.zeros(n, dtype=wp.int32, device=dev)
         links.link_broken_total = wp.zeros(1, dtype=wp.int32, device=dev)
         rest_axis = (p1 - p0) / length[:, None]
@@ -387,8 +394,9 @@ class StaticLinks:
         inputs = [
             model.seg_per_strand, model.seg_length, model.seg_mass, self.seg_rest_axis,
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
-            self.stiffness, self.damping, self.break_length, int(self.implicit_springs), state.seg_xform,
-            state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot, int(self.response),
+            self.stiffness, self.damping, self.link_scale, self.break_length, int(self.implicit_springs),
+            state.seg_xform, state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
+            int(self.response),
         ]
         n = len(inputs)
         seg_count = len(self.seg_transport)
@@ -408,7 +416,7 @@ class StaticLinks:
             return
         launch(self.executor, link_kernels.link_response_split, self.link_count,
                [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.link_seg_a, self.link_seg_b,
-                self.stiffness, self.damping, self.link_point_a, self.link_point_b, self.link_broken,
+                self.stiffness, self.damping, self.link_scale, self.link_point_a, self.link_point_b, self.link_broken,
                 state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, self.link_b_slot, dt,
                 dampers, int(sweeps)], [self.link_force, self.link_split, self.ends], device=self.device,
                min_chunk=GATHER_MIN_CHUNK)
@@ -432,10 +440,9 @@ class StaticLinks:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
-                self.link_point_a, self.link_point_b, self.link_broken, self.link_force, self.link_split,
-                state_in.seg_xform, dt, held, int(contacts_swept), int(sweeps)], [dampers, swept, self.ends],
-               device=self.device,
-               min_chunk=GATHER_MIN_CHUNK)
+                self.link_scale, self.link_point_a, self.link_point_b, self.link_broken, self.link_force,
+                self.link_split, state_in.seg_xform, dt, held, int(contacts_swept), int(sweeps)],
+               [dampers, swept, self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it

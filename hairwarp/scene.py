@@ -575,8 +575,11 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "neighbours": Field("int", 3, "links per segment to its nearest segments of other strands",
                                 range="[1, 32]"),
             "radius": Field("float", 0.012, "largest distance of a linked segment at rest", "m", range="(0, inf)"),
-            "stiffness": Field("float", 5.0, "spring stiffness k_s", "N/m", range="[0, inf)"),
-            "damping": Field("float", 0.01, "spring damping k_d", "N s/m", range="[0, inf)"),
+            "stiffness": Field("float", 2.0, "spring stiffness k_s of a link between segments 1 cm long; each link "
+                               "takes it times the mean length of its two segments over 1 cm, so the hair is tied "
+                               "alike at any sim.segments", "N/m", range="[0, inf)"),
+            "damping": Field("float", 0.004, "spring damping k_d of a link between segments 1 cm long, scaled as the "
+                             "stiffness", "N s/m", range="[0, inf)"),
             "break_length": Field("float", 0.03, "a link stretched past this breaks for good", "m",
                                   range="(0, inf)"),
             "break_step": Field("float", 1.0 / 120.0, "longest step a link may break at: a frame of longer steps in "
@@ -599,9 +602,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
         {
             "enabled": Field("bool", False, "dynamic hair-hair contacts: repulsion and friction"),
             "threshold": Field("float", 0.002, "pairs closer than this interact", "m", range="(0, inf)"),
-            "stiffness": Field("float", 20.0, "repulsion stiffness k0 (vertex-face: scaled by local density)",
-                               "N/m", range="[0, inf)"),
-            "damping": Field("float", 0.01, "normal damping", "N s/m", range="[0, inf)"),
+            "stiffness": Field("float", 8.0, "repulsion stiffness k0; vertex-face contacts scale it by the strips' "
+                               "local density and by the vertex's segment length over 1 cm (one contact a vertex: "
+                               "alike at any sim.segments)", "N/m", range="[0, inf)"),
+            "damping": Field("float", 0.004, "normal damping, scaled as the stiffness", "N s/m", range="[0, inf)"),
             "friction": Field("float", 0.3, "Coulomb friction coefficient", range="[0, inf)"),
             "vertex_face": Field("bool", True, "vertex against the triangle strips between guides with adjacent roots"),
             "segment_segment": Field("bool", True, "segment against segment of different strands"),
@@ -1207,11 +1211,11 @@ class Scene:
                      + f", motion {self.head_motion()!r}")
         lk, ia, dn, out = d["links"], d["interactions"], d["dense"], d["output"]
         if lk["enabled"]:
-            lines.append(f"links      {lk['neighbours']} a segment within {lk['radius']:g} m, {lk['stiffness']:g} N/m, "
-                         f"break at {lk['break_length']:g} m, response {lk['response']}")
+            lines.append(f"links      {lk['neighbours']} a segment within {lk['radius']:g} m, {lk['stiffness']:g} N/m "
+                         f"between 1 cm segments, break at {lk['break_length']:g} m, response {lk['response']}")
         if ia["enabled"]:
-            lines.append(f"contacts   hair against hair below {ia['threshold']:g} m, {ia['stiffness']:g} N/m, "
-                         f"friction {ia['friction']:g}, response {ia['response']}")
+            lines.append(f"contacts   hair against hair below {ia['threshold']:g} m, {ia['stiffness']:g} N/m "
+                         f"(vertex-face at 1 cm of hair), friction {ia['friction']:g}, response {ia['response']}")
         amount = (f"{dn['density']:g} per m^2 of scalp" if dn["density"] is not None
                   else f"{dn['count']} strands" if dn["count"] else "none")
         lines.append(f"dense      {amount}" + (f", {dn['basis']} curves" if amount != "none" else ""))

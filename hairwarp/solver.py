@@ -469,10 +469,10 @@ class Solver:
         if links is None:
             return
         inputs = [model.chains, links.seg_link_start, links.seg_b_start, links.b_slot_link, links.link_seg_a,
-                  links.link_seg_b, links.stiffness, links.damping, links.link_point_a, links.link_point_b,
-                  links.link_broken, links.ends, control.bases, self.dt, implicit, self.loads, state_in.joint_q,
-                  state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd, self.free_velocities,
-                  self.answered_velocities]
+                  links.link_seg_b, links.stiffness, links.damping, links.link_scale, links.link_point_a,
+                  links.link_point_b, links.link_broken, links.ends, control.bases, self.dt, implicit, self.loads,
+                  state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd,
+                  self.free_velocities, self.answered_velocities]
         held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
                    self.swept, self.scratch, self.factors]
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
@@ -726,9 +726,9 @@ class Solver:
         links = self.links
         if links is not None and (responders or not links.response) and links.link_count > 0 \
                 and links.stiffness > 0.0:
-            ends = np.concatenate([links.link_seg_a.numpy()[:links.link_count],
-                                   links.link_seg_b.numpy()[:links.link_count]])
-            per_segment = np.bincount(ends, minlength=model.seg_count).max()
+            # a segment's links, each scaled by its segments' lengths (``StaticLinks.scale``)
+            ends = np.concatenate([links.seg_a, links.seg_b])
+            per_segment = np.bincount(ends, weights=np.tile(links.scale, 2), minlength=model.seg_count).max()
             rates["links"] = dt * math.sqrt(per_segment * links.stiffness / typical)
         contacts = self.contacts
         if contacts is not None and (responders or not contacts.response) and contacts.stiffness > 0.0:

@@ -162,6 +162,7 @@ def link_forces(
     link_rest_offset: wp.array(dtype=wp.vec3),
     link_stiffness: float,
     link_damping: float,
+    link_scale: wp.array(dtype=float),
     link_break_length: float,
     implicit_springs: int,
     # State in:
@@ -221,7 +222,6 @@ def link_forces(
     v0 = vertex_velocities[va_vertex]
     w_a = wp.cross(d, vertex_velocities[va_vertex + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
     h = dt[0]
-    hk = h * link_stiffness
     com_a = oa + (0.5 * length_a) * axis_a
     force_a = wp.vec3()
     torque_a = wp.vec3()
@@ -243,8 +243,12 @@ def link_forces(
             wp.atomic_add(link_broken_total, 0, 1)
             continue
 
+        # this link's k_s and k_d (``StaticLinks.link_scale``)
+        k = link_stiffness * link_scale[link]
+        c = link_damping * link_scale[link]
+        hk = h * k
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
-        f = link_stiffness * l
+        f = k * l
         if response != 0:
             # the link's force is the response's, over the step (``link_response_gather``, ``kernels.sweeps``)
             link_point_a[link] = xa
@@ -261,12 +265,12 @@ def link_forces(
             f_n = wp.vec3()
             if length > LINK_MIN_LENGTH:
                 n = l / length
-                f_n = (wp.dot(f, n) - link_damping * wp.dot(u, n)) * n
+                f_n = (wp.dot(f, n) - c * wp.dot(u, n)) * n
                 f = f - wp.dot(f, n) * n
-            f = f / (1.0 + h * hk * W) + f_n / (1.0 + h * (hk + link_damping) * W)
+            f = f / (1.0 + h * hk * W) + f_n / (1.0 + h * (hk + c) * W)
         elif response == 0 and length > LINK_MIN_LENGTH:
             n = l / length
-            f = f - link_damping * wp.dot(u, n) * n
+            f = f - c * wp.dot(u, n) * n
 
         ob = wp.transform_get_translation(xf_b)
         tau = wp.cross(xa - oa, f)
@@ -432,6 +436,7 @@ def link_response_split(
     link_seg_b: wp.array(dtype=wp.int32),
     link_stiffness: float,
     link_damping: float,
+    link_scale: wp.array(dtype=float),
     # Scratch: the ends the force pass left
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -474,11 +479,12 @@ def link_response_split(
     v_b = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
     l = xb - xa
     n = link_axis(l)
-    P = (h * link_stiffness) * wp.identity(n=3, dtype=float) + link_damping * wp.outer(n, n)
-    force = link_stiffness * l - P * (v_a - v_b)
+    k = link_stiffness * link_scale[link]
+    P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
+    force = k * l - P * (v_a - v_b)
     if keep_ends != 0:
-        ends.force[link] = link_stiffness * l - P * v_a
-        ends.force[link_point_a.shape[0] + link_b_slot[link]] = -link_stiffness * l - P * v_b
+        ends.force[link] = k * l - P * v_a
+        ends.force[link_point_a.shape[0] + link_b_slot[link]] = -k * l - P * v_b
         ends.axis[link] = n
     e = wp.vec3(1.0, 0.0, 0.0)
     if wp.length_sq(force) > 0.0:
@@ -503,6 +509,7 @@ def link_response_gather(
     b_slot_link: wp.array(dtype=wp.int32),
     link_stiffness: float,
     link_damping: float,
+    link_scale: wp.array(dtype=float),
     # Scratch: the ends the force pass left, the forces and split factors of ``link_response_split``
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -556,7 +563,6 @@ def link_response_gather(
         sweep_blocks.C[seg] = C1
         return
     h = dt[0]
-    hk = h * link_stiffness
     link_count = link_point_a.shape[0]
     xf = seg_xform[seg]
     R = wp.transform_get_rotation(xf)
@@ -579,7 +585,8 @@ def link_response_gather(
                 p = xb
                 s = split[1]
             r = wp.quat_rotate_inv(R, p - origin)
-            Ae, Be, Ce = link_end_blocks(h, hk, link_damping, r, wp.quat_rotate_inv(R, link_axis(xb - xa)))
+            Ae, Be, Ce = link_end_blocks(h, h * link_stiffness * link_scale[link], link_damping * link_scale[link], r,
+                                         wp.quat_rotate_inv(R, link_axis(xb - xa)))
             A += s * Ae
             B += s * Be
             C += s * Ce

@@ -125,6 +125,7 @@ def link_sweep(
     link_seg_b: wp.array(dtype=wp.int32),
     link_stiffness: float,
     link_damping: float,
+    link_scale: wp.array(dtype=float),
     # Scratch: the ends the force pass left; what the first pass kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -197,7 +198,6 @@ def link_sweep(
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]
-    hk = h * link_stiffness
     link_count = link_point_a.shape[0]
     for k in range(S):
         seg = strand * S + k
@@ -236,7 +236,9 @@ def link_sweep(
                     # other end's latest answer
                     v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
                     n = ends.axis[link]
-                    f = Rt * (ends.force[slot] + hk * v + link_damping * wp.dot(n, v) * n)
+                    scale = link_scale[link]
+                    f = Rt * (ends.force[slot] + (h * link_stiffness * scale) * v
+                              + (link_damping * scale) * wp.dot(n, v) * n)
                     force += f
                     torque += spin_free_torque(ends.arm[slot], f)
         dampers.force[seg] = force

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 import hairwarp as hw
 from hairwarp.colliders import Collider, ColliderSet
-from hairwarp.kernels.types import ColliderKind
+from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, ColliderKind
 from hairwarp.runner import Simulation
 from hairwarp.scene import Scene, SceneError
 
@@ -425,10 +425,11 @@ def test_energy_never_rises_against_a_still_body(friction):
     assert np.diff(energies).max() <= 2e-6 * energies[0]
 
 
-def _link_energy(links, model, state, stiffness: float) -> float:
-    """``1/2 k |x_b - x_a'|^2`` over the links [J], their ends as ``kernels.links.link_ends`` places them, derived
-    here in float64: ``x_a'`` carries the rest offset on segment a's twist-free frame (the minimal rotation from the
-    head-carried rest axis to the segment's axis, after the head's rotation)."""
+def _link_energy(links, model, state) -> float:
+    """``1/2 k |x_b - x_a'|^2`` over the links [J], each link's k its stiffness times its scale, their ends as
+    ``kernels.links.link_ends`` places them, derived here in float64: ``x_a'`` carries the rest offset on segment
+    a's twist-free frame (the minimal rotation from the head-carried rest axis to the segment's axis, after the
+    head's rotation)."""
     S, L = model.seg_per_strand, model.seg_length.numpy().astype(float)
     xform = state.seg_xform.numpy().astype(float)
     pos, rot = xform[:, :3], Rotation.from_quat(xform[:, 3:])
@@ -443,7 +444,7 @@ def _link_energy(links, model, state, stiffness: float) -> float:
     along = lambda seg, frac: rot[seg].apply(np.stack([0.0 * frac, 0.0 * frac, -frac * L[seg]], axis=1))  # noqa: E731
     xa = pos[a] + along(a, links.frac_a) + (turn[a] * head[a]).apply(links.rest_offset)
     xb = pos[b] + along(b, links.frac_b)
-    return 0.5 * stiffness * float(np.sum((xb - xa) ** 2))
+    return 0.5 * links.stiffness * float(np.sum(links.scale * np.sum((xb - xa) ** 2, axis=1)))
 
 
 @pytest.mark.parametrize("response, substeps, stiffness", [
@@ -475,8 +476,11 @@ def test_linked_strands_never_gain_energy_against_a_still_sphere(response, subst
              for g in range(G)]
     model = hw.Model.build(hw.Groom.from_polylines(polys), hw.StrandParams(bend_stiffness=1e-4, drag=0.03),
                            segments=S)
+    # ``stiffness`` and the damping a link's: its segments are 2 cm long
+    scale = REFERENCE_SEGMENT_LENGTH / 0.02
     links = StaticLinks.build(np.asarray(model.rest_vertex_positions).reshape(G, S + 1, 3), neighbours=2,
-                              radius=0.01, stiffness=stiffness, damping=0.002, break_length=1.0, response=response)
+                              radius=0.01, stiffness=stiffness * scale, damping=0.002 * scale, break_length=1.0,
+                              response=response)
     sphere = Collider.sphere(0.05, center=(0.12, -0.03, -0.04), attach="world", thickness=1e-3, friction=0.3)
     solver = hw.Solver(model, "implicit_joints", colliders=ColliderSet([sphere], "cpu", model=model), links=links)
     s0, s1, control = model.state(), model.state(), model.control()
@@ -493,7 +497,7 @@ def test_linked_strands_never_gain_energy_against_a_still_sphere(response, subst
         e = sum(pin.computeKineticEnergy(chain, data, q[g], v[g]) + pin.computePotentialEnergy(chain, data, q[g])
                 for g in range(G))  # the roots differ along y only: the same gravity potential
         theta = (rest.inv() * Rotation.from_quat(state.joint_q.numpy().astype(float))).as_rotvec()
-        return e + 0.5 * np.sum(K * theta * theta) + _link_energy(links, model, state, stiffness)
+        return e + 0.5 * np.sum(K * theta * theta) + _link_energy(links, model, state)
 
     energies, stored, held = [energy(s0)], 0.0, 0
     for _ in range(60):
@@ -502,7 +506,7 @@ def test_linked_strands_never_gain_energy_against_a_still_sphere(response, subst
             s0, s1 = s1, s0
             held += int(np.count_nonzero(np.linalg.norm(solver.body_contacts.force.numpy(), axis=1)))
         energies.append(energy(s0))
-        stored = max(stored, _link_energy(links, model, s0, stiffness))
+        stored = max(stored, _link_energy(links, model, s0))
     assert s0.fault.numpy()[0] == 0 and links.broken_count() == 0
     assert held > 0 and stored > 0.02 * energies[0]  # the sphere parted them: the links held a share of the energy
     assert np.diff(energies).max() <= 2e-6 * energies[0], np.diff(energies).max() / energies[0]

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import HairContacts, InteractionError, TriangleStrips
 from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE
-from hairwarp.kernels.types import Fault
+from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault
 
 # Distances within this of the threshold [m] may fall on either side in float32 (coordinates < 0.1 m).
 BOUNDARY_BAND = 1.0e-6
@@ -297,7 +297,7 @@ def test_stored_pairs_with_margin():
 def test_vertex_face_closed_form_with_density_scale():
     """A strand tip 0.8 mm in front of a strip face, crossing it at right angles: F = k0 (s0 / s) (thr - 0.8 mm), the
     density factor s0 / s blended from the quad's lower edge (10 mm) to its upper edge (8 mm) by the point's
-    weights."""
+    weights, times the vertex's segment length over ``REFERENCE_SEGMENT_LENGTH``."""
     k, S2 = 10.0, 2
     verts = _strip_scene()
     strips = TriangleStrips.build(verts, grid_shape=(1, 3))
@@ -314,7 +314,8 @@ def test_vertex_face_closed_form_with_density_scale():
     w = found["w"][0].astype(np.float64)  # of (a_1, b_1, a_2)
     scale = contacts.strips.width_ref * ((w[0] + w[1]) / 0.010 + w[2] / 0.008)
     assert scale != pytest.approx(1.0)
-    expected = k * scale * (THRESHOLD - 0.0008)
+    # and the vertex's segment length over the reference length (one contact a vertex)
+    expected = k * scale * (SEG_LEN / REFERENCE_SEGMENT_LENGTH) * (THRESHOLD - 0.0008)
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
                                atol=FORCE_RTOL * expected)
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
@@ -751,7 +752,8 @@ def test_link_response_converges_to_the_backward_euler_pair():
 
     errors = []
     for sweeps in (1, 4, 16, 64, 256):
-        links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01, stiffness=k,
+        links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01,
+                                  stiffness=k * REFERENCE_SEGMENT_LENGTH / L,  # a link of k between segments L long
                                   damping=0.01, break_length=1.0, response=True, sweeps=sweeps)
         assert links.link_count == 1 and links.seg_a[0] == 0
         assert len(links.color_views) == 2
@@ -804,7 +806,8 @@ def test_sweeps_converge_a_link_and_a_contact_to_their_coupled_backward_euler_st
     errors, held = [], []
     for sweeps in (1, 2, 8, 32, 128):
         for scatter in (False, True):
-            links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01, stiffness=k,
+            links = StaticLinks.build(model.rest_vertex_positions, neighbours=1, radius=0.01,
+                                      stiffness=k * REFERENCE_SEGMENT_LENGTH / L,  # a link of k between segments L long
                                       damping=0.0, break_length=1.0, response=True, sweeps=sweeps)
             contacts = HairContacts.build(model.rest_vertex_positions, threshold=THRESHOLD, stiffness=kc, damping=c,
                                           friction=0.0, capacity=4, rest_gaps=False, segment_segment=True,
@@ -850,7 +853,8 @@ def _tied_lattice(k: float, sweeps: int, w0, h: float):
     params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
                           drag=0.0)
     model = Model.build(np.stack([roots, roots + L * dirs], axis=1), params, segments=1, gravity=(0.0, 0.0, 0.0))
-    links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006, stiffness=k, damping=0.0,
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
+                              stiffness=k * REFERENCE_SEGMENT_LENGTH / L, damping=0.0,
                               break_length=1.0, response=True, sweeps=max(sweeps, 1))
     solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, threads=1)
     links.sweeps = sweeps  # 0: the first pass alone
@@ -864,7 +868,8 @@ def _tied_lattice(k: float, sweeps: int, w0, h: float):
         kinetic = 0.5 * (i_bend * (w[:, 0] ** 2 + w[:, 1] ** 2) + i_spin * w[:, 2] ** 2).sum()
         links.apply_forces(model, state, solver.dt, solver.seg_force, solver.seg_torque)  # the ends, in response mode
         gap = links.link_point_b.numpy().astype(np.float64) - links.link_point_a.numpy().astype(np.float64)
-        return kinetic + 0.5 * k * (gap ** 2).sum()
+        # each link's k: about k, its segments a little longer than L
+        return kinetic + 0.5 * (links.stiffness * links.scale * (gap ** 2).sum(axis=1)).sum()
 
     start = model.state()
     start.joint_qd.assign(np.asarray(w0, dtype=np.float32))

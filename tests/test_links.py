@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from hairwarp.interactions import InteractionError, StaticLinks
 from hairwarp.kernels import articulated
 from hairwarp.kernels import links as link_kernels
+from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH
 
 # Coordinates are below 0.1 m, where float32 spacing is 7.5e-9 m; the two ends of a link are about ten
 # rounded operations from the stored vertices, so a link at rest measures well under 1e-7 m.
@@ -134,15 +135,18 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     vb = v_origin[b] + np.cross(omega[b], xb - origin[b])
     u = va - vb
     n = l_vec / np.maximum(length, 1e-300)[:, None]
+    # each link's k_s and k_d: the mean length of its two segments (all SEG_LEN here) over the reference length
+    k, c = (np.full(links.link_count, value * SEG_LEN / REFERENCE_SEGMENT_LENGTH) for value in (links.stiffness,
+                                                                                            links.damping))
     if links.implicit_springs:
         com = origin + rot.apply(np.tile([0.0, 0.0, -0.5 * SEG_LEN], (G * S, 1)))
         W = sum((1.0 + 12.0 * np.sum((x - com[s]) ** 2, axis=1) / SEG_LEN**2) / SEG_MASS
                 for s, x in ((a, xa), (b, xb)))
-        C = DT * K_S * np.eye(3) + K_D * n[:, :, None] * n[:, None, :]
+        C = DT * k[:, None, None] * np.eye(3) + c[:, None, None] * n[:, :, None] * n[:, None, :]
         lhs = np.eye(3) + DT * W[:, None, None] * C
-        f = np.linalg.solve(lhs, (K_S * l_vec - np.einsum("lij,lj->li", C, u))[:, :, None])[:, :, 0]
+        f = np.linalg.solve(lhs, (k[:, None] * l_vec - np.einsum("lij,lj->li", C, u))[:, :, None])[:, :, 0]
     else:
-        f = (K_S * length - K_D * np.sum(u * n, axis=1))[:, None] * n
+        f = (k * length - c * np.sum(u * n, axis=1))[:, None] * n
     if skip is not None:
         f[skip] = 0.0
     torque_a = np.cross(xa - origin[a], f)
@@ -392,6 +396,7 @@ def test_response_damper_blocks_match_their_product_form():
     rng = np.random.default_rng(7)
     h, k, c = 1.0 / 60.0, 3.0, 0.4  # a damping of the stiffness' order over the step: both parts of P count
     n_links = 4
+    link_scale = np.array([0.5, 1.0, 2.0, 3.0])  # each link's factor on k and c (``StaticLinks.scale``)
     xa = rng.normal(0.0, 0.02, (n_links, 3))
     xb = xa + rng.normal(0.0, 0.01, (n_links, 3))
     xb[3] = xa[3]  # a link at rest: no direction, no damping term
@@ -423,8 +428,9 @@ def test_response_damper_blocks_match_their_product_form():
     xforms = [wp.transform(wp.vec3(*origin[i]), wp.quat(*quat[i])) for i in range(2)]
     wp.launch(link_kernels.link_response_gather, 2,
               [0, arr(seg_link_start, wp.int32), arr(seg_b_start, wp.int32), arr(np.arange(n_links), wp.int32), k, c,
-               arr(xa, wp.vec3), arr(xb, wp.vec3), arr(np.zeros(n_links), wp.int32), arr(force, wp.vec3),
-               arr(split, wp.vec2), wp.array(xforms, dtype=wp.transform, device=dev), arr([h], float), held, 0, 1],
+               arr(link_scale, float), arr(xa, wp.vec3), arr(xb, wp.vec3), arr(np.zeros(n_links), wp.int32),
+               arr(force, wp.vec3), arr(split, wp.vec2), wp.array(xforms, dtype=wp.transform, device=dev),
+               arr([h], float), held, 0, 1],
               [out, swept, ends], device=dev)
 
     spin_free = np.diag([1.0, 1.0, 0.0])
@@ -436,7 +442,7 @@ def test_response_damper_blocks_match_their_product_form():
             l = xb[j] - xa[j]
             length = np.linalg.norm(l)
             n = l / length if length > 1e-7 else np.zeros(3)
-            P = R.T @ (h * k * np.eye(3) + c * np.outer(n, n)) @ R
+            P = R.T @ (h * k * link_scale[j] * np.eye(3) + c * link_scale[j] * np.outer(n, n)) @ R
             r = R.T @ ((xa[j] if side > 0 else xb[j]) - origin[seg])
             rx = _skew(r)
             for suffix, s in (("", split[j, 0 if side > 0 else 1]), ("1", 1.0)):
@@ -455,3 +461,20 @@ def test_response_damper_blocks_match_their_product_form():
             np.testing.assert_allclose(got.numpy()[seg], want[name], rtol=0, atol=1e-5 * scale, err_msg=name)
         np.testing.assert_allclose(out.force.numpy()[seg], f_sum, rtol=0, atol=1e-5 * np.abs(f_sum).max())
         np.testing.assert_allclose(out.torque.numpy()[seg], t_sum, rtol=0, atol=1e-5 * np.abs(t_sum).max())
+
+
+@pytest.mark.parametrize("segments", [7, 16, 40])
+def test_links_scale_with_the_length_of_hair_they_join(segments):
+    """Each link's stiffness and damping are the scene's times the mean length of its two segments over
+    :data:`REFERENCE_SEGMENT_LENGTH`: on two parallel strands 0.24 m and 0.12 m long, 3 mm apart, every link's factor is
+    ``(0.24 + 0.12) / (2 S REFERENCE_SEGMENT_LENGTH)`` (float64 on the host, to 1e-12; float32 on the device), so
+    the stiffness per metre of strand stays the same as the strands are cut into more segments, each making its
+    links."""
+    gap = 0.003
+    verts = np.stack([np.stack([np.full(segments + 1, x), np.zeros(segments + 1),
+                                np.linspace(0.0, -length, segments + 1)], axis=1)
+                      for x, length in ((0.0, 0.24), (gap, 0.12))])
+    links = StaticLinks.build(verts, neighbours=1, radius=0.01, stiffness=2.0, damping=0.004, break_length=1.0)
+    assert links.link_count >= segments // 2  # the shorter strand's segments each make one
+    np.testing.assert_allclose(links.scale, (0.24 + 0.12) / (2 * segments * REFERENCE_SEGMENT_LENGTH), rtol=1e-12)
+    np.testing.assert_allclose(links.link_scale.numpy(), links.scale, rtol=1e-6)

@@ -200,8 +200,10 @@ def render_comparison(scene_path, out_png, *, frame: int, view="three_quarter_ba
     return {"png": str(out_png), "frame": frame, "time_s": t, "volume_m3": volumes, "seconds": seconds}
 
 
-# Stiffnesses [N/m] of the stability sweep (links or contacts alone), at h = 1/240 s.
-STABILITY_STIFFNESS = (1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0, 30000.0)
+# Stiffnesses [N/m, a link between 1 cm segments, a contact at 1 cm of hair; the scene's segments are 2.9 cm] of the
+# stability sweep (links or contacts alone), at h = 1/240 s: steps of about 1.5x up to 300, where both limits lie.
+STABILITY_STIFFNESS = (1.0, 1.5, 2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0, 70.0, 100.0, 150.0, 200.0, 300.0,
+                       1000.0, 3000.0, 10000.0, 30000.0)
 # A joint spinning faster than this [rad/s] (80 % of the fault bound at h = 1/240 s) counts as blown up.
 BLOW_UP_SPEED = 200.0
 
@@ -308,7 +310,7 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
                                           overrides=(f"groom.max_strands={strands}",))
     log("interactions: largest stable stiffness at 1/240 s")
     stability = bench_spring_stability(quick=quick, device=device,
-                                       stiffness=STABILITY_STIFFNESS[:4] if quick else STABILITY_STIFFNESS)
+                                       stiffness=STABILITY_STIFFNESS[:12:3] if quick else STABILITY_STIFFNESS)
     picture = None
     if not quick:
         log("interactions: with and without, side by side")
