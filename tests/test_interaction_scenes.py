@@ -437,7 +437,8 @@ def test_ratboy_mohawk_at_two_steps_a_frame_breaks_no_link_the_fine_steps_keep()
 def test_auto_response_takes_frame_rate_steps(substeps, expected):
     """``response = "auto"`` solves the links' and contacts' forces after the free step at steps of 1/220 s and longer
     (1 to 7 substeps of 30 fps), and keeps the finer-step forms below; "step" and "link"/"mass" force either."""
-    over = [f"sim.substeps={substeps}", "groom.count=40", "sim.segments=6", "dense.count=0", "output.preview=false"]
+    over = [f"sim.substeps={substeps}", "groom.count=40", "sim.segments=6", "dense.count=0", "output.preview=false",
+            'links.response="auto"', 'interactions.response="auto"']  # the scene ships "step"
     sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=over))
     assert bool(sim.solver.responders) == expected
     assert sim.links.response == expected and sim.contacts.response == expected
@@ -450,9 +451,10 @@ def test_links_hold_between_frame_rate_and_shipped_steps():
     """``fast_turn`` with 150 guides at 4 substeps, its links and contacts on ``response = "auto"``: with the
     finer-step forms that ``"auto"`` took at 4 substeps until it took the response there, 12 links broke in the
     turn (the full scene: 458 of them, and the mohawk 2,583); with the response at most 2 do. The turn itself
-    stretches a few tip links past their break length (the full scene breaks 3 at 16 substeps, as its toml says):
+    stretches a few tip links past their break length (the full scene broke 3 at 16 substeps on "auto"):
     here the response breaks one, between two tips at frame 26, and the 16-substep run none."""
-    over = ["sim.substeps=4", "groom.count=150", "dense.count=0", "output.preview=false"]
+    over = ["sim.substeps=4", "groom.count=150", "dense.count=0", "output.preview=false", 'links.response="auto"',
+            'interactions.response="auto"']
     sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=over))
     for _ in range(int(sim.scene.sim.frames)):
         sim.advance_frame()
