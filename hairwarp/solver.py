@@ -10,7 +10,7 @@ import warp as wp
 from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels import contacts as contact_kernels
-from hairwarp.kernels.types import Fault, Integrator
+from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
 #: ABA and contact sweeps take a few microseconds, so 16 strands outweigh a chunk's hand-off (``hairwarp bench
@@ -36,13 +36,14 @@ EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
 DEFAULT_MAX_ROTATION = 1.0
 
 #: Free-step rate (step times ``sqrt(k / m)``, :meth:`Solver._rates`) of the static links past which a fault of the
-#: free step is theirs: on ``long_hair`` at 8 substeps links of 10 N/m (2.0) run, 20 N/m (2.8) whip at 18 m/s and
-#: 30 N/m (3.5) go non-finite, while ``links.enabled = false`` or ``links.response = "step"`` runs.
+#: free step is theirs: on ``long_hair`` at 8 substeps links of 10 N/m a link (2.0; 3.5 N/m at 1 cm) run, 20 N/m
+#: (2.8) whip at 18 m/s and 30 N/m (3.5) go non-finite, while ``links.enabled = false`` or ``links.response = "step"``
+#: runs.
 LINK_RATE_LIMIT = 2.0
 
 #: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
-#: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m (7.5) runs and 1,000
-#: N/m (13.7) goes non-finite; the shipped mohawk's contacts take 4.2.
+#: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
+#: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
 CONTACT_RATE_LIMIT = 7.5
 
 #: The rate (as :data:`LINK_RATE_LIMIT`'s) past which links or hair contacts solved after the free step drive a fault
@@ -732,8 +733,11 @@ class Solver:
             rates["links"] = dt * math.sqrt(per_segment * links.stiffness / typical)
         contacts = self.contacts
         if contacts is not None and (responders or not contacts.response) and contacts.stiffness > 0.0:
-            # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR
-            rates["contacts"] = dt * math.sqrt(CONTACT_DENSITY_FACTOR * contacts.stiffness / typical)
+            # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR and the
+            # vertex's segment length over REFERENCE_SEGMENT_LENGTH (a segment-segment contact's is k0): the median
+            # segment's, as its mass
+            length = max(1.0, float(np.median(model.seg_length.numpy())) / REFERENCE_SEGMENT_LENGTH)
+            rates["contacts"] = dt * math.sqrt(CONTACT_DENSITY_FACTOR * length * contacts.stiffness / typical)
         if model.drag > 0.0:
             rates["drag"] = dt * float((model.drag * model.seg_length.numpy() / mass).max())
         return rates
