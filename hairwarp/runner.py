@@ -228,10 +228,18 @@ class Simulation:
         self.scene = scene
         self.groom = scene.build_groom()
         self.motion = scene.head_motion()
-        bound = scene.bind_surface(self.groom, self.motion.evaluate(0.0).matrix())
+        head_rest = self.motion.evaluate(0.0).matrix()
+        bound = scene.bind_surface(self.groom, head_rest)
         self.surface = None  # hairwarp.surface.ScalpBinding: roots on a deforming scalp
+        # a scalp its stage animates under a head motion from elsewhere: the roots ride on the head from the scalp's
+        # first pose (hairwarp.surface.HeadCarriedRoots), as the head's collider does
+        self._carried = None
         if bound is not None:
             self.groom, self.surface = bound
+            if scene.head.motion.kind != "usd" and self.surface.animated:
+                from hairwarp.surface import HeadCarriedRoots
+
+                self._carried = HeadCarriedRoots(self.surface, head_rest)
         # a groom held as drawn is held at the first pose: the head's, or each root's frame on a bound scalp
         hold_rotation = None
         if scene.groom.hold_shape:
@@ -456,9 +464,18 @@ class Simulation:
         if (is_teleport(self._pose_a_frame_from(t, -1), sample, *limits)
                 or is_teleport(sample, self._pose_a_frame_from(t, 1), *limits)):
             still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
-            frames = self.surface.root_frames_still(t) if self.surface is not None else None
+            frames = self._root_frames(t, sample)
+            if frames is not None:
+                frames = (frames[0], np.zeros_like(frames[1]), np.zeros_like(frames[2]))
             return True, still, frames
-        return False, sample, self.surface.root_frames(t) if self.surface is not None else None
+        return False, sample, self._root_frames(t, sample)
+
+    def _root_frames(self, t: float, sample):
+        """The roots' frames for a step ending at ``t`` with the head at ``sample``: on the scalp as its stage
+        animates it, or carried by the head (``_carried``); None without a scalp binding."""
+        if self._carried is not None:
+            return self._carried.root_frames(sample)
+        return self.surface.root_frames(t) if self.surface is not None else None
 
     def _pose_a_frame_from(self, t: float, direction: int):
         """The head pose a frame after (``direction`` 1) or before (-1) ``t``, for the teleport test. Each is

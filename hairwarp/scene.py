@@ -1167,10 +1167,10 @@ class Scene:
             raise UsdFileError(f"{self._label}: groom.surface.prim: {exc}") from None
         motion = self._data["head"]["motion"]
         if motion["kind"] != "usd" and track.points.shape[0] > 1 and np.ptp(track.points, axis=0).max() > 0.0:
-            warnings.warn(f"{self._label}: groom.surface: the roots ride on {cfg['prim']} as {cfg['file']} animates "
-                          f"it, while head.motion ({motion['kind']}) moves only the head and its collider: the two "
-                          f"no longer move together (without [groom.surface] the hair is rooted on the head)",
-                          stacklevel=2)
+            warnings.warn(f"{self._label}: groom.surface: {cfg['file']} animates {cfg['prim']}, but head.motion "
+                          f"({motion['kind']}) does not follow it: the roots ride on the head from the scalp's pose "
+                          f"at time 0, as its collider does (head.motion.kind = \"usd\" follows the stage's "
+                          f"animation)", stacklevel=2)
         roots = groom.roots() @ H[:3, :3].T + H[:3, 3]
         binding = ScalpBinding(track, faces, roots, head_rest=H, max_distance=cfg["max_distance"],
                                where=f"{self._label}: groom.surface ({cfg['file']}: {cfg['prim']})")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hairwarp.motion import KEY_INTERPOLATIONS, hermite_interval, hermite_tangents
+from hairwarp.motion import KEY_INTERPOLATIONS, hermite_interval, hermite_tangents, quat_to_matrix
 
 #: Time step of the central differences that give a root frame's angular acceleration [s]; the frames' rotations
 #: are cubic within a key interval, so the difference is exact there to O(eps^2) ~ 1e-8 relative.
@@ -191,7 +191,42 @@ class ScalpBinding:
         xforms = np.concatenate([origin, _matrix_to_quat(rot)], axis=1)
         return xforms, np.concatenate([omega, v_origin], axis=1), np.concatenate([alpha, a_origin], axis=1)
 
-    def root_frames_still(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`root_frames` at ``t`` with zero velocities and accelerations (a teleport's pose)."""
-        xforms, vel, acc = self.root_frames(t)
-        return xforms, np.zeros_like(vel), np.zeros_like(acc)
+    @property
+    def animated(self) -> bool:
+        """Whether the bound triangles move over the track's samples."""
+        points = self.track.points
+        return points.shape[0] > 1 and float(np.ptp(points, axis=0).max()) > 0.0
+
+
+class HeadCarriedRoots:
+    """Root frames that ride rigidly on the head: a :class:`ScalpBinding`'s frames at its rest time, in the head
+    frame of that instant, carried by the head's motion.
+
+    For a scalp that its stage animates while the head's motion comes from elsewhere (a scene's ``head.motion``
+    that is not ``usd``): the roots then stay where the head puts them, as the head's collider does, instead of
+    following the scalp's own animation away from it.
+
+    Args:
+        binding: the roots on the scalp.
+        head_rest: 4x4 head pose at the binding's rest time (the groom's head frame in the world).
+    """
+
+    def __init__(self, binding: ScalpBinding, head_rest):
+        H = np.asarray(head_rest, dtype=np.float64)
+        xforms, _, _ = binding.root_frames(binding.rest_time)
+        self._origin = (xforms[:, :3] - H[:3, 3]) @ H[:3, :3]  # in the head frame
+        self._rotation = H[:3, :3].T @ quat_to_matrix(xforms[:, 3:])
+
+    def root_frames(self, sample) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every root's frame for the head at ``sample`` (a :class:`hairwarp.motion.MotionSample`), as
+        :meth:`ScalpBinding.root_frames` gives them: the head's angular velocity and acceleration, and its
+        origin's velocity and acceleration carried to each root."""
+        R = quat_to_matrix(sample.rotation)
+        r = self._origin @ R.T
+        w, alpha = np.asarray(sample.angular_velocity, float), np.asarray(sample.angular_acceleration, float)
+        xforms = np.concatenate([sample.position + r, _matrix_to_quat(R @ self._rotation)], axis=1)
+        velocity = sample.linear_velocity + np.cross(w, r)
+        acceleration = sample.linear_acceleration + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+        count = len(r)
+        return (xforms, np.concatenate([np.tile(w, (count, 1)), velocity], axis=1),
+                np.concatenate([np.tile(alpha, (count, 1)), acceleration], axis=1))

@@ -75,11 +75,12 @@ def test_shipped_character_stage_is_the_generated_one(tmp_path):
                 assert attr.Get(t) == theirs.Get(t), (attr.GetPath(), t)
 
 
-def test_a_head_motion_that_leaves_the_scalp_behind_is_named():
+def test_a_head_motion_that_leaves_the_scalp_behind_carries_the_roots():
     """The character's roots ride on its scalp mesh as the stage animates it. Held still by an override of the head's
-    motion, the head and its collider stop while the scalp, and the hair on it, go on turning (up to 40 degrees in
-    the first second): the run says so in one warning naming the key; as shipped, the two move together and
-    nothing is said."""
+    motion, the head and its collider stop while the scalp goes on turning (up to 40 degrees in the first second):
+    the roots then ride on the head from the scalp's first pose, so over 0.5 s they stay where they were (float32
+    forward kinematics: 1e-6 m), where on the scalp they moved by centimetres, and the run says so in one warning
+    naming the key; as shipped, head and scalp move together and nothing is said."""
     import warnings
 
     over = ["dense.count=0", "output.preview=false"]
@@ -89,6 +90,14 @@ def test_a_head_motion_that_leaves_the_scalp_behind_is_named():
     assert shipped.surface is not None
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
-        hw.Simulation(hw.Scene.load(SCENES / "character.toml", [*over, 'head.motion.kind="still"']))
+        still = hw.Simulation(hw.Scene.load(SCENES / "character.toml", [*over, 'head.motion.kind="still"']))
     named = [str(w.message) for w in seen if "groom.surface" in str(w.message)]
     assert len(named) == 1 and "/Character/Head/Scalp" in named[0] and "head.motion (still)" in named[0], named
+    S = still.model.seg_per_strand
+    roots = lambda sim: sim.stepper.state.vertex_positions.numpy().reshape(-1, S + 1, 3)[:, 0].astype(float)  # noqa: E731
+    start = roots(still)
+    for _ in range(15):
+        still.advance_frame()
+    assert np.abs(roots(still) - start).max() < 1e-6
+    scalp = still.surface.root_points(0.5) - still.surface.root_points(0.0)
+    assert np.linalg.norm(scalp, axis=1).max() > 0.01  # where the scalp took them

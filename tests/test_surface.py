@@ -11,7 +11,7 @@ from _character import END, NECK_CM, SCALP_STEP, head_rotation_deg, scalp_points
 from scipy.spatial.transform import Rotation
 
 import hairwarp as hw
-from hairwarp.surface import PointTrack, ScalpBinding, SurfaceError
+from hairwarp.surface import HeadCarriedRoots, PointTrack, ScalpBinding, SurfaceError
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 # Y up in cm to Z up in m: (x, y, z) -> 0.01 (x, -z, y)
@@ -62,6 +62,36 @@ def test_root_frames_of_a_rigidly_moving_mesh_are_the_motion():
         np.testing.assert_allclose(acc[:, :3], np.broadcast_to(s.angular_acceleration, (25, 3)), atol=0.01 * scale_w)
         scale_a = np.abs(s.linear_acceleration).max()  # 28-34 m/s^2
         np.testing.assert_allclose(acc[:, 3:], np.broadcast_to(s.linear_acceleration, (25, 3)), atol=0.01 * scale_a)
+
+
+def test_roots_carried_by_the_head_ride_on_its_motion_not_the_scalps():
+    """A scalp its stage turns one way while the head's motion (from elsewhere) nods: the roots carried by the head
+    (``HeadCarriedRoots``) take the scalp's frames at time 0, the head's pose there, and follow the head's motion
+    from it: every root frame is the head's pose, angular velocity and acceleration, and the velocity and
+    acceleration of its origin (float64 throughout: to 1e-9), wherever the scalp has gone."""
+    rng = np.random.default_rng(4)
+    scalp = hw.motion.Turn(amplitude_deg=40.0, period=1.0, start=0.0, ramp=0.2, pivot=(0.0, 0.0, 1.5))
+    head = hw.motion.Nod(amplitude_deg=20.0, period=0.7, start=0.1, ramp=0.2, pivot=(0.0, 0.0, 1.5))
+    vertices, faces = _sphere()
+    times = np.arange(0.0, 1.5 + 1e-9, 1.0 / 240.0)
+    world = np.array([vertices @ m[:3, :3].T + m[:3, 3] for m in (scalp.evaluate(t).matrix() for t in times)])
+    rest = head.evaluate(0.0).matrix()
+    binding = ScalpBinding(PointTrack(times, world), faces, _roots_on(vertices, faces, 20, rng), head_rest=rest)
+    assert binding.animated
+    carried = HeadCarriedRoots(binding, rest)
+    for t in (0.0, 0.45, 0.9, 1.21):
+        s = head.evaluate(t)
+        xforms, vel, acc = carried.root_frames(s)
+        m = s.matrix()
+        np.testing.assert_allclose(Rotation.from_quat(xforms[:, 3:]).as_matrix(), np.broadcast_to(m[:3, :3],
+                                   (20, 3, 3)), atol=1e-9)
+        np.testing.assert_allclose(xforms[:, :3], np.broadcast_to(m[:3, 3], (20, 3)), atol=1e-9)
+        for got, want in ((vel[:, :3], s.angular_velocity), (vel[:, 3:], s.linear_velocity),
+                          (acc[:, :3], s.angular_acceleration), (acc[:, 3:], s.linear_acceleration)):
+            np.testing.assert_allclose(got, np.broadcast_to(want, (20, 3)), atol=1e-9)
+    # where the scalp itself took them by then: its turn, not the nod
+    moved = binding.root_frames(0.9)[0][:, :3] - carried.root_frames(head.evaluate(0.9))[0][:, :3]
+    assert np.linalg.norm(moved, axis=1).max() > 0.05
 
 
 def test_root_frame_velocities_are_the_derivatives_of_the_frames():
