@@ -1165,15 +1165,15 @@ class Scene:
             track, faces = read_surface_track(cfg["file"], cfg["prim"], interpolation=cfg["interpolation"])
         except UsdFileError as exc:  # name the scene's key too
             raise UsdFileError(f"{self._label}: groom.surface.prim: {exc}") from None
+        roots = groom.roots() @ H[:3, :3].T + H[:3, 3]
+        binding = ScalpBinding(track, faces, roots, head_rest=H, max_distance=cfg["max_distance"],
+                               where=f"{self._label}: groom.surface ({cfg['file']}: {cfg['prim']})")
         motion = self._data["head"]["motion"]
-        if motion["kind"] != "usd" and track.points.shape[0] > 1 and np.ptp(track.points, axis=0).max() > 0.0:
+        if motion["kind"] != "usd" and binding.animated:  # the roots then ride on the head (``hairwarp.Simulation``)
             warnings.warn(f"{self._label}: groom.surface: {cfg['file']} animates {cfg['prim']}, but head.motion "
                           f"({motion['kind']}) does not follow it: the roots ride on the head from the scalp's pose "
                           f"at time 0, as its collider does (head.motion.kind = \"usd\" follows the stage's "
                           f"animation)", stacklevel=2)
-        roots = groom.roots() @ H[:3, :3].T + H[:3, 3]
-        binding = ScalpBinding(track, faces, roots, head_rest=H, max_distance=cfg["max_distance"],
-                               where=f"{self._label}: groom.surface ({cfg['file']}: {cfg['prim']})")
         local = binding.offset @ H[:3, :3]  # world offsets into the head frame
         return replace(groom, strands=[a + d for a, d in zip(groom.strands, local)]), binding
 

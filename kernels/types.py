@@ -13,11 +13,11 @@ wp.set_module_options({"enable_backward": False})
 #: The segment length [m] at which a static link or a hair contact has the scene's stiffness and damping
 #: (``links.stiffness``, ``interactions.stiffness``). Every segment makes ``links.neighbours`` links and every vertex
 #: its vertex-face contacts, so a strand cut into twice the segments has twice as many: each link's stiffness and
-#: damping scale with the mean length of the two segments it joins, a contact's with the length of hair at it, and
-#: the hair is tied and pressed apart the same whatever the segment count, as the rods' stiffness per joint is
-#: (``hairwarp.RodParams``). With the same values on every link and contact the Ratboy mohawk at 31 segments was
-#: twice as tightly tied as at 16, and its tips ran 26 mm RMS apart over its turns and shake; scaled, 8 mm (1.6 mm
-#: without links or contacts).
+#: damping scale with the mean length of the two segments it joins, a vertex-face contact's with its vertex's segment
+#: length, and the hair is tied and pressed apart the same whatever the segment count, as the rods' stiffness per
+#: joint is (``hairwarp.StrandParams``). With the same values on every link and contact the Ratboy mohawk at 31
+#: segments was twice as tightly tied as at 16, and its tips ran 26 mm RMS apart over its turns and shake; scaled,
+#: 7.1 mm (1.6 mm without links or contacts).
 REFERENCE_SEGMENT_LENGTH = wp.constant(0.01)
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from hairwarp.benchmarks.common import machine_words
 
-# 8 variants: 4 bend stiffnesses (EI [N m^2]) x 2 link stiffnesses [N/m] around the shipped 2e-4 and 1.0.
+# 8 variants: 4 bend stiffnesses (EI [N m^2]) x 2 link stiffnesses [N/m at 1 cm] around the shipped 2e-4 and 0.35.
 PARAMS = {"strands.bend_stiffness": [1e-4, 2e-4, 4e-4, 8e-4], "links.stiffness": [0.2, 0.35]}
 FRAMES = 60
 """Output frames per variant (the scene ships 90): 8 runs of 60 frames (about 7 s each) keep the suite near five
