@@ -354,8 +354,6 @@ class StaticLinks:
         links.link_point_b = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.b_slot_link = wp.array(by_b.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
                                      device=dev)
-        links.link_force = wp.zeros(n, dtype=wp.vec3, device=dev)
-        links.link_split = wp.zeros(n, dtype=wp.vec2, device=dev)
         # what the sweeps read of each link end, a ends then b slots
         links.ends = link_kernels.LinkEnds()
         for name, size in (("force", 2 * n), ("arm", 2 * n), ("axis", n)):
@@ -407,18 +405,15 @@ class StaticLinks:
                 self.link_point_a, self.link_point_b],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
 
-    def prepare_response(self, model, state_in, state_out, dt, dampers, sweeps: bool = True):
-        """Each link's force on the free step's end velocities (``state_out``) and its ends' split factors, from
-        the strands' inverse inertias in ``dampers`` (``link_response_split``; launch only): what
-        :meth:`gather_response` reads at both ends; with ``sweeps``, what they read of each end's own free motion
-        (:attr:`ends`)."""
+    def prepare_response(self, model, state_in, state_out, dt):
+        """What the sweeps read of each link end over the step (:attr:`ends`): its force on its own free velocities
+        (``state_out``'s) and the link's axis (``link_response_ends``; launch only)."""
         if self.link_count == 0:
             return
-        launch(self.executor, link_kernels.link_response_split, self.link_count,
-               [model.seg_per_strand, self.seg_link_start, self.seg_b_start, self.link_seg_a, self.link_seg_b,
-                self.stiffness, self.damping, self.link_scale, self.link_point_a, self.link_point_b, self.link_broken,
-                state_in.seg_xform, state_in.vertex_positions, state_out.vertex_velocities, self.link_b_slot, dt,
-                dampers, int(sweeps)], [self.link_force, self.link_split, self.ends], device=self.device,
+        launch(self.executor, link_kernels.link_response_ends, self.link_count,
+               [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
+                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
+                state_in.vertex_positions, state_out.vertex_velocities, dt], [self.ends], device=self.device,
                min_chunk=GATHER_MIN_CHUNK)
 
     def sweeps_at(self, dt: float) -> int:
@@ -429,20 +424,17 @@ class StaticLinks:
         growth = (min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
         return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
 
-    def gather_response(self, model, state_in, state_out, dt, held, dampers, swept, contacts_swept: bool = False,
-                        sweeps: bool = True):
-        """Every segment's dampers for the first, Jacobi pass of the velocity response (``response``) in ``dampers``
-        (a :class:`kernels.articulated.InteractionResponse`): the hair contacts' from ``held`` and its link ends',
-        from :meth:`prepare_response` and the frames of ``state_in``; the blocks of the sweeps' dampers (split factor
-        1) in ``swept``, added to the hair contacts' there with ``contacts_swept``, and with ``sweeps`` the link ends'
-        arms in :attr:`ends` (launch only)."""
+    def gather_response(self, model, state_in, dt, held, swept, contacts_swept: bool = False):
+        """Every segment's blocks of the sweeps' dampers in ``swept`` (a
+        :class:`kernels.articulated.InteractionResponse`): its link ends' from the frames of ``state_in``, added to its
+        hair contacts', held (``held``) or, with ``contacts_swept``, already in ``swept``; and the link ends' arms in
+        :attr:`ends` (``link_response_gather``; launch only)."""
         if self.link_count == 0:
             return
         launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
                [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
-                self.link_scale, self.link_point_a, self.link_point_b, self.link_broken, self.link_force,
-                self.link_split, state_in.seg_xform, dt, held, int(contacts_swept), int(sweeps)],
-               [dampers, swept, self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                self.link_scale, self.link_point_a, self.link_point_b, self.link_broken, state_in.seg_xform, dt, held,
+                int(contacts_swept)], [swept, self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it
@@ -888,8 +880,8 @@ class HairContacts:
     @property
     def sweeps_contacts(self) -> bool:
         """Whether the links' sweeps solve these contacts too (``kernels.contacts.sweep_entry_force``), which needs each
-        segment's list of contacts: on the CPU (where ``gather_response`` gathers); a GPU holds them as the first pass
-        had them."""
+        segment's list of contacts: on the CPU (where ``gather_response`` gathers); a GPU holds them as dampers split
+        between their sides."""
         return self.enabled and self.response and not (self.device.is_cuda or self.scatter)
 
     def sweep_inputs(self) -> list:

@@ -532,7 +532,7 @@ class Simulation:
         saved = self.checkpoint()
         broken = self.links.broken_count()
         bits = self._frame()
-        self.links.break_links(self.model, self.stepper.state)  # what the next step's first pass would break
+        self.links.break_links(self.model, self.stepper.state)  # what the next step's force pass would break
         if self.links.broken_count() == broken:
             return bits
         self.restore(saved)

@@ -590,7 +590,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                               "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
                               choices=("auto", "step", "link")),
             "sweeps": Field("int", 2, "with the step response: Gauss-Seidel sweeps over the strands' links and "
-                            "hair contacts after the first pass, per step of up to 1/240 s (a step k times as long "
+                            "hair contacts after the free step, per step of up to 1/240 s (a step k times as long "
                             "takes k^1.5 times as many: 16 at 1/60 s, and steps longer than 1/45 s that step's 25); "
                             "more hold the hair nearer its backward-Euler step, each costs about one more response "
                             "solve",

@@ -192,15 +192,17 @@ class Solver:
 
         self.has_drag = model.drag > 0.0
         self.has_forces = self.has_drag or links is not None or contacts is not None
-        # Links and hair contacts whose forces are solved after the free step (``articulated.interaction_response``);
-        # the hair contacts add their semi-implicit inertia to the free step where they are not.
+        # Links and hair contacts whose forces are solved after the free step (the links, and the hair contacts with
+        # them, by sweeps: ``sweeps.link_sweep``; hair contacts alone in one pass:
+        # ``articulated.interaction_response``); the hair contacts add their semi-implicit inertia to the free step
+        # where they are not.
         self.responders = [part for part in (links, contacts) if part is not None and part.response]
         self.has_implicit_mass = contacts is not None and not contacts.response
         m = n if self.responders else 1
         dampers = self.dampers = _dampers(m, device)
         # the links' Gauss-Seidel sweeps (``sweeps.link_sweep``): the free step's result each sweep starts from; the
-        # hair contacts' dampers, held through the sweeps; the sweeps' dampers (the links' with split factor 1 and the
-        # contacts', their blocks the same in every sweep); the inverse inertias shared
+        # hair contacts' dampers, held through the sweeps; the sweeps' dampers (the links' and the contacts', their
+        # blocks the same in every sweep); the inverse inertias shared
         self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
@@ -413,30 +415,30 @@ class Solver:
         """The links' and hair contacts' velocity response on the free step's result, then with ``project`` the body
         push-out.
 
-        First every strand answers every pair at once (Jacobi between strands; ``articulated.interaction_response``):
-        each pair's end takes the pair's backward-Euler damper split by the two ends' inverse inertias in their
-        strands (``articulated.strand_inverse_inertia``, ``prepare_response``), which is exact for a lone pair. With
-        links, Gauss-Seidel sweeps over the strands' colours follow (``sweeps.link_sweep``; ``links.sweeps_at`` of the
-        step): each colour's strands answer their links and hair contacts again, the strands at their other ends held
-        at their latest answer (on a GPU the hair contacts' dampers are held as the first pass had them)."""
+        With links, block Gauss-Seidel sweeps over the strands' colours (``sweeps.link_sweep``; ``links.sweeps_at``
+        of the step), from the free step: each colour's strands answer their links and hair contacts, the strands at
+        their other ends held at their latest answer (on a GPU the hair contacts are held as dampers, each side's
+        share of the pair's backward-Euler damper, split by the two sides' inverse inertias in their strands:
+        ``articulated.strand_inverse_inertia``, ``prepare_response``). Hair contacts alone are answered in one pass,
+        every strand every pair at once with those split dampers (Jacobi between strands;
+        ``articulated.interaction_response``), which is exact for a lone pair."""
         model, ex = self.model, self.executor
         implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         links = self.links if self.link_sweeps else None
+        contacts = self.contacts if self.contacts is not None and self.contacts.response else None
+        # the sweeps this step takes (``StaticLinks.sweeps_at``)
+        count = max(1, links.sweeps_at(self._dt_host)) if links is not None else 0
         dampers = self.dampers
         held = self.held if links is not None else dampers  # the hair contacts' dampers
         ex.zero(held.A, held.B, held.C, held.force, held.torque)
-        # every strand's inverse inertia at the step's start, which each pair reads at both its ends
-        ex.launch(articulated.strand_inverse_inertia, model.strand_count,
-                  [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
-                  min_chunk=INTEGRATE_MIN_CHUNK)
-        # the sweeps this step takes (``StaticLinks.sweeps_at``)
-        count = links.sweeps_at(self._dt_host) if links is not None else 0
-        for part in self.responders:
-            if part is self.links:
-                part.prepare_response(model, state_in, state_out, self.dt, dampers, count > 0)
-            else:
-                part.prepare_response(model, state_in, state_out, self.dt, dampers)
-        contacts = self.contacts if self.contacts is not None and self.contacts.response else None
+        if contacts is not None:
+            # every strand's inverse inertia at the step's start, which each contact's split reads at both its sides
+            ex.launch(articulated.strand_inverse_inertia, model.strand_count,
+                      [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
+                      min_chunk=INTEGRATE_MIN_CHUNK)
+            contacts.prepare_response(model, state_in, state_out, self.dt, dampers)
+        if links is not None:
+            links.prepare_response(model, state_in, state_out, self.dt)
         # the sweeps solve the hair contacts too, where each segment has its list of them (the CPU)
         contacts_swept = links is not None and contacts is not None and contacts.sweeps_contacts
         # each segment gathers its contacts' and its links' dampers (in this order, into its own blocks), reading
@@ -446,28 +448,23 @@ class Solver:
                 contacts.gather_response(model, state_in, state_out, self.dt, held,
                                          *((self.swept, links.strand_color_array) if contacts_swept else ()))
             if links is not None:
-                links.gather_response(model, state_in, state_out, self.dt, held, dampers, self.swept, contacts_swept,
-                                      count > 0)
+                links.gather_response(model, state_in, self.dt, held, self.swept, contacts_swept)
                 ex.launch(sweeps.sweep_start, model.strand_count,
-                          [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities],
-                          [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities],
+                          [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities,
+                           int(contacts_swept)],
+                          [self.free_q, self.free_qd, self.free_velocities, self.answered_velocities,
+                           self.answered_sweeps[0]],
                           min_chunk=INTEGRATE_MIN_CHUNK)
         outputs = [state_out.joint_q, state_out.joint_qd, state_out.seg_xform, state_out.vertex_positions,
                    state_out.vertex_velocities, state_out.fault]
-        inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
-                  state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
-        with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
-            ex.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
-                      min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
-            if links is not None:
-                ex.launch(sweeps.sweep_answer, model.strand_count,
-                          [model.seg_per_strand, state_in.seg_xform, state_in.vertex_positions, state_out.joint_qd,
-                           self.free_qd, self.free_velocities, int(contacts_swept)],
-                          [self.answered_velocities, self.answered_sweeps[0]],
-                          min_chunk=INTEGRATE_MIN_CHUNK)
-            elif project:
-                self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
         if links is None:
+            inputs = [model.chains, self.max_rotation_per_step, control.bases, self.dt, implicit, self.loads,
+                      state_in.joint_q, dampers, self._no_body_contacts, self.scratch]
+            with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+                ex.launch(articulated.interaction_response, model.strand_count, inputs, outputs,
+                          min_chunk=INTEGRATE_MIN_CHUNK, private_or=[len(inputs) + len(outputs) - 1])
+                if project:
+                    self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
             return
         inputs = [model.chains, links.seg_link_start, links.seg_b_start, links.b_slot_link, links.link_seg_a,
                   links.link_seg_b, links.stiffness, links.damping, links.link_scale, links.link_point_a,

@@ -1352,8 +1352,8 @@ def interaction_response(
     step's start. Then ``w += dw``,
     ``q <- q exp(h dw)`` and the forward kinematics of the corrected strand; the push-out after the step keeps the
     strands out of the bodies. (Holding the body contacts of the free step in this solve too cost one step a frame
-    its stability: ``long_hair_shoulders`` faulted.) With links, this is the first pass; Gauss-Seidel sweeps over the
-    strands follow (``kernels.sweeps``).
+    its stability: ``long_hair_shoulders`` faulted.) With links, Gauss-Seidel sweeps over the strands solve links
+    and hair contacts instead (``kernels.sweeps``).
     """
     strand = tid_offset + wp.tid()
     S = chains.seg_per_strand

@@ -1039,7 +1039,7 @@ def sweep_entry_force(j: int, strand: int, seg_per_strand: int, strip_pairs: wp.
                       answered_velocities: wp.array(dtype=wp.vec3), answered_before: wp.array(dtype=wp.vec3),
                       colors: wp.array(dtype=wp.int32)) -> wp.vec3:
     """The force [N, world] of the ``j``-th of ``sweep``'s entries on ``strand``'s free velocities in a sweep
-    (``kernels.sweeps.link_sweep``): the contact's damper as the first pass took it (``response_entry``: in contact
+    (``kernels.sweeps.link_sweep``): the contact's damper as ``response_entry`` takes it (in contact
     or not, and its friction coefficient, from the free step) on the velocity of ``strand``'s side from its free
     step relative to the other side's latest answer. With the whole damper as its point inertia
     (``contact_response_gather``) that is ``strand``'s block of the contacts' backward-Euler step, the other strands

@@ -19,13 +19,8 @@ import warp as wp
 
 from hairwarp.kernels.articulated import (
     InteractionResponse,
-    add_damper,
-    articulated_inverse_mass,
-    shared_inverse_mass,
     spin_free_coupling,
     spin_free_rotation,
-    spin_free_torque,
-    split_factor,
 )
 from hairwarp.kernels.spatial import skew
 
@@ -425,15 +420,11 @@ def link_axis(l: wp.vec3):
 
 
 @wp.kernel
-def link_response_split(
+def link_response_ends(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
     tid_offset: int,
     # Model:
     seg_per_strand: int,
-    seg_link_start: wp.array(dtype=wp.int32),
-    seg_b_start: wp.array(dtype=wp.int32),
-    link_seg_a: wp.array(dtype=wp.int32),
-    link_seg_b: wp.array(dtype=wp.int32),
     link_stiffness: float,
     link_damping: float,
     link_scale: wp.array(dtype=float),
@@ -441,62 +432,39 @@ def link_response_split(
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
-    # State: the step's start (frames, positions), the free step's end (velocities)
-    seg_xform: wp.array(dtype=wp.transform),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    link_b_slot: wp.array(dtype=wp.int32),
+    # State: the step's start (positions), the free step's end (velocities)
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
-    link_b_slot: wp.array(dtype=wp.int32),
     # Control:
     dt: wp.array(dtype=float),
-    dampers: InteractionResponse,
-    # 1 when sweeps follow: each end's force on its own free velocities is kept for them (``LinkEnds``)
-    keep_ends: int,
     # Out:
-    link_force: wp.array(dtype=wp.vec3),
-    link_split: wp.array(dtype=wp.vec2),
     ends: LinkEnds,
 ):
-    """One thread per link: its backward-Euler force on the free velocities, ``k l - P u`` [N, world, on end a], and
-    the split factors of its two ends (``split_factor``), for ``link_response_gather``.
+    """One thread per link: what the sweeps read of its ends over the step (``LinkEnds``): each end's force on its own
+    free velocities with the other end still, ``+-(k l) - P v_own`` [N, world], and the link's axis ``n``.
 
     The link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of
-    a's end relative to b's; each end takes it as a damper ``s P`` toward the ends' centre-of-mass velocity from the
-    free step: ``k l - P u`` on a and its opposite on b, with the point inertia ``s h P``. ``s`` is the end's
-    ``split_factor``: its own inverse mass along that force against the other end's, from their strands' inertia
-    (``articulated_inverse_mass``), the other end's shared among its segment's links where it is the lighter and the
-    link holds it over the step (``shared_inverse_mass``). 2 between ends of equal mass, as the spring split at its
-    midpoint. (Applied in the free step instead, ``k l`` kicked the hair apart at one step a frame, where a
-    segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
+    a's end relative to b's; the sweeps solve each end with the other held (``kernels.sweeps.link_sweep``), which
+    adds ``P v_other`` to the end's own part. (Applied in the free step instead, ``k l`` kicked the hair apart at one
+    step a frame, where a segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
     link = tid_offset + wp.tid()
     if link_broken[link] != 0:
         return
     h = dt[0]
-    a = link_seg_a[link]
-    b = link_seg_b[link]
     xa = link_point_a[link]
     xb = link_point_b[link]
-    v_a = seg_point_velocity(a, seg_per_strand, vertex_positions, vertex_velocities, xa)
-    v_b = seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+    v_a = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, vertex_velocities, xa)
+    v_b = seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, vertex_velocities, xb)
     l = xb - xa
     n = link_axis(l)
     k = link_stiffness * link_scale[link]
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
-    force = k * l - P * (v_a - v_b)
-    if keep_ends != 0:
-        ends.force[link] = k * l - P * v_a
-        ends.force[link_point_a.shape[0] + link_b_slot[link]] = -k * l - P * v_b
-        ends.axis[link] = n
-    e = wp.vec3(1.0, 0.0, 0.0)
-    if wp.length_sq(force) > 0.0:
-        e = wp.normalize(force)
-    stiffness = h * wp.dot(e, P * e)  # the link's damper over the step along its force [kg]
-    w_a = articulated_inverse_mass(dampers, a, seg_xform[a], xa, e)
-    w_b = articulated_inverse_mass(dampers, b, seg_xform[b], xb, e)
-    pairs_a = seg_link_start[a + 1] - seg_link_start[a] + seg_b_start[a + 1] - seg_b_start[a]
-    pairs_b = seg_link_start[b + 1] - seg_link_start[b] + seg_b_start[b + 1] - seg_b_start[b]
-    link_force[link] = force
-    link_split[link] = wp.vec2(split_factor(w_a, shared_inverse_mass(w_a, w_b, float(pairs_b), stiffness)),
-                               split_factor(w_b, shared_inverse_mass(w_b, w_a, float(pairs_a), stiffness)))
+    ends.force[link] = k * l - P * v_a
+    ends.force[link_point_a.shape[0] + link_b_slot[link]] = -k * l - P * v_b
+    ends.axis[link] = n
 
 
 @wp.kernel
@@ -510,12 +478,10 @@ def link_response_gather(
     link_stiffness: float,
     link_damping: float,
     link_scale: wp.array(dtype=float),
-    # Scratch: the ends the force pass left, the forces and split factors of ``link_response_split``
+    # Scratch: the ends the force pass left
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
-    link_force: wp.array(dtype=wp.vec3),
-    link_split: wp.array(dtype=wp.vec2),
     # State: the step's start (frames)
     seg_xform: wp.array(dtype=wp.transform),
     # Control:
@@ -524,19 +490,14 @@ def link_response_gather(
     # (``kernels.contacts.contact_response_gather``), else they take ``held``'s
     held: InteractionResponse,
     contacts_swept: int,
-    # 1 when sweeps follow: the ends' arms are kept for them (``LinkEnds``)
-    keep_ends: int,
     # Out:
-    dampers: InteractionResponse,
     sweep_blocks: InteractionResponse,
     ends: LinkEnds,
 ):
-    """One thread per segment: its ``InteractionResponse`` blocks are the hair contacts' (``held``) and the dampers of
-    its links' ends (its links as side a in link order, then as side b in slot order), in its frame at the step's
-    start: at the end's point, the point inertia ``s h P`` and the force ``+-(k l - P u)``
-    (``link_response_split``). The blocks of the sweeps' dampers go to ``sweep_blocks`` (``A``, ``B``, ``C``): the
-    same with split factor 1, which every sweep of the step reads (``kernels.sweeps.link_sweep``); with
-    ``keep_ends``, the ends' arms (``LinkEnds``).
+    """One thread per segment: the blocks (``A``, ``B``, ``C``) of its sweeps' dampers, which every sweep of the step
+    reads (``kernels.sweeps.link_sweep``): its hair contacts' and the point inertia ``h P`` of each of its links' ends
+    (its links as side a in link order, then as side b in slot order), in its frame at the step's start, at the
+    end's point; and the ends' arms (``LinkEnds``).
 
     The blocks of each end come in closed form (``link_end_blocks``), no 3 x 3 product an end; the spin about the
     segment's axis is taken out of the sums (``point_damper_blocks``)."""
@@ -545,63 +506,41 @@ def link_response_gather(
     a_last = seg_link_start[seg + 1]
     b_first = seg_b_start[seg]
     b_last = seg_b_start[seg + 1]
-    dampers.A[seg] = held.A[seg]
-    dampers.B[seg] = held.B[seg]
-    dampers.C[seg] = held.C[seg]
-    dampers.force[seg] = held.force[seg]
-    dampers.torque[seg] = held.torque[seg]
-    A1 = held.A[seg]
-    B1 = held.B[seg]
-    C1 = held.C[seg]
+    A = held.A[seg]
+    B = held.B[seg]
+    C = held.C[seg]
     if contacts_swept != 0:
-        A1 = sweep_blocks.A[seg]
-        B1 = sweep_blocks.B[seg]
-        C1 = sweep_blocks.C[seg]
+        A = sweep_blocks.A[seg]
+        B = sweep_blocks.B[seg]
+        C = sweep_blocks.C[seg]
     if a_first == a_last and b_first == b_last:
-        sweep_blocks.A[seg] = A1
-        sweep_blocks.B[seg] = B1
-        sweep_blocks.C[seg] = C1
+        sweep_blocks.A[seg] = A
+        sweep_blocks.B[seg] = B
+        sweep_blocks.C[seg] = C
         return
     h = dt[0]
     link_count = link_point_a.shape[0]
     xf = seg_xform[seg]
     R = wp.transform_get_rotation(xf)
     origin = wp.transform_get_translation(xf)
-    # the blocks summed over the ends, split (s) and whole
-    A = wp.mat33()
-    B = wp.mat33()
-    C = wp.mat33()
-    force = wp.vec3()
-    torque = wp.vec3()
     for j in range(a_first, b_last - b_first + a_last):
         link, side, slot = end_slot(j, a_last, b_first, link_count, b_slot_link)
         if link_broken[link] == 0:
             xa = link_point_a[link]
             xb = link_point_b[link]
-            split = link_split[link]
             p = xa
-            s = split[0]
             if side < 0.0:
                 p = xb
-                s = split[1]
             r = wp.quat_rotate_inv(R, p - origin)
             Ae, Be, Ce = link_end_blocks(h, h * link_stiffness * link_scale[link], link_damping * link_scale[link], r,
                                          wp.quat_rotate_inv(R, link_axis(xb - xa)))
-            A += s * Ae
-            B += s * Be
-            C += s * Ce
-            A1 += Ae
-            B1 += Be
-            C1 += Ce
-            f = wp.quat_rotate_inv(R, side * link_force[link])
-            force += f
-            torque += spin_free_torque(r, f)
-            if keep_ends != 0:
-                ends.arm[slot] = r
-    sweep_blocks.A[seg] = spin_free_rotation(A1)
-    sweep_blocks.B[seg] = spin_free_coupling(B1)
-    sweep_blocks.C[seg] = C1
-    add_damper(dampers, seg, spin_free_rotation(A), spin_free_coupling(B), C, force, torque)
+            A += Ae
+            B += Be
+            C += Ce
+            ends.arm[slot] = r
+    sweep_blocks.A[seg] = spin_free_rotation(A)
+    sweep_blocks.B[seg] = spin_free_coupling(B)
+    sweep_blocks.C[seg] = C
 
 
 @wp.func

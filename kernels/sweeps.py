@@ -1,11 +1,11 @@
-"""The links' Gauss-Seidel sweeps between strands, after the response's first pass
-(``hairwarp.Solver``; docs/interactions.md, "Links solved by sweeps").
+"""The links' response: Gauss-Seidel sweeps between strands after the free step (``hairwarp.Solver``;
+docs/interactions.md, "Links solved by sweeps").
 
 The strands are coloured so that no two of a colour share a link (``hairwarp.interactions.strand_colors``); a sweep
 solves the colours in turn, each colour's strands at once, one thread each (``link_sweep``), the next sweep the
-colours in the opposite order (symmetric Gauss-Seidel). Every strand is solved
-again from its free step with its partners held at their latest answer, read linearised at the step's start
-(``answer``).
+colours in the opposite order (symmetric Gauss-Seidel). Every strand is solved from its free step with its partners
+held at their latest answer, read linearised at the step's start (``answer``); in the first sweep, the partners
+not yet solved at their free step.
 """
 
 import warp as wp
@@ -47,31 +47,6 @@ def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
         answered_velocities[vbase + k + 1] = free_velocities[vbase + k + 1] + dv
 
 
-@wp.kernel
-def sweep_answer(
-    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
-    tid_offset: int,
-    seg_per_strand: int,
-    # State: the step's start; the answer; the free step's
-    seg_xform_in: wp.array(dtype=wp.transform),
-    vertex_positions_in: wp.array(dtype=wp.vec3),
-    joint_qd: wp.array(dtype=wp.vec3),
-    free_qd: wp.array(dtype=wp.vec3),
-    free_velocities: wp.array(dtype=wp.vec3),
-    # With ``contacts_swept``, the copy the first sweep reads of its own colour's answers (``link_sweep``)
-    contacts_swept: int,
-    # Out:
-    answered_velocities: wp.array(dtype=wp.vec3),
-    answered_copy: wp.array(dtype=wp.vec3),
-):
-    """One thread per strand: ``answer`` for the response every strand gave at once (the sweeps' start)."""
-    strand = tid_offset + wp.tid()
-    answer(strand, seg_per_strand, seg_xform_in, vertex_positions_in, joint_qd, free_qd, free_velocities,
-           answered_velocities)
-    if contacts_swept != 0:
-        copy_answer(strand, seg_per_strand, answered_velocities, answered_copy)
-
-
 @wp.func
 def copy_answer(strand: int, S: int, answered: wp.array(dtype=wp.vec3), copy: wp.array(dtype=wp.vec3)):
     """Copy ``strand``'s answered vertex velocities into ``copy``, where the next sweep reads them for the strands
@@ -90,11 +65,14 @@ def sweep_start(
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
+    # With ``contacts_swept``, the copy the first sweep reads of its own colour's answers (``link_sweep``)
+    contacts_swept: int,
     # Out: what every sweep starts from (``link_sweep``)
     free_q: wp.array(dtype=wp.quat),
     free_qd: wp.array(dtype=wp.vec3),
     free_velocities: wp.array(dtype=wp.vec3),
     answered_velocities: wp.array(dtype=wp.vec3),
+    answered_copy: wp.array(dtype=wp.vec3),
 ):
     """One thread per strand: keep the free step's joints and vertex velocities for the sweeps, and start their
     answers from the free step's velocities (one launch the executor splits over the threads)."""
@@ -108,6 +86,8 @@ def sweep_start(
         v = strand * (S + 1) + k
         free_velocities[v] = vertex_velocities[v]
         answered_velocities[v] = vertex_velocities[v]
+        if contacts_swept != 0:
+            answered_copy[v] = vertex_velocities[v]
 
 
 @wp.kernel
@@ -126,7 +106,7 @@ def link_sweep(
     link_stiffness: float,
     link_damping: float,
     link_scale: wp.array(dtype=float),
-    # Scratch: the ends the force pass left; what the first pass kept of each end (``LinkEnds``)
+    # Scratch: the ends the force pass left; what ``link_response_ends`` kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
     link_broken: wp.array(dtype=wp.int32),
@@ -150,7 +130,7 @@ def link_sweep(
     answered_before: wp.array(dtype=wp.vec3),
     answered_after: wp.array(dtype=wp.vec3),
     colors: wp.array(dtype=wp.int32),
-    # The hair contacts' dampers as the first pass had them: held through the sweeps where ``contacts_swept`` is 0
+    # The hair contacts' dampers, split between their sides: held through the sweeps where ``contacts_swept`` is 0
     # (on a GPU, which has no contact lists per segment), else solved in them (``contacts`` ... ``sweep_contacts``)
     held: InteractionResponse,
     contacts_swept: int,
@@ -185,16 +165,19 @@ def link_sweep(
     end relative to b's. Solving strand i alone with every other strand held, its end of each link takes the
     damper ``h P`` (the pair's whole point inertia) and the force ``+-(k l) - P (v_own - v_other)``, ``v_own`` its
     end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
-    (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else the first
-    pass's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
-    toward the other side's latest answer), or, on a GPU, held as the first pass had them (``held``). The strand is
-    then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep only) and its
+    (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else its free
+    step's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
+    toward the other side's latest answer), or, on a GPU, held as dampers split between their sides (``held``). The
+    strand is then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep only) and its
     answer published (``answer``). A colour's strands share no link, so they are solved at once, and each sees what
     the earlier colours gave: every sweep lowers the links' implicit step's error in its energy norm (the step's
     matrix is symmetric positive definite), so unlike Jacobi between strands it cannot overshoot, whatever the ends'
-    masses; more sweeps converge to the backward-Euler answer of the whole lattice. Hair contacts can join two
-    strands of one colour, which a sweep then solves at once (Jacobi, each with the whole damper): the colours are
-    the links', fixed for the run."""
+    masses; more sweeps converge to the backward-Euler answer of the whole lattice. Not momentum, sweep by sweep:
+    the first strand of a stiff pair solved goes nearly to its partner's free velocity, which the later sweeps take
+    back by degrees (a lone pair at h^2 k / m_eff ~ 50, its ends parting at 0.3 m/s each: 0.16 m/s off after 8
+    sweeps, 0.026 after 32); hair moving with its neighbours, as links hold it, has little of it. Hair contacts can
+    join two strands of one colour, which a sweep then solves at once (Jacobi, each with the whole damper): the
+    colours are the links', fixed for the run."""
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]
@@ -232,8 +215,8 @@ def link_sweep(
                     if side < 0.0:
                         q = link_point_a[link]
                         other = link_seg_a[link]
-                    # f = +-(k l) - P (v_own - v_other): the end's own part as the first pass kept it, P on the
-                    # other end's latest answer
+                    # f = +-(k l) - P (v_own - v_other): the end's own part as ``link_response_ends`` kept it, P
+                    # on the other end's latest answer
                     v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
                     n = ends.axis[link]
                     scale = link_scale[link]

@@ -390,9 +390,8 @@ def _skew(v):
 def test_response_damper_blocks_match_their_product_form():
     """``link_response_gather`` sums each segment's link-end dampers in closed form; here they are formed as the
     products they stand for, in float64: at each end's point ``r`` (the segment's frame) the point inertia
-    ``M = s h R^T (h k I + c n n^T) R``, its blocks ``A = -[r]x M [r]x`` and ``B = [r]x M`` without the spin about the
-    segment's axis, ``C = M``; the sweeps' blocks the same with ``s = 1``; forces and spin-free torques of ``+-F``;
-    the ends' arms."""
+    ``M = h R^T (h k I + c n n^T) R``, its blocks ``A = -[r]x M [r]x`` and ``B = [r]x M`` without the spin about the
+    segment's axis, ``C = M``, added to the hair contacts' blocks already there; the ends' arms."""
     rng = np.random.default_rng(7)
     h, k, c = 1.0 / 60.0, 3.0, 0.4  # a damping of the stiffness' order over the step: both parts of P count
     n_links = 4
@@ -400,8 +399,6 @@ def test_response_damper_blocks_match_their_product_form():
     xa = rng.normal(0.0, 0.02, (n_links, 3))
     xb = xa + rng.normal(0.0, 0.01, (n_links, 3))
     xb[3] = xa[3]  # a link at rest: no direction, no damping term
-    split = rng.uniform(1.0, 6.0, (n_links, 2))
-    force = rng.normal(0.0, 0.1, (n_links, 3))
     rot = Rotation.random(2, random_state=3)
     origin = rng.normal(0.0, 0.02, (2, 3))
     quat = rot.as_quat()  # x, y, z, w: Warp's order
@@ -409,58 +406,55 @@ def test_response_damper_blocks_match_their_product_form():
     seg_link_start = np.array([0, n_links, n_links], np.int32)
     seg_b_start = np.array([0, 0, n_links], np.int32)
     dev = "cpu"
+    # the hair contacts' blocks, held (``contacts_swept`` 0) or already in the sweeps' blocks (1)
+    contact_blocks = {name: rng.normal(0.0, 1e-6, (2, 3, 3)) for name in ("A", "B", "C")}
 
     def arr(x, dtype):
         return wp.array(np.asarray(x), dtype=dtype, device=dev)
 
-    def dampers():
+    def dampers(blocks=None):
         d = articulated.InteractionResponse()
         for name in ("A", "B", "C", "phi_a", "phi_b", "phi_c"):
-            setattr(d, name, wp.zeros(2, dtype=wp.mat33, device=dev))
+            setattr(d, name, arr(blocks[name], wp.mat33) if blocks and name in blocks
+                    else wp.zeros(2, dtype=wp.mat33, device=dev))
         d.force = wp.zeros(2, dtype=wp.vec3, device=dev)
         d.torque = wp.zeros(2, dtype=wp.vec3, device=dev)
         return d
 
-    held, out, swept = dampers(), dampers(), dampers()
-    ends = link_kernels.LinkEnds()
-    for name, size in (("force", 2 * n_links), ("arm", 2 * n_links), ("axis", n_links)):
-        setattr(ends, name, wp.zeros(size, dtype=wp.vec3, device=dev))
     xforms = [wp.transform(wp.vec3(*origin[i]), wp.quat(*quat[i])) for i in range(2)]
-    wp.launch(link_kernels.link_response_gather, 2,
-              [0, arr(seg_link_start, wp.int32), arr(seg_b_start, wp.int32), arr(np.arange(n_links), wp.int32), k, c,
-               arr(link_scale, float), arr(xa, wp.vec3), arr(xb, wp.vec3), arr(np.zeros(n_links), wp.int32),
-               arr(force, wp.vec3), arr(split, wp.vec2), wp.array(xforms, dtype=wp.transform, device=dev),
-               arr([h], float), held, 0, 1],
-              [out, swept, ends], device=dev)
-
     spin_free = np.diag([1.0, 1.0, 0.0])
-    for seg, side in ((0, 1.0), (1, -1.0)):
-        R = rot[seg].as_matrix()
-        want = {name: np.zeros((3, 3)) for name in ("A", "B", "C", "A1", "B1", "C1")}
-        f_sum, t_sum = np.zeros(3), np.zeros(3)
-        for j in range(n_links):
-            l = xb[j] - xa[j]
-            length = np.linalg.norm(l)
-            n = l / length if length > 1e-7 else np.zeros(3)
-            P = R.T @ (h * k * link_scale[j] * np.eye(3) + c * link_scale[j] * np.outer(n, n)) @ R
-            r = R.T @ ((xa[j] if side > 0 else xb[j]) - origin[seg])
-            rx = _skew(r)
-            for suffix, s in (("", split[j, 0 if side > 0 else 1]), ("1", 1.0)):
-                M = s * h * P
-                want["A" + suffix] += spin_free @ (-rx @ M @ rx) @ spin_free
-                want["B" + suffix] += spin_free @ (rx @ M)
-                want["C" + suffix] += M
-            f = R.T @ (side * force[j])
-            f_sum += f
-            t_sum += spin_free @ np.cross(r, f)
-            slot = j if side > 0 else n_links + j
-            np.testing.assert_allclose(ends.arm.numpy()[slot], r, rtol=1e-5, atol=1e-8)
-        # blocks of float32 sums of a few terms of magnitude up to h^2 k |r|^2: relative 1e-5 of the largest
-        for name, got in (("A", out.A), ("B", out.B), ("C", out.C), ("A1", swept.A), ("B1", swept.B), ("C1", swept.C)):
-            scale = np.abs(want[name]).max()
-            np.testing.assert_allclose(got.numpy()[seg], want[name], rtol=0, atol=1e-5 * scale, err_msg=name)
-        np.testing.assert_allclose(out.force.numpy()[seg], f_sum, rtol=0, atol=1e-5 * np.abs(f_sum).max())
-        np.testing.assert_allclose(out.torque.numpy()[seg], t_sum, rtol=0, atol=1e-5 * np.abs(t_sum).max())
+    for contacts_swept in (0, 1):
+        held, swept = (dampers(), dampers(contact_blocks)) if contacts_swept else (dampers(contact_blocks), dampers())
+        ends = link_kernels.LinkEnds()
+        for name, size in (("force", 2 * n_links), ("arm", 2 * n_links), ("axis", n_links)):
+            setattr(ends, name, wp.zeros(size, dtype=wp.vec3, device=dev))
+        wp.launch(link_kernels.link_response_gather, 2,
+                  [0, arr(seg_link_start, wp.int32), arr(seg_b_start, wp.int32), arr(np.arange(n_links), wp.int32),
+                   k, c, arr(link_scale, float), arr(xa, wp.vec3), arr(xb, wp.vec3), arr(np.zeros(n_links), wp.int32),
+                   wp.array(xforms, dtype=wp.transform, device=dev), arr([h], float), held, contacts_swept],
+                  [swept, ends], device=dev)
+        for seg, side in ((0, 1.0), (1, -1.0)):
+            R = rot[seg].as_matrix()
+            want = {name: contact_blocks[name][seg].copy() for name in ("A", "B", "C")}
+            for j in range(n_links):
+                l = xb[j] - xa[j]
+                length = np.linalg.norm(l)
+                n = l / length if length > 1e-7 else np.zeros(3)
+                M = h * R.T @ (h * k * link_scale[j] * np.eye(3) + c * link_scale[j] * np.outer(n, n)) @ R
+                r = R.T @ ((xa[j] if side > 0 else xb[j]) - origin[seg])
+                rx = _skew(r)
+                want["A"] += -rx @ M @ rx
+                want["B"] += rx @ M
+                want["C"] += M
+                slot = j if side > 0 else n_links + j
+                np.testing.assert_allclose(ends.arm.numpy()[slot], r, rtol=1e-5, atol=1e-8)
+            want["A"] = spin_free @ want["A"] @ spin_free
+            want["B"] = spin_free @ want["B"]
+            # blocks of float32 sums of a few terms of magnitude up to h^2 k |r|^2: relative 1e-5 of the largest
+            for name, got in (("A", swept.A), ("B", swept.B), ("C", swept.C)):
+                scale = np.abs(want[name]).max()
+                np.testing.assert_allclose(got.numpy()[seg], want[name], rtol=0, atol=1e-5 * scale,
+                                           err_msg=f"{name}, contacts_swept {contacts_swept}")
 
 
 @pytest.mark.parametrize("segments", [7, 16, 40])
