@@ -218,6 +218,8 @@ class Simulation:
         frame_dt: time between output frames [s].
         break_step: ``links.break_step`` [s], the longest step at which a link may break (0: any).
         refined_frames: frames taken again in steps of ``break_step`` because a link broke in them.
+        fault_retries: ``sim.fault_retries``, the times a frame that faults is taken again, each in twice the steps.
+        retaken_frames: frames taken again after a fault; ``retakes``, ``(frame, steps it ran in, stage)`` of each.
     """
 
     def __init__(self, scene, *, device=None, threads: int | None = None):
@@ -273,6 +275,9 @@ class Simulation:
         self.links = self._build_links(scene.links)
         self.break_step = float(scene.links.break_step)
         self.refined_frames = 0  # frames taken again because a link broke in them (``links.break_step``)
+        self.fault_retries = int(sim.fault_retries)
+        self.retaken_frames = 0  # frames taken again after a fault (``sim.fault_retries``)
+        self.retakes = []  # (frame, the steps it ran in, the stage of the fault that made it) of each
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
@@ -511,6 +516,10 @@ class Simulation:
     def advance_frame(self) -> Fault:
         """Simulate one output frame (the scene's substeps, the head and colliders posed for each).
 
+        A frame that faults is taken again from its start in twice the steps, up to ``sim.fault_retries`` times
+        (:attr:`retakes` lists them): a frame the step does not resolve is simulated in steps that do, and the run
+        stops only when the last of them faults too.
+
         At steps longer than ``links.break_step`` a frame in which a link breaks, or that ends with one stretched past
         its break length, is taken again from its start in steps no longer than the break step
         (:attr:`refined_frames` counts them): a link breaks only on motion such a step resolves.
@@ -520,30 +529,58 @@ class Simulation:
             than the buffers hold; see :meth:`frame_stats`), else 0.
 
         Raises:
-            SimulationFault: the frame left the solver's bounds (the message names the frame, the stage and what
-                to change).
+            SimulationFault: the frame left the solver's bounds at every step it was taken in (the message names the
+                frame, the stage and what to change).
         """
         fine = self._break_substeps()
-        if fine is None:
+        if fine is None and self.fault_retries == 0:
             return self._frame()
+        saved = self.checkpoint()
+        if fine is None:
+            return self._frame_retaken(saved)[0]
         # A link's break is for good and cuts its force off at once: decided on motion that the step does not
         # resolve, it tore links that no run at fine steps tears (the Ratboy mohawk's last shake at 2 substeps: 8
         # links, 33-37 mm against 27 mm at most at 16 substeps; long_hair_shoulders at one step a frame: 23).
-        saved = self.checkpoint()
         broken = self.links.broken_count()
-        bits = self._frame()
+        bits, steps = self._frame_retaken(saved)
         self.links.break_links(self.model, self.stepper.state)  # what the next step's force pass would break
         if self.links.broken_count() == broken:
             return bits
         self.restore(saved)
-        self._poses = {}  # kept by step number: another step size
-        try:
-            bits = self._frame(fine)
-        finally:
-            self._poses = {}
+        bits = self._frame_retaken(saved, max(fine, steps))[0]
         self.links.break_links(self.model, self.stepper.state)
         self.refined_frames += 1
         return bits
+
+    def _frame_retaken(self, saved: dict, substeps: int | None = None) -> tuple[Fault, int]:
+        """The frame in ``substeps`` steps (None: the stepper's), from the checkpoint ``saved`` of its start; after a
+        fault, again from there in twice the steps, up to :attr:`fault_retries` times. Returns its bits and the steps
+        it ran in."""
+        steps = self.stepper.substeps if substeps is None else int(substeps)
+        tried = []
+        while True:
+            try:
+                if steps == self.stepper.substeps:
+                    return self._frame(), steps
+                self._poses = {}  # kept by step number: another step size
+                try:
+                    return self._frame(steps), steps
+                finally:
+                    self._poses = {}
+            except SimulationFault as fault:
+                tried.append(steps)
+                if len(tried) > self.fault_retries:
+                    if len(tried) == 1:
+                        raise
+                    again = " and ".join(str(n) for n in tried[1:])
+                    raise SimulationFault(f"{fault} (The frame was taken again in {again} steps (sim.fault_retries = "
+                                          f"{self.fault_retries}), and faulted each time.)", frame=fault.frame,
+                                          stage=fault.stage, bits=fault.bits) from None
+                self.restore(saved)
+                steps *= 2
+                if len(tried) == 1:
+                    self.retaken_frames += 1
+                self.retakes.append((self.stepper.frame + 1, steps, fault.stage))
 
     def _break_substeps(self) -> int | None:
         """The steps a frame is taken again in when a link breaks in it (``links.break_step``), or None: no links,
@@ -1292,4 +1329,18 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     if sim.refined_frames:
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
+    if sim.retaken_frames:
+        notes.append(_retakes_note(sim))
     return kept
+
+
+def _retakes_note(sim) -> str:
+    """The run's note on its frames taken again after a fault (``sim.fault_retries``): how many, the first few with
+    the steps they ran in and the stage that faulted, and what would spare them."""
+    last = {}
+    for frame, steps, stage in sim.retakes:
+        last[frame] = (steps, stage)  # the steps it finally ran in
+    shown = ", ".join(f"{f} in {n} steps ({stage})" for f, (n, stage) in list(last.items())[:4])
+    more = f" and {len(last) - 4} more" if len(last) > 4 else ""
+    return (f"{sim.retaken_frames} frames faulted at {sim.stepper.substeps} substeps and were taken again in more "
+            f"steps: frame {shown}{more}; raise sim.substeps to run them at the scene's own steps")

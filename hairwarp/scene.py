@@ -423,6 +423,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "speed_margin": Field("float", 4.0, "fault bound on the guides' speed at a frame's end, as a multiple of "
                                                 "the speed the head, colliders, wind and a free fall over the longest "
                                                 "strand explain (inf: no bound)", range="(0, inf]"),
+            "fault_retries": Field("int", 2, "times a frame that faults is taken again from its start, each time in "
+                                             "twice the steps (2: in 2 and then 4 times the substeps); the run stops "
+                                             "with the fault only when the last faults too (0: at once)",
+                                   range="[0, 8]"),
             "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),
         },
         doc="time stepping and the device",

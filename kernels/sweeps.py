@@ -167,17 +167,17 @@ def link_sweep(
     end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
     (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else its free
     step's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
-    toward the other side's latest answer), or, on a GPU, held as dampers split between their sides (``held``). The
-    strand is then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep only) and its
-    answer published (``answer``). A colour's strands share no link, so they are solved at once, and each sees what
-    the earlier colours gave: every sweep lowers the links' implicit step's error in its energy norm (the step's
-    matrix is symmetric positive definite), so unlike Jacobi between strands it cannot overshoot, whatever the ends'
-    masses; more sweeps converge to the backward-Euler answer of the whole lattice. Not momentum, sweep by sweep:
-    the first strand of a stiff pair solved goes nearly to its partner's free velocity, which the later sweeps take
-    back by degrees (a lone pair at h^2 k / m_eff ~ 50, its ends parting at 0.3 m/s each: 0.16 m/s off after 8
-    sweeps, 0.026 after 32); hair moving with its neighbours, as links hold it, has little of it. Hair contacts can
-    join two strands of one colour, which a sweep then solves at once (Jacobi, each with the whole damper): the
-    colours are the links', fixed for the run."""
+    toward the other side's latest answer), or, on a GPU, held as dampers split between their sides (``held``).
+    The strand is then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep
+    only) and its answer published (``answer``). A colour's strands share no link, so they are solved at once, and
+    each sees what the earlier colours gave: every sweep lowers the links' implicit step's error in its energy norm
+    (the step's matrix is symmetric positive definite), so unlike Jacobi between strands it cannot overshoot,
+    whatever the ends' masses; more sweeps converge to the backward-Euler answer of the whole lattice. Not
+    momentum, sweep by sweep: the first strand of a stiff pair solved goes nearly to its partner's free velocity,
+    which the later sweeps take back by degrees (a lone pair at h^2 k / m_eff ~ 50, its ends parting at 0.3 m/s
+    each: 0.16 m/s off after 8 sweeps, 0.026 after 32); hair moving with its neighbours, as links hold it, has
+    little of it. Hair contacts can join two strands of one colour, which a sweep then solves at once (Jacobi, each
+    with the whole damper): the colours are the links', fixed for the run."""
     strand = color_strands[tid_offset + wp.tid()]
     S = chains.seg_per_strand
     h = dt[0]

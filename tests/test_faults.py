@@ -20,7 +20,7 @@ LONG_HAIR = SCENES / "long_hair.toml"
 
 def _run(path, overrides, frames):
     """Advance a scene ``frames`` frames; the fault it raised, or None when it ran to the end."""
-    sim = Simulation(hw.Scene.load(path, ["output.preview=false", *overrides]))
+    sim = Simulation(hw.Scene.load(path, ["output.preview=false", "sim.fault_retries=0", *overrides]))
     try:
         for _ in range(frames):
             sim.advance_frame()
@@ -140,6 +140,46 @@ def test_body_contact_fault_on_a_still_head_names_the_wind():
     assert fault is not None and fault.stage == "air drag (wind.velocity)", fault
     assert "moved at most 0 m/s" in str(fault) and "wind.velocity" in _advice(fault)
     assert _run(TINY, [*still, "sim.substeps=16"], 6) is None
+
+
+WINDY = ['head.motion.kind="still"', "wind.velocity=[500.0, 0.0, 0.0]", "sim.substeps=2", "output.preview=false"]
+
+
+def test_a_frame_that_faults_is_taken_again_in_twice_the_steps():
+    """A still head in a 500 m/s wind faults at 2 substeps (the case above); with ``sim.fault_retries`` (2 by default)
+    each such frame is taken again from its start in 4 steps and the run goes on. The frame taken again is, to the
+    bit, the frame a run of 4 substeps takes from the same start; its note names the frames and the stage."""
+    retried = Simulation(hw.Scene.load(TINY, WINDY))
+    finer = Simulation(hw.Scene.load(TINY, [*WINDY, "sim.substeps=4", "sim.fault_retries=0"]))
+    retried.advance_frame()
+    finer.advance_frame()
+    assert retried.retaken_frames == 1 and retried.retakes == [(1, 4, "air drag (wind.velocity)")]
+    for name in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
+        np.testing.assert_array_equal(getattr(retried.state, name).numpy(), getattr(finer.state, name).numpy(),
+                                      err_msg=name)
+    for _ in range(5):
+        retried.advance_frame()
+    assert retried.retaken_frames >= 3 and retried.stepper.frame == 6
+    from hairwarp.runner import _retakes_note
+
+    note = _retakes_note(retried)
+    assert note.startswith(f"{retried.retaken_frames} frames faulted at 2 substeps")
+    assert "frame 1 in 4 steps (air drag" in note and "raise sim.substeps" in note
+
+
+def test_a_frame_that_faults_at_every_retry_stops_the_run_naming_them():
+    """Links of 1,000 N/m in the free step fault at 8 substeps and at 16 and 32 as well: the run stops with the fault
+    of the last, which says the frame was taken again in 16 and 32 steps."""
+    overrides = ["groom.count=60", "dense.count=0", "interactions.enabled=false", "links.stiffness=1000",
+                 'links.response="link"']
+    sim = Simulation(hw.Scene.load(LONG_HAIR, ["output.preview=false", *overrides]))
+    with pytest.raises(SimulationFault) as info:
+        for _ in range(6):
+            sim.advance_frame()
+    fault = info.value
+    assert fault.stage == "static links (forces in the free step)", fault
+    assert "taken again in 16 and 32 steps (sim.fault_retries = 2), and faulted each time" in str(fault)
+    assert sim.retakes == [(fault.frame, 16, fault.stage), (fault.frame, 32, fault.stage)]
 
 
 def test_a_free_step_fault_a_strong_wind_drives_names_the_wind():

@@ -62,7 +62,7 @@ def test_an_explicit_integrators_fault_gives_substeps_that_run(tiny, integrator)
     runs its 10 frames at that many (measured bounds: 515 and 375 substeps)."""
     import re
 
-    scene = tiny.with_overrides([f"sim.integrator={integrator}"])
+    scene = tiny.with_overrides([f"sim.integrator={integrator}", "sim.fault_retries=0"])
     sim = Simulation(scene)
     with pytest.raises(hw.SimulationFault) as info:
         sim.advance_frame()

@@ -185,6 +185,7 @@ def run_scene(scene, frames: int, *, keep_vertices_from: int | None = None, on_f
     if keep_vertices_from is not None and keep_vertices_from <= 0:
         kept.append(x)
     fault, nan, vmax, done = None, False, 0.0, 0
+    retries = int(getattr(scene.sim, "fault_retries", 0))
     for f in range(1, frames + 1):
         try:
             sim.advance_frame()
@@ -207,7 +208,8 @@ def run_scene(scene, frames: int, *, keep_vertices_from: int | None = None, on_f
     broken = None if sim.links is None else np.flatnonzero(sim.links.link_broken.numpy())
     return {"tips": np.asarray(tips), "vertices": np.asarray(kept) if kept else None, "fault": fault, "nan": nan,
             "max_speed": vmax, "broken_links": stats.get("broken_links"), "broken": broken, "frames_done": done,
-            "wall_s": time.perf_counter() - t0, "sim": sim}
+            "wall_s": time.perf_counter() - t0, "sim": sim, "retaken": sim.retaken_frames,
+            "retakes": list(sim.retakes), "fault_retries": retries}
 
 
 def tip_speeds(tips: np.ndarray, frame_dt: float) -> np.ndarray:
@@ -382,6 +384,7 @@ def bench_sweep(segments, substeps, stiffness, duration: float, scene_name: str 
                     cell = {"links_contacts": inter, "bend_stiffness": float(ei), "segments": int(S),
                             "substeps": int(n), "status": classify(run), "max_speed_m_s": run["max_speed"],
                             "frames_done": run["frames_done"], "wall_s": round(run["wall_s"], 2),
+                            "retaken": run["retaken"], "retakes": run["retakes"],
                             "stage": run["fault"]["stage"] if run["fault"] else None,
                             "fault_frame": run["fault"]["frame"] if run["fault"] else None}
                     if cell["status"] == "ok" and run["max_speed"] > NEAR_FRACTION * BURST_M_S:
@@ -391,6 +394,7 @@ def bench_sweep(segments, substeps, stiffness, duration: float, scene_name: str 
                     cells.append(cell)
                     log(f"sweep links+contacts {'on' if inter else 'off'} EI {ei:g} S {S} x {n}: {cell['status']}"
                         + (f" ({cell['stage']}, frame {cell['fault_frame']})" if cell["stage"] else "")
+                        + (f", {cell['retaken']} frames taken again" if cell["retaken"] else "")
                         + f", vmax {run['max_speed']:.2f} m/s, {run['wall_s']:.1f} s"
                         + (", again " + ", ".join(f"{r['status']} {r['max_speed_m_s']:.2f}" for r in cell["reruns"])
                            if "reruns" in cell else ""))
@@ -537,7 +541,7 @@ def bench_frame_rate(scenes=SCENES, frames=None, log=lambda m: None) -> dict:
                            "reference_broken_links": runs[16]["broken_links"], "frames_done": r["frames_done"],
                            "tip_rms_mm": 1e3 * tip_rms_error(r["tips"], runs[16]["tips"]),
                            "max_speed_m_s": r["max_speed"], "wall_s": r["wall_s"],
-                           "refined_frames": r["sim"].refined_frames}
+                           "refined_frames": r["sim"].refined_frames, "retaken_frames": r["retaken"]}
         two, one = row["2"], row["1"]
         two["meets"] = two["fault"] is None and not two["nan"] and not two["broken_links"] and \
             two["tip_rms_mm"] <= GOAL_FR2_MM
@@ -546,8 +550,9 @@ def bench_frame_rate(scenes=SCENES, frames=None, log=lambda m: None) -> dict:
         mid = "; ".join(f"{n} substeps {_fault(row[str(n)])} broken {row[str(n)]['broken_links']}"
                         for n in INTERMEDIATE_SUBSTEPS)
         log(f"frame rate {name}: {mid}; 2 substeps {_fault(two)} broken {two['broken_links']} tips "
-            f"{_f(two['tip_rms_mm'])} mm ({two['refined_frames']} frames taken again); 1 substep {_fault(one)} "
-            f"broken {one['broken_links']} tips {_f(one['tip_rms_mm'])} mm ({one['refined_frames']} taken again)")
+            f"{_f(two['tip_rms_mm'])} mm ({two['refined_frames']} frames taken again, {two['retaken_frames']} after "
+            f"a fault); 1 substep {_fault(one)} broken {one['broken_links']} tips {_f(one['tip_rms_mm'])} mm "
+            f"({one['refined_frames']} taken again, {one['retaken_frames']} after a fault)")
     return {"reference_substeps": 16, "goal_2_mm": GOAL_FR2_MM, "goal_1_mm": GOAL_FR1_MM, "perturbation": PERTURBATION,
             "rows": rows}
 
@@ -1079,8 +1084,8 @@ def _by_step(r: dict, before: str = "; ", after: str = "") -> str:
 
 def _again(r: dict) -> str:
     """The frames taken again at ``links.break_step`` (``bench_frame_rate``), where the run records them."""
-    n = r.get("refined_frames")
-    return "" if not n else f"; {n} frames taken again"
+    n, m = r.get("refined_frames"), r.get("retaken_frames")
+    return ("" if not n else f"; {n} frames taken again") + ("" if not m else f"; {m} taken again after a fault")
 
 
 def _cell_name(c: dict) -> str:
@@ -1170,6 +1175,14 @@ def md_robustness(data: dict) -> list[str]:
                  if sweep.get("near") else "")
               + f"; {sweep['wall_s']:.0f} s for the grid (largest cell "
               f"{max(c['wall_s'] for c in sweep['cells']):.0f} s)."]
+    retaken = [c for c in sweep["cells"] if c.get("retaken")]
+    if retaken:
+        lines.append("- Frames taken again after a fault, in twice the steps (`sim.fault_retries`, 2 by default; "
+                     "the cell is ok when every frame ran): " + "; ".join(
+                         f"{_cell_name(c)}: {c['retaken']} of {c['frames_done']} (frames "
+                         + ", ".join(f"{f} in {n}" for f, n, _ in c["retakes"][:4])
+                         + (", ..." if len(c["retakes"]) > 4 else "") + f"; {c['retakes'][0][2]})" for c in retaken)
+                     + ".")
     bad = [c for c in sweep["cells"] if c["status"] != "ok"]
     if bad:
         lines.append("- Not ok: " + "; ".join(
@@ -1245,7 +1258,9 @@ def md_robustness(data: dict) -> list[str]:
               "how closely any run can follow the reference's motion. *Broken links*: at the step (at 16 substeps; "
               "by the step: those neither reference run breaks, which break with the step, not the motion; frames "
               "taken again: a frame of steps longer than `links.break_step`, 1/120 s, in which a link broke is taken "
-              "again from its start in steps that short, and its breaks are that frame's).", "",
+              "again from its start in steps that short, and its breaks are that frame's; taken again after a fault: "
+              "a frame that faults is taken again from its start in twice the steps, up to `sim.fault_retries` (2) "
+              "times).", "",
               "| scene | 16 again | 4 substeps | 2 substeps | broken links (at 16; by the step) | tips [mm] | verdict "
               "| 1 substep | broken links (by the step) | tips [mm] | verdict |",
               "|---|---|---|---|---:|---:|---|---|---:|---:|---|"]
