@@ -977,10 +977,15 @@ def chart_grid(sweep: dict, path) -> Path:
                 for b, n in enumerate(subs):
                     c = by.get((inter, ei, S, n))
                     color = _STATUS_COLOR.get(c["status"], "0.8") if c else "0.85"
+                    retaken = c.get("retaken", 0) if c else 0
                     ax.add_patch(plt.Rectangle((b, a), 1, 1, color=color, ec="white", lw=1.5))
+                    if retaken and c["status"] == "ok":
+                        ax.add_patch(plt.Rectangle((b + 0.03, a + 0.03), 0.94, 0.94, fill=False, hatch="///",
+                                                   ec="0.35", lw=0.0))
                     if c:
                         text = {"fault": (c["stage"] or "fault").split(" ")[0], "nan": "NaN",
-                                "burst": f"{c['max_speed_m_s']:.1f} m/s", "ok": ""}[c["status"]]
+                                "burst": f"{c['max_speed_m_s']:.1f} m/s",
+                                "ok": f"{retaken} retaken" if retaken else ""}[c["status"]]
                         ax.text(b + 0.5, a + 0.62, text, ha="center", va="center", fontsize=6.5)
                         ax.text(b + 0.5, a + 0.3, f"{c['wall_s']:.0f} s", ha="center", va="center", fontsize=5.5,
                                 color="0.25")
@@ -996,7 +1001,8 @@ def chart_grid(sweep: dict, path) -> Path:
     fig.legend(handles=[Patch(color=v, label=k) for k, v in _STATUS_COLOR.items()], loc="lower center", ncol=4,
                fontsize=8, frameon=False)
     fig.suptitle(f"Stability grid: {sweep['scene']} on its head motion, {sweep['duration_s']:g} s per cell\n"
-                 f"(fault: its stage; burst: a vertex > {sweep['burst_m_s']:g} m/s; small: wall time)", fontsize=9)
+                 f"(fault: its stage; burst: a vertex > {sweep['burst_m_s']:g} m/s; hatched: frames taken again in "
+                 f"finer steps after a fault; small: wall time)", fontsize=9)
     fig.tight_layout(rect=(0, 0.05, 1, 0.95))
     fig.savefig(path)
     plt.close(fig)
