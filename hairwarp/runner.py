@@ -1342,5 +1342,6 @@ def _retakes_note(sim) -> str:
         last[frame] = (steps, stage)  # the steps it finally ran in
     shown = ", ".join(f"{f} in {n} steps ({stage})" for f, (n, stage) in list(last.items())[:4])
     more = f" and {len(last) - 4} more" if len(last) > 4 else ""
-    return (f"{sim.retaken_frames} frames faulted at {sim.stepper.substeps} substeps and were taken again in more "
+    n = sim.stepper.substeps
+    return (f"{sim.retaken_frames} frames faulted at {n} substep{'s' if n != 1 else ''} and were taken again in more "
             f"steps: frame {shown}{more}; raise sim.substeps to run them at the scene's own steps")
