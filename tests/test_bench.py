@@ -426,6 +426,33 @@ def test_robustness_grid_runs_cells_near_the_limit_again_and_counts_them(monkeyp
     assert grid["counts"]["ok"] == 2 and grid["near_not_ok"] == 2 and not grid["meets"]
 
 
+def test_robustness_grid_counts_frames_taken_again_after_a_fault(monkeypatch, tmp_path):
+    """A cell whose frames fault at its step and run when taken again in twice the steps (a still head in a 500 m/s
+    wind at 2 substeps: tests/test_faults.py; the wind blows its tips at 20 m/s, over the burst bound, which is
+    raised here) is ok; the grid records those frames, its report line names them and its chart hatches the cell."""
+    from hairwarp.benchmarks import robustness
+
+    monkeypatch.setattr(robustness, "BURST_M_S", 100.0)
+    plain = robustness.raw_scene
+
+    def windy(name):
+        raw = robustness.set_key(plain(name), "head.motion", {"kind": "still"})
+        return robustness.set_key(raw, "wind.velocity", [500.0, 0.0, 0.0])
+
+    monkeypatch.setattr(robustness, "raw_scene", windy)
+    grid = robustness.bench_sweep([8], [2], [2e-4], duration=0.2, scene_name="tiny")
+    cells = {c["links_contacts"]: c for c in grid["cells"]}
+    assert all(c["status"] == "ok" and c["frames_done"] == 6 for c in cells.values()), cells
+    assert all(c["retaken"] >= 1 and c["retakes"][0] == (1, 4, "air drag (wind.velocity)") for c in cells.values())
+    line = robustness._retaken_line(grid)
+    assert line.startswith("- Frames taken again after a fault") and "frames 1 in 4" in line, line
+    assert robustness.chart_grid(grid, tmp_path / "grid.png").stat().st_size > 0
+    # without retries the same cells fault, and nothing is taken again
+    monkeypatch.setattr(robustness, "raw_scene", lambda name: robustness.set_key(windy(name), "sim.fault_retries", 0))
+    grid = robustness.bench_sweep([8], [2], [2e-4], duration=0.2, scene_name="tiny")
+    assert grid["counts"]["fault"] == 2 and robustness._retaken_line(grid) == ""
+
+
 def test_robustness_strand_spread_against_a_hand_count():
     """The convergence part's spread of the tip difference over the strands: 20 strands off by 1..20 mm in every
     frame give a median strand of 10.5 mm and the 10 worst strands' share of the mean square

@@ -1094,6 +1094,18 @@ def _again(r: dict) -> str:
     return ("" if not n else f"; {n} frames taken again") + ("" if not m else f"; {m} taken again after a fault")
 
 
+def _retaken_line(sweep: dict) -> str:
+    """The grid's line on the cells whose frames were taken again after a fault (``sim.fault_retries``), or ""."""
+    retaken = [c for c in sweep["cells"] if c.get("retaken")]
+    if not retaken:
+        return ""
+    return ("- Frames taken again after a fault, in twice the steps (`sim.fault_retries`, 2 by default; the cell is ok "
+            "when every frame ran): " + "; ".join(
+                f"{_cell_name(c)}: {c['retaken']} of {c['frames_done']} (frames "
+                + ", ".join(f"{f} in {n}" for f, n, _ in c["retakes"][:4])
+                + (", ..." if len(c["retakes"]) > 4 else "") + f"; {c['retakes'][0][2]})" for c in retaken) + ".")
+
+
 def _cell_name(c: dict) -> str:
     return f"{'on' if c['links_contacts'] else 'off'} EI {c['bend_stiffness']:g} {c['segments']}×{c['substeps']}"
 
@@ -1181,14 +1193,9 @@ def md_robustness(data: dict) -> list[str]:
                  if sweep.get("near") else "")
               + f"; {sweep['wall_s']:.0f} s for the grid (largest cell "
               f"{max(c['wall_s'] for c in sweep['cells']):.0f} s)."]
-    retaken = [c for c in sweep["cells"] if c.get("retaken")]
+    retaken = _retaken_line(sweep)
     if retaken:
-        lines.append("- Frames taken again after a fault, in twice the steps (`sim.fault_retries`, 2 by default; "
-                     "the cell is ok when every frame ran): " + "; ".join(
-                         f"{_cell_name(c)}: {c['retaken']} of {c['frames_done']} (frames "
-                         + ", ".join(f"{f} in {n}" for f, n, _ in c["retakes"][:4])
-                         + (", ..." if len(c["retakes"]) > 4 else "") + f"; {c['retakes'][0][2]})" for c in retaken)
-                     + ".")
+        lines.append(retaken)
     bad = [c for c in sweep["cells"] if c["status"] != "ok"]
     if bad:
         lines.append("- Not ok: " + "; ".join(
