@@ -307,11 +307,22 @@ class Simulation:
             return None
         from hairwarp.interactions import StaticLinks
 
-        return StaticLinks.build(self.model.rest_vertex_positions, neighbours=int(cfg.neighbours),
-                                 radius=float(cfg.radius), stiffness=float(cfg.stiffness),
-                                 damping=float(cfg.damping), break_length=float(cfg.break_length),
-                                 response=self._response(cfg.response), sweeps=int(cfg.sweeps),
-                                 device=self.model.device)
+        links = StaticLinks.build(self.model.rest_vertex_positions, neighbours=int(cfg.neighbours),
+                                  radius=float(cfg.radius), stiffness=float(cfg.stiffness),
+                                  damping=float(cfg.damping), break_length=float(cfg.break_length),
+                                  response=self._response(cfg.response), sweeps=int(cfg.sweeps),
+                                  device=self.model.device)
+        if links.link_count == 0:
+            roots = np.asarray(self.model.rest_vertex_positions, dtype=float).reshape(
+                self.model.strand_count, -1, 3)[:, 0]
+            spacing = ""
+            if len(roots) > 1:
+                gaps = [np.sort(np.linalg.norm(roots - r, axis=1))[1] for r in roots[:2000]]
+                spacing = f" (the guides' roots lie {1e3 * float(np.median(gaps)):.3g} mm from their nearest)"
+            warnings.warn(f"links.enabled: no link was built: no segment of another strand lies within links.radius = "
+                          f"{float(cfg.radius):g} m{spacing}; raise links.radius, or set links.enabled = false",
+                          stacklevel=2)
+        return links
 
     def _build_contacts(self, cfg):
         if not cfg.enabled:

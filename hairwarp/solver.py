@@ -428,6 +428,11 @@ class Solver:
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
         # the sweeps this step takes (``StaticLinks.sweeps_at``)
         count = max(1, links.sweeps_at(self._dt_host)) if links is not None else 0
+        if links is None and contacts is None:  # responders without a pair: links asked for, none built
+            if project:
+                with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
+                    self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
+            return
         dampers = self.dampers
         held = self.held if links is not None else dampers  # the hair contacts' dampers
         ex.zero(held.A, held.B, held.C, held.force, held.torque)

@@ -472,3 +472,26 @@ def test_links_scale_with_the_length_of_hair_they_join(segments):
     assert links.link_count >= segments // 2  # the shorter strand's segments each make one
     np.testing.assert_allclose(links.scale, (0.24 + 0.12) / (2 * segments * REFERENCE_SEGMENT_LENGTH), rtol=1e-12)
     np.testing.assert_allclose(links.link_scale.numpy(), links.scale, rtol=1e-6)
+
+
+def test_links_asked_for_but_none_built_step_as_no_links():
+    """Links solved after the free step whose radius reaches no other strand build none: the run warns so, naming
+    the key and the roots' spacing, and the step is then, to the bit, the step without links (the response has no
+    pair to answer, and the body push-out still runs)."""
+    from pathlib import Path
+
+    import hairwarp as hw
+    from hairwarp.runner import Simulation
+
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "long_hair.toml"
+    base = ["groom.count=30", "dense.count=0", "output.preview=false", "interactions.enabled=false"]
+    with pytest.warns(UserWarning, match=r"links.enabled: no link was built: .* links.radius = 1e-06 m \(the guides' "
+                                         r"roots lie [0-9.]+ mm from their nearest\)"):
+        asked = Simulation(hw.Scene.load(scene, [*base, "links.radius=1e-6", 'links.response="step"']), threads=1)
+    none = Simulation(hw.Scene.load(scene, [*base, "links.enabled=false"]), threads=1)
+    assert asked.links.link_count == 0 and asked.solver.responders == [asked.links]
+    for _ in range(5):
+        asked.advance_frame()
+        none.advance_frame()
+    for name in ("joint_q", "joint_qd", "vertex_positions"):
+        np.testing.assert_array_equal(getattr(asked.state, name).numpy(), getattr(none.state, name).numpy())
