@@ -1330,7 +1330,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
             else:
                 shown_curves = {"guides": (points, counts)}
             kept.append((frame, shown_curves, mesh))
-        report.update(frame, stats)
+        # frames taken again after a fault show as they come, not only in the notes at the end
+        report.update(frame, {**stats, "retaken": sim.retaken_frames} if sim.retaken_frames else stats)
         if stops.requested is not None and frame < frames:
             raise RunStopped(f"stopped by {_signal_name(stops.requested)} after frame {frame}.", stops.requested)
     unstable = sim.model.hold_unstable
