@@ -167,6 +167,25 @@ def test_a_frame_that_faults_is_taken_again_in_twice_the_steps():
     assert "frame 1 in 4 steps (air drag" in note and "raise sim.substeps" in note
 
 
+def test_a_run_shows_and_notes_the_frames_taken_again(tmp_path, capsys):
+    """Through ``hw.simulate``, the frames taken again show in the progress line as they come (``retaken``) and in
+    the run's notes at its end, and the cache holds every frame."""
+    from pxr import Usd
+
+    result = hw.simulate(hw.Scene.load(TINY, WINDY), tmp_path / "windy.usdc", preview=False)
+    import re
+
+    err = capsys.readouterr().err
+    note = [n for n in result.notes if "were taken again in more steps" in n]
+    assert len(note) == 1, result.notes
+    count = int(re.match(r"(\d+) frames faulted at 2 substeps", note[0]).group(1))
+    assert 1 <= count <= 10
+    progress = [line for line in err.splitlines() if line.startswith("frame 10/10")]
+    assert progress and f"retaken {count}" in progress[-1], err
+    stage = Usd.Stage.Open(str(tmp_path / "windy.usdc"))
+    assert stage.GetEndTimeCode() - stage.GetStartTimeCode() == 10
+
+
 def test_a_frame_that_faults_at_every_retry_stops_the_run_naming_them():
     """Links of 1,000 N/m in the free step fault at 8 substeps and at 16 and 32 as well: the run stops with the fault
     of the last, which says the frame was taken again in 16 and 32 steps."""
