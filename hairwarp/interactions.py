@@ -262,7 +262,7 @@ class StaticLinks:
                 frame-rate steps without adding inertia to the hair they tie; False leaves them explicit, for
                 comparison. Not used with ``response``.
             response: each link's force over the step is solved after the free step, inside the strands'
-                dynamics, on the relative motion of its ends (``kernels.links.link_response_gather``;
+                dynamics, on the relative motion of its ends (``kernels.sweeps.link_sweep``;
                 :class:`hairwarp.Solver` runs it), for steps of 1/220 s and longer (the scenes'
                 ``links.response = "auto"``). The per-link solve it replaces bounds each end's inverse mass by its
                 free segment's, which at 2 substeps a frame softened the links tenfold.
@@ -423,18 +423,6 @@ class StaticLinks:
         step a frame)."""
         growth = (min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
         return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
-
-    def gather_response(self, model, state_in, dt, held, swept, contacts_swept: bool = False):
-        """Every segment's blocks of the sweeps' dampers in ``swept`` (a
-        :class:`kernels.articulated.InteractionResponse`): its link ends' from the frames of ``state_in``, added to its
-        hair contacts', held (``held``) or, with ``contacts_swept``, already in ``swept``; and the link ends' arms in
-        :attr:`ends` (``link_response_gather``; launch only)."""
-        if self.link_count == 0:
-            return
-        launch(self.executor, link_kernels.link_response_gather, len(self.seg_transport),
-               [self.seg_link_start, self.seg_b_start, self.b_slot_link, self.stiffness, self.damping,
-                self.link_scale, self.link_point_a, self.link_point_b, self.link_broken, state_in.seg_xform, dt, held,
-                int(contacts_swept)], [swept, self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it

@@ -453,7 +453,6 @@ class Solver:
                 contacts.gather_response(model, state_in, state_out, self.dt, held,
                                          *((self.swept, links.strand_color_array) if contacts_swept else ()))
             if links is not None:
-                links.gather_response(model, state_in, self.dt, held, self.swept, contacts_swept)
                 ex.launch(sweeps.sweep_start, model.strand_count,
                           [model.seg_per_strand, state_out.joint_q, state_out.joint_qd, state_out.vertex_velocities,
                            int(contacts_swept)],

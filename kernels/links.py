@@ -17,11 +17,6 @@ net torque but that spin component.
 
 import warp as wp
 
-from hairwarp.kernels.articulated import (
-    InteractionResponse,
-    spin_free_coupling,
-    spin_free_rotation,
-)
 from hairwarp.kernels.spatial import skew
 
 wp.set_module_options({"enable_backward": False})
@@ -245,7 +240,7 @@ def link_forces(
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
         f = k * l
         if response != 0:
-            # the link's force is the response's, over the step (``link_response_gather``, ``kernels.sweeps``)
+            # the link's force is the response's, over the step (``link_response_ends``, ``kernels.sweeps``)
             link_point_a[link] = xa
             link_point_b[link] = xb
             continue
@@ -390,10 +385,10 @@ def link_break(
 class LinkEnds:
     """What the links' sweeps read of each link end over a step (``kernels.sweeps.link_sweep``): ``force``, the
     end's force on its own free velocities with the other end still, ``+-(k l) - P v_own`` [N, world]
-    (``link_response_split``); ``arm``, the end's point about its segment's origin in the segment's frame at the
-    step's start (``link_response_gather``); ``axis``, per link, the unit ``n`` of ``P = h k I + c n n^T`` [world]
-    (zero while the link has no direction). End slots: side a of link ``i`` at ``i``, side b of the link in b slot
-    ``j`` at ``link_count + j`` (``end_slot``)."""
+    (``link_response_ends``); ``arm``, the end's point about its segment's origin in the segment's frame at the
+    step's start (written by the step's first sweep); ``axis``, per link, the unit ``n`` of ``P = h k I + c n n^T``
+    [world] (zero while the link has no direction). End slots: side a of link ``i`` at ``i``, side b of the link in
+    b slot ``j`` at ``link_count + j`` (``end_slot``)."""
 
     force: wp.array(dtype=wp.vec3)
     arm: wp.array(dtype=wp.vec3)
@@ -465,82 +460,6 @@ def link_response_ends(
     ends.force[link] = k * l - P * v_a
     ends.force[link_point_a.shape[0] + link_b_slot[link]] = -k * l - P * v_b
     ends.axis[link] = n
-
-
-@wp.kernel
-def link_response_gather(
-    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
-    tid_offset: int,
-    # Model:
-    seg_link_start: wp.array(dtype=wp.int32),
-    seg_b_start: wp.array(dtype=wp.int32),
-    b_slot_link: wp.array(dtype=wp.int32),
-    link_stiffness: float,
-    link_damping: float,
-    link_scale: wp.array(dtype=float),
-    # Scratch: the ends the force pass left
-    link_point_a: wp.array(dtype=wp.vec3),
-    link_point_b: wp.array(dtype=wp.vec3),
-    link_broken: wp.array(dtype=wp.int32),
-    # State: the step's start (frames)
-    seg_xform: wp.array(dtype=wp.transform),
-    # Control:
-    dt: wp.array(dtype=float),
-    # The hair contacts' dampers; ``contacts_swept``: the sweeps' blocks already hold theirs, whole
-    # (``kernels.contacts.contact_response_gather``), else they take ``held``'s
-    held: InteractionResponse,
-    contacts_swept: int,
-    # Out:
-    sweep_blocks: InteractionResponse,
-    ends: LinkEnds,
-):
-    """One thread per segment: the blocks (``A``, ``B``, ``C``) of its sweeps' dampers, which every sweep of the step
-    reads (``kernels.sweeps.link_sweep``): its hair contacts' and the point inertia ``h P`` of each of its links' ends
-    (its links as side a in link order, then as side b in slot order), in its frame at the step's start, at the
-    end's point; and the ends' arms (``LinkEnds``).
-
-    The blocks of each end come in closed form (``link_end_blocks``), no 3 x 3 product an end; the spin about the
-    segment's axis is taken out of the sums (``point_damper_blocks``)."""
-    seg = tid_offset + wp.tid()
-    a_first = seg_link_start[seg]
-    a_last = seg_link_start[seg + 1]
-    b_first = seg_b_start[seg]
-    b_last = seg_b_start[seg + 1]
-    A = held.A[seg]
-    B = held.B[seg]
-    C = held.C[seg]
-    if contacts_swept != 0:
-        A = sweep_blocks.A[seg]
-        B = sweep_blocks.B[seg]
-        C = sweep_blocks.C[seg]
-    if a_first == a_last and b_first == b_last:
-        sweep_blocks.A[seg] = A
-        sweep_blocks.B[seg] = B
-        sweep_blocks.C[seg] = C
-        return
-    h = dt[0]
-    link_count = link_point_a.shape[0]
-    xf = seg_xform[seg]
-    R = wp.transform_get_rotation(xf)
-    origin = wp.transform_get_translation(xf)
-    for j in range(a_first, b_last - b_first + a_last):
-        link, side, slot = end_slot(j, a_last, b_first, link_count, b_slot_link)
-        if link_broken[link] == 0:
-            xa = link_point_a[link]
-            xb = link_point_b[link]
-            p = xa
-            if side < 0.0:
-                p = xb
-            r = wp.quat_rotate_inv(R, p - origin)
-            Ae, Be, Ce = link_end_blocks(h, h * link_stiffness * link_scale[link], link_damping * link_scale[link], r,
-                                         wp.quat_rotate_inv(R, link_axis(xb - xa)))
-            A += Ae
-            B += Be
-            C += Ce
-            ends.arm[slot] = r
-    sweep_blocks.A[seg] = spin_free_rotation(A)
-    sweep_blocks.B[seg] = spin_free_coupling(B)
-    sweep_blocks.C[seg] = C
 
 
 @wp.func

@@ -19,10 +19,12 @@ from hairwarp.kernels.articulated import (
     StrandChains,
     damper_solve,
     finish_response,
+    spin_free_coupling,
+    spin_free_rotation,
     spin_free_torque,
 )
 from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, SweepContacts, sweep_entry_force
-from hairwarp.kernels.links import LinkEnds, end_slot, seg_point_velocity
+from hairwarp.kernels.links import LinkEnds, end_slot, link_end_blocks, seg_point_velocity
 
 wp.set_module_options({"enable_backward": False})
 
@@ -139,8 +141,8 @@ def link_sweep(
     response: ContactResponse,
     seg_entry_start: wp.array(dtype=wp.int32),
     sweep_contacts: SweepContacts,
-    # The sweeps' dampers: their blocks, the same every sweep (``kernels.links.link_response_gather``); their forces,
-    # written here
+    # The sweeps' dampers: their blocks, built by the step's first sweep (the hair contacts' there already with
+    # ``contacts_swept``) and the same in every later one; their forces, written here
     dampers: InteractionResponse,
     # Scratch: with ``reuse`` (every sweep of a step after its first) the factors of the strand's matrix that the
     # first made
@@ -205,6 +207,15 @@ def link_sweep(
         a_last = seg_link_start[seg + 1]
         b_first = seg_b_start[seg]
         b_last = seg_b_start[seg + 1]
+        # the first sweep of a step builds the segment's damper blocks, the same in every later one: its hair
+        # contacts' (held, or those the contacts' gather left here) and its link ends' point inertias ``h P``
+        A = held.A[seg]
+        B = held.B[seg]
+        C = held.C[seg]
+        if contacts_swept != 0:
+            A = dampers.A[seg]
+            B = dampers.B[seg]
+            C = dampers.C[seg]
         if a_first != a_last or b_first != b_last:
             Rt = wp.transpose(wp.quat_to_matrix(R))
             for j in range(a_first, b_last - b_first + a_last):
@@ -212,18 +223,39 @@ def link_sweep(
                 if link_broken[link] == 0:
                     q = link_point_b[link]
                     other = link_seg_b[link]
+                    own = link_point_a[link]
                     if side < 0.0:
                         q = link_point_a[link]
                         other = link_seg_a[link]
+                        own = link_point_b[link]
                     # f = +-(k l) - P (v_own - v_other): the end's own part as ``link_response_ends`` kept it, P
                     # on the other end's latest answer
                     v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
                     n = ends.axis[link]
                     scale = link_scale[link]
+                    arm = wp.vec3()
+                    if reuse == 0:
+                        arm = wp.quat_rotate_inv(R, own - origin)
+                        Ae, Be, Ce = link_end_blocks(h, h * link_stiffness * scale, link_damping * scale, arm,
+                                                     wp.quat_rotate_inv(R, n))
+                        A += Ae
+                        B += Be
+                        C += Ce
+                        ends.arm[slot] = arm
+                    else:
+                        arm = ends.arm[slot]
                     f = Rt * (ends.force[slot] + (h * link_stiffness * scale) * v
                               + (link_damping * scale) * wp.dot(n, v) * n)
                     force += f
-                    torque += spin_free_torque(ends.arm[slot], f)
+                    torque += spin_free_torque(arm, f)
+            if reuse == 0:
+                dampers.A[seg] = spin_free_rotation(A)
+                dampers.B[seg] = spin_free_coupling(B)
+                dampers.C[seg] = C
+        elif reuse == 0 and contacts_swept == 0:
+            dampers.A[seg] = A
+            dampers.B[seg] = B
+            dampers.C[seg] = C
         dampers.force[seg] = force
         dampers.torque[seg] = torque
     # the strand's answer from its free step, with the factors of the step's first sweep kept

@@ -14,8 +14,6 @@ from _reference import segment_distances
 from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import InteractionError, StaticLinks
-from hairwarp.kernels import articulated
-from hairwarp.kernels import links as link_kernels
 from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH
 
 # Coordinates are below 0.1 m, where float32 spacing is 7.5e-9 m; the two ends of a link are about ten
@@ -388,73 +386,67 @@ def _skew(v):
 
 
 def test_response_damper_blocks_match_their_product_form():
-    """``link_response_gather`` sums each segment's link-end dampers in closed form; here they are formed as the
-    products they stand for, in float64: at each end's point ``r`` (the segment's frame) the point inertia
-    ``M = h R^T (h k I + c n n^T) R``, its blocks ``A = -[r]x M [r]x`` and ``B = [r]x M`` without the spin about the
-    segment's axis, ``C = M``, added to the hair contacts' blocks already there; the ends' arms."""
+    """The step's first sweep sums each segment's link-end dampers in closed form (``link_end_blocks``); here they are
+    formed as the products they stand for, in float64, from the link ends the force pass left and the segments'
+    frames at the step's start: at each end's point ``r`` (the segment's frame) the point inertia
+    ``M = h R^T (h k I + c n n^T) R`` (k and c times the link's scale), its blocks ``A = -[r]x M [r]x`` and
+    ``B = [r]x M`` without the spin about the segment's axis, ``C = M``; and the ends' arms. Three strands of 4
+    segments, tilted at random and turning, linked to their 2 nearest segments; one sweep a step."""
+    import hairwarp as hw
+    from hairwarp.model import Model, StrandParams
+    from hairwarp.solver import Solver
+
     rng = np.random.default_rng(7)
-    h, k, c = 1.0 / 60.0, 3.0, 0.4  # a damping of the stiffness' order over the step: both parts of P count
-    n_links = 4
-    link_scale = np.array([0.5, 1.0, 2.0, 3.0])  # each link's factor on k and c (``StaticLinks.scale``)
-    xa = rng.normal(0.0, 0.02, (n_links, 3))
-    xb = xa + rng.normal(0.0, 0.01, (n_links, 3))
-    xb[3] = xa[3]  # a link at rest: no direction, no damping term
-    rot = Rotation.random(2, random_state=3)
-    origin = rng.normal(0.0, 0.02, (2, 3))
-    quat = rot.as_quat()  # x, y, z, w: Warp's order
-    # segment 0 is side a of every link, segment 1 side b (b slots in link order)
-    seg_link_start = np.array([0, n_links, n_links], np.int32)
-    seg_b_start = np.array([0, 0, n_links], np.int32)
-    dev = "cpu"
-    # the hair contacts' blocks, held (``contacts_swept`` 0) or already in the sweeps' blocks (1)
-    contact_blocks = {name: rng.normal(0.0, 1e-6, (2, 3, 3)) for name in ("A", "B", "C")}
+    S, L = 4, 0.03
+    roots = np.array([[0.0, 0.0, 0.0], [0.004, 0.001, 0.0], [0.002, 0.005, 0.0]])
+    dirs = np.array([0.0, 0.0, -1.0]) + rng.uniform(-0.3, 0.3, (3, 3)) * [1.0, 1.0, 0.0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    polys = [np.stack([r + t * d for t in np.linspace(0.0, L, S + 1)]) for r, d in zip(roots, dirs)]
+    model = Model.build(hw.Groom.from_polylines(polys), StrandParams(bend_stiffness=1e-4), segments=S)
+    h, k, c = 1.0 / 240.0, 3.0, 0.4  # a damping of the stiffness' order over the step: both parts of P count
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.01, stiffness=k, damping=c,
+                              break_length=1.0, response=True, sweeps=1)
+    assert links.link_count > 0 and links.sweeps_at(h) == 1
+    solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
+    control = model.control()
+    start, end = model.state(), model.state()
+    start.joint_qd.assign(rng.normal(0.0, 2.0, (3 * S, 3)).astype(np.float32))
+    solver.forward_kinematics(start, control)
+    solver.step(start, end, control, h)
 
-    def arr(x, dtype):
-        return wp.array(np.asarray(x), dtype=dtype, device=dev)
-
-    def dampers(blocks=None):
-        d = articulated.InteractionResponse()
-        for name in ("A", "B", "C", "phi_a", "phi_b", "phi_c"):
-            setattr(d, name, arr(blocks[name], wp.mat33) if blocks and name in blocks
-                    else wp.zeros(2, dtype=wp.mat33, device=dev))
-        d.force = wp.zeros(2, dtype=wp.vec3, device=dev)
-        d.torque = wp.zeros(2, dtype=wp.vec3, device=dev)
-        return d
-
-    xforms = [wp.transform(wp.vec3(*origin[i]), wp.quat(*quat[i])) for i in range(2)]
+    xa, xb = links.link_point_a.numpy().astype(float), links.link_point_b.numpy().astype(float)
+    xform = start.seg_xform.numpy().astype(float)
+    rot, origin = Rotation.from_quat(xform[:, 3:]), xform[:, :3]
+    arm = links.ends.arm.numpy().astype(float)
+    got = {name: getattr(solver.swept, name).numpy().astype(float) for name in ("A", "B", "C")}
     spin_free = np.diag([1.0, 1.0, 0.0])
-    for contacts_swept in (0, 1):
-        held, swept = (dampers(), dampers(contact_blocks)) if contacts_swept else (dampers(contact_blocks), dampers())
-        ends = link_kernels.LinkEnds()
-        for name, size in (("force", 2 * n_links), ("arm", 2 * n_links), ("axis", n_links)):
-            setattr(ends, name, wp.zeros(size, dtype=wp.vec3, device=dev))
-        wp.launch(link_kernels.link_response_gather, 2,
-                  [0, arr(seg_link_start, wp.int32), arr(seg_b_start, wp.int32), arr(np.arange(n_links), wp.int32),
-                   k, c, arr(link_scale, float), arr(xa, wp.vec3), arr(xb, wp.vec3), arr(np.zeros(n_links), wp.int32),
-                   wp.array(xforms, dtype=wp.transform, device=dev), arr([h], float), held, contacts_swept],
-                  [swept, ends], device=dev)
-        for seg, side in ((0, 1.0), (1, -1.0)):
-            R = rot[seg].as_matrix()
-            want = {name: contact_blocks[name][seg].copy() for name in ("A", "B", "C")}
-            for j in range(n_links):
+    order = np.argsort(links.seg_b, kind="stable")  # b slots in link order of their segment b
+    slot_b = np.empty(links.link_count, int)
+    slot_b[order] = np.arange(links.link_count)
+    for seg in range(3 * S):
+        R = rot[seg].as_matrix()
+        want = {name: np.zeros((3, 3)) for name in ("A", "B", "C")}
+        for j in range(links.link_count):
+            ends = ((links.seg_a[j], xa[j], j), (links.seg_b[j], xb[j], links.link_count + slot_b[j]))
+            for side, point, slot in ends:
+                if side != seg:
+                    continue
                 l = xb[j] - xa[j]
-                length = np.linalg.norm(l)
-                n = l / length if length > 1e-7 else np.zeros(3)
-                M = h * R.T @ (h * k * link_scale[j] * np.eye(3) + c * link_scale[j] * np.outer(n, n)) @ R
-                r = R.T @ ((xa[j] if side > 0 else xb[j]) - origin[seg])
+                n = l / np.linalg.norm(l) if np.linalg.norm(l) > 1e-7 else np.zeros(3)
+                M = h * R.T @ (h * k * links.scale[j] * np.eye(3) + c * links.scale[j] * np.outer(n, n)) @ R
+                r = R.T @ (point - origin[seg])
                 rx = _skew(r)
                 want["A"] += -rx @ M @ rx
                 want["B"] += rx @ M
                 want["C"] += M
-                slot = j if side > 0 else n_links + j
-                np.testing.assert_allclose(ends.arm.numpy()[slot], r, rtol=1e-5, atol=1e-8)
-            want["A"] = spin_free @ want["A"] @ spin_free
-            want["B"] = spin_free @ want["B"]
-            # blocks of float32 sums of a few terms of magnitude up to h^2 k |r|^2: relative 1e-5 of the largest
-            for name, got in (("A", swept.A), ("B", swept.B), ("C", swept.C)):
-                scale = np.abs(want[name]).max()
-                np.testing.assert_allclose(got.numpy()[seg], want[name], rtol=0, atol=1e-5 * scale,
-                                           err_msg=f"{name}, contacts_swept {contacts_swept}")
+                np.testing.assert_allclose(arm[slot], r, rtol=0, atol=1e-6 * L)
+        want["A"] = spin_free @ want["A"] @ spin_free
+        want["B"] = spin_free @ want["B"]
+        # blocks of float32 sums of a few terms of magnitude up to h^2 k |r|^2: relative 1e-5 of the largest
+        for name in ("A", "B", "C"):
+            scale = max(np.abs(want[name]).max(), 1e-30)
+            np.testing.assert_allclose(got[name][seg], want[name], rtol=0, atol=1e-5 * scale,
+                                       err_msg=f"{name}, segment {seg}")
 
 
 @pytest.mark.parametrize("segments", [7, 16, 40])
