@@ -827,6 +827,9 @@ def write_summary(records: Sequence[dict], out) -> tuple[Path, Path, Path]:
     problems = [r for r in records if r.get("message")]
     if problems:
         md += ["", *[f"- **{r['name']}** ({r['status']}): {r['message']}" for r in problems]]
+    noted = [(r["name"], note) for r in records for note in r.get("notes") or ()]
+    if noted:  # what a run found on its way (frames taken again, links that would not hold the groom up)
+        md += ["", "Notes of the runs:", "", *[f"- **{name}**: {note}" for name, note in noted]]
     md_path = out / "summary.md"
     md_path.write_text("\n".join(md) + "\n")
     json_path = out / "summary.json"

@@ -405,3 +405,21 @@ def test_a_run_that_sets_its_threads_keeps_them_on_a_local_worker(tmp_path, monk
         assert record["status"] == "ok", record
         written = json.loads((Path(task.folder) / farm.SCENE_JSON).read_text())
         assert written["scene"]["sim"]["threads"] == expected, (task.overrides, written["scene"]["sim"])
+
+
+def test_wedge_summary_lists_each_runs_notes(tmp_path):
+    """A run's notes (frames taken again after a fault, ...) follow the summary's table, named by run; a run
+    without notes adds no line."""
+    from hairwarp.farm import write_summary
+
+    base = {"status": "ok", "frames": 10, "frames_planned": 10, "seconds": 1.0, "broken_links": None,
+            "contacts_mean": None, "contacts_max": None, "tip_travel_mean_m": 0.1, "tip_travel_max_m": 0.2,
+            "message": None}
+    note = "3 frames faulted at 2 substeps and were taken again in more steps: frame 1 in 4 steps (x)"
+    records = [{**base, "index": 0, "name": "calm", "values": {"wind.velocity": [0.0, 0.0, 0.0]}, "notes": []},
+               {**base, "index": 1, "name": "windy", "values": {"wind.velocity": [500.0, 0.0, 0.0]},
+                "notes": [note]}]
+    _, md_path, _ = write_summary(records, tmp_path)
+    md = md_path.read_text()
+    assert f"- **windy**: {note}" in md and "- **calm**" not in md
+    assert md.index("Notes of the runs:") > md.index("| 1 | windy |")
