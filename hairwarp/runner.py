@@ -276,8 +276,7 @@ class Simulation:
         self.break_step = float(scene.links.break_step)
         self.refined_frames = 0  # frames taken again because a link broke in them (``links.break_step``)
         self.fault_retries = int(sim.fault_retries)
-        self.retaken_frames = 0  # frames taken again after a fault (``sim.fault_retries``)
-        self.retakes = []  # (frame, the steps it ran in, the stage of the fault that made it) of each
+        self.retakes = []  # (frame, the steps it ran in, the stage of the fault that made it) of each retry
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
@@ -589,9 +588,12 @@ class Simulation:
                                           stage=fault.stage, bits=fault.bits) from None
                 self.restore(saved)
                 steps *= 2
-                if len(tried) == 1:
-                    self.retaken_frames += 1
                 self.retakes.append((self.stepper.frame + 1, steps, fault.stage))
+
+    @property
+    def retaken_frames(self) -> int:
+        """Frames taken again after a fault (:attr:`retakes`), each once however many retries it took."""
+        return len({frame for frame, _, _ in self.retakes})
 
     def _break_substeps(self) -> int | None:
         """The steps a frame is taken again in when a link breaks in it (``links.break_step``), or None: no links,

@@ -209,13 +209,17 @@ def link_sweep(
         b_last = seg_b_start[seg + 1]
         # the first sweep of a step builds the segment's damper blocks, the same in every later one: its hair
         # contacts' (held, or those the contacts' gather left here) and its link ends' point inertias ``h P``
-        A = held.A[seg]
-        B = held.B[seg]
-        C = held.C[seg]
-        if contacts_swept != 0:
-            A = dampers.A[seg]
-            B = dampers.B[seg]
-            C = dampers.C[seg]
+        A = wp.mat33()
+        B = wp.mat33()
+        C = wp.mat33()
+        if reuse == 0:
+            A = held.A[seg]
+            B = held.B[seg]
+            C = held.C[seg]
+            if contacts_swept != 0:
+                A = dampers.A[seg]
+                B = dampers.B[seg]
+                C = dampers.C[seg]
         if a_first != a_last or b_first != b_last:
             Rt = wp.transpose(wp.quat_to_matrix(R))
             for j in range(a_first, b_last - b_first + a_last):

@@ -439,6 +439,7 @@ def test_response_damper_blocks_match_their_product_form():
                 want["A"] += -rx @ M @ rx
                 want["B"] += rx @ M
                 want["C"] += M
+                # float32 points and frames of a few cm: ~1e-8 m of round-off, well under 1e-6 of a segment
                 np.testing.assert_allclose(arm[slot], r, rtol=0, atol=1e-6 * L)
         want["A"] = spin_free @ want["A"] @ spin_free
         want["B"] = spin_free @ want["B"]

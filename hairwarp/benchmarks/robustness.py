@@ -185,7 +185,6 @@ def run_scene(scene, frames: int, *, keep_vertices_from: int | None = None, on_f
     if keep_vertices_from is not None and keep_vertices_from <= 0:
         kept.append(x)
     fault, nan, vmax, done = None, False, 0.0, 0
-    retries = int(getattr(scene.sim, "fault_retries", 0))
     for f in range(1, frames + 1):
         try:
             sim.advance_frame()
@@ -209,7 +208,7 @@ def run_scene(scene, frames: int, *, keep_vertices_from: int | None = None, on_f
     return {"tips": np.asarray(tips), "vertices": np.asarray(kept) if kept else None, "fault": fault, "nan": nan,
             "max_speed": vmax, "broken_links": stats.get("broken_links"), "broken": broken, "frames_done": done,
             "wall_s": time.perf_counter() - t0, "sim": sim, "retaken": sim.retaken_frames,
-            "retakes": list(sim.retakes), "fault_retries": retries}
+            "retakes": list(sim.retakes)}
 
 
 def tip_speeds(tips: np.ndarray, frame_dt: float) -> np.ndarray:
