@@ -416,6 +416,19 @@ class StaticLinks:
                 state_in.vertex_positions, state_out.vertex_velocities, dt], [self.ends], device=self.device,
                min_chunk=GATHER_MIN_CHUNK)
 
+    def free_step_rate(self, seg_mass: np.ndarray, dt: float) -> float:
+        """The links' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the most link stiffness
+        on one segment (each link's scaled by its segments' lengths, :attr:`scale`) and ``m`` the median segment
+        mass of ``seg_mass`` (kg, per segment); 0 without links or stiffness. The scenes' ``links.response =
+        "auto"`` solves links past ``hairwarp.runner.LINK_STEP_RATE`` after the free step, and a fault of the
+        free step is theirs past ``hairwarp.solver.LINK_RATE_LIMIT``."""
+        if self.link_count == 0 or not self.stiffness > 0.0:
+            return 0.0
+        seg_mass = np.asarray(seg_mass, dtype=np.float64)
+        ends = np.concatenate([self.seg_a, self.seg_b])
+        per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
+        return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
+
     def sweeps_at(self, dt: float) -> int:
         """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to
         :data:`SWEEP_REFERENCE_STEP`, and a step k times as long k ** :data:`SWEEP_GROWTH` times as many (rounded

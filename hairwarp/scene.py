@@ -591,7 +591,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                 "frame's (0: links break at any step)", "s", range="[0, inf)"),
             "response": Field("str", "auto", "link forces solved after the free step, inside the strands' dynamics, on "
                               "the relative motion of their ends (step), or each link alone against its free "
-                              "segments' masses (link); auto: step at steps of 1/220 s or longer, else link",
+                              "segments' masses (link); auto: step at steps of 1/220 s or longer and for links too "
+                              "stiff for the free step (step times sqrt(k/m) above 0.7), else link",
                               choices=("auto", "step", "link")),
             "sweeps": Field("int", 2, "with the step response: Gauss-Seidel sweeps over the strands' links and "
                             "hair contacts after the free step, per step of up to 1/240 s (a step k times as long "

@@ -728,10 +728,7 @@ class Solver:
         links = self.links
         if links is not None and (responders or not links.response) and links.link_count > 0 \
                 and links.stiffness > 0.0:
-            # a segment's links, each scaled by its segments' lengths (``StaticLinks.scale``)
-            ends = np.concatenate([links.seg_a, links.seg_b])
-            per_segment = np.bincount(ends, weights=np.tile(links.scale, 2), minlength=model.seg_count).max()
-            rates["links"] = dt * math.sqrt(per_segment * links.stiffness / typical)
+            rates["links"] = links.free_step_rate(mass, dt)
         contacts = self.contacts
         if contacts is not None and (responders or not contacts.response) and contacts.stiffness > 0.0:
             # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR and the

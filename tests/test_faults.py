@@ -120,9 +120,10 @@ def _free_step_fault_and_its_advice(path, scene, key: str, stiffness: str, stage
 
 
 def test_stiff_links_in_the_free_step_name_the_links_and_their_response_runs():
-    """Links of 1,000 N/m taken explicitly in the free step (8 substeps) blow up; the fault names the links."""
-    _free_step_fault_and_its_advice(LONG_HAIR, ["groom.count=60", "dense.count=0", "interactions.enabled=false"],
-                                    "links", "1000", "static links")
+    """Links of 1,000 N/m taken in the free step (8 substeps, ``links.response = "link"``: ``"auto"`` would solve
+    links this stiff after it) blow up; the fault names the links."""
+    _free_step_fault_and_its_advice(LONG_HAIR, ["groom.count=60", "dense.count=0", "interactions.enabled=false",
+                                                'links.response="link"'], "links", "1000", "static links")
 
 
 @pytest.mark.parametrize("step", [["sim.substeps=8"], ["sim.substeps=4", 'interactions.response="mass"']])

@@ -433,18 +433,29 @@ def test_ratboy_mohawk_at_two_steps_a_frame_breaks_no_link_the_fine_steps_keep()
     assert R.tip_rms_error(coarse["tips"], fine["tips"]) <= FRAME_RATE_TIPS
 
 
-@pytest.mark.parametrize("substeps, expected", [(1, True), (2, True), (4, True), (7, True), (8, False)])
-def test_auto_response_takes_frame_rate_steps(substeps, expected):
+@pytest.mark.parametrize("substeps, stiffness, links_expected, contacts_expected", [
+    (1, 0.1, True, True), (2, 0.1, True, True), (4, 0.1, True, True), (7, 0.1, True, True), (8, 0.1, False, False),
+    (8, 2.0, True, False), (32, 2.0, False, False)])
+def test_auto_response_takes_frame_rate_steps(substeps, stiffness, links_expected, contacts_expected):
     """``response = "auto"`` solves the links' and contacts' forces after the free step at steps of 1/220 s and longer
-    (1 to 7 substeps of 30 fps), and keeps the finer-step forms below; "step" and "link"/"mass" force either."""
+    (1 to 7 substeps of 30 fps), and keeps the finer-step forms below, except for links whose free-step rate passes
+    ``LINK_STEP_RATE`` (here 2 N/m at 8 substeps, but not at 32); "step" and "link"/"mass" force either."""
+    from hairwarp.runner import LINK_STEP_RATE
+
     over = [f"sim.substeps={substeps}", "groom.count=40", "sim.segments=6", "dense.count=0", "output.preview=false",
-            'links.response="auto"', 'interactions.response="auto"']  # the scene ships "step"
+            f"links.stiffness={stiffness}", 'links.response="auto"', 'interactions.response="auto"']  # it ships "step"
     sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=over))
-    assert bool(sim.solver.responders) == expected
-    assert sim.links.response == expected and sim.contacts.response == expected
+    assert bool(sim.solver.responders) == (links_expected or contacts_expected)
+    assert sim.links.response == links_expected and sim.contacts.response == contacts_expected
+    rate = sim.links.free_step_rate(sim.model.seg_mass.numpy(), sim.scene.step_dt)
+    if substeps >= 8:
+        assert (rate > LINK_STEP_RATE) == links_expected, rate
     forced = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=[
         *over, 'links.response="step"', 'interactions.response="mass"']))
     assert forced.links.response and not forced.contacts.response
+    if substeps >= 8:
+        linked = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", overrides=[*over, 'links.response="link"']))
+        assert not linked.links.response
 
 
 def test_links_hold_between_frame_rate_and_shipped_steps():

@@ -194,6 +194,23 @@ def test_builder_links_nearest_segments(setup):
     np.testing.assert_allclose(np.linalg.norm(xb - xa, axis=1), dist[links.seg_a, links.seg_b], atol=1e-12)
 
 
+def test_free_step_rate_sums_each_segments_links(setup):
+    """``free_step_rate``: the step times sqrt(k / m), k the most link stiffness on any one segment (each link's k_s
+    times its scale, counted at both its ends: a loop over the links here) and m the median segment mass."""
+    links = setup.links
+    rng = np.random.default_rng(3)
+    mass = rng.uniform(1e-4, 4e-4, G * S)
+    per = np.zeros(G * S)
+    for a, b, scale in zip(links.seg_a, links.seg_b, links.scale, strict=True):
+        per[a] += K_S * scale
+        per[b] += K_S * scale
+    dt = 1.0 / 240.0
+    assert links.free_step_rate(mass, dt) == pytest.approx(dt * np.sqrt(per.max() / np.median(mass)), rel=1e-12)
+    assert links.free_step_rate(mass, 2.0 * dt) == pytest.approx(2.0 * links.free_step_rate(mass, dt), rel=1e-12)
+    slack = StaticLinks.build(setup.verts, neighbours=3, radius=RADIUS, stiffness=0.0, damping=K_D, break_length=1.0)
+    assert slack.free_step_rate(mass, dt) == 0.0
+
+
 def test_strand_colours_part_every_link(setup):
     """The sweeps' colours (``strand_colors``): no link joins two strands of one colour, every strand has one, the
     views hold each strand once in colour order, and the colours follow from the links alone (built again, the
