@@ -285,6 +285,7 @@ class Simulation:
         self._poses = {}  # step number -> head pose, for the teleport test
         self._applied_at_start = None  # (t, what _applied(t) gave): the head at the next step's start
         self._ahead = {}  # step end time -> what _applied gave, for the frame being advanced
+        self.stiff_links_note = None  # set where ``links.response = "auto"`` solves stiff links after the free step
         self.links = self._build_links(scene.links)
         self.break_step = float(scene.links.break_step)
         self.refined_frames = 0  # frames taken again because a link broke in them (``links.break_step``)
@@ -325,9 +326,16 @@ class Simulation:
                                   damping=float(cfg.damping), break_length=float(cfg.break_length),
                                   response=self._response(cfg.response), sweeps=int(cfg.sweeps),
                                   device=self.model.device)
-        if cfg.response == "auto" and not links.response and \
-                links.free_step_rate(self.model.seg_mass.numpy(), self.scene.step_dt) > LINK_STEP_RATE:
-            links.response = True  # too stiff for the free step's per-link solve (LINK_STEP_RATE)
+        if cfg.response == "auto" and not links.response:
+            rate = links.free_step_rate(self.model.seg_mass.numpy(), self.scene.step_dt)
+            if rate > LINK_STEP_RATE:  # too stiff for the free step's per-link solve
+                links.response = True
+                self.stiff_links_note = (
+                    f"links.response = \"auto\" solved the links after the free step: at this step they are too "
+                    f"stiff for it (free-step rate {rate:.3g}, past {LINK_STEP_RATE:g}), where they would gain "
+                    f"energy; hair resting on a body creeps a little more so (docs/interactions.md). "
+                    f"links.stiffness <= {float(cfg.stiffness) * (LINK_STEP_RATE / rate) ** 2:.3g} N/m keeps them "
+                    f"in the free step")
         if links.link_count == 0:
             roots = np.asarray(self.model.rest_vertex_positions, dtype=float).reshape(
                 self.model.strand_count, -1, 3)[:, 0]
@@ -1362,6 +1370,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
     if sim.retaken_frames:
         notes.append(_retakes_note(sim))
+    if sim.stiff_links_note is not None:
+        notes.append(sim.stiff_links_note)
     return kept
 
 

@@ -507,3 +507,24 @@ def test_contact_response_takes_energy_out_of_limp_hair_at_frame_rate():
     before, after = energies[0]
     # float32 velocities: the sums carry ~1e-6 relative round-off
     assert after <= before * (1.0 + 1e-5), f"the response raised the kinetic energy {before:.4g} -> {after:.4g} J"
+
+
+def test_a_run_notes_links_that_auto_solved_after_the_free_step(tmp_path):
+    """``links.response = "auto"`` solving links too stiff for the free step at 8 substeps says so in the run's notes,
+    with the free-step rate and the stiffness that keeps them in the free step; at that stiffness they stay there
+    and the run has no such note."""
+    from hairwarp.runner import LINK_STEP_RATE
+
+    over = ["groom.count=40", "sim.segments=6", "dense.count=0", "sim.frames=2", "output.preview=false",
+            'links.response="auto"', 'interactions.response="auto"']
+    result = hw.simulate(hw.Scene.load(SCENES / "fast_turn.toml", [*over, "links.stiffness=2.0"]),
+                         tmp_path / "stiff.usdc", preview=False)
+    note = [n for n in result.notes if n.startswith('links.response = "auto" solved the links after the free step')]
+    assert len(note) == 1, result.notes
+    rate = float(note[0].split("free-step rate ")[1].split(",")[0])
+    assert rate > LINK_STEP_RATE
+    softer = float(note[0].split("links.stiffness <= ")[1].split()[0])
+    # both printed to 3 digits: the rate to within 0.4 %, which its square doubles, the stiffness to 0.1 %
+    assert softer == pytest.approx(2.0 * (LINK_STEP_RATE / rate) ** 2, rel=1e-2)
+    sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", [*over, f"links.stiffness={0.99 * softer}"]))
+    assert not sim.links.response and sim.stiff_links_note is None
