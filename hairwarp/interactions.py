@@ -312,6 +312,9 @@ class StaticLinks:
         links.break_length = float(break_length)
         links.implicit_springs = bool(implicit_springs)
         links.response = bool(response)
+        # with ``response``: the free step takes the links' springs ``k l`` and the response the rest (set by
+        # ``hairwarp.Solver.set_dt`` for each step)
+        links.free_springs = False
         links.seg_a = a.astype(np.int32)
         links.seg_b = b.astype(np.int32)
         links.frac_a = fa
@@ -394,7 +397,7 @@ class StaticLinks:
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
             self.stiffness, self.damping, self.link_scale, self.break_length, int(self.implicit_springs),
             state.seg_xform, state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
-            int(self.response),
+            int(self.response), int(self.free_springs),
         ]
         n = len(inputs)
         seg_count = len(self.seg_transport)
@@ -413,8 +416,8 @@ class StaticLinks:
         launch(self.executor, link_kernels.link_response_ends, self.link_count,
                [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
                 self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
-                state_in.vertex_positions, state_out.vertex_velocities, dt], [self.ends], device=self.device,
-               min_chunk=GATHER_MIN_CHUNK)
+                int(self.free_springs), state_in.vertex_positions, state_out.vertex_velocities, dt], [self.ends],
+               device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def free_step_rate(self, seg_mass: np.ndarray, dt: float) -> float:
         """The links' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the most link stiffness

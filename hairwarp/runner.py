@@ -38,12 +38,11 @@ AUTO_RESPONSE_DT = 1.0 / 220.0
 #: the free step each link's backward-Euler force is solved alone, against a bound of its ends' inverse masses, and
 #: where several links pull one segment their forces overshoot: ``long_hair_shoulders`` at 2.4 N/m at 1 cm (rate 1.53
 #: at its 8 substeps) with its head still gained up to 5.4e-3 J in a frame in the step (4e-4 of its energy),
-#: 2.2e-6 J solved after it (round-off). Measured with the head still, hair contacts off, the largest rise over a
+#: 2.6e-7 J solved after it (round-off). Measured with the head still, hair contacts off, the largest rise over a
 #: frame in 5 s: ``long_hair`` at rates 0.62 (shipped), 0.74 and 0.87: 1.1e-7, 2.4e-7 and 6.8e-7 of its energy;
 #: ``long_hair_shoulders`` at 0.77 and 0.99: 1.6e-7 and 2.2e-5. Five strands tied side by side and parted by a
 #: sphere (``tests/test_collision_scenes.py``) gain from a lower rate: 2.3e-5 a frame at 0.56, 9.4e-5 at 0.67, none
-#: at 0.47. Below the rate the free step's form stays: it costs less, and hair resting on a body settles in it
-#: where the response lets it creep (docs/interactions.md).
+#: at 0.47. Below the rate the free step's form stays: it costs less.
 LINK_STEP_RATE = 0.7
 
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")

@@ -324,6 +324,25 @@ class Solver:
                 raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
             self.dt.fill_(float(dt))
             self._dt_host = dt
+            if self.links is not None:
+                self.links.free_springs = self._free_springs(dt)
+
+    def _free_springs(self, dt: float) -> bool:
+        """Whether links solved after the free step leave their springs ``k l`` to it at steps of ``dt``: at steps
+        shorter than ``CONTINUOUS_FRICTION_STEP``, which resolve a contact's time, where the free step holds the
+        springs explicitly (``StaticLinks.free_step_rate`` within ``LINK_RATE_LIMIT``). The response then solves
+        the rest, the damper ``-P u'`` on the step's motion: for the linear part of the step the same answer
+        (``kernels.links.link_response_ends``), but the free step's body contacts carry the hair's weight with its
+        links. Without, the sweeps moved the held vertices without their contacts and the two solves traded the load
+        every step: ``long_hair_shoulders`` with its links in the response crept at 0.18 mm/s in the 6th second with
+        its head still, 3.7 times the same hair without its colliders, one strand sliding along the shoulders'
+        capsule ever faster (1.6 mm/s); with the springs in the free step 0.019 mm/s. Stiffer links (the mohawk's,
+        rate 2.2) and longer steps (at one step a frame ``k l`` kicked the hair apart) keep the whole force in the
+        response."""
+        links = self.links
+        if not links.response or dt >= articulated.CONTINUOUS_FRICTION_STEP:
+            return False
+        return links.free_step_rate(self.model.seg_mass.numpy(), dt) <= LINK_RATE_LIMIT
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""

@@ -164,6 +164,7 @@ def link_forces(
     dt: wp.array(dtype=float),
     link_b_slot: wp.array(dtype=wp.int32),
     response: int,
+    free_springs: int,
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -185,12 +186,12 @@ def link_forces(
     link: ``W`` bounds the inverse masses of the two ends (``point_inverse_mass``), so however stiff the link and
     long the step, f never exceeds what stops the ends' relative motion, and the link adds no inertia to the common
     motion of the hair it ties. Without, f is the seed's explicit force. With ``response`` the link adds no force
-    here: its ends go to ``link_point_a``, ``link_point_b``, and the response solves its force over the
-    step inside the strands' dynamics. Segment b's share (-f at x_b) goes to slot
-    ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link), which ``link_gather`` adds to b:
-    every segment is written by its own thread only, so the sums are the same bits however the segments are split
-    between CPU threads. The thread computes a's frame, its twist-free transport (``segment_transport``) and its
-    velocity field once for all its links, and adds a's sums once.
+    here (with ``free_springs`` its spring ``k l`` alone, explicit): its ends go to ``link_point_a``,
+    ``link_point_b``, and the response solves its force over the step inside the strands' dynamics. Segment b's
+    share (-f at x_b) goes to slot ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link),
+    which ``link_gather`` adds to b: every segment is written by its own thread only, so the sums are the same bits
+    however the segments are split between CPU threads. The thread computes a's frame, its twist-free transport
+    (``segment_transport``) and its velocity field once for all its links, and adds a's sums once.
     """
     a = tid_offset + wp.tid()
     first = seg_link_start[a]
@@ -240,10 +241,12 @@ def link_forces(
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
         f = k * l
         if response != 0:
-            # the link's force is the response's, over the step (``link_response_ends``, ``kernels.sweeps``)
+            # the link's force is the response's, over the step (``link_response_ends``, ``kernels.sweeps``); with
+            # ``free_springs`` its spring k l acts in the free step and the response solves the rest
             link_point_a[link] = xa
             link_point_b[link] = xb
-            continue
+            if free_springs == 0:
+                continue
         # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
         u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
         if response == 0 and implicit_springs != 0:
@@ -430,6 +433,7 @@ def link_response_ends(
     link_seg_a: wp.array(dtype=wp.int32),
     link_seg_b: wp.array(dtype=wp.int32),
     link_b_slot: wp.array(dtype=wp.int32),
+    free_springs: int,
     # State: the step's start (positions), the free step's end (velocities)
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
@@ -443,8 +447,11 @@ def link_response_ends(
 
     The link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of
     a's end relative to b's; the sweeps solve each end with the other held (``kernels.sweeps.link_sweep``), which
-    adds ``P v_other`` to the end's own part. (Applied in the free step instead, ``k l`` kicked the hair apart at one
-    step a frame, where a segment's half-dozen links are far stiffer than its mass allows explicitly.)"""
+    adds ``P v_other`` to the end's own part. With ``free_springs`` the free step took ``k l`` already
+    (``link_forces``), and the ends' parts are ``-P v_own`` alone: the same linear answer, in which the free step's
+    body contacts carry the load of the links too (``hairwarp.Solver.set_dt``). (Applied in the free step at one
+    step a frame, ``k l`` kicked the hair apart, where a segment's half-dozen links are far stiffer than its mass
+    allows explicitly.)"""
     link = tid_offset + wp.tid()
     if link_broken[link] != 0:
         return
@@ -457,8 +464,11 @@ def link_response_ends(
     n = link_axis(l)
     k = link_stiffness * link_scale[link]
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
-    ends.force[link] = k * l - P * v_a
-    ends.force[link_point_a.shape[0] + link_b_slot[link]] = -k * l - P * v_b
+    kl = k * l
+    if free_springs != 0:  # the free step took k l (``link_forces``)
+        kl = wp.vec3()
+    ends.force[link] = kl - P * v_a
+    ends.force[link_point_a.shape[0] + link_b_slot[link]] = -kl - P * v_b
     ends.axis[link] = n
 
 

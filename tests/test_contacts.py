@@ -909,6 +909,62 @@ def test_link_sweeps_take_energy_out_of_a_lattice(k):
     assert gap[1] > gap[8] > gap[64], ratio
 
 
+def _stretched_lattice(h: float, steps: int, free_springs: bool, amplitude: float):
+    """A 3 x 4 grid of one-segment pendulums (as ``_tied_lattice``'s, ``implicit_joints``) tied by links of 2 N/m and
+    0.002 N s/m, released with its joints turned at random by about ``amplitude`` [rad], run ``steps`` steps of ``h``
+    with 64 sweeps a step (converged), the links' springs in the free step or not (``Solver._free_springs``).
+    Returns the tips [m], the joint velocities [rad/s] and the links' free-step rate at ``h``."""
+    import hairwarp as hw
+    from hairwarp.interactions import StaticLinks
+    from hairwarp.model import Model, StrandParams
+    from hairwarp.solver import Solver
+
+    L = 0.02
+    roots = np.array([[c * 0.004, r * 0.004, 0.0] for r in range(3) for c in range(4)])
+    dirs = np.array([0.0, 0.0, -1.0]) + np.random.default_rng(11).uniform(-0.35, 0.35, (12, 3)) * [1.0, 1.0, 0.0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
+                          drag=0.0)
+    model = Model.build(np.stack([roots, roots + L * dirs], axis=1), params, segments=1, gravity=(0.0, 0.0, 0.0))
+    links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
+                              stiffness=2.0 * REFERENCE_SEGMENT_LENGTH / L, damping=0.002, break_length=1.0,
+                              response=True)
+    links.sweeps_at = lambda dt: 64
+    solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
+    if not free_springs:
+        solver._free_springs = lambda dt: False
+    turn = Rotation.from_rotvec(np.random.default_rng(5).normal(0.0, amplitude, (12, 3)) * [1.0, 1.0, 0.0])
+    control = model.control()
+    state, other = model.state(), model.state()
+    state.joint_q.assign((turn * Rotation.from_quat(state.joint_q.numpy())).as_quat().astype(np.float32))
+    solver.forward_kinematics(state, control)
+    for _ in range(steps):
+        solver.step(state, other, control, h)
+        state, other = other, state
+    assert links.free_springs is free_springs and int(state.fault.numpy()[0]) == 0
+    tips = state.vertex_positions.numpy().astype(np.float64).reshape(12, 2, 3)[:, 1]
+    return tips, state.joint_qd.numpy().astype(np.float64), links.free_step_rate(model.seg_mass.numpy(), h)
+
+
+def test_links_springs_in_the_free_step_give_the_same_step():
+    """At steps shorter than 1/220 s the links solved after the free step leave their springs ``k l`` to it
+    (``Solver._free_springs``) and the response solves the rest: without body contacts, for the linear part of
+    the step the same system, so the same answer. A stretched lattice (``_stretched_lattice``), one step of 1/960 s
+    (free-step rate 0.37): the joint velocities agree with the whole force solved in the response to 1e-4 of their
+    largest change (measured 3e-6). At 1/240 s (rate 1.46) the free step's explicit springs move the joints farther
+    than the step's answer, and its turns part the two by a term that falls with the step faster than its square
+    (0.7 % of the velocities here, 18 % from a stretch five times larger): both are as near the answer of steps of
+    1/7680 s over three steps (tips 82 and 79 um from it, from a stretch of 0.05 rad)."""
+    one = {fs: _stretched_lattice(1.0 / 960.0, 1, fs, 0.01) for fs in (True, False)}
+    change = np.abs(one[False][1]).max()  # from rest
+    assert change > 0.1 and 0.3 < one[True][2] < 0.45  # the stretched links set the lattice moving
+    np.testing.assert_allclose(one[True][1], one[False][1], rtol=0.0, atol=1e-4 * change)
+    fine = _stretched_lattice(1.0 / 7680.0, 96, False, 0.05)[0]
+    error = {fs: np.sqrt(np.sum((_stretched_lattice(1.0 / 240.0, 3, fs, 0.05)[0] - fine) ** 2, axis=1).mean())
+             for fs in (True, False)}
+    assert error[True] <= 1.1 * error[False], error
+
+
 @pytest.mark.parametrize("with_contacts", [False, True])
 def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
     """A step with the links' sweeps captured in a Warp graph on the CPU (one thread) and replayed gives the eager
