@@ -836,6 +836,23 @@ def test_sweeps_converge_a_link_and_a_contact_to_their_coupled_backward_euler_st
     assert abs(held[-1] - held[-2]) < 1e-6 * speed and held[-1] > 30.0 * errors[-1], (held, errors)
 
 
+PENDULUM_LENGTH = 0.02  # [m], the segments of ``_pendulum_grid``
+
+
+def _pendulum_grid():
+    """A 3 x 4 grid of one-segment pendulums (2 cm, 4 mm apart, tilted at random so that links meet them at single
+    points; no gravity, no joint springs, damping or drag): the model."""
+    from hairwarp.model import Model, StrandParams
+
+    L = PENDULUM_LENGTH
+    roots = np.array([[c * 0.004, r * 0.004, 0.0] for r in range(3) for c in range(4)])
+    dirs = np.array([0.0, 0.0, -1.0]) + np.random.default_rng(11).uniform(-0.35, 0.35, (12, 3)) * [1.0, 1.0, 0.0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
+                          drag=0.0)
+    return Model.build(np.stack([roots, roots + L * dirs], axis=1), params, segments=1, gravity=(0.0, 0.0, 0.0))
+
+
 def _tied_lattice(k: float, sweeps: int, w0, h: float):
     """A 3 x 4 grid of one-segment pendulums (2 cm, 4 mm apart, tilted at random so that their links meet them at
     single points; no gravity, no joint springs) tied by links of stiffness ``k`` (no damping), turning at ``w0``:
@@ -843,16 +860,10 @@ def _tied_lattice(k: float, sweeps: int, w0, h: float):
     m_eff`` of a pendulum's tip."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
-    from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
 
-    L = 0.02
-    roots = np.array([[c * 0.004, r * 0.004, 0.0] for r in range(3) for c in range(4)])
-    dirs = np.array([0.0, 0.0, -1.0]) + np.random.default_rng(11).uniform(-0.35, 0.35, (12, 3)) * [1.0, 1.0, 0.0]
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
-                          drag=0.0)
-    model = Model.build(np.stack([roots, roots + L * dirs], axis=1), params, segments=1, gravity=(0.0, 0.0, 0.0))
+    L = PENDULUM_LENGTH
+    model = _pendulum_grid()
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
                               stiffness=k * REFERENCE_SEGMENT_LENGTH / L, damping=0.0,
                               break_length=1.0, response=True)
@@ -916,16 +927,10 @@ def _stretched_lattice(h: float, steps: int, free_springs: bool, amplitude: floa
     Returns the tips [m], the joint velocities [rad/s] and the links' free-step rate at ``h``."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
-    from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
 
-    L = 0.02
-    roots = np.array([[c * 0.004, r * 0.004, 0.0] for r in range(3) for c in range(4)])
-    dirs = np.array([0.0, 0.0, -1.0]) + np.random.default_rng(11).uniform(-0.35, 0.35, (12, 3)) * [1.0, 1.0, 0.0]
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=0.0, twist_stiffness=0.0, damping=0.0,
-                          drag=0.0)
-    model = Model.build(np.stack([roots, roots + L * dirs], axis=1), params, segments=1, gravity=(0.0, 0.0, 0.0))
+    L = PENDULUM_LENGTH
+    model = _pendulum_grid()
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
                               stiffness=2.0 * REFERENCE_SEGMENT_LENGTH / L, damping=0.002, break_length=1.0,
                               response=True)
