@@ -332,9 +332,9 @@ class Simulation:
                 self.stiff_links_note = (
                     f"links.response = \"auto\" solved the links after the free step: at this step they are too "
                     f"stiff for it (free-step rate {rate:.3g}, past {LINK_STEP_RATE:g}), where they would gain "
-                    f"energy; hair resting on a body creeps a little more so (docs/interactions.md). "
-                    f"links.stiffness <= {float(cfg.stiffness) * (LINK_STEP_RATE / rate) ** 2:.3g} N/m keeps them "
-                    f"in the free step")
+                    f"energy (docs/interactions.md). links.stiffness <= "
+                    f"{float(cfg.stiffness) * (LINK_STEP_RATE / rate) ** 2:.3g} N/m keeps them in the free step, "
+                    f"which costs less")
         if links.link_count == 0:
             roots = np.asarray(self.model.rest_vertex_positions, dtype=float).reshape(
                 self.model.strand_count, -1, 3)[:, 0]
