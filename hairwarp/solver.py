@@ -337,8 +337,9 @@ class Solver:
         every step: ``long_hair_shoulders`` with its links in the response crept at 0.18 mm/s in the 6th second with
         its head still, 3.7 times the same hair without its colliders, one strand sliding along the shoulders'
         capsule ever faster (1.6 mm/s); with the springs in the free step 0.019 mm/s. Stiffer links (the mohawk's,
-        rate 2.2) and longer steps (at one step a frame ``k l`` kicked the hair apart) keep the whole force in the
-        response."""
+        rate 2.2; 1,000 N/m went non-finite) and longer steps keep the whole force in the response: there the
+        explicit springs kicked hair in motion (790 of the mohawk's links broken at 4 substeps, faults at 1 and 2;
+        docs/interactions.md)."""
         links = self.links
         if not links.response or dt >= articulated.CONTINUOUS_FRICTION_STEP:
             return False
