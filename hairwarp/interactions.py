@@ -312,9 +312,9 @@ class StaticLinks:
         links.break_length = float(break_length)
         links.implicit_springs = bool(implicit_springs)
         links.response = bool(response)
-        # with ``response``: the free step takes the links' springs ``k l`` and the response the rest (set by
-        # ``hairwarp.Solver.set_dt`` for each step)
-        links.free_springs = False
+        # with ``response``: the free step takes each link's force of the last step (``link_warm``) and the response
+        # the change (set by ``hairwarp.Solver.set_dt`` for each step)
+        links.warm_start = False
         links.seg_a = a.astype(np.int32)
         links.seg_b = b.astype(np.int32)
         links.frac_a = fa
@@ -355,6 +355,8 @@ class StaticLinks:
         # the response's: each link's ends at the step's start, and the link of each of b's slots
         links.link_point_a = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.link_point_b = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # each link's force of the last step as the response answered it [N, world, on a's end]: ``warm_start``
+        links.link_warm = wp.zeros(n, dtype=wp.vec3, device=dev)
         links.b_slot_link = wp.array(by_b.astype(np.int32) if len(a) else np.zeros(n, np.int32), dtype=wp.int32,
                                      device=dev)
         # what the sweeps read of each link end, a ends then b slots
@@ -397,7 +399,7 @@ class StaticLinks:
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
             self.stiffness, self.damping, self.link_scale, self.break_length, int(self.implicit_springs),
             state.seg_xform, state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
-            int(self.response), int(self.free_springs),
+            int(self.response), int(self.warm_start), self.link_warm,
         ]
         n = len(inputs)
         seg_count = len(self.seg_transport)
@@ -416,8 +418,18 @@ class StaticLinks:
         launch(self.executor, link_kernels.link_response_ends, self.link_count,
                [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
                 self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
-                int(self.free_springs), state_in.vertex_positions, state_out.vertex_velocities, dt], [self.ends],
-               device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                int(self.warm_start), self.link_warm, state_in.vertex_positions, state_out.vertex_velocities, dt],
+               [self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+
+    def update_warm(self, model, state_in, answered_velocities, dt):
+        """Keep each link's force of the step as the sweeps answered it (:attr:`link_warm`), which the next step's
+        free step takes with :attr:`warm_start` (launch only)."""
+        if self.link_count == 0 or not self.warm_start:
+            return
+        launch(self.executor, link_kernels.link_warm_update, self.link_count,
+               [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
+                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, state_in.vertex_positions,
+                answered_velocities, dt], [self.link_warm], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def free_step_rate(self, seg_mass: np.ndarray, dt: float) -> float:
         """The links' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the most link stiffness

@@ -161,16 +161,20 @@ SPEED_TERMS = ("start", "carried", "colliders", "wind")
 
 
 def _upgraded(arrays: dict) -> dict:
-    """A checkpoint as this version keeps it. Earlier versions kept each body contact's friction share alone
+    """A checkpoint as this version keeps it. Earlier versions kept no links' forces of the last step (taken as none)
+    and each body contact's friction share alone
     (``solver.body_contacts.beta``, 1 sticking, less sliding), which this one keeps as ``share`` beside the contact's
     slip speed (``solver.body_contacts.slip``): a sticking vertex had none, a sliding one is taken as sliding
     (``kernels.articulated.STICK_SLIP``)."""
+    out = dict(arrays)
+    if "solver.links.link_broken" in out and "solver.links.link_warm" not in out:
+        # links' forces of the last step (``Solver._warm_start``), kept since 2026-12-05: the next step starts cold
+        out["solver.links.link_warm"] = np.zeros((len(np.asarray(out["solver.links.link_broken"])), 3), np.float32)
     old = "solver.body_contacts.beta"
-    if old not in arrays or "solver.body_contacts.slip" in arrays:
-        return arrays
+    if old not in out or "solver.body_contacts.slip" in out:
+        return out
     from hairwarp.kernels.articulated import STICK_SLIP
 
-    out = dict(arrays)
     share = np.asarray(out.pop(old), dtype=np.float32)
     out["solver.body_contacts.share"] = share
     out["solver.body_contacts.slip"] = np.where(share >= 1.0, 0.0, 2.0 * float(STICK_SLIP)).astype(np.float32)

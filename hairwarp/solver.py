@@ -41,6 +41,11 @@ DEFAULT_MAX_ROTATION = 1.0
 #: runs.
 LINK_RATE_LIMIT = 2.0
 
+#: Longest step [s] (exclusive) and largest links' free-step rate at which links solved after the free step put their
+#: force of the last step into it (``Solver._warm_start``): 2 substeps of 30 fps and more, the mohawk from 4.
+WARM_START_STEP = 1.0 / 45.0
+WARM_START_RATE = 8.0
+
 #: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
 #: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
@@ -325,25 +330,24 @@ class Solver:
             self.dt.fill_(float(dt))
             self._dt_host = dt
             if self.links is not None:
-                self.links.free_springs = self._free_springs(dt)
+                self.links.warm_start = self._warm_start(dt)
 
-    def _free_springs(self, dt: float) -> bool:
-        """Whether links solved after the free step leave their springs ``k l`` to it at steps of ``dt``: at steps
-        shorter than ``CONTINUOUS_FRICTION_STEP``, which resolve a contact's time, where the free step holds the
-        springs explicitly (``StaticLinks.free_step_rate`` within ``LINK_RATE_LIMIT``). The response then solves
-        the rest, the damper ``-P u'`` on the step's motion: for the linear part of the step the same answer
-        (``kernels.links.link_response_ends``), but the free step's body contacts carry the hair's weight with its
-        links. Without, the sweeps moved the held vertices without their contacts and the two solves traded the load
-        every step: ``long_hair_shoulders`` with its links in the response crept at 0.18 mm/s in the 6th second with
-        its head still, 3.7 times the same hair without its colliders, one strand sliding along the shoulders'
-        capsule ever faster (1.6 mm/s); with the springs in the free step 0.019 mm/s. Stiffer links (the mohawk's,
-        rate 2.2; 1,000 N/m went non-finite) and longer steps keep the whole force in the response: there the
-        explicit springs kicked hair in motion (790 of the mohawk's links broken at 4 substeps, faults at 1 and 2;
-        docs/interactions.md)."""
+    def _warm_start(self, dt: float) -> bool:
+        """Whether links solved after the free step put their force of the last step into it at steps of ``dt``
+        (``StaticLinks.link_warm``, kept after each step's sweeps), the response then solving the change: for the
+        linear part of the step the same answer (``kernels.links.link_response_ends``), but the free step's body
+        contacts carry the hair's weight with its links. Without, the sweeps moved the held vertices without their
+        contacts and the two solves traded the load every step: ``long_hair_shoulders`` with its head still crept
+        at 0.18 mm/s in the 6th second at its 8 substeps, 3.7 times the same hair without its colliders, one strand
+        sliding along the shoulders' capsule ever faster (1.6 mm/s), and 5.5 mm/s at 2 substeps; with the warm start
+        0.019 and 0.013. At steps shorter than ``WARM_START_STEP`` and a free-step rate (``StaticLinks.
+        free_step_rate``) within ``WARM_START_RATE``: the limp linked hair of the stability grid jitters at one
+        step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the mohawk at 2 substeps (rate
+        8.7) broke 2 links that no 16-substep run breaks."""
         links = self.links
-        if not links.response or dt >= articulated.CONTINUOUS_FRICTION_STEP:
+        if not links.response or dt >= WARM_START_STEP:
             return False
-        return links.free_step_rate(self.model.seg_mass.numpy(), dt) <= LINK_RATE_LIMIT
+        return links.free_step_rate(self.model.seg_mass.numpy(), dt) <= WARM_START_RATE
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""
@@ -365,6 +369,8 @@ class Solver:
         forward_kinematics(self.model, state, control, self.executor)
         if self.body_contacts.enabled:
             self.colliders.reset_contacts()
+        if self.links is not None:
+            self.links.link_warm.zero_()
 
 
     def _accumulate_forces(self, state, control, detect_body: bool = False):
@@ -507,6 +513,7 @@ class Solver:
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])
+        links.update_warm(model, state_in, self.answered_velocities, self.dt)
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
@@ -551,6 +558,7 @@ class Solver:
 
         Returns:
             name -> array: ``links.link_broken`` and ``links.link_broken_total`` (links break for good),
+            ``links.link_warm`` (each link's force of the last step, which the next free step takes),
             ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
             ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
             frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
@@ -566,6 +574,7 @@ class Solver:
         if self.links is not None:
             out["links.link_broken"] = self.links.link_broken
             out["links.link_broken_total"] = self.links.link_broken_total
+            out["links.link_warm"] = self.links.link_warm
         if self.colliders is not None and self.colliders.vert_exempt is not None:
             out["colliders.vert_exempt"] = self.colliders.vert_exempt
         if self.contacts is not None:

@@ -164,7 +164,8 @@ def link_forces(
     dt: wp.array(dtype=float),
     link_b_slot: wp.array(dtype=wp.int32),
     response: int,
-    free_springs: int,
+    warm_start: int,
+    link_warm: wp.array(dtype=wp.vec3),
     # Out:
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
@@ -186,7 +187,7 @@ def link_forces(
     link: ``W`` bounds the inverse masses of the two ends (``point_inverse_mass``), so however stiff the link and
     long the step, f never exceeds what stops the ends' relative motion, and the link adds no inertia to the common
     motion of the hair it ties. Without, f is the seed's explicit force. With ``response`` the link adds no force
-    here (with ``free_springs`` its spring ``k l`` alone, explicit): its ends go to ``link_point_a``,
+    here (with ``warm_start`` its force of the last step, ``link_warm``): its ends go to ``link_point_a``,
     ``link_point_b``, and the response solves its force over the step inside the strands' dynamics. Segment b's
     share (-f at x_b) goes to slot ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link),
     which ``link_gather`` adds to b: every segment is written by its own thread only, so the sums are the same bits
@@ -242,11 +243,12 @@ def link_forces(
         f = k * l
         if response != 0:
             # the link's force is the response's, over the step (``link_response_ends``, ``kernels.sweeps``); with
-            # ``free_springs`` its spring k l acts in the free step and the response solves the rest
+            # ``warm_start`` its force of the last step acts in the free step and the response solves the change
             link_point_a[link] = xa
             link_point_b[link] = xb
-            if free_springs == 0:
+            if warm_start == 0:
                 continue
+            f = link_warm[link]
         # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
         u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
         if response == 0 and implicit_springs != 0:
@@ -433,7 +435,8 @@ def link_response_ends(
     link_seg_a: wp.array(dtype=wp.int32),
     link_seg_b: wp.array(dtype=wp.int32),
     link_b_slot: wp.array(dtype=wp.int32),
-    free_springs: int,
+    warm_start: int,
+    link_warm: wp.array(dtype=wp.vec3),
     # State: the step's start (positions), the free step's end (velocities)
     vertex_positions: wp.array(dtype=wp.vec3),
     vertex_velocities: wp.array(dtype=wp.vec3),
@@ -447,11 +450,11 @@ def link_response_ends(
 
     The link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of
     a's end relative to b's; the sweeps solve each end with the other held (``kernels.sweeps.link_sweep``), which
-    adds ``P v_other`` to the end's own part. With ``free_springs`` the free step took ``k l`` already
-    (``link_forces``), and the ends' parts are ``-P v_own`` alone: the same linear answer, in which the free step's
-    body contacts carry the load of the links too (``hairwarp.Solver.set_dt``). (Applied in the free step at one
-    step a frame, ``k l`` kicked the hair apart, where a segment's half-dozen links are far stiffer than its mass
-    allows explicitly.)"""
+    adds ``P v_other`` to the end's own part. With ``warm_start`` the free step took the link's force of the last
+    step already (``link_warm``, ``link_forces``), which the ends' parts leave out: the same linear answer, in which
+    the free step's body contacts carry the load of the links too (``hairwarp.Solver._warm_start``). (Applied in the
+    free step at one step a frame, ``k l`` kicked the hair apart, where a segment's half-dozen links are far stiffer
+    than its mass allows explicitly.)"""
     link = tid_offset + wp.tid()
     if link_broken[link] != 0:
         return
@@ -465,8 +468,8 @@ def link_response_ends(
     k = link_stiffness * link_scale[link]
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
     kl = k * l
-    if free_springs != 0:  # the free step took k l (``link_forces``)
-        kl = wp.vec3()
+    if warm_start != 0:  # the free step took the link's force of the last step (``link_forces``)
+        kl = kl - link_warm[link]
     ends.force[link] = kl - P * v_a
     ends.force[link_point_a.shape[0] + link_b_slot[link]] = -kl - P * v_b
     ends.axis[link] = n
@@ -484,3 +487,44 @@ def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
     B = h * (hk * skew(r) + c * wp.outer(m, n))
     C = h * (hk * eye + c * wp.outer(n, n))
     return A, B, C
+
+
+@wp.kernel
+def link_warm_update(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    link_stiffness: float,
+    link_damping: float,
+    link_scale: wp.array(dtype=float),
+    # Scratch: the ends the force pass left
+    link_point_a: wp.array(dtype=wp.vec3),
+    link_point_b: wp.array(dtype=wp.vec3),
+    link_broken: wp.array(dtype=wp.int32),
+    link_seg_a: wp.array(dtype=wp.int32),
+    link_seg_b: wp.array(dtype=wp.int32),
+    # State: the step's start (positions); the sweeps' answer, linearised at the step's start (velocities)
+    vertex_positions: wp.array(dtype=wp.vec3),
+    answered_velocities: wp.array(dtype=wp.vec3),
+    # Control:
+    dt: wp.array(dtype=float),
+    # Out:
+    link_warm: wp.array(dtype=wp.vec3),
+):
+    """One thread per link: its force over the step as the sweeps answered it [N, world, on a's end], ``k l - P u'``
+    (``link_response_ends``) with ``u'`` the relative velocity of its ends in the answer, which the next step's free
+    step takes (``link_forces``, ``warm_start``); zero for a broken link."""
+    link = tid_offset + wp.tid()
+    if link_broken[link] != 0:
+        link_warm[link] = wp.vec3()
+        return
+    h = dt[0]
+    xa = link_point_a[link]
+    xb = link_point_b[link]
+    u = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, answered_velocities, xa) - \
+        seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, answered_velocities, xb)
+    l = xb - xa
+    n = link_axis(l)
+    k = link_stiffness * link_scale[link]
+    link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n

@@ -475,6 +475,12 @@ def test_checkpoint_restores_the_run_exactly():
     np.testing.assert_array_equal(slip[share < 1.0], np.float32(2.0 * STICK_SLIP))
     np.testing.assert_array_equal(slip[share >= 1.0], 0.0)
     np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
+    # a checkpoint of a version that kept no links' forces of the last step (``Solver._warm_start``): none
+    warm = sim.solver.links.link_warm
+    warm.assign(np.ones(warm.shape + (3,), dtype=np.float32))
+    sim.restore({k: v for k, v in saved.items() if k != "solver.links.link_warm"})
+    np.testing.assert_array_equal(warm.numpy(), 0.0)
+    np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
 
 
 def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, tmp_path):
