@@ -250,7 +250,10 @@ def link_forces(
                 continue
             f = link_warm[link]
         # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
-        u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+        u = wp.vec3()
+        if response == 0:
+            u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions,
+                                                                 vertex_velocities, xb)
         if response == 0 and implicit_springs != 0:
             com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
             W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(b, xb - com_b, seg_mass,
