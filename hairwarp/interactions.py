@@ -418,18 +418,19 @@ class StaticLinks:
         launch(self.executor, link_kernels.link_response_ends, self.link_count,
                [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
                 self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
-                int(self.warm_start), self.link_warm, state_in.vertex_positions, state_out.vertex_velocities, dt],
+                int(self.warm_start), self.link_warm, state_in.vertex_positions, state_out.vertex_velocities, dt, 0],
                [self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def update_warm(self, model, state_in, answered_velocities, dt):
         """Keep each link's force of the step as the sweeps answered it (:attr:`link_warm`), which the next step's
-        free step takes with :attr:`warm_start` (launch only)."""
+        free step takes with :attr:`warm_start` (``link_response_ends`` with ``answered``; launch only)."""
         if self.link_count == 0 or not self.warm_start:
             return
-        launch(self.executor, link_kernels.link_warm_update, self.link_count,
+        launch(self.executor, link_kernels.link_response_ends, self.link_count,
                [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
-                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, state_in.vertex_positions,
-                answered_velocities, dt], [self.link_warm], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
+                int(self.warm_start), self.link_warm, state_in.vertex_positions, answered_velocities, dt, 1],
+               [self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
 
     def free_step_rate(self, seg_mass: np.ndarray, dt: float) -> float:
         """The links' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the most link stiffness

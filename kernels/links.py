@@ -445,11 +445,17 @@ def link_response_ends(
     vertex_velocities: wp.array(dtype=wp.vec3),
     # Control:
     dt: wp.array(dtype=float),
+    # 1: ``vertex_velocities`` are the sweeps' answer, linearised at the step's start, and the link's force over the
+    # step at them goes to ``link_warm`` instead
+    answered: int,
     # Out:
     ends: LinkEnds,
 ):
     """One thread per link: what the sweeps read of its ends over the step (``LinkEnds``): each end's force on its own
-    free velocities with the other end still, ``+-(k l) - P v_own`` [N, world], and the link's axis ``n``.
+    free velocities with the other end still, ``+-(k l) - P v_own`` [N, world], and the link's axis ``n``. With
+    ``answered``, after the sweeps: the link's force over the step in their answer, ``k l - P u'`` [N, world, on a's
+    end], into ``link_warm``, which the next step's free step takes (``link_forces``, ``warm_start``); zero for a
+    broken link.
 
     The link's force over the step is ``k l - P u'``, ``P = h k I + c n n^T``, ``u'`` the end-of-step velocity of
     a's end relative to b's; the sweeps solve each end with the other held (``kernels.sweeps.link_sweep``), which
@@ -460,6 +466,8 @@ def link_response_ends(
     than its mass allows explicitly.)"""
     link = tid_offset + wp.tid()
     if link_broken[link] != 0:
+        if answered != 0:
+            link_warm[link] = wp.vec3()
         return
     h = dt[0]
     xa = link_point_a[link]
@@ -469,6 +477,10 @@ def link_response_ends(
     l = xb - xa
     n = link_axis(l)
     k = link_stiffness * link_scale[link]
+    if answered != 0:
+        u = v_a - v_b
+        link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
+        return
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
     kl = k * l
     if warm_start != 0:  # the free step took the link's force of the last step (``link_forces``)
@@ -491,43 +503,3 @@ def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
     C = h * (hk * eye + c * wp.outer(n, n))
     return A, B, C
 
-
-@wp.kernel
-def link_warm_update(
-    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
-    tid_offset: int,
-    # Model:
-    seg_per_strand: int,
-    link_stiffness: float,
-    link_damping: float,
-    link_scale: wp.array(dtype=float),
-    # Scratch: the ends the force pass left
-    link_point_a: wp.array(dtype=wp.vec3),
-    link_point_b: wp.array(dtype=wp.vec3),
-    link_broken: wp.array(dtype=wp.int32),
-    link_seg_a: wp.array(dtype=wp.int32),
-    link_seg_b: wp.array(dtype=wp.int32),
-    # State: the step's start (positions); the sweeps' answer, linearised at the step's start (velocities)
-    vertex_positions: wp.array(dtype=wp.vec3),
-    answered_velocities: wp.array(dtype=wp.vec3),
-    # Control:
-    dt: wp.array(dtype=float),
-    # Out:
-    link_warm: wp.array(dtype=wp.vec3),
-):
-    """One thread per link: its force over the step as the sweeps answered it [N, world, on a's end], ``k l - P u'``
-    (``link_response_ends``) with ``u'`` the relative velocity of its ends in the answer, which the next step's free
-    step takes (``link_forces``, ``warm_start``); zero for a broken link."""
-    link = tid_offset + wp.tid()
-    if link_broken[link] != 0:
-        link_warm[link] = wp.vec3()
-        return
-    h = dt[0]
-    xa = link_point_a[link]
-    xb = link_point_b[link]
-    u = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, answered_velocities, xa) - \
-        seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, answered_velocities, xb)
-    l = xb - xa
-    n = link_axis(l)
-    k = link_stiffness * link_scale[link]
-    link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
