@@ -330,7 +330,11 @@ class Solver:
             self.dt.fill_(float(dt))
             self._dt_host = dt
             if self.links is not None:
-                self.links.warm_start = self._warm_start(dt)
+                warm = self._warm_start(dt)
+                if self.links.warm_start and not warm:
+                    # forces kept while the warm start was on would be stale when a later step turns it on again
+                    self.links.link_warm.zero_()
+                self.links.warm_start = warm
 
     def _warm_start(self, dt: float) -> bool:
         """Whether links solved after the free step put their force of the last step into it at steps of ``dt``

@@ -502,4 +502,3 @@ def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
     B = h * (hk * skew(r) + c * wp.outer(m, n))
     C = h * (hk * eye + c * wp.outer(n, n))
     return A, B, C
-

@@ -966,6 +966,7 @@ def test_links_warm_start_gives_the_same_steps():
     fine = _stretched_lattice(1.0 / 7680.0, 96, False, 0.05)[0]
     error = {warm: np.sqrt(np.sum((_stretched_lattice(1.0 / 240.0, 3, warm, 0.05)[0] - fine) ** 2, axis=1).mean())
              for warm in (True, False)}
+    # no less accurate: the two differ by 0.2 % here; 10 % leaves room for the float32 sums of 96 fine steps
     assert error[True] <= 1.1 * error[False], error
 
 
