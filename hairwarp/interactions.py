@@ -136,17 +136,35 @@ def _nearest_segment_pairs(p0, p1, strand, neighbours: int, radius: float) -> np
 SEGMENT_MIN_CHUNK = 256
 
 #: Gauss-Seidel sweeps of the links' response per step (``StaticLinks.build``), at steps up to
-#: :data:`SWEEP_REFERENCE_STEP`; longer steps take more (``StaticLinks.sweeps_at``).
-DEFAULT_SWEEPS = 2
+#: :data:`SWEEP_REFERENCE_STEP`; longer steps take more, and steps that start cold twice as many
+#: (``StaticLinks.sweeps_at``). With the links' warm start (``hairwarp.Solver._warm_start``) a sweep solves the change
+#: of their forces over the step, and one sweep, its colours' order turned from step to step
+#: (``Solver.sweep_turn``), keeps the hair about as near the converged sweeps as two symmetric ones did: tips against
+#: 24 sweeps a step, 0.14 mm on ``long_hair_shoulders`` (0.081 on two; 2.6 with the colours always forward) and 3.6
+#: mm on the Ratboy mohawk (3.7 on two, 4.2 always forward), for 12-20 % less time a frame.
+DEFAULT_SWEEPS = 1
 
-#: The step [s] up to which a step takes ``sweeps`` sweeps; a step k times as long takes k ** SWEEP_GROWTH times as
-#: many (rounded up). At 2 steps a frame (1/60 s) the Ratboy mohawk, its links and hair contacts solved by 2 sweeps,
-#: settled 20-40 mm below its 16-substep run and broke 315 links in its turns and shake (25 at 16 substeps). Limp
-#: hair (EI 1e-7, 64 segments) at 2 steps a frame burst on 2 or 4 sweeps (4.2 and 3.4 m/s at its tips as it falls
-#: onto itself) and holds on 8.
+#: How many times the sweeps a step takes that starts cold (:meth:`StaticLinks.sweeps_at`): without the links' force
+#: of the last step in its free step the sweeps solve all of it, as 2 a step did before the warm start. At one step a
+#: frame, which starts cold, limp linked hair (EI 1e-7, 16 segments) on 13 sweeps peaked at 1.8 m/s, against 1.03 on
+#: 25.
+COLD_SWEEPS = 2
+
+#: How the sweeps a warm step needs grow with its length (:meth:`StaticLinks.sweeps_at`): faster than a cold step's
+#: (:data:`SWEEP_GROWTH`). The warm start takes off a share of the error the sweeps start from, which saves a sweep
+#: where each leaves 0.37-0.53 of the error (1/240 s) but only a few of the 16 where each leaves 0.69-0.85 (1/60 s).
+#: ``long_hair_shoulders`` at 2 substeps with its head still rests on 10, 12 or 16 sweeps a step (0.013 mm/s in the
+#: 6th second) and on 8 (k ** 1.5) slid off again from the 4th second (1.8 mm/s).
+WARM_SWEEP_GROWTH = 2.0
+
+#: The step [s] up to which a step takes ``sweeps`` sweeps (twice as many cold); a longer step takes more
+#: (:meth:`StaticLinks.sweeps_at`). At 2 steps a frame (1/60 s) the Ratboy mohawk, its links and hair contacts
+#: solved by 2 sweeps, settled 20-40 mm below its 16-substep run and broke 315 links in its turns and shake (25 at 16
+#: substeps). Limp hair (EI 1e-7, 64 segments) at 2 steps a frame burst on 2 or 4 sweeps (4.2 and 3.4 m/s at its
+#: tips as it falls onto itself) and holds on 8.
 SWEEP_REFERENCE_STEP = 1.0 / 240.0
 
-#: How the sweeps a step needs grow with its length: the longer the step, the stiffer the links and contacts are
+#: How the sweeps a cold step needs grow with its length: the longer the step, the stiffer the links and contacts are
 #: against the strands' inertia (``h c`` and ``h^2 k`` against ``m``), and the less a sweep takes off the error.
 #: Measured on the Ratboy mohawk in its turn and its shake (the RMS of the vertex velocities against 64 sweeps), a
 #: sweep leaves 0.37-0.53 of the error at 1/240 s, 0.57-0.75 at 1/120 s and 0.69-0.85 at 1/60 s: the error 2 sweeps
@@ -156,13 +174,13 @@ SWEEP_REFERENCE_STEP = 1.0 / 240.0
 SWEEP_GROWTH = 1.5
 
 #: Longest step [s] whose sweep count grows with it (:meth:`StaticLinks.sweeps_at`); longer steps take its count (25
-#: with the default 2 sweeps). The sweeps run at every step. They once stood aside beyond this step, where limp hair
-#: (EI 1e-7) on their answer burst at one step a frame (3.5-16 m/s at 16-64 segments). Then the first, Jacobi pass
-#: alone put energy into linked hair there: five strands tied side by side and parted by a still sphere gained 20 %
-#: of their energy in a frame, and ``long_hair`` with its head collider off and the head still swung on at 150 mm/s
-#: RMS, tips up to 1.4 m/s. On the sweeps the rise is 1 % and that hair comes to rest (0.013 mm/s in the 8th
-#: second); the tips at one step a frame run 5.2 mm RMS from 16 substeps instead of 11.8, and the limp cells peak
-#: at 1.35-1.94 m/s (the first pass alone reached 2.65). On 2 sweeps the 64-segment limp cell burst (3.6 m/s).
+#: with the default 1 sweep, cold). The sweeps run at every step. They once stood aside beyond this step, where limp
+#: hair (EI 1e-7) on their answer burst at one step a frame (3.5-16 m/s at 16-64 segments). Then the first, Jacobi pass
+#: alone put energy into linked hair there: five strands tied side by side and parted by a still sphere gained 20 % of
+#: their energy in a frame, and ``long_hair`` with its head collider off and the head still swung on at 150 mm/s RMS,
+#: tips up to 1.4 m/s. On the sweeps the rise is 1 % and that hair comes to rest (0.013 mm/s in the 8th second); the
+#: tips at one step a frame run 5.2 mm RMS from 16 substeps instead of 11.8, and the limp cells peak at 1.35-1.94 m/s
+#: (the first pass alone reached 2.65). On 2 sweeps the 64-segment limp cell burst (3.6 m/s).
 SWEEP_GROWTH_STEP = 1.0 / 45.0
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
@@ -445,13 +463,16 @@ class StaticLinks:
         per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
         return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
 
-    def sweeps_at(self, dt: float) -> int:
-        """The sweeps a step of ``dt`` seconds takes: :attr:`sweeps` up to
-        :data:`SWEEP_REFERENCE_STEP`, and a step k times as long k ** :data:`SWEEP_GROWTH` times as many (rounded
-        up), up to :data:`SWEEP_GROWTH_STEP`; longer steps take that step's count (25 with the default 2, at one
-        step a frame)."""
-        growth = (min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP) ** SWEEP_GROWTH
-        return max(self.sweeps, math.ceil(self.sweeps * growth - 1e-9))
+    def sweeps_at(self, dt: float, cold: bool = False) -> int:
+        """The sweeps a step of ``dt`` seconds takes. One that starts from the links' force of the last step
+        (:attr:`warm_start`): :attr:`sweeps` up to :data:`SWEEP_REFERENCE_STEP`, and a step k times as long
+        k ** :data:`WARM_SWEEP_GROWTH` times as many (rounded up). One that starts ``cold``: :data:`COLD_SWEEPS` times
+        as many up to that step and k ** :data:`SWEEP_GROWTH` times those at longer ones. Steps longer than
+        :data:`SWEEP_GROWTH_STEP` take its count. With the default 1: 1 at 8 substeps of 30 fps, 16 at 2, and 25 at
+        one step a frame, which starts cold."""
+        k = min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP
+        base, growth = (self.sweeps * COLD_SWEEPS, SWEEP_GROWTH) if cold else (self.sweeps, WARM_SWEEP_GROWTH)
+        return max(base, math.ceil(base * k ** growth - 1e-9))
 
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment b adds its shares. ``seg_implicit_mass`` is left as it

@@ -101,11 +101,15 @@ class Stepper:
 
     def step(self):
         s_in, s_out = self.states[self.parity], self.states[1 - self.parity]
+        # the links' sweeps: a step of an odd count goes the other way round its colours from the last (a graph
+        # keeps the way it was captured with, one per parity)
+        self.solver.sweep_turn = self.parity
         if self.use_graph:
             graph = self._graphs[self.parity]
             if graph is None:
                 # the first step of each parity runs eagerly (loading the modules), the graph is captured after
                 self.solver.step(s_in, s_out, self.control, self.dt)
+                self.solver.sweep_turn = self.parity
                 with wp.ScopedCapture(device=self.solver.model.device) as capture:
                     self.solver.step(s_in, s_out, self.control, self.dt)
                 self._graphs[self.parity] = capture.graph

@@ -594,11 +594,12 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                               "segments' masses (link); auto: step at steps of 1/220 s or longer and for links too "
                               "stiff for the free step (step times sqrt(k/m) above 0.7), else link",
                               choices=("auto", "step", "link")),
-            "sweeps": Field("int", 2, "with the step response: Gauss-Seidel sweeps over the strands' links and "
-                            "hair contacts after the free step, per step of up to 1/240 s (a step k times as long "
-                            "takes k^1.5 times as many: 16 at 1/60 s, and steps longer than 1/45 s that step's 25); "
-                            "more hold the hair nearer its backward-Euler step, each costs about one more response "
-                            "solve",
+            "sweeps": Field("int", 1, "with the step response: Gauss-Seidel sweeps over the strands' links and "
+                            "hair contacts after the free step, per step of up to 1/240 s that starts from the "
+                            "links' last force (the warm start, at steps under 1/45 s), a step k times as long k^2 "
+                            "times as many (16 at 1/60 s); a step that starts cold twice as many, k^1.5 times those "
+                            "(25 at one step a frame); more hold the hair nearer its backward-Euler step, each "
+                            "costs about one more response solve",
                             range="[1, 64]"),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",

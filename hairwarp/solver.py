@@ -209,6 +209,9 @@ class Solver:
         # hair contacts' dampers, held through the sweeps; the sweeps' dampers (the links' and the contacts', their
         # blocks the same in every sweep); the inverse inertias shared
         self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
+        # the order of the colours in a step's first sweep: forward (0) or back (1); a step of an odd count of sweeps
+        # turns it for the next (``hairwarp.Stepper`` sets it from its parity before each step)
+        self.sweep_turn = 0
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -338,16 +341,16 @@ class Solver:
 
     def _warm_start(self, dt: float) -> bool:
         """Whether links solved after the free step put their force of the last step into it at steps of ``dt``
-        (``StaticLinks.link_warm``, kept after each step's sweeps), the response then solving the change: for the
-        linear part of the step the same answer (``kernels.links.link_response_ends``), but the free step's body
-        contacts carry the hair's weight with its links. Without, the sweeps moved the held vertices without their
-        contacts and the two solves traded the load every step: ``long_hair_shoulders`` with its head still crept
-        at 0.18 mm/s in the 6th second at its 8 substeps, 3.7 times the same hair without its colliders, one strand
-        sliding along the shoulders' capsule ever faster (1.6 mm/s), and 5.5 mm/s at 2 substeps; with the warm start
-        0.019 and 0.013. At steps shorter than ``WARM_START_STEP`` and a free-step rate (``StaticLinks.
-        free_step_rate``) within ``WARM_START_RATE``: the limp linked hair of the stability grid jitters at one
-        step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the mohawk at 2 substeps (rate
-        8.7) broke 2 links that no 16-substep run breaks."""
+        (``StaticLinks.link_warm``, kept after each step's sweeps), the response then solving the change: for the linear
+        part of the step the same answer (``kernels.links.link_response_ends``), but the free step's body contacts carry
+        the hair's weight with its links. Without, the sweeps moved the held vertices without their contacts and the two
+        solves traded the load every step: ``long_hair_shoulders`` with its head still crept at 0.18 mm/s in the 6th
+        second at its 8 substeps, 3.7 times the same hair without its colliders, one strand sliding along the shoulders'
+        capsule ever faster (1.6 mm/s), and 5.5 mm/s at 2 substeps; with the warm start 0.019 and 0.013 (2 and 16 sweeps
+        a step; on the one sweep a step it allows, 0.026 at 8 substeps). At steps shorter than ``WARM_START_STEP`` and a
+        free-step rate (``StaticLinks.free_step_rate``) within ``WARM_START_RATE``: the limp linked hair of the
+        stability grid jitters at one step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the
+        mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks."""
         links = self.links
         if not links.response or dt >= WARM_START_STEP:
             return False
@@ -457,7 +460,7 @@ class Solver:
         links = self.links if self.link_sweeps else None
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
         # the sweeps this step takes (``StaticLinks.sweeps_at``)
-        count = max(1, links.sweeps_at(self._dt_host)) if links is not None else 0
+        count = max(1, links.sweeps_at(self._dt_host, cold=not links.warm_start)) if links is not None else 0
         if links is None and contacts is None:  # responders without a pair: links asked for, none built
             if project:
                 with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
@@ -508,10 +511,13 @@ class Solver:
         held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
                    self.swept, self.scratch, self.factors]
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
-        # at every step, and hair at rest on a body crept); every sweep after the first solves the same matrices
+        # at every step, and hair at rest on a body crept); an odd count's last sweep goes the way the next step's
+        # first comes back; every sweep after the first solves the same matrices
+        turn = self.sweep_turn if count % 2 else 0
+        self.sweep_turn = (self.sweep_turn + count) % 2
         for sweep in range(count):
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
-            for strands in (links.color_views if sweep % 2 == 0 else reversed(links.color_views)):
+            for strands in (links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views)):
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
                         int(sweep == count - 1)]
                 # the fault bits (the last output) are private per chunk

@@ -815,10 +815,15 @@ def test_sweeps_converge_a_link_and_a_contact_to_their_coupled_backward_euler_st
             contacts.scatter = scatter  # the GPU's form: no contact lists per segment, the contacts held
             assert contacts.sweeps_contacts == (not scatter)
             solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, contacts=contacts, threads=1)
-            # 4 ** SWEEP_GROWTH as many at 4 h; at 1/30 s those of SWEEP_GROWTH_STEP (1/45 s, 5.33 h)
-            assert links.sweeps_at(h) == sweeps and links.sweeps_at(4.0 * h) == 8 * sweeps
-            longest = math.ceil(sweeps * (240 / 45) ** 1.5)
+            # a warm step 4 ** WARM_SWEEP_GROWTH as many at 4 h; at 1/30 s those of SWEEP_GROWTH_STEP (1/45 s,
+            # 5.33 h)
+            assert links.sweeps_at(h) == sweeps and links.sweeps_at(4.0 * h) == 16 * sweeps
+            longest = math.ceil(sweeps * (240 / 45) ** 2)
             assert links.sweeps_at(8.0 * h) == links.sweeps_at(240.0 / 45.0 * h) == longest
+            # a step that starts cold (without the links' last force) twice as many, 4 ** SWEEP_GROWTH times those at
+            # 4 h: 25 for 1 at one step a frame
+            assert links.sweeps_at(h, cold=True) == 2 * sweeps and links.sweeps_at(4.0 * h, cold=True) == 16 * sweeps
+            assert links.sweeps_at(8.0 * h, cold=True) == math.ceil(2 * sweeps * (240 / 45) ** 1.5)
             solver.set_dt(h)
             start = model.state()
             free = _with_point_velocities(solver, model, control, [[0.0, speed, 0.0], [0.0, -speed, 0.0]], L)
@@ -868,7 +873,7 @@ def _tied_lattice(k: float, sweeps: int, w0, h: float):
                               stiffness=k * REFERENCE_SEGMENT_LENGTH / L, damping=0.0,
                               break_length=1.0, response=True)
     solver = Solver(model, hw.Integrator.SEMI_IMPLICIT, links=links, threads=1)
-    links.sweeps_at = lambda dt: sweeps  # the step's sweeps, exactly
+    links.sweeps_at = lambda dt, cold=False: sweeps  # the step's sweeps, exactly
     control = model.control()
     m = float(model.seg_mass.numpy()[0])
     inertia = model.seg_inertia.numpy()[0].astype(np.float64)
@@ -920,11 +925,13 @@ def test_link_sweeps_take_energy_out_of_a_lattice(k):
     assert gap[1] > gap[8] > gap[64], ratio
 
 
-def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float):
+def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float, sweeps: int = 64,
+                       turning: bool = True):
     """A 3 x 4 grid of one-segment pendulums (as ``_tied_lattice``'s, ``implicit_joints``) tied by links of 2 N/m and
     0.002 N s/m, released with its joints turned at random by about ``amplitude`` [rad], run ``steps`` steps of ``h``
-    with 64 sweeps a step (converged), the links' force of the last step in the free step or not
-    (``Solver._warm_start``).
+    with ``sweeps`` sweeps a step (64: converged), the links' force of the last step in the free step or not
+    (``Solver._warm_start``); without ``turning`` every step's first sweep takes the colours forward
+    (``Solver.sweep_turn``).
     Returns the tips [m], the joint velocities [rad/s] and the links' free-step rate at ``h``."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
@@ -935,7 +942,7 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float)
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
                               stiffness=2.0 * REFERENCE_SEGMENT_LENGTH / L, damping=0.002, break_length=1.0,
                               response=True)
-    links.sweeps_at = lambda dt: 64
+    links.sweeps_at = lambda dt, cold=False: sweeps
     solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
     if not warm_start:
         solver._warm_start = lambda dt: False
@@ -945,6 +952,8 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float)
     state.joint_q.assign((turn * Rotation.from_quat(state.joint_q.numpy())).as_quat().astype(np.float32))
     solver.forward_kinematics(state, control)
     for _ in range(steps):
+        if not turning:
+            solver.sweep_turn = 0
         solver.step(state, other, control, h)
         state, other = other, state
     assert links.warm_start is warm_start and int(state.fault.numpy()[0]) == 0

@@ -567,6 +567,28 @@ def test_a_simulation_takes_its_scene_as_a_path_or_a_dict(tiny):
     assert np.array_equal(by_path.guide_curves()[0], x) and np.array_equal(by_dict.guide_curves()[0], x)
 
 
+def test_checkpoint_restores_a_run_whose_sweeps_turn_step_by_step():
+    """Links solved after the free step by an odd count of sweeps a step run their colours forward and back in turn
+    (``Solver.sweep_turn``, set from the stepper's parity, which the checkpoint keeps): a restored run repeats the
+    frames after the checkpoint bit for bit, though each frame of 5 steps ends on the other parity."""
+    sim = Simulation(hw.Scene.load(hw.Scene.default_path().parent / "long_hair.toml",
+                                   ["groom.count=40", "dense.count=0", "output.preview=false", "sim.substeps=5",
+                                    'links.response="step"']))
+    links = sim.solver.links
+    for _ in range(4):
+        sim.advance_frame()
+    assert links.warm_start and links.sweeps_at(sim.stepper.dt) % 2 == 1  # 3 a step: the turn matters
+    saved = sim.checkpoint()
+    ahead = []
+    for _ in range(3):
+        sim.advance_frame()
+        ahead.append(sim.guide_curves()[0].copy())
+    sim.restore(saved)
+    for expected in ahead:
+        sim.advance_frame()
+        np.testing.assert_array_equal(sim.guide_curves()[0], expected)
+
+
 def test_restore_poses_the_head_for_the_checkpoints_time(tiny):
     """After ``restore`` the control holds the head of the checkpoint's time, not of the frame the run had reached:
     what is read before the next step (dense hair, collider meshes) follows it. The run from there is the same bits

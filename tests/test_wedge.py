@@ -345,7 +345,10 @@ def test_ctrl_c_cancels_closes_the_cluster_and_exits_130(tmp_path):
     cmd = [sys.executable, "-m", "hairwarp", "wedge", str(TINY), "-w", "strands.bend_stiffness=1e-3,2e-3,3e-3",
            "--frames", "100000", "--workers", "2", "-o", str(out)]
     with open(err_path, "w") as err:
-        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+        # Ctrl-C as a terminal's foreground job gets it: a shell starts background jobs with SIGINT ignored, which
+        # their children inherit, and Python then raises no KeyboardInterrupt
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + CLI_TIMEOUT_S
         while "2 running" not in err_path.read_text() and time.monotonic() < deadline and p.poll() is None:
