@@ -136,6 +136,10 @@ class Solver:
             (:meth:`speed_bound`; default :data:`SPEED_MARGIN`, inf: no bound).
         threads: CPU threads the launches of a step run on (:class:`hairwarp.executor.Executor`); None or 0:
             every core this process may use. Results are the same bits for any count. Ignored on CUDA.
+        executor: another solver's :class:`hairwarp.executor.Executor` (its ``executor``) to run this one's launches
+            on its threads, instead of a pool of this solver's own (then give no ``threads``). Two solvers of one
+            process that step in turn then never compete for the cores: an idle pool's threads spin a millisecond
+            for the next launch, which another pool's launch right after loses to them.
 
     Everything a step needs is allocated here. ``step`` only launches kernels on
     ``model.device`` and never copies to the host, so it can be captured in a graph; the step
@@ -144,9 +148,15 @@ class Solver:
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
                  max_rotation_per_step: float = DEFAULT_MAX_ROTATION, speed_margin: float = SPEED_MARGIN,
-                 threads: int | None = None):
+                 threads: int | None = None, executor: Executor | None = None):
         self.model = model
-        self.executor = Executor(model.device, threads)
+        if executor is not None:
+            if threads is not None:
+                raise ValueError("give threads or an executor to share, not both (the executor's threads run it)")
+            if not isinstance(executor, Executor) or executor.device != wp.get_device(model.device):
+                raise ValueError(f"executor must be a hairwarp.executor.Executor on the model's device "
+                                 f"{model.device}, got {executor!r}")
+        self.executor = executor if executor is not None else Executor(model.device, threads)
         self.integrator = _integrator(integrator)
         self.colliders = colliders
         self.links = links

@@ -162,6 +162,35 @@ def test_small_scene_with_links_same_bits_on_two_threads():
         np.testing.assert_array_equal(x, tips[0])
 
 
+def test_solvers_sharing_an_executor_step_as_each_alone():
+    """A solver may run on another's executor (``Solver(executor=...)``): its steps are the same bits as on a pool of
+    its own, both solvers stepping in turn on the one pool; a thread count as well, or an executor of another kind,
+    is refused."""
+    from hairwarp.solver import Solver
+
+    model = hw.Model.build(hw.Groom.from_polylines(
+        [np.stack([np.full(9, 0.01 * g), np.zeros(9), -np.linspace(0.0, 0.16, 9)], axis=1) for g in range(200)]),
+        hw.StrandParams(), segments=8)
+    first = Solver(model, threads=2)
+    shared, own = Solver(model, executor=first.executor), Solver(model, threads=2)
+    assert shared.executor is first.executor
+    control = model.control()
+    start = model.state()
+    start.joint_qd.assign(np.random.default_rng(1).normal(0.0, 1.0, (model.seg_count, 3)).astype(np.float32))
+    first.forward_kinematics(start, control)
+    ends = {}
+    for name, solver in (("first", first), ("shared", shared), ("own", own)):
+        ends[name] = model.state()
+        solver.step(start, ends[name], control, 1.0 / 240.0)
+    for name in ("shared", "own"):
+        for key in ("joint_q", "joint_qd", "vertex_positions"):
+            np.testing.assert_array_equal(getattr(ends[name], key).numpy(), getattr(ends["first"], key).numpy())
+    with pytest.raises(ValueError, match="not both"):
+        Solver(model, threads=1, executor=first.executor)
+    with pytest.raises(ValueError, match="Executor"):
+        Solver(model, executor=object())
+
+
 @pytest.mark.parametrize("capacity", [0, 500])
 def test_detection_on_threads_finds_the_contacts_of_one_thread_in_its_order(capacity):
     """On several threads the trees are fitted and the contacts found as one set of tasks (the segment tree's

@@ -420,7 +420,10 @@ def bench_collision_cost(quick: bool = False, device=None, *, groom_path=None, b
     s_out = model.state()
     control = stepper.control
     full = sim.solver
-    dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step))
+    # on the simulation's threads: timed in turn with its step, a pool of its own would find the other's threads
+    # still spinning after their last launch
+    dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step),
+                      executor=full.executor)
     dynamics.set_dt(dt)
     full.set_dt(dt)
     integrated = model.state()

@@ -67,7 +67,10 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     state, control, dt, substeps = stepper.state, stepper.control, stepper.dt, stepper.substeps
     links, base = sim.links, sim.contacts
     out_state = model.state()
-    dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step))
+    # on the simulation's threads: timed in turn with its stages, a pool of its own would find the other's threads
+    # still spinning after their last launch
+    dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step),
+                      executor=sim.solver.executor)
     dynamics.set_dt(dt)
     n = model.seg_count
     force = wp.zeros(n, dtype=wp.vec3, device=device)
