@@ -339,8 +339,8 @@ def md_interactions(data: dict) -> list[str]:
               f"{first.get('substeps')} substeps; detection once per frame within the margin, margin 0: detection in "
               "every step), each stage timed on the same state, interleaved, medians; `per step` = links + contact "
               "forces + response + (refit + detection) / substeps, `response` the scene's solve of its links (and "
-              "contacts) after the free step (its `response = \"step\"`: the first pass and the sweeps), the free "
-              "step with it less without it.", "",
+              "contacts) after the free step (its `response = \"step\"`: its sweeps from the free step, one a "
+              "step), the free step with it less without it; every stage on the simulation's threads.", "",
               "| guides | margin | stored / active pairs | links ms | response ms | refit ms | vertex-face ms "
               "| segment-segment ms | forces ms | per step ms | dynamics ms | × dynamics |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
