@@ -144,6 +144,12 @@ class Solver:
     Everything a step needs is allocated here. ``step`` only launches kernels on
     ``model.device`` and never copies to the host, so it can be captured in a graph; the step
     size lives in a one-element device array, so a captured graph follows a new ``dt``.
+
+    ``sweep_turn`` (0 or 1) is the order of the strands' colours in the next step's first sweep of links solved after
+    the free step, forward or back; a step of an odd count of sweeps turns it, so that one sweep a step runs the
+    colours forward and back in turn. :class:`hairwarp.Stepper` sets it from its parity before each step (so a
+    checkpoint and the graphs captured per parity keep it); a caller that steps the solver itself and restores a run
+    sets it as it was.
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
