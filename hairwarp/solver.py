@@ -228,6 +228,7 @@ class Solver:
         # the order of the colours in a step's first sweep: forward (0) or back (1); a step of an odd count of sweeps
         # turns it for the next (``hairwarp.Stepper`` sets it from its parity before each step)
         self.sweep_turn = 0
+        self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -370,7 +371,10 @@ class Solver:
         links = self.links
         if not links.response or dt >= WARM_START_STEP:
             return False
-        return links.free_step_rate(self.model.seg_mass.numpy(), dt) <= WARM_START_RATE
+        # the rate per second of step, read from the host once per stiffness: a new step size costs no copy
+        if self._link_rate is None or self._link_rate[0] != links.stiffness:
+            self._link_rate = (links.stiffness, links.free_step_rate(self.model.seg_mass.numpy(), 1.0))
+        return dt * self._link_rate[1] <= WARM_START_RATE
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""

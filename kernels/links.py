@@ -249,26 +249,25 @@ def link_forces(
             if warm_start == 0:
                 continue
             f = link_warm[link]
-        # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
-        u = wp.vec3()
         if response == 0:
+            # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
             u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions,
                                                                  vertex_velocities, xb)
-        if response == 0 and implicit_springs != 0:
-            com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
-            W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(b, xb - com_b, seg_mass,
-                                                                                           seg_length)
-            # (I + h W (h k I + c n n^T)) f = k l - (h k I + c n n^T) u, along n and across it
-            f = f - hk * u
-            f_n = wp.vec3()
-            if length > LINK_MIN_LENGTH:
+            if implicit_springs != 0:
+                com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
+                W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(
+                    b, xb - com_b, seg_mass, seg_length)
+                # (I + h W (h k I + c n n^T)) f = k l - (h k I + c n n^T) u, along n and across it
+                f = f - hk * u
+                f_n = wp.vec3()
+                if length > LINK_MIN_LENGTH:
+                    n = l / length
+                    f_n = (wp.dot(f, n) - c * wp.dot(u, n)) * n
+                    f = f - wp.dot(f, n) * n
+                f = f / (1.0 + h * hk * W) + f_n / (1.0 + h * (hk + c) * W)
+            elif length > LINK_MIN_LENGTH:
                 n = l / length
-                f_n = (wp.dot(f, n) - c * wp.dot(u, n)) * n
-                f = f - wp.dot(f, n) * n
-            f = f / (1.0 + h * hk * W) + f_n / (1.0 + h * (hk + c) * W)
-        elif response == 0 and length > LINK_MIN_LENGTH:
-            n = l / length
-            f = f - c * wp.dot(u, n) * n
+                f = f - c * wp.dot(u, n) * n
 
         ob = wp.transform_get_translation(xf_b)
         tau = wp.cross(xa - oa, f)

@@ -925,13 +925,11 @@ def test_link_sweeps_take_energy_out_of_a_lattice(k):
     assert gap[1] > gap[8] > gap[64], ratio
 
 
-def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float, sweeps: int = 64,
-                       turning: bool = True):
+def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float):
     """A 3 x 4 grid of one-segment pendulums (as ``_tied_lattice``'s, ``implicit_joints``) tied by links of 2 N/m and
     0.002 N s/m, released with its joints turned at random by about ``amplitude`` [rad], run ``steps`` steps of ``h``
-    with ``sweeps`` sweeps a step (64: converged), the links' force of the last step in the free step or not
-    (``Solver._warm_start``); without ``turning`` every step's first sweep takes the colours forward
-    (``Solver.sweep_turn``).
+    with 64 sweeps a step (converged), the links' force of the last step in the free step or not
+    (``Solver._warm_start``).
     Returns the tips [m], the joint velocities [rad/s] and the links' free-step rate at ``h``."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
@@ -942,7 +940,7 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float,
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006,
                               stiffness=2.0 * REFERENCE_SEGMENT_LENGTH / L, damping=0.002, break_length=1.0,
                               response=True)
-    links.sweeps_at = lambda dt, cold=False: sweeps
+    links.sweeps_at = lambda dt, cold=False: 64
     solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
     if not warm_start:
         solver._warm_start = lambda dt: False
@@ -952,8 +950,6 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float,
     state.joint_q.assign((turn * Rotation.from_quat(state.joint_q.numpy())).as_quat().astype(np.float32))
     solver.forward_kinematics(state, control)
     for _ in range(steps):
-        if not turning:
-            solver.sweep_turn = 0
         solver.step(state, other, control, h)
         state, other = other, state
     assert links.warm_start is warm_start and int(state.fault.numpy()[0]) == 0

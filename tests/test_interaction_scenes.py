@@ -357,6 +357,8 @@ def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
         return float(np.sqrt(np.mean(np.sum((tips - converged) ** 2, axis=-1))))
 
     turned, forward = rms(_shoulders_tips()), rms(_shoulders_tips(turning=False))
+    # twice the turned sweep's 0.20 mm, and half the forward one's lead (8.4 times): room for the float32 sums of 90
+    # frames on another machine, far from both sides of the difference the test decides
     assert turned < 0.4e-3 and forward > 4.0 * turned, (turned, forward)
 
 
