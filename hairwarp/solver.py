@@ -539,7 +539,7 @@ class Solver:
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views)):
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
-                        int(sweep == count - 1)]
+                        int(sweep == 0 and count > 1), int(sweep == count - 1)]
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])

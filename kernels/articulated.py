@@ -1216,6 +1216,7 @@ def damper_solve(
     dampers: InteractionResponse,
     factors: DamperFactors,
     reuse: int,
+    keep: int,
 ):
     """``body_contact_solve`` without body contacts, the same bits: ``(M_eff + h J^T C J) dw = J^T F`` with the
     dampers' point inertias and forces and the segments' spins held (``spin_hold``), ``joint_qd`` corrected in place.
@@ -1244,9 +1245,10 @@ def damper_solve(
             Dinv, DA, DB, cA, cB, cC = factor_joint(chains, i, k, h, implicit, joint_q, A, B, C)
             scratch.DA[i] = DA
             scratch.DB[i] = DB
-            factors.Dinv[i] = Dinv
-            factors.A[i] = A
-            factors.B[i] = B
+            if keep != 0:
+                factors.Dinv[i] = Dinv
+                factors.A[i] = A
+                factors.B[i] = B
         else:
             Dinv = factors.Dinv[i]
             A = factors.A[i]

@@ -17,8 +17,6 @@ net torque but that spin component.
 
 import warp as wp
 
-from hairwarp.kernels.spatial import skew
-
 wp.set_module_options({"enable_backward": False})
 
 # Below this length [m] (well under float32 resolution of hair coordinates) the direction of l is
@@ -487,17 +485,3 @@ def link_response_ends(
     ends.force[link] = kl - P * v_a
     ends.force[link_point_a.shape[0] + link_b_slot[link]] = -kl - P * v_b
     ends.axis[link] = n
-
-
-@wp.func
-def link_end_blocks(h: float, hk: float, c: float, r: wp.vec3, n: wp.vec3):
-    """The blocks of a link end's point inertia ``h P`` at ``r``, ``P = h k I + c n n^T`` (``hk`` = h k; ``r``, ``n`` in
-    the segment's frame), in closed form: with ``m = r x n``, ``A = -[r]x h P [r]x = h (h k (|r|^2 I - r r^T) + c m
-    m^T)``, ``B = [r]x h P = h (h k [r]x + c m n^T)``, ``C = h P``; the spin about the segment's axis still in them
-    (``spin_free_rotation``, ``spin_free_coupling`` take it out of the sums, as ``point_damper_blocks`` does)."""
-    eye = wp.identity(n=3, dtype=float)
-    m = wp.cross(r, n)
-    A = h * (hk * (wp.dot(r, r) * eye - wp.outer(r, r)) + c * wp.outer(m, m))
-    B = h * (hk * skew(r) + c * wp.outer(m, n))
-    C = h * (hk * eye + c * wp.outer(n, n))
-    return A, B, C

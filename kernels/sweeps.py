@@ -24,7 +24,8 @@ from hairwarp.kernels.articulated import (
     spin_free_torque,
 )
 from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, SweepContacts, sweep_entry_force
-from hairwarp.kernels.links import LinkEnds, end_slot, link_end_blocks, seg_point_velocity
+from hairwarp.kernels.links import LinkEnds, end_slot, seg_point_velocity
+from hairwarp.kernels.spatial import skew
 
 wp.set_module_options({"enable_backward": False})
 
@@ -47,6 +48,15 @@ def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
         dw = dw + wp.quat_rotate(wp.transform_get_rotation(seg_xform_in[i]), joint_qd[i] - free_qd[i])
         dv = dv + wp.cross(dw, vertex_positions_in[vbase + k + 1] - vertex_positions_in[vbase + k])
         answered_velocities[vbase + k + 1] = free_velocities[vbase + k + 1] + dv
+
+
+@wp.func
+def moment_inertia(S: wp.mat33):
+    """``trace(S) I - S`` of a sum of outer products ``S = sum w r r^T``, i.e. ``sum w (|r|^2 I - r r^T)``, each
+    diagonal entry the sum of the other two (no difference of the large and the small along an arm)."""
+    return wp.mat33(S[1, 1] + S[2, 2], -S[0, 1], -S[0, 2],
+                    -S[1, 0], S[0, 0] + S[2, 2], -S[1, 2],
+                    -S[2, 0], -S[2, 1], S[0, 0] + S[1, 1])
 
 
 @wp.func
@@ -149,6 +159,8 @@ def link_sweep(
     scratch: AbaScratch,
     factors: DamperFactors,
     reuse: int,
+    # 1 on a step's first sweep when later ones follow, which read the factors and arms it keeps
+    keep: int,
     # 1 on the step's last sweep, whose answer the strand keeps: only then its joints are turned and its forward
     # kinematics run (the sweeps before read only ``answered_velocities``, from the joint velocities)
     last: int,
@@ -222,6 +234,17 @@ def link_sweep(
                 C = dampers.C[seg]
         if a_first != a_last or b_first != b_last:
             Rt = wp.transpose(wp.quat_to_matrix(R))
+            # an end's point inertia h P at its arm r (the segment's frame), P = h k I + c n n^T, has the blocks
+            # A = -[r]x h P [r]x = h (h k (|r|^2 I - r r^T) + c m m^T), B = [r]x h P = h (h k [r]x + c m n^T) and
+            # C = h P, m = r x n; summed by their moments, with w = h^2 k: (sum w |r|^2) I - sum w r r^T
+            # (``moment_inertia``), [sum w r]x and (sum w) I, the dampers' parts end by end; the spin about the
+            # segment's axis goes at the end (``spin_free_rotation``, ``spin_free_coupling``)
+            w_sum = float(0.0)
+            wr_sum = wp.vec3()
+            wrr_sum = wp.mat33()
+            Ad = wp.mat33()
+            Bd = wp.mat33()
+            Cd = wp.mat33()
             for j in range(a_first, b_last - b_first + a_last):
                 link, side, slot = end_slot(j, a_last, b_first, link_count, b_slot_link)
                 if link_broken[link] == 0:
@@ -237,25 +260,33 @@ def link_sweep(
                     v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
                     n = ends.axis[link]
                     scale = link_scale[link]
+                    hk = h * link_stiffness * scale
+                    c = link_damping * scale
                     arm = wp.vec3()
                     if reuse == 0:
-                        arm = wp.quat_rotate_inv(R, own - origin)
-                        Ae, Be, Ce = link_end_blocks(h, h * link_stiffness * scale, link_damping * scale, arm,
-                                                     wp.quat_rotate_inv(R, n))
-                        A += Ae
-                        B += Be
-                        C += Ce
-                        ends.arm[slot] = arm
+                        arm = Rt * (own - origin)
+                        w = h * hk
+                        w_sum += w
+                        wr_sum += w * arm
+                        wrr_sum += wp.outer(w * arm, arm)
+                        nl = Rt * n
+                        m = wp.cross(arm, nl)
+                        hc = h * c
+                        Ad += wp.outer(hc * m, m)
+                        Bd += wp.outer(hc * m, nl)
+                        Cd += wp.outer(hc * nl, nl)
+                        if keep != 0:
+                            ends.arm[slot] = arm
                     else:
                         arm = ends.arm[slot]
-                    f = Rt * (ends.force[slot] + (h * link_stiffness * scale) * v
-                              + (link_damping * scale) * wp.dot(n, v) * n)
+                    f = Rt * (ends.force[slot] + hk * v + c * wp.dot(n, v) * n)
                     force += f
                     torque += spin_free_torque(arm, f)
             if reuse == 0:
-                dampers.A[seg] = spin_free_rotation(A)
-                dampers.B[seg] = spin_free_coupling(B)
-                dampers.C[seg] = C
+                eye = wp.identity(n=3, dtype=float)
+                dampers.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad)
+                dampers.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
+                dampers.C[seg] = C + w_sum * eye + Cd
         elif reuse == 0 and contacts_swept == 0:
             dampers.A[seg] = A
             dampers.B[seg] = B
@@ -265,7 +296,8 @@ def link_sweep(
     # the strand's answer from its free step, with the factors of the step's first sweep kept
     for k in range(S):
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
-    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse)
+    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse,
+                 keep)
     if last != 0:
         b = strand * bases.per_strand
         finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,

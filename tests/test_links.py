@@ -403,12 +403,13 @@ def _skew(v):
 
 
 def test_response_damper_blocks_match_their_product_form():
-    """The step's first sweep sums each segment's link-end dampers in closed form (``link_end_blocks``); here they are
-    formed as the products they stand for, in float64, from the link ends the force pass left and the segments'
-    frames at the step's start: at each end's point ``r`` (the segment's frame) the point inertia
-    ``M = h R^T (h k I + c n n^T) R`` (k and c times the link's scale), its blocks ``A = -[r]x M [r]x`` and
-    ``B = [r]x M`` without the spin about the segment's axis, ``C = M``; and the ends' arms. Three strands of 4
-    segments, tilted at random and turning, linked to their 2 nearest segments; one sweep a step."""
+    """The step's first sweep sums each segment's link-end dampers in closed form, by their moments
+    (``kernels.sweeps.link_sweep``); here they are formed as the products they stand for, in float64, from the link
+    ends the force pass left and the segments' frames at the step's start: at each end's point ``r`` (the segment's
+    frame) the point inertia ``M = h R^T (h k I + c n n^T) R`` (k and c times the link's scale), its blocks
+    ``A = -[r]x M [r]x`` and ``B = [r]x M`` without the spin about the segment's axis, ``C = M``; and the ends' arms,
+    which the first of two sweeps keeps for the second. Three strands of 4 segments, tilted at random and turning,
+    linked to their 2 nearest segments."""
     import hairwarp as hw
     from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
@@ -422,8 +423,8 @@ def test_response_damper_blocks_match_their_product_form():
     model = Model.build(hw.Groom.from_polylines(polys), StrandParams(bend_stiffness=1e-4), segments=S)
     h, k, c = 1.0 / 240.0, 3.0, 0.4  # a damping of the stiffness' order over the step: both parts of P count
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.01, stiffness=k, damping=c,
-                              break_length=1.0, response=True, sweeps=1)
-    assert links.link_count > 0 and links.sweeps_at(h) == 1
+                              break_length=1.0, response=True, sweeps=2)
+    assert links.link_count > 0 and links.sweeps_at(h) == 2
     solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
     control = model.control()
     start, end = model.state(), model.state()
