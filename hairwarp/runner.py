@@ -114,6 +114,7 @@ class Stepper:
                     self.solver.step(s_in, s_out, self.control, self.dt)
                 self._graphs[self.parity] = capture.graph
             else:
+                self.solver.plan_factors()  # what the captured sweep reads (``Solver.plan_factors``)
                 wp.capture_launch(graph)
         else:
             self.solver.step(s_in, s_out, self.control, self.dt)
@@ -151,6 +152,9 @@ class Stepper:
         return bits
 
     def _frame(self, before_step):
+        # every frame makes its own factors for the links' sweeps: a frame taken again, or a run resumed at it, solves
+        # as the run that went through it did
+        self.solver.expire_factors()
         for _ in range(self.substeps):
             if before_step is not None:
                 before_step(self.time + self.dt, self.control)

@@ -35,6 +35,10 @@ EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
 #: the bound first.
 DEFAULT_MAX_ROTATION = 1.0
 
+#: Steps that one factorisation of the strands' matrices serves in the links' sweeps after the free step, the first
+#: of them making it (``Solver.plan_factors``; 1: every step its own). 8: a frame at the shipped 8 substeps.
+FACTOR_STEPS = 8
+
 #: Free-step rate (step times ``sqrt(k / m)``, :meth:`Solver._rates`) of the static links past which a fault of the
 #: free step is theirs: on ``long_hair`` at 8 substeps links of 10 N/m a link (2.0; 3.5 N/m at 1 cm) run, 20 N/m
 #: (2.8) whip at 18 m/s and 30 N/m (3.5) go non-finite, while ``links.enabled = false`` or ``links.response = "step"``
@@ -239,8 +243,17 @@ class Solver:
             self.held = _dampers(n, device, dampers)
             self.swept = _dampers(n, device, dampers)
             factors = self.factors = articulated.DamperFactors()
-            for name in ("Dinv", "A", "B"):
+            for name in ("Dinv", "A", "B", "DA", "DB"):
                 setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
+            # whether a step of one sweep solves with the factors an earlier step kept, or keeps its own
+            # (``plan_factors``): [reuse, keep], read by the sweep's launch
+            self.carried = wp.zeros(2, dtype=wp.int32, device=device)
+            self._carried_set = (0, 0)
+            self._carried_view = None if device.is_cuda else self.carried.numpy()
+            self._carried_presets = {}
+        self.factor_steps = FACTOR_STEPS
+        self._factor_age = None  # steps since the kept factors were made (None: none to use)
+        self._factored_dt = None
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -294,6 +307,8 @@ class Solver:
             # raise the bound it is checked against (not inside a graph capture, which reads nothing back: a
             # captured first step leaves it to the next eager one)
             self.measure_start_speed(state_in)
+        if not self.model.device.is_capturing:
+            self.plan_factors()  # a captured step reads what the host sets before each replay
         body = self.body_contacts.enabled
         self._force_passes(state_in, control, detect_body=body)
         # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
@@ -355,6 +370,49 @@ class Solver:
                     # forces kept while the warm start was on would be stale when a later step turns it on again
                     self.links.link_warm.zero_()
                 self.links.warm_start = warm
+            self.expire_factors()
+
+    def expire_factors(self):
+        """Make the next step of links solved after the free step factor its matrices afresh (``plan_factors``):
+        :class:`hairwarp.Stepper` calls it at the start of every frame, so that a frame taken again or a run resumed
+        from a checkpoint solves as the run that went through it did."""
+        self._factor_age = None
+
+    def plan_factors(self):
+        """Decide, before a step, whether its sweep of the links solved after the free step factors the strands'
+        matrices afresh or solves with those an earlier step kept, and set it where the sweep reads it
+        (``carried``; :class:`hairwarp.Stepper` calls it before replaying a captured step).
+
+        A step of one sweep (``links.sweeps_at``) that starts from the links' last force (the warm start) and holds
+        no hair contacts of its own may solve with the factors of a step at most :attr:`factor_steps` - 1 before it:
+        the matrix, the strand's inertia with its links' dampers, changes with the strands' joints and the links'
+        directions, little over a few steps of 1/240 s, and the answer is that of a matrix a few steps old applied
+        to this step's forces. The factors are the sweep's costliest part (a 3 x 3 inverse and block products a
+        segment); the forces, the answer and the strands' own update are this step's. Measured, docs/interactions.md
+        ("Factors carried over steps"). A link that breaks keeps its damper in the carried factors until the next
+        are made."""
+        if not self.link_sweeps:
+            return
+        links = self.links
+        count = max(1, links.sweeps_at(self._dt_host, cold=not links.warm_start))
+        contacts_respond = self.contacts is not None and self.contacts.response
+        carries = count == 1 and links.warm_start and not contacts_respond and self.factor_steps > 1
+        age = self._factor_age
+        if not carries:
+            flags, self._factor_age = (0, 0), None
+        elif age is not None and age + 1 < self.factor_steps and self._factored_dt == self._dt_host:
+            flags, self._factor_age = (1, 0), age + 1
+        else:
+            flags, self._factor_age, self._factored_dt = (0, 1), 0, self._dt_host
+        if flags != self._carried_set or self.model.device.is_cuda:
+            if self._carried_view is not None:
+                self._carried_view[:] = flags
+            else:
+                preset = self._carried_presets.get(flags)
+                if preset is None:
+                    preset = self._carried_presets[flags] = wp.array(flags, dtype=wp.int32, device=self.model.device)
+                wp.copy(self.carried, preset)
+            self._carried_set = flags
 
     def _warm_start(self, dt: float) -> bool:
         """Whether links solved after the free step put their force of the last step into it at steps of ``dt``
@@ -539,7 +597,7 @@ class Solver:
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views)):
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
-                        int(sweep == 0 and count > 1), int(sweep == count - 1)]
+                        int(sweep == 0 and count > 1), self.carried, int(sweep == count - 1)]
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])

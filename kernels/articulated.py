@@ -137,12 +137,15 @@ class AbaScratch:
 @wp.struct
 class DamperFactors:
     """Per segment, what the inward pass of a solve with dampers makes of the strand's matrix (``damper_solve``):
-    ``D^-1`` and the articulated blocks ``A``, ``B`` (dampers and children included), kept for later solves of the
-    same matrix with other forces."""
+    ``D^-1``, the articulated blocks ``A``, ``B`` (dampers and children included) and ``D^-1 A``, ``D^-1 B``, kept
+    for later solves of the same matrix with other forces (the step's later sweeps, or the later steps' that the
+    links' response lets keep them: ``hairwarp.Solver.factor_steps``)."""
 
     Dinv: wp.array(dtype=wp.mat33)
     A: wp.array(dtype=wp.mat33)
     B: wp.array(dtype=wp.mat33)
+    DA: wp.array(dtype=wp.mat33)
+    DB: wp.array(dtype=wp.mat33)
 
 
 @wp.func
@@ -1220,9 +1223,8 @@ def damper_solve(
 ):
     """``body_contact_solve`` without body contacts, the same bits: ``(M_eff + h J^T C J) dw = J^T F`` with the
     dampers' point inertias and forces and the segments' spins held (``spin_hold``), ``joint_qd`` corrected in place.
-    Its inward pass keeps the matrix's factors (``factors``; ``D^-1 A``, ``D^-1 B`` in ``scratch``); with ``reuse`` it
-    reads them instead, for the same matrix with other forces (the links' sweeps after their first: O(S) vector work,
-    no 3 x 3 inverse or block product)."""
+    With ``keep`` its inward pass keeps the matrix's factors (``factors``); with ``reuse`` it reads them instead, for
+    the same matrix with other forces (O(S) vector work, no 3 x 3 inverse or block product)."""
     S = chains.seg_per_strand
     cA = wp.mat33()
     cB = wp.mat33()
@@ -1249,6 +1251,8 @@ def damper_solve(
                 factors.Dinv[i] = Dinv
                 factors.A[i] = A
                 factors.B[i] = B
+                factors.DA[i] = DA
+                factors.DB[i] = DB
         else:
             Dinv = factors.Dinv[i]
             A = factors.A[i]
@@ -1265,7 +1269,11 @@ def damper_solve(
         r = joint_offset(chains, strand, k, i)
         a_ang = wp.quat_rotate_inv(q, a_ang_p)
         a_lin = wp.quat_rotate_inv(q, a_lin_p + wp.cross(a_ang_p, r))
-        qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+        qdd = wp.vec3()
+        if reuse == 0:
+            qdd = scratch.Du[i] - scratch.DA[i] * a_ang - scratch.DB[i] * a_lin
+        else:
+            qdd = scratch.Du[i] - factors.DA[i] * a_ang - factors.DB[i] * a_lin
         a_ang_p = a_ang + qdd
         a_lin_p = a_lin
         joint_qd[i] = joint_qd[i] + h * qdd

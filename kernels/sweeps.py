@@ -154,13 +154,17 @@ def link_sweep(
     # The sweeps' dampers: their blocks, built by the step's first sweep (the hair contacts' there already with
     # ``contacts_swept``) and the same in every later one; their forces, written here
     dampers: InteractionResponse,
-    # Scratch: with ``reuse`` (every sweep of a step after its first) the factors of the strand's matrix that the
-    # first made
+    # Scratch: with ``reuse`` (every sweep of a step after its first; ``carried``) the factors of the strand's matrix
+    # that the first made (or an earlier step)
     scratch: AbaScratch,
     factors: DamperFactors,
     reuse: int,
     # 1 on a step's first sweep when later ones follow, which read the factors and arms it keeps
     keep: int,
+    # For a step of one sweep: [0] 1 where it solves with the factors and arms an earlier step kept (no blocks built,
+    # no factorisation), [1] 1 where it keeps its own for later steps (``hairwarp.Solver.factor_steps``); read at
+    # the launch, so a captured step follows what the host set before it replays
+    carried: wp.array(dtype=wp.int32),
     # 1 on the step's last sweep, whose answer the strand keeps: only then its joints are turned and its forward
     # kinematics run (the sweeps before read only ``answered_velocities``, from the joint velocities)
     last: int,
@@ -196,6 +200,12 @@ def link_sweep(
     S = chains.seg_per_strand
     h = dt[0]
     link_count = link_point_a.shape[0]
+    reusing = int(reuse)
+    keeping = int(keep)
+    if carried[0] != 0:
+        reusing = 1
+    if carried[1] != 0:
+        keeping = 1
     for k in range(S):
         seg = strand * S + k
         joint_q_out[seg] = free_q[seg]
@@ -224,7 +234,7 @@ def link_sweep(
         A = wp.mat33()
         B = wp.mat33()
         C = wp.mat33()
-        if reuse == 0:
+        if reusing == 0:
             A = held.A[seg]
             B = held.B[seg]
             C = held.C[seg]
@@ -263,7 +273,7 @@ def link_sweep(
                     hk = h * link_stiffness * scale
                     c = link_damping * scale
                     arm = wp.vec3()
-                    if reuse == 0:
+                    if reusing == 0:
                         arm = Rt * (own - origin)
                         w = h * hk
                         w_sum += w
@@ -275,19 +285,19 @@ def link_sweep(
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
                         Cd += wp.outer(hc * nl, nl)
-                        if keep != 0:
+                        if keeping != 0:
                             ends.arm[slot] = arm
                     else:
                         arm = ends.arm[slot]
                     f = Rt * (ends.force[slot] + hk * v + c * wp.dot(n, v) * n)
                     force += f
                     torque += spin_free_torque(arm, f)
-            if reuse == 0:
+            if reusing == 0:
                 eye = wp.identity(n=3, dtype=float)
                 dampers.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad)
                 dampers.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
                 dampers.C[seg] = C + w_sum * eye + Cd
-        elif reuse == 0 and contacts_swept == 0:
+        elif reusing == 0 and contacts_swept == 0:
             dampers.A[seg] = A
             dampers.B[seg] = B
             dampers.C[seg] = C
@@ -296,8 +306,8 @@ def link_sweep(
     # the strand's answer from its free step, with the factors of the step's first sweep kept
     for k in range(S):
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
-    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reuse,
-                 keep)
+    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reusing,
+                 keeping)
     if last != 0:
         b = strand * bases.per_strand
         finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,

@@ -325,10 +325,13 @@ def test_links_hold_at_two_steps_a_frame():
     assert rms < 0.025, rms
 
 
-def _shoulders_tips(overrides=(), turning: bool = True) -> np.ndarray:
+def _shoulders_tips(overrides=(), turning: bool = True, factor_steps: int | None = None) -> np.ndarray:
     """Guide tips of every frame of ``long_hair_shoulders`` as shipped (its links solved after the free step, with
-    the warm start), with ``overrides``; without ``turning`` every step's sweeps take the colours forward."""
+    the warm start), with ``overrides``; without ``turning`` every step's sweeps take the colours forward; with
+    ``factor_steps``, the solver's (``Solver.factor_steps``)."""
     sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", ["output.preview=false", *overrides]))
+    if factor_steps is not None:
+        sim.solver.factor_steps = factor_steps
     if not turning:
         respond = sim.solver._respond
 
@@ -360,6 +363,36 @@ def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
     # twice the turned sweep's 0.20 mm, and half the forward one's lead (8.4 times): room for the float32 sums of 90
     # frames on another machine, far from both sides of the difference the test decides
     assert turned < 0.4e-3 and forward > 4.0 * turned, (turned, forward)
+
+
+def test_factors_carried_over_a_frame_keep_the_sweeps_answer():
+    """The one sweep a step solves with the factors of the strands' matrices (their inertia with the links' dampers)
+    that the frame's first step made (``Solver.plan_factors``): ``long_hair_shoulders`` stays as near converged
+    sweeps as with every step's own factors (tips 0.21 and 0.20 mm RMS over the run from 6 sweeps a step). Solved
+    with the free step's scratch instead of the kept factors, the carried steps tore 526 links (94 mm)."""
+    converged = _shoulders_tips(["links.sweeps=6"], factor_steps=1)
+
+    def rms(tips):
+        return float(np.sqrt(np.mean(np.sum((tips - converged) ** 2, axis=-1))))
+
+    own, carried = rms(_shoulders_tips(factor_steps=1)), rms(_shoulders_tips())
+    # the turned sweep's bound above; carrying the factors over a frame moves the tips by a twentieth of it
+    assert own < 0.4e-3 and carried < 0.4e-3 and abs(carried - own) < 0.05e-3, (own, carried)
+
+
+def test_captured_steps_that_carry_factors_are_the_eager_steps():
+    """A captured step reads whether to make factors or carry them from the device (``Solver.carried``), which the
+    stepper sets before every replay: ``long_hair_shoulders`` at its 8 substeps replayed from graphs (CPU capture,
+    one thread) is the same bits as the eager run."""
+    runs = {}
+    for graph in (False, True):
+        sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", [*_NODS[:3], "sim.threads=1"]))
+        sim.stepper.use_graph = graph
+        for _ in range(4):
+            sim.advance_frame()
+        runs[graph] = sim.checkpoint()
+    for key, value in runs[False].items():
+        np.testing.assert_array_equal(runs[True][key], value, err_msg=key)
 
 
 # long_hair_shoulders' first nod onto the shoulders, its hair limp: at one step a frame the nod tears links there that

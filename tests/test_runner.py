@@ -589,6 +589,32 @@ def test_checkpoint_restores_a_run_whose_sweeps_turn_step_by_step():
         np.testing.assert_array_equal(sim.guide_curves()[0], expected)
 
 
+def test_checkpoint_restores_a_run_whose_sweeps_carry_factors_over_steps():
+    """One sweep a step of links solved after the free step solves with the factors of the strands' matrices that
+    an earlier step of the frame made (``Solver.plan_factors``, 8 steps a factorisation); every frame makes its own
+    (``Stepper`` expires them at its start), so a run restored at a frame whose steps are not a multiple of that
+    count repeats the frames after the checkpoint bit for bit, though the factors in memory are those of frames
+    ahead of it."""
+    sim = Simulation(hw.Scene.load(hw.Scene.default_path().parent / "long_hair.toml",
+                                   ["groom.count=40", "dense.count=0", "output.preview=false", "sim.substeps=10",
+                                    'links.response="step"']))
+    solver = sim.solver
+    for _ in range(3):
+        sim.advance_frame()
+    # 10 steps a frame of one sweep each: the frame's 1st and 9th make factors, the others carry them
+    assert solver.links.warm_start and solver.links.sweeps_at(sim.stepper.dt) == 1 and solver.factor_steps == 8
+    assert solver._factor_age == 1
+    saved = sim.checkpoint()
+    ahead = []
+    for _ in range(3):
+        sim.advance_frame()
+        ahead.append(sim.guide_curves()[0].copy())
+    sim.restore(saved)
+    for expected in ahead:
+        sim.advance_frame()
+        np.testing.assert_array_equal(sim.guide_curves()[0], expected)
+
+
 def test_restore_poses_the_head_for_the_checkpoints_time(tiny):
     """After ``restore`` the control holds the head of the checkpoint's time, not of the frame the run had reached:
     what is read before the next step (dense hair, collider meshes) follows it. The run from there is the same bits
