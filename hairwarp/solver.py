@@ -154,6 +154,11 @@ class Solver:
     colours forward and back in turn. :class:`hairwarp.Stepper` sets it from its parity before each step (so a
     checkpoint and the graphs captured per parity keep it); a caller that steps the solver itself and restores a run
     sets it as it was.
+
+    ``factor_steps`` (:data:`FACTOR_STEPS`) is how many steps one factorisation of the strands' matrices serves in
+    those sweeps where a step takes one (:meth:`plan_factors`; 1: every step its own). :class:`hairwarp.Stepper`
+    calls :meth:`expire_factors` at every frame's start; a caller that steps the solver itself and restores a run
+    calls it after the restore, for the same bits as the run that went through it.
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,

@@ -578,9 +578,14 @@ def test_checkpoint_restores_a_run_whose_sweeps_turn_step_by_step():
     for _ in range(4):
         sim.advance_frame()
     assert links.warm_start and links.sweeps_at(sim.stepper.dt) % 2 == 1  # 3 a step: the turn matters
+    _assert_frames_repeat_after_restore(sim, 3)
+
+
+def _assert_frames_repeat_after_restore(sim, frames: int):
+    """Run ``frames`` frames from a checkpoint, restore it, and run them again: the same guide curves, bit for bit."""
     saved = sim.checkpoint()
     ahead = []
-    for _ in range(3):
+    for _ in range(frames):
         sim.advance_frame()
         ahead.append(sim.guide_curves()[0].copy())
     sim.restore(saved)
@@ -604,15 +609,7 @@ def test_checkpoint_restores_a_run_whose_sweeps_carry_factors_over_steps():
     # 10 steps a frame of one sweep each: the frame's 1st and 9th make factors, the others carry them
     assert solver.links.warm_start and solver.links.sweeps_at(sim.stepper.dt) == 1 and solver.factor_steps == 8
     assert solver._factor_age == 1
-    saved = sim.checkpoint()
-    ahead = []
-    for _ in range(3):
-        sim.advance_frame()
-        ahead.append(sim.guide_curves()[0].copy())
-    sim.restore(saved)
-    for expected in ahead:
-        sim.advance_frame()
-        np.testing.assert_array_equal(sim.guide_curves()[0], expected)
+    _assert_frames_repeat_after_restore(sim, 3)
 
 
 def test_restore_poses_the_head_for_the_checkpoints_time(tiny):
