@@ -651,6 +651,11 @@ BLOCK_MIN_CHUNK = 64
 #: Chunks per thread of a detection launch: each has a contact buffer of the full capacity of its own.
 DETECT_CHUNKS_PER_THREAD = 4
 
+#: Frames between rebuilds of the hair contacts' BVHs on the CPU, which the runner refits in between
+#: (``HairContacts.detect``). On the Ratboy mohawk's 444 guides in motion, detection a frame took 7.6 ms refit against
+#: 10.3 rebuilt on one thread (5.7 and 4.4 on two); a rebuild every 8 frames 7.9.
+REBUILD_FRAMES = 8
+
 #: Fewest force threads per chunk of the contact forces (each takes a run of 1/256 of the stored contacts).
 FORCE_MIN_CHUNK = 16
 
@@ -692,6 +697,7 @@ class HairContacts:
 
     executor = None
     _chunk_buffers = None
+    _order_views = None  # host views of the contact arrays (``_canonical_order``)
     #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
     scatter = False
 
@@ -959,22 +965,47 @@ class HairContacts:
             for fit in trees:
                 fit()
 
-    def detect(self, model, state):
+    def detect(self, model, state, rebuild: bool | None = None):
         """Fit the strip and segment BVHs to ``state`` and fill the contact buffers.
 
-        Inside :meth:`apply` (``detect_each_step``) the BVHs are refit, so a captured step stays valid; called
-        by a runner between steps (``detect_each_step=False``) they are rebuilt, which keeps the trees tight as the
-        hair moves far from the pose they were built in (detection 10-20 % faster on the Ratboy mohawk in motion,
-        for about a tenth of its cost).
+        Inside :meth:`apply` (``detect_each_step``) the BVHs are refit, so a captured step stays valid. Called by a
+        runner between steps (``detect_each_step=False``) they are rebuilt with ``rebuild`` (None: always), which
+        keeps the trees tight as the hair moves far from the pose they were built in, else refit: the runner rebuilds
+        them every :data:`REBUILD_FRAMES` frames on the CPU. There the contacts are then put in one order, by their
+        kind and sides (:meth:`_canonical_order`), whatever tree found them: a refit tree and a rebuilt one walk the
+        quads in other orders, and the forces, summed per segment in slot order, would differ in their last bits.
         """
+        if rebuild is None:
+            rebuild = not self.detect_each_step
         self.contact_counter.zero_()
         if self._overlapped_detection():
-            self._fit_and_detect(model, state, rebuild=not self.detect_each_step)
+            self._fit_and_detect(model, state, rebuild=rebuild)
         else:
-            self.refit(model, state, rebuild=not self.detect_each_step)
+            self.refit(model, state, rebuild=rebuild)
             self.detect_vertex_face(model, state)
             self.detect_segment_segment(model, state)
+        if not self.detect_each_step and not self.device.is_cuda and not _capturing(self.device):
+            self._canonical_order()
         self._segment_lists(model)
+
+    def _canonical_order(self):
+        """Sort the stored contacts by kind, side a and side b (host views of CPU arrays; one contact per pair of
+        sides, so the order is total). The detection appends them block by block in element order, each block's in
+        the order its tree query meets them: nearly sorted, which a stable sort takes in one pass."""
+        n = min(int(self.contact_counter.numpy()[0]), self.capacity)
+        if n < 2:
+            return
+        views = self._order_views
+        if views is None:
+            views = self._order_views = [a.numpy() for a in (self.contact_kind, self.contact_a, self.contact_b,
+                                                             self.contact_w, self.contact_gap)]
+        kind, a, b = views[0][:n], views[1][:n], views[2][:n]
+        key = (kind.astype(np.int64) << 62) | (a.astype(np.int64) << 31) | b.astype(np.int64)
+        order = np.argsort(key, kind="stable")
+        if np.all(order[1:] > order[:-1]):
+            return
+        for v in views:
+            v[:n] = v[:n][order]
 
     def _overlapped_detection(self) -> bool:
         """Whether :meth:`detect` runs as :meth:`_fit_and_detect`: both kinds of contact, on several CPU threads,

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from hairwarp.interactions import REBUILD_FRAMES
 from hairwarp.kernels.types import Fault
 from hairwarp.model import Model, resolve_device
 from hairwarp.motion import MotionSample
@@ -645,7 +646,10 @@ class Simulation:
     def _frame(self, substeps: int | None = None) -> Fault:
         """The frame's steps (the stepper's, or ``substeps`` of them), the hair contacts found at its start."""
         if self.contacts is not None and not self.contacts.detect_each_step:
-            self.contacts.detect(self.model, self.stepper.state)  # pairs for this frame, within the margin
+            # pairs for this frame, within the margin; on the CPU the trees are rebuilt every REBUILD_FRAMES frames
+            # and refit in between (the contacts' order does not depend on which: HairContacts.detect)
+            rebuild = self.model.device.is_cuda or self.stepper.frame % REBUILD_FRAMES == 0
+            self.contacts.detect(self.model, self.stepper.state, rebuild=rebuild)
         # the head at the end of each of the frame's steps, sampled together before the kernels: the same Python
         # between them ran 3-6 times slower (its caches cold), on one thread while the others waited
         st, t = self.stepper, self.stepper.time

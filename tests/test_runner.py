@@ -9,6 +9,7 @@ import warp as wp
 from pxr import Usd, UsdGeom
 
 import hairwarp as hw
+from hairwarp.interactions import REBUILD_FRAMES
 from hairwarp.runner import Simulation, Stepper, simulate
 
 
@@ -610,6 +611,55 @@ def test_checkpoint_restores_a_run_whose_sweeps_carry_factors_over_steps():
     assert solver.links.warm_start and solver.links.sweeps_at(sim.stepper.dt) == 1 and solver.factor_steps == 8
     assert solver._factor_age == 1
     _assert_frames_repeat_after_restore(sim, 3)
+
+
+def _contacts_scene():
+    return hw.Scene.load(hw.Scene.default_path().parent / "long_hair.toml",
+                         ["groom.count=60", "dense.count=0", "output.preview=false"])
+
+
+def _stored_contacts(contacts) -> list[np.ndarray]:
+    n = contacts.contact_count()
+    return [a.numpy()[:n].copy() for a in (contacts.contact_kind, contacts.contact_a, contacts.contact_b,
+                                           contacts.contact_w, contacts.contact_gap)]
+
+
+def test_contacts_found_by_a_refit_tree_are_those_of_a_rebuilt_one():
+    """On the CPU the runner refits the hair contacts' trees between rebuilds every ``REBUILD_FRAMES`` frames. A refit
+    tree walks the quads in another order than a rebuilt one, but the stored contacts are put in one order
+    (``HairContacts._canonical_order``): the same contacts in the same slots, to the bit, after the hair has moved
+    from the pose the trees were built in."""
+    sim = Simulation(_contacts_scene())
+    for _ in range(5):
+        sim.advance_frame()
+    contacts, state = sim.contacts, sim.stepper.state
+    contacts.detect(sim.model, state, rebuild=False)
+    refit = _stored_contacts(contacts)
+    contacts.detect(sim.model, state, rebuild=True)
+    rebuilt = _stored_contacts(contacts)
+    assert len(refit[0]) > 100
+    for a, b in zip(refit, rebuilt):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_run_restored_between_tree_rebuilds_repeats_its_frames():
+    """A fresh simulation restored from a checkpoint at frame 9 refits trees built at its set-up, in the groom's
+    pose, where the run that took the checkpoint refits those it rebuilt at frame 8 from the pose the hair had
+    moved to: its next frames are the same bits."""
+    sim = Simulation(_contacts_scene())
+    for _ in range(9):
+        sim.advance_frame()
+    assert sim.stepper.frame % REBUILD_FRAMES == 1
+    saved = sim.checkpoint()
+    ahead = []
+    for _ in range(3):
+        sim.advance_frame()
+        ahead.append(sim.guide_curves()[0].copy())
+    fresh = Simulation(_contacts_scene())
+    fresh.restore(saved)
+    for expected in ahead:
+        fresh.advance_frame()
+        np.testing.assert_array_equal(fresh.guide_curves()[0], expected)
 
 
 def test_restore_poses_the_head_for_the_checkpoints_time(tiny):

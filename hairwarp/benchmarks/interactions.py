@@ -31,9 +31,10 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     strings) runs ``motion_frames`` frames into its turn. From that state each stage is timed (median of
     ``repeats``, interleaved): ``dynamics`` (a solver without colliders, links or contacts), ``links`` (breaking
     and forces, one pass), and, for every margin in ``margins``, a :class:`hairwarp.interactions.HairContacts` built as
-    the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs refit, or rebuilt for a
-    margin > 0 as a detection between steps does), ``vertex_face`` and
-    ``segment_segment`` (detection after the refit), ``forces`` (the pass over the stored pairs). The per-step
+    the scene's but with that margin: ``refit`` (strip quad and segment boxes, both BVHs refit; with a margin > 0
+    the trees' fit a frame as the runner pays it: ``rebuild`` every ``interactions.REBUILD_FRAMES`` frames on the
+    CPU, ``refit_only`` in between, every frame on CUDA), ``vertex_face`` and ``segment_segment`` (detection after
+    the fit), ``forces`` (the pass over the stored pairs). The per-step
     cost of the interactions is ``links + forces + response + (refit + detection) / substeps`` for a margin > 0
     (detection once per frame) and ``links + forces + response + refit + detection`` for margin 0, ``response`` the
     scene's solve of the links and contacts after the free step where it has one (``Solver._respond``: the scene's
@@ -45,7 +46,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         "refit_s", "vertex_face_s", "segment_segment_s", "forces_s", "per_step_s", "per_dynamics"}], ...}``,
         times in seconds, or ``{"status": "skipped", "message"}`` when the assets are missing.
     """
-    from hairwarp.interactions import HairContacts
+    from hairwarp.interactions import REBUILD_FRAMES, HairContacts
     from hairwarp.runner import Simulation
     from hairwarp.solver import Solver
 
@@ -116,12 +117,17 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
             c.contact_counter.zero_()
             c.detect_segment_segment(model, state)
 
-        # Detection between steps (margin > 0) rebuilds the BVHs, inside the step (margin 0) refits them.
-        times = interleaved_medians({
-            "refit": lambda c=contacts, m=margin: c.refit(model, state, rebuild=m > 0.0),
-            "vertex_face": vertex_face,
-            "segment_segment": segment_segment,
-        }, device, repeats)
+        # Detection between steps (margin > 0) fits the BVHs as the runner does: on the CPU rebuilt every
+        # REBUILD_FRAMES frames and refit in between, on CUDA rebuilt every frame; inside the step (margin 0) refit.
+        stages = {"refit": lambda c=contacts: c.refit(model, state)}
+        if margin > 0.0:
+            stages["rebuild"] = lambda c=contacts: c.refit(model, state, rebuild=True)
+        stages.update({"vertex_face": vertex_face, "segment_segment": segment_segment})
+        times = interleaved_medians(stages, device, repeats)
+        if margin > 0.0:
+            rebuilt = 1.0 if device.is_cuda else 1.0 / REBUILD_FRAMES
+            times["refit_only"] = times["refit"]
+            times["refit"] = rebuilt * times["rebuild"] + (1.0 - rebuilt) * times["refit_only"]
         contacts.detect(model, state)
         times.update(interleaved_medians({
             "forces": lambda c=contacts: c.apply(model, state, dt_arr, force, torque, mass),
@@ -338,7 +344,9 @@ def md_interactions(data: dict) -> list[str]:
     lines += [f"Cost per step on the Ratboy mohawk scene in motion ({first.get('segments')} segments, "
               f"{first.get('substeps')} substeps; detection once per frame within the margin, margin 0: detection in "
               "every step), each stage timed on the same state, interleaved, medians; `per step` = links + contact "
-              "forces + response + (refit + detection) / substeps, `response` the scene's solve of its links (and "
+              "forces + response + (refit + detection) / substeps (`refit`: the trees' fit a frame, on the CPU "
+              "rebuilt every 8th frame and refit between, as the runner fits them), `response` the scene's solve of "
+              "its links (and "
               "contacts) after the free step (its `response = \"step\"`: its sweeps from the free step, one a "
               "step), the free step with it less without it; every stage on the simulation's threads.", "",
               "| guides | margin | stored / active pairs | links ms | response ms | refit ms | vertex-face ms "
