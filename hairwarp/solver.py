@@ -409,7 +409,7 @@ class Solver:
             flags, self._factor_age = (1, 0), age + 1
         else:
             flags, self._factor_age, self._factored_dt = (0, 1), 0, self._dt_host
-        if flags != self._carried_set or self.model.device.is_cuda:
+        if flags != self._carried_set:  # the device array keeps the last flags set
             if self._carried_view is not None:
                 self._carried_view[:] = flags
             else:
