@@ -254,11 +254,11 @@ class Solver:
             # (``plan_factors``): [reuse, keep], read by the sweep's launch
             self.carried = wp.zeros(2, dtype=wp.int32, device=device)
             self._carried_set = (0, 0)
-            self._carried_view = None if device.is_cuda else self.carried.numpy()
-            self._carried_presets = {}
+            # the three settings on the device, copied into ``carried`` when it changes (no allocation in a step)
+            self._carried_presets = {flags: wp.array(flags, dtype=wp.int32, device=device)
+                                     for flags in ((0, 0), (1, 0), (0, 1))}
         self.factor_steps = FACTOR_STEPS
-        self._factor_age = None  # steps since the kept factors were made (None: none to use)
-        self._factored_dt = None
+        self._factor_age = None  # steps since the kept factors were made (None: none to use; set_dt expires them)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
         self.seg_torque = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -405,18 +405,12 @@ class Solver:
         age = self._factor_age
         if not carries:
             flags, self._factor_age = (0, 0), None
-        elif age is not None and age + 1 < self.factor_steps and self._factored_dt == self._dt_host:
+        elif age is not None and age + 1 < self.factor_steps:
             flags, self._factor_age = (1, 0), age + 1
         else:
-            flags, self._factor_age, self._factored_dt = (0, 1), 0, self._dt_host
+            flags, self._factor_age = (0, 1), 0
         if flags != self._carried_set:  # the device array keeps the last flags set
-            if self._carried_view is not None:
-                self._carried_view[:] = flags
-            else:
-                preset = self._carried_presets.get(flags)
-                if preset is None:
-                    preset = self._carried_presets[flags] = wp.array(flags, dtype=wp.int32, device=self.model.device)
-                wp.copy(self.carried, preset)
+            wp.copy(self.carried, self._carried_presets[flags])
             self._carried_set = flags
 
     def _warm_start(self, dt: float) -> bool:
