@@ -562,6 +562,36 @@ def detect_body_contacts(
         contact_friction[vi] = friction
 
 
+@wp.func
+def relative_velocity(V_base: wp.spatial_vector, p_base: wp.vec3, x: wp.vec3, v: wp.vec3):
+    """Velocity [m/s] of a point at ``x`` moving at ``v`` relative to the rigid motion ``V_base`` (angular, then
+    linear at ``p_base``)."""
+    return v - wp.spatial_bottom(V_base) - wp.cross(wp.spatial_top(V_base), x - p_base)
+
+
+@wp.func
+def relative_energy(chains: StrandChains, strand: int, V_base: wp.spatial_vector, p_base: wp.vec3,
+                    vertex_positions: wp.array(dtype=wp.vec3), vertex_velocities: wp.array(dtype=wp.vec3)):
+    """Twice the kinetic energy [J] of a strand relative to its base's rigid motion, from its vertices: each
+    segment's centre and its turn across its axis (the spin about the axis, whose inertia is tiny and which the
+    vertices do not show, left out)."""
+    S = chains.seg_per_strand
+    vbase = strand * (S + 1)
+    x0 = vertex_positions[vbase]
+    r0 = relative_velocity(V_base, p_base, x0, vertex_velocities[vbase])
+    energy = float(0.0)
+    for k in range(S):
+        x1 = vertex_positions[vbase + k + 1]
+        r1 = relative_velocity(V_base, p_base, x1, vertex_velocities[vbase + k + 1])
+        d = x1 - x0
+        w = wp.cross(d, r1 - r0) / wp.max(wp.length_sq(d), TINY_LENGTH)
+        i = strand * S + k
+        energy += chains.seg_mass[i] * wp.length_sq(0.5 * (r0 + r1)) + chains.seg_inertia[i][0] * wp.length_sq(w)
+        x0 = x1
+        r0 = r1
+    return energy
+
+
 @wp.kernel
 def collide_strands(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
@@ -595,10 +625,12 @@ def collide_strands(
     """One thread per strand: push vertices 1..S that ended the step inside a collider back out (positions only).
 
     The velocities were settled inside the step (``articulated.body_contact_solve``); this pass only removes
-    what penetration is left, with the seed's length-preserving propagation, and never adds velocity: a moved
-    strand gets new ``joint_q`` (minimal rotations onto the new segment directions, twist kept), ``seg_xform``,
-    ``vertex_positions`` [m] and the ``vertex_velocities`` [m/s] of its unchanged ``joint_qd`` [rad/s] at the
-    new configuration. A strand clear of every collider is not written.
+    what penetration is left, with the seed's length-preserving propagation, and adds no energy: a moved strand
+    gets new ``joint_q`` (minimal rotations onto the new segment directions, twist kept), ``seg_xform``,
+    ``vertex_positions`` [m] and the ``vertex_velocities`` [m/s] of its ``joint_qd`` [rad/s] at the new
+    configuration, those kept, or all scaled by the one factor that brings the strand's kinetic energy relative to
+    its base (``relative_energy``) back to what it came in with where they would raise it. A strand clear of every
+    collider is not written.
 
     With ``detected`` (and the step's start given), ``start_clearance`` holds what ``detect_body_contacts`` found
     of each vertex's distance at the start of its path: a path shorter than that less the layer cannot have met
@@ -620,6 +652,11 @@ def collide_strands(
     first_moved = S + 1
     clearance = float(-UNBOUNDED)
     p_prev = vertex_positions[vbase]
+    b = strand * bases.per_strand
+    V_base = bases.velocity[b]
+    p_base = wp.transform_get_translation(bases.xform[b])
+    # what the strand comes in with: the push-out may only lower it
+    energy_in = relative_energy(chains, strand, V_base, p_base, vertex_positions, vertex_velocities)
     for k in range(1, S + 1):
         vi = vbase + k
         length = chains.seg_length[sbase + k - 1]
@@ -732,8 +769,7 @@ def collide_strands(
         return
 
     # Pass 2, root to tip: minimal rotations of the old segment frames onto the new directions (twist kept), joint
-    # rotations from the world rotations; then forward kinematics of the strand, its joint velocities unchanged.
-    b = strand * bases.per_strand
+    # rotations from the world rotations; then forward kinematics of the strand at its joint velocities.
     X_base = bases.xform[b]
     R_old = wp.transform_get_rotation(X_base)
     R_new = R_old
@@ -756,5 +792,16 @@ def collide_strands(
                 wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
             R_new = R_parent * q
         x = x + wp.quat_rotate(R_new, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
-    fk_strand(chains, strand, X_base, bases.velocity[b], joint_q, joint_qd, seg_xform, vertex_positions,
-              vertex_velocities)
+    fk_strand(chains, strand, X_base, V_base, joint_q, joint_qd, seg_xform, vertex_positions, vertex_velocities)
+    # The same joint velocities at the moved configuration may move the strand faster (a bent chain pushed straighter
+    # swings its outer part on longer arms): scale them so that the strand's kinetic energy relative to its base
+    # is no more than it came in with. The motion relative to the base is linear in them, its energy quadratic.
+    energy_out = relative_energy(chains, strand, V_base, p_base, vertex_positions, vertex_velocities)
+    if energy_out > energy_in:
+        scale = wp.sqrt(energy_in / energy_out)
+        for k in range(S):
+            joint_qd[sbase + k] = scale * joint_qd[sbase + k]
+        for k in range(1, S + 1):
+            x_k = vertex_positions[vbase + k]
+            r = relative_velocity(V_base, p_base, x_k, vertex_velocities[vbase + k])
+            vertex_velocities[vbase + k] = vertex_velocities[vbase + k] - (1.0 - scale) * r

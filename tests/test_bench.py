@@ -427,7 +427,7 @@ def test_robustness_grid_runs_cells_near_the_limit_again_and_counts_them(monkeyp
 
 
 def test_robustness_grid_counts_frames_taken_again_after_a_fault(monkeypatch, tmp_path):
-    """A cell whose frames fault at its step and run when taken again in twice the steps (a still head in a 500 m/s
+    """A cell whose frames fault at its step and run when taken again in twice the steps (a still head in a 700 m/s
     wind at 2 substeps: tests/test_faults.py; the wind blows its tips at 20 m/s, over the burst bound, which is
     raised here) is ok; the grid records those frames, its report line names them and its chart hatches the cell."""
     from hairwarp.benchmarks import robustness
@@ -437,7 +437,7 @@ def test_robustness_grid_counts_frames_taken_again_after_a_fault(monkeypatch, tm
 
     def windy(name):
         raw = robustness.set_key(plain(name), "head.motion", {"kind": "still"})
-        return robustness.set_key(raw, "wind.velocity", [500.0, 0.0, 0.0])
+        return robustness.set_key(raw, "wind.velocity", [700.0, 0.0, 0.0])
 
     monkeypatch.setattr(robustness, "raw_scene", windy)
     grid = robustness.bench_sweep([8], [2], [2e-4], duration=0.2, scene_name="tiny")

@@ -145,9 +145,14 @@ def device_setup(strands, head, head_velocity=(0, 0, 0, 0, 0, 0), rest=None, dev
     f32 = np.float32
     from hairwarp.kernels.articulated import StrandChains
 
-    chains = StrandChains()  # the projection reads the lengths and roots; the dynamics arrays are not used
+    chains = StrandChains()  # the projection reads the lengths, roots and masses; the dynamics arrays are not used
     chains.seg_per_strand = S
     chains.seg_length = wp.array(strands.seg_length.ravel().astype(f32), dtype=float, device=device)
+    # uniform thin rods of 1 g per metre (the push-out's energy bound reads them)
+    mass = 1e-3 * strands.seg_length.ravel()
+    inertia = np.stack([mass * strands.seg_length.ravel() ** 2 / 12.0] * 2 + [0.0 * mass], axis=1)
+    chains.seg_mass = wp.array(mass.astype(f32), dtype=float, device=device)
+    chains.seg_inertia = wp.array(inertia.astype(f32), dtype=wp.vec3, device=device)
     chains.strand_root_pos = wp.array(strands.root_pos.astype(f32), dtype=wp.vec3, device=device)
     model = SimpleNamespace(
         strand_count=G, seg_per_strand=S, seg_count=G * S, vert_count=G * (S + 1), chains=chains,
@@ -489,12 +494,41 @@ def test_projection_invariants(shape, dt_array, device):
     for key in ("vertex_positions", "vertex_velocities"):
         np.testing.assert_array_equal(after[key].reshape(G, S + 1, 3)[clear], before[key].reshape(G, S + 1, 3)[clear])
 
-    # Positions only: the joint velocities stay as they were (the push-out adds no velocity), and the vertex
-    # velocities are theirs at the new configuration.
-    np.testing.assert_array_equal(after["joint_qd"], before["joint_qd"])
+    # The push-out adds no energy: each strand keeps its joint velocities, or all of them scaled by one factor
+    # below 1, so that its kinetic energy relative to the head (Pinocchio's, of the chain on a still base, which the
+    # joint velocities are relative to) is no more than it came in with; the vertex velocities are theirs at the new
+    # configuration.
+    old_qd = before["joint_qd"].reshape(G, S, 3).astype(float)
+    factor = np.einsum("gki,gki->g", new_qd, old_qd) / np.einsum("gki,gki->g", old_qd, old_qd)
+    np.testing.assert_allclose(new_qd, factor[:, None, None] * old_qd, atol=VEL_RTOL * np.abs(old_qd).max())
+    assert (factor <= 1.0 + 1e-7).all()
+    energy_in, energy_kept, energy_out = (kinetic_energies(strands, q, qd) for q, qd in (
+        (strands.joint_q, old_qd), (new_q, old_qd), (new_q, new_qd)))
+    # float32 positions and velocities: the energies to ~1e-6 of themselves; bound 1e-5
+    assert (energy_out <= energy_in * (1.0 + 1e-5)).all(), (energy_out / energy_in).max()
+    scaled = factor < 1.0 - 1e-6
+    assert scaled.sum() >= 2 and (energy_kept[scaled] > energy_in[scaled]).all()  # the case arises, and needs it
+    np.testing.assert_allclose(energy_out[scaled], energy_in[scaled], rtol=1e-5)  # scaled no further than it needs
+    np.testing.assert_array_equal(factor[~scaled], 1.0)
     new_vel = after["vertex_velocities"].reshape(G, S + 1, 3).astype(float)
     scale = np.abs(fk_vel).max()
     np.testing.assert_allclose(new_vel, fk_vel, atol=VEL_RTOL * scale)
+
+
+def kinetic_energies(strands, joint_q, joint_qd):
+    """Each strand's kinetic energy [J] relative to its base, by Pinocchio in float64: the chain of ``device_setup``'s
+    thin rods (no spin inertia) on a still base, at ``joint_q`` (G, S, 4) and ``joint_qd`` (G, S, 3)."""
+    import pinocchio as pin
+    from _reference import chain_model
+
+    out = []
+    for g in range(len(joint_q)):
+        L = strands.seg_length[g]
+        m = 1e-3 * L
+        model = chain_model(L, m, np.stack([m * L * L / 12.0] * 2 + [0.0 * m], axis=1), strands.root_pos[g])
+        out.append(pin.computeKineticEnergy(model, model.createData(), np.asarray(joint_q[g], float).reshape(-1),
+                                            np.asarray(joint_qd[g], float).reshape(-1)))
+    return np.array(out)
 
 
 def test_deep_penetration_mesh(dt_array):
