@@ -610,10 +610,12 @@ class Simulation:
                 if steps == self.stepper.substeps:
                     return self._frame(), steps
                 self._poses = {}  # kept by step number: another step size
+                self.solver.warm_start_allowed = False
                 try:
                     return self._frame(steps), steps
                 finally:
                     self._poses = {}
+                    self.solver.warm_start_allowed = True
             except SimulationFault as fault:
                 tried.append(steps)
                 if len(tried) > self.fault_retries:

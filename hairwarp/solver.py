@@ -50,6 +50,17 @@ LINK_RATE_LIMIT = 2.0
 WARM_START_STEP = 1.0 / 45.0
 WARM_START_RATE = 8.0
 
+#: Shortest step [s] at which the links take no warm start when the hair contacts are solved after the free step too
+#: (``Solver._warm_start``; the step from which ``response = "auto"`` solves them there, ``runner.AUTO_RESPONSE_DT``).
+#: The links' last force was held in balance by the contacts' last force, which the free step does not take; at
+#: long steps it moves far on the links' alone, and the response, linearised at the step's start, pulls it back past
+#: where it was. ``fast_turn`` (contacts solved after the free step) at 2 substeps: a tip whipped to 8.3 m/s and 6
+#: links broke by the step with it (9.1 m/s in a frame taken again at the break step, on the push-out of the day
+#: before), 3.49 m/s and none without, as at 8 and 16 substeps (3.52, 3.72); at 4 substeps 3.72 against 3.48. At its
+#: shipped 8 substeps it keeps the warm start: without it the same rest (0.25 mm/s in the 6th second with the head
+#: still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
+WARM_START_CONTACTS_STEP = 1.0 / 220.0
+
 #: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
 #: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
@@ -238,6 +249,7 @@ class Solver:
         # turns it for the next (``hairwarp.Stepper`` sets it from its parity before each step)
         self.sweep_turn = 0
         self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
+        self._warm_start_allowed = True
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -369,13 +381,33 @@ class Solver:
                 raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
             self.dt.fill_(float(dt))
             self._dt_host = dt
-            if self.links is not None:
-                warm = self._warm_start(dt)
-                if self.links.warm_start and not warm:
-                    # forces kept while the warm start was on would be stale when a later step turns it on again
-                    self.links.link_warm.zero_()
-                self.links.warm_start = warm
+            self._set_warm_start()
             self.expire_factors()
+
+    @property
+    def warm_start_allowed(self) -> bool:
+        """Whether links solved after the free step may start a step from their last force (``_warm_start``, at
+        steps that allow it); :class:`hairwarp.Simulation` turns it off in a frame it takes again, whose start is a
+        motion the step did not resolve (the last force, put into the next free step, fed it: limp linked hair at one
+        step a frame, taken again in 2 steps, whipped to 5.5 m/s). Takes effect at the next step."""
+        return self._warm_start_allowed
+
+    @warm_start_allowed.setter
+    def warm_start_allowed(self, allowed: bool):
+        if bool(allowed) != self._warm_start_allowed:
+            self._warm_start_allowed = bool(allowed)
+            if self._dt_host is not None:
+                self._set_warm_start()
+                self.expire_factors()
+
+    def _set_warm_start(self):
+        if self.links is None:
+            return
+        warm = self._warm_start(self._dt_host)
+        if self.links.warm_start and not warm:
+            # forces kept while the warm start was on would be stale when a later step turns it on again
+            self.links.link_warm.zero_()
+        self.links.warm_start = warm
 
     def expire_factors(self):
         """Make the next step of links solved after the free step factor its matrices afresh (``plan_factors``):
@@ -424,9 +456,15 @@ class Solver:
         a step; on the one sweep a step it allows, 0.026 at 8 substeps). At steps shorter than ``WARM_START_STEP`` and a
         free-step rate (``StaticLinks.free_step_rate``) within ``WARM_START_RATE``: the limp linked hair of the
         stability grid jitters at one step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the
-        mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks."""
+        mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks. Not where hair contacts are
+        solved after the free step too, at steps from ``WARM_START_CONTACTS_STEP`` on (their last force is not
+        carried), nor in a frame taken again (:attr:`warm_start_allowed`)."""
         links = self.links
-        if not links.response or dt >= WARM_START_STEP:
+        if not links.response or dt >= WARM_START_STEP or not self._warm_start_allowed:
+            return False
+        contacts = self.contacts
+        if contacts is not None and contacts.enabled and contacts.response \
+                and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9):
             return False
         # the rate per second of step, read from the host once per stiffness: a new step size costs no copy
         if self._link_rate is None or self._link_rate[0] != links.stiffness:

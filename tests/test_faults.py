@@ -288,3 +288,46 @@ def test_start_speed_bounds_what_joint_velocities_set_without_kinematics_give():
     s1 = model.state()
     solver.step(state, s1, control, 1.0 / 240.0)
     solver.check(s1, 1)
+
+
+def test_a_frame_taken_again_solves_its_links_without_the_warm_start():
+    """Links solved after the free step start each step from their force of the last (the warm start) at steps
+    shorter than 1/45 s, but not in a frame taken again after a fault: its start is a motion the step did not resolve,
+    and the last force, put into the next free step, fed it (limp linked hair at one step a frame, taken again in 2
+    steps, whipped to 5.5 m/s). ``long_hair_shoulders`` in a 100 m/s wind at 2 substeps faults in its first frame:
+    taken again in 4 steps, the frame is to the bit a 4-substep frame without the warm start (with it, those 4 steps
+    fault too), and the frames after take it again."""
+    shoulders = SCENES / "long_hair_shoulders.toml"
+    windy = [*WINDY, "wind.velocity=[100.0, 0.0, 0.0]"]
+    retried = Simulation(hw.Scene.load(shoulders, windy))
+    finer, warm = (Simulation(hw.Scene.load(shoulders, [*windy, "sim.substeps=4", "sim.fault_retries=0"]))
+                   for _ in range(2))
+    finer.solver.warm_start_allowed = False
+    for sim in (retried, finer):
+        sim.advance_frame()
+    assert retried.retakes[:1] == [(1, 4, "air drag (wind.velocity)")] and not finer.solver.links.warm_start
+    for name in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
+        np.testing.assert_array_equal(getattr(retried.state, name).numpy(), getattr(finer.state, name).numpy(),
+                                      err_msg=name)
+    with pytest.raises(SimulationFault):  # the same 4 steps with the warm start fault
+        warm.advance_frame()
+    assert warm.solver.links.warm_start
+    assert retried.solver.links.warm_start  # back at its own 2 substeps, the next frame takes it
+
+
+def test_links_take_no_warm_start_beside_contacts_solved_after_the_free_step_at_long_steps():
+    """The links' warm start carries their last force into the free step; where the hair contacts are solved after the
+    free step too, their last force, which held the links' in balance, is not carried, and at long steps the free
+    step moved far on the links' alone (``fast_turn`` at 2 substeps: a tip whipped to 8.3 m/s and links broke by the
+    step; the robustness suite's frame-rate table). So from ``WARM_START_CONTACTS_STEP`` on they start cold: at
+    ``fast_turn``'s 2 substeps, not at its shipped 8, and at 2 substeps again with the contacts in the free step."""
+    from hairwarp.solver import WARM_START_CONTACTS_STEP
+
+    fast_turn = SCENES / "fast_turn.toml"
+    assert 1.0 / 240.0 < WARM_START_CONTACTS_STEP < 1.0 / 60.0
+    for substeps, response, warm in ((8, "step", True), (2, "step", False), (2, "mass", True)):
+        sim = Simulation(hw.Scene.load(fast_turn, ["output.preview=false", "dense.count=0", "groom.count=60",
+                                                   f"sim.substeps={substeps}", f'interactions.response="{response}"']))
+        sim.advance_frame()
+        assert sim.solver.contacts.response is (response == "step")
+        assert sim.solver.links.warm_start is warm, (substeps, response)
