@@ -1025,7 +1025,7 @@ class HairContacts:
         with ex.batch():
             self._strip_bounds(S, state.vertex_positions)
             self._segment_bounds(S, state.vertex_positions)
-        self._vertex_tangents(S, state)
+            self._vertex_tangents(S, state)
         vf_dim = self.strand_count * -(-S // contact_kernels.VERTEX_BLOCK)
         vf_chunks = ex.chunks(vf_dim, BLOCK_MIN_CHUNK, per_thread=DETECT_CHUNKS_PER_THREAD)
         ss_chunks = ex.chunks(len(self.seg_block_lowers), BLOCK_MIN_CHUNK, per_thread=DETECT_CHUNKS_PER_THREAD)
@@ -1089,8 +1089,8 @@ class HairContacts:
 
     def _vertex_tangents(self, S, state):
         if self.alignment_cutoff > 0.0:
-            wp.launch(contact_kernels.vertex_tangents, dim=len(self.vertex_tangents),
-                      inputs=[S, state.vertex_positions], outputs=[self.vertex_tangents], device=self.device)
+            launch(self.executor, contact_kernels.vertex_tangents, len(self.vertex_tangents),
+                   [S, state.vertex_positions], [self.vertex_tangents], device=self.device, min_chunk=SEGMENT_MIN_CHUNK)
 
     def _vertex_face_inputs(self, S, state):
         strips = self.strips

@@ -451,6 +451,8 @@ def strip_bounds(
 
 @wp.kernel
 def vertex_tangents(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
     # Model:
     seg_per_strand: int,
     # State in:
@@ -460,7 +462,7 @@ def vertex_tangents(
 ):
     """One thread per guide vertex: its unit strand tangent (``vertex_tangent``), for the alignment cutoff of
     vertex-face detection."""
-    vertex = wp.tid()
+    vertex = tid_offset + wp.tid()
     tangents[vertex] = vertex_tangent(vertex, seg_per_strand, vertex_positions)
 
 
