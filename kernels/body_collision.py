@@ -570,25 +570,31 @@ def relative_velocity(V_base: wp.spatial_vector, p_base: wp.vec3, x: wp.vec3, v:
 
 
 @wp.func
-def relative_energy(chains: StrandChains, strand: int, V_base: wp.spatial_vector, p_base: wp.vec3,
-                    vertex_positions: wp.array(dtype=wp.vec3), vertex_velocities: wp.array(dtype=wp.vec3)):
-    """Twice the kinetic energy [J] of a strand relative to its base's rigid motion, from its vertices: each
-    segment's centre and its turn across its axis (the spin about the axis, whose inertia is tiny and which the
-    vertices do not show, left out)."""
+def segment_energy(chains: StrandChains, i: int, V_base: wp.spatial_vector, p_base: wp.vec3, x0: wp.vec3,
+                   x1: wp.vec3, v0: wp.vec3, v1: wp.vec3):
+    """Twice the kinetic energy [J] of segment ``i``, its ends at ``x0``, ``x1`` moving at ``v0``, ``v1``, relative to
+    the base's rigid motion: its centre's and its turn across its axis (the spin about the axis, whose inertia is
+    tiny and which the ends do not show, left out)."""
+    r0 = relative_velocity(V_base, p_base, x0, v0)
+    r1 = relative_velocity(V_base, p_base, x1, v1)
+    d = x1 - x0
+    w = wp.cross(d, r1 - r0) / wp.max(wp.length_sq(d), TINY_LENGTH)
+    return chains.seg_mass[i] * wp.length_sq(0.5 * (r0 + r1)) + chains.seg_inertia[i][0] * wp.length_sq(w)
+
+
+@wp.func
+def relative_energy(chains: StrandChains, strand: int, first: int, end: int, V_base: wp.spatial_vector,
+                    p_base: wp.vec3, vertex_positions: wp.array(dtype=wp.vec3),
+                    vertex_velocities: wp.array(dtype=wp.vec3)):
+    """Twice the kinetic energy [J] of a strand's segments ``first`` to ``end`` (exclusive) relative to its base's
+    rigid motion (``segment_energy``), from its vertices."""
     S = chains.seg_per_strand
     vbase = strand * (S + 1)
-    x0 = vertex_positions[vbase]
-    r0 = relative_velocity(V_base, p_base, x0, vertex_velocities[vbase])
     energy = float(0.0)
-    for k in range(S):
-        x1 = vertex_positions[vbase + k + 1]
-        r1 = relative_velocity(V_base, p_base, x1, vertex_velocities[vbase + k + 1])
-        d = x1 - x0
-        w = wp.cross(d, r1 - r0) / wp.max(wp.length_sq(d), TINY_LENGTH)
-        i = strand * S + k
-        energy += chains.seg_mass[i] * wp.length_sq(0.5 * (r0 + r1)) + chains.seg_inertia[i][0] * wp.length_sq(w)
-        x0 = x1
-        r0 = r1
+    for k in range(first, end):
+        energy += segment_energy(chains, strand * S + k, V_base, p_base, vertex_positions[vbase + k],
+                                 vertex_positions[vbase + k + 1], vertex_velocities[vbase + k],
+                                 vertex_velocities[vbase + k + 1])
     return energy
 
 
@@ -655,8 +661,10 @@ def collide_strands(
     b = strand * bases.per_strand
     V_base = bases.velocity[b]
     p_base = wp.transform_get_translation(bases.xform[b])
-    # what the strand comes in with: the push-out may only lower it
-    energy_in = relative_energy(chains, strand, V_base, p_base, vertex_positions, vertex_velocities)
+    # the moved segments' energy as they came in (the push-out may only lower the strand's): the segments before the
+    # first moved vertex keep their positions and velocities
+    energy_in = float(0.0)
+    p_prev_old = p_prev
     for k in range(1, S + 1):
         vi = vbase + k
         length = chains.seg_length[sbase + k - 1]
@@ -763,7 +771,10 @@ def collide_strands(
             vertex_positions[vi] = p
             if not wp.isfinite(p):
                 wp.atomic_or(fault, 0, int(Fault.NONFINITE_COLLISION))
+            energy_in += segment_energy(chains, sbase + k - 1, V_base, p_base, p_prev_old, p_old,
+                                        vertex_velocities[vi - 1], v)
         p_prev = p
+        p_prev_old = p_old
 
     if moved == 0:
         return
@@ -796,9 +807,11 @@ def collide_strands(
     # The same joint velocities at the moved configuration may move the strand faster (a bent chain pushed straighter
     # swings its outer part on longer arms): scale them so that the strand's kinetic energy relative to its base
     # is no more than it came in with. The motion relative to the base is linear in them, its energy quadratic.
-    energy_out = relative_energy(chains, strand, V_base, p_base, vertex_positions, vertex_velocities)
+    energy_out = relative_energy(chains, strand, first_moved - 1, S, V_base, p_base, vertex_positions,
+                                 vertex_velocities)
     if energy_out > energy_in:
-        scale = wp.sqrt(energy_in / energy_out)
+        kept = relative_energy(chains, strand, 0, first_moved - 1, V_base, p_base, vertex_positions, vertex_velocities)
+        scale = wp.sqrt((kept + energy_in) / (kept + energy_out))
         for k in range(S):
             joint_qd[sbase + k] = scale * joint_qd[sbase + k]
         for k in range(1, S + 1):
