@@ -608,8 +608,9 @@ class ColliderSet:
             raise RuntimeError("ColliderSet: call bind(model) with this model first (at setup)")
 
     def project(self, model, state, control, dt_array, state_in=None, *, detected: bool = False):
-        """Push the strands of ``state`` that ended the step inside a collider back out, in place, positions only
-        (one launch; none without colliders).
+        """Push the strands of ``state`` that ended the step inside a collider back out, in place (one launch; none
+        without colliders): positions, and the joint velocities only to scale them down where the same ones at the
+        moved configuration would raise the strand's kinetic energy (``kernels.body_collision.collide_strands``).
 
         Args:
             model: the model passed to ``bind``.

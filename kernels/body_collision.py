@@ -628,7 +628,7 @@ def collide_strands(
     vertex_velocities: wp.array(dtype=wp.vec3),
     fault: wp.array(dtype=wp.int32),
 ):
-    """One thread per strand: push vertices 1..S that ended the step inside a collider back out (positions only).
+    """One thread per strand: push vertices 1..S that ended the step inside a collider back out.
 
     The velocities were settled inside the step (``articulated.body_contact_solve``); this pass only removes
     what penetration is left, with the seed's length-preserving propagation, and adds no energy: a moved strand
