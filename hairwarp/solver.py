@@ -35,6 +35,10 @@ EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
 #: the bound first.
 DEFAULT_MAX_ROTATION = 1.0
 
+#: Largest turn of a joint [rad] since the factors a step solves with were made (``Solver.factor_turn``): a strand
+#: turned further makes its own (``sweeps.link_sweep``).
+FACTOR_TURN = 0.1
+
 #: Steps that one factorisation of the strands' matrices serves in the links' sweeps after the free step, the first
 #: of them making it (``Solver.plan_factors``; 1: every step its own). 8: a frame at the shipped 8 substeps.
 FACTOR_STEPS = 8
@@ -169,7 +173,9 @@ class Solver:
     ``factor_steps`` (:data:`FACTOR_STEPS`) is how many steps one factorisation of the strands' matrices serves in
     those sweeps where a step takes one (:meth:`plan_factors`; 1: every step its own). :class:`hairwarp.Stepper`
     calls :meth:`expire_factors` at every frame's start; a caller that steps the solver itself and restores a run
-    calls it after the restore, for the same bits as the run that went through it.
+    calls it after the restore, for the same bits as the run that went through it. ``factor_turn``
+    (:data:`FACTOR_TURN`, rad) bounds how far a strand's joints may have turned since the factors it would solve with
+    were made: past it, the strand makes its own in that step and keeps them.
     """
 
     def __init__(self, model, integrator="implicit_joints", *, colliders=None, links=None, contacts=None,
@@ -262,6 +268,7 @@ class Solver:
             factors = self.factors = articulated.DamperFactors()
             for name in ("Dinv", "A", "B", "DA", "DB"):
                 setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
+            factors.q = wp.zeros(n, dtype=wp.quat, device=device)
             # whether a step of one sweep solves with the factors an earlier step kept, or keeps its own
             # (``plan_factors``): [reuse, keep], read by the sweep's launch
             self.carried = wp.zeros(2, dtype=wp.int32, device=device)
@@ -270,6 +277,7 @@ class Solver:
             self._carried_presets = {flags: wp.array(flags, dtype=wp.int32, device=device)
                                      for flags in ((0, 0), (1, 0), (0, 1))}
         self.factor_steps = FACTOR_STEPS
+        self.factor_turn = FACTOR_TURN
         self._factor_age = None  # steps since the kept factors were made (None: none to use; set_dt expires them)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -629,12 +637,13 @@ class Solver:
         # at every step, and hair at rest on a body crept); an odd count's last sweep goes the way the next step's
         # first comes back; every sweep after the first solves the same matrices
         turn = self.sweep_turn if count % 2 else 0
+        factor_cos_half = math.cos(0.5 * self.factor_turn)
         self.sweep_turn = (self.sweep_turn + count) % 2
         for sweep in range(count):
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
             for strands in (links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views)):
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
-                        int(sweep == 0 and count > 1), self.carried, int(sweep == count - 1)]
+                        int(sweep == 0 and count > 1), self.carried, factor_cos_half, int(sweep == count - 1)]
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])

@@ -146,6 +146,9 @@ class DamperFactors:
     B: wp.array(dtype=wp.mat33)
     DA: wp.array(dtype=wp.mat33)
     DB: wp.array(dtype=wp.mat33)
+    # the joints the factors were made at (``kernels.sweeps.link_sweep``: a strand whose joints have turned far from
+    # them since makes its own again)
+    q: wp.array(dtype=wp.quat)
 
 
 @wp.func

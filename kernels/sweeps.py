@@ -60,6 +60,19 @@ def moment_inertia(S: wp.mat33):
 
 
 @wp.func
+def joints_turned(strand: int, S: int, joint_q: wp.array(dtype=wp.quat), kept_q: wp.array(dtype=wp.quat),
+                  cos_half: float):
+    """1 where a joint of ``strand`` has turned from ``kept_q`` by more than the angle whose half-angle cosine is
+    ``cos_half`` (``|q . q_kept| < cos_half``), else 0."""
+    turned = int(0)
+    for k in range(S):
+        i = strand * S + k
+        if wp.abs(wp.dot(joint_q[i], kept_q[i])) < cos_half:
+            turned = 1
+    return turned
+
+
+@wp.func
 def copy_answer(strand: int, S: int, answered: wp.array(dtype=wp.vec3), copy: wp.array(dtype=wp.vec3)):
     """Copy ``strand``'s answered vertex velocities into ``copy``, where the next sweep reads them for the strands
     of its colour (``link_sweep``'s ``answered_before``)."""
@@ -165,6 +178,9 @@ def link_sweep(
     # no factorisation), [1] 1 where it keeps its own for later steps (``hairwarp.Solver.factor_steps``); read at
     # the launch, so a captured step follows what the host set before it replays
     carried: wp.array(dtype=wp.int32),
+    # In a step that solves with an earlier step's factors, a strand whose joints have turned by more than the angle
+    # whose half-angle cosine this is since they were made (``factors.q``) makes its own and keeps them
+    factor_cos_half: float,
     # 1 on the step's last sweep, whose answer the strand keeps: only then its joints are turned and its forward
     # kinematics run (the sweeps before read only ``answered_velocities``, from the joint velocities)
     last: int,
@@ -204,8 +220,16 @@ def link_sweep(
     keeping = int(keep)
     if carried[0] != 0:
         reusing = 1
+        # factors made at a shape the strand has since left solve another matrix, which under violent motion flung
+        # tips at 30-40 m/s (a head spinning at 3 rev/s): made afresh, and kept for the frame's later steps
+        if joints_turned(strand, S, joint_q_in, factors.q, factor_cos_half) != 0:
+            reusing = 0
+            keeping = 1
     if carried[1] != 0:
         keeping = 1
+    if keeping != 0 and reusing == 0:
+        for k in range(S):
+            factors.q[strand * S + k] = joint_q_in[strand * S + k]
     for k in range(S):
         seg = strand * S + k
         joint_q_out[seg] = free_q[seg]
