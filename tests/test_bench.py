@@ -506,6 +506,23 @@ def test_robustness_spin_keys_turn_at_the_spin_rate():
     assert abs(2.0 * math.degrees(math.atan2(s.rotation[2], s.rotation[3])) - 140.0) < 1e-6
 
 
+def test_robustness_faster_motion_plays_the_scene_motion_faster():
+    """The extreme-motion suite's faster motion: a keyframed head (``long_hair_shoulders``' nod) reaches at time
+    ``t / 10`` the pose the shipped motion reaches at ``t``; a periodic one (``long_hair``'s turn) keeps its start
+    and ramp and turns ten times as fast, so without them (set to 0 here) it too is the shipped pose at ``t / 10``."""
+    from hairwarp.benchmarks.robustness import faster_motion, raw_scene
+    from hairwarp.motion import HeadMotion
+
+    nod = raw_scene("long_hair_shoulders")["head"]["motion"]
+    turn = dict(raw_scene("long_hair")["head"]["motion"], start=0.0, ramp=0.0)
+    for config, times in ((nod, (0.3, 0.75, 1.4)), (turn, (0.2, 0.6, 1.0))):
+        shipped, fast = HeadMotion.from_config(config), HeadMotion.from_config(faster_motion(config, 10.0))
+        for t in times:
+            np.testing.assert_allclose(fast.evaluate(t / 10.0).rotation, shipped.evaluate(t).rotation, atol=1e-6)
+            np.testing.assert_allclose(fast.evaluate(t / 10.0).angular_velocity,
+                                       10.0 * np.asarray(shipped.evaluate(t).angular_velocity), rtol=1e-5, atol=1e-6)
+
+
 def test_robustness_newton_rod_rests_on_its_collider():
     """Newton's VBD rod released onto the peers' capsule for 1 s (the suite adds the floor): both runs finish finite
     with the figures of the MuJoCo peer; with shape contacts the rod's surface never goes more than 1 mm into the
