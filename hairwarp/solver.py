@@ -37,7 +37,7 @@ DEFAULT_MAX_ROTATION = 1.0
 
 #: Largest turn of a joint [rad] since the factors a step solves with were made (``Solver.factor_turn``): a strand
 #: turned further makes its own (``sweeps.link_sweep``).
-FACTOR_TURN = 0.1
+FACTOR_TURN = 0.2
 
 #: Steps that one factorisation of the strands' matrices serves in the links' sweeps after the free step, the first
 #: of them making it (``Solver.plan_factors``; 1: every step its own). 8: a frame at the shipped 8 substeps.
@@ -433,9 +433,10 @@ class Solver:
         the matrix, the strand's inertia with its links' dampers, changes with the strands' joints and the links'
         directions, little over a few steps of 1/240 s, and the answer is that of a matrix a few steps old applied
         to this step's forces. The factors are the sweep's costliest part (a 3 x 3 inverse and block products a
-        segment); the forces, the answer and the strands' own update are this step's. Measured, docs/interactions.md
-        ("Factors carried over steps"). A link that breaks keeps its damper in the carried factors until the next
-        are made."""
+        segment); the forces, the answer and the strands' own update are this step's. A strand whose joints have turned
+        by more than :attr:`factor_turn` since its factors were made makes its own in the sweep (a violent shake
+        turns them by tenths of a radian a frame). Measured, docs/interactions.md ("Factors carried over steps"). A
+        link that breaks keeps its damper in the carried factors until the next are made."""
         if not self.link_sweeps:
             return
         links = self.links
