@@ -23,6 +23,12 @@ wp.set_module_options({"enable_backward": False})
 # round-off, so the damping term, which acts along that direction, is left out.
 LINK_MIN_LENGTH = wp.constant(1.0e-7)
 
+#: Longest step [s] at which a link solved after the free step looks a step ahead for its break (``link_forces``):
+#: 1/220 s, where the scenes' ``response = "auto"`` hands over to the forms of long steps (8 substeps of 30 fps and
+#: more). Longer steps take their breaks again at ``links.break_step`` (1/120 s) instead, where a look a step ahead
+#: broke links that no fine run breaks (the mohawk at one step a frame: 26; ``long_hair_shoulders``' limp nod: 1).
+BREAK_LOOK_STEP = wp.constant(1.0 / 220.0)
+
 # Largest lever scale of an implicit mass: a spring at the far end of its segment, (L / (L/2))^2.
 MAX_LEVER_SCALE = wp.constant(4.0)
 
@@ -178,7 +184,9 @@ def link_forces(
     ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
 
     A link stretched past ``link_break_length`` [m] breaks here for good, before it acts (``link_broken[link] = 1``,
-    counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links.
+    counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links; with
+    ``response``, at steps up to :data:`BREAK_LOOK_STEP`, also one whose ends part fast enough to pass it within
+    the step.
     Otherwise it adds +f at x_a' to segment a (less its spin about a's axis): to ``seg_force`` [N] and ``seg_torque``
     [N m] about a's origin, world. With ``implicit_springs`` the force is the link's backward-Euler force over the
     step, ``f = k (l - h u') - c (n . u') n`` with the end-of-step relative velocity ``u' = u + h W f``, solved per
@@ -228,7 +236,15 @@ def link_forces(
         xb = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -link_frac_b[link] * seg_length[b]))
         l = xb - xa
         length = wp.length(l)
-        if length > link_break_length:
+        reach = length
+        if response != 0 and h <= BREAK_LOOK_STEP and length > LINK_MIN_LENGTH:
+            # solved after the free step, the link acts through the whole step: one whose ends part fast enough to
+            # pass its break length within the step breaks now, or its backward-Euler force would pull them back as
+            # if it held (``kernels.sweeps``)
+            u0 = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions,
+                                                                  vertex_velocities, xb)
+            reach = length - h * wp.dot(u0, l / length)
+        if length > link_break_length or reach > link_break_length:
             link_broken[link] = 1
             wp.atomic_add(link_broken_total, 0, 1)
             continue
