@@ -406,14 +406,19 @@ _SHAKE = ['head.motion.kind="shake"', "head.motion.amplitude_deg=45", "head.moti
           "dense.count=0", "output.preview=false", "sim.frames=24"]
 
 
-def _shake_run(overrides=()):
-    """Fastest guide vertex over ``long_hair_shoulders`` under :data:`_SHAKE` [m/s], and the links broken."""
-    sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", [*_SHAKE, *overrides]))
+def _fastest_and_broken(sim, frames: int):
+    """Run ``frames`` frames of ``sim``: the fastest guide vertex at a frame's end [m/s], and the links broken."""
     fastest = 0.0
-    for _ in range(sim.scene.sim.frames):
+    for _ in range(frames):
         sim.advance_frame()
         fastest = max(fastest, float(np.linalg.norm(sim.stepper.state.vertex_velocities.numpy(), axis=1).max()))
     return fastest, sim.links.broken_count()
+
+
+def _shake_run(overrides=()):
+    """Fastest guide vertex over ``long_hair_shoulders`` under :data:`_SHAKE` [m/s], and the links broken."""
+    sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", [*_SHAKE, *overrides]))
+    return _fastest_and_broken(sim, sim.scene.sim.frames)
 
 
 def test_strands_whose_joints_turn_far_make_their_own_factors():
@@ -435,12 +440,7 @@ def _fast_nod_run(overrides=()):
 
     raw = raw_scene("long_hair_shoulders")
     raw["head"]["motion"] = faster_motion(raw["head"]["motion"], 10.0)
-    sim = Simulation(build(raw, "long_hair_shoulders", list(overrides)))
-    fastest = 0.0
-    for _ in range(12):
-        sim.advance_frame()
-        fastest = max(fastest, float(np.linalg.norm(sim.stepper.state.vertex_velocities.numpy(), axis=1).max()))
-    return fastest, sim.links.broken_count()
+    return _fastest_and_broken(Simulation(build(raw, "long_hair_shoulders", list(overrides))), 12)
 
 
 def test_links_whose_ends_part_past_their_break_within_the_step_break_before_it():
