@@ -140,6 +140,16 @@ def link_ends(
     return xa, xb
 
 
+@wp.func
+def ends_relative_velocity(v0: wp.vec3, w_a: wp.vec3, x0: wp.vec3, xa: wp.vec3, b: int, seg_per_strand: int,
+                           vertex_positions: wp.array(dtype=wp.vec3), vertex_velocities: wp.array(dtype=wp.vec3),
+                           xb: wp.vec3):
+    """Velocity [m/s] of a link's end ``xa`` on segment a (its rigid field: ``v0`` at its first vertex ``x0``,
+    angular velocity ``w_a``) relative to its end ``xb`` on segment ``b`` (``seg_point_velocity``)."""
+    return v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions, vertex_velocities,
+                                                            xb)
+
+
 @wp.kernel
 def link_forces(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
@@ -241,8 +251,7 @@ def link_forces(
             # solved after the free step, the link acts through the whole step: one whose ends part fast enough to
             # pass its break length within the step breaks now, or its backward-Euler force would pull them back as
             # if it held (``kernels.sweeps``)
-            u0 = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions,
-                                                                  vertex_velocities, xb)
+            u0 = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities, xb)
             reach = length - h * wp.dot(u0, l / length)
         if length > link_break_length or reach > link_break_length:
             link_broken[link] = 1
@@ -265,8 +274,7 @@ def link_forces(
             f = link_warm[link]
         if response == 0:
             # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
-            u = v0 + wp.cross(w_a, xa - x0) - seg_point_velocity(b, seg_per_strand, vertex_positions,
-                                                                 vertex_velocities, xb)
+            u = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities, xb)
             if implicit_springs != 0:
                 com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
                 W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(
