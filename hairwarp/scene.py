@@ -182,6 +182,11 @@ def _in_range(x: float, spec: str) -> bool:
 # ----------------------------------------------------------------------------------------------
 # sections
 
+#: Range of the strands' stiffnesses and damping. Far above any hair (EI 1e-9 to 1e-3 N m^2; a steel rod of 1 cm
+#: is about 1e2) and within what float32 holds: the joints' stiffness over a segment, times the step squared and the
+#: joint angles, overflows past about 1e21 (``test_strand_constants_hold_at_their_bound``).
+STRAND_CONSTANT_RANGE = "[0, 1e16]"
+
 _GROOM_SUFFIXES = (".tfx", ".hair", ".usd", ".usda", ".usdc", ".usdz")
 _MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off", ".tfxmesh")
 _SCALP_KEYS = ("count", "length", "points", "curl", "curl_period", "scalp_center", "scalp_radii", "cap_angle_deg",
@@ -492,10 +497,12 @@ SCHEMA: dict[str, Section | ArrayOf] = {
         {
             "density": Field("float", 1300.0, "mass density of a guide (a wisp of hair)", "kg/m^3", range="(0, inf)"),
             "radius": Field("float", 0.002, "radius of the cylinder a guide stands for", "m", range="(0, inf)"),
-            "bend_stiffness": Field("float", 2.0e-4, "bending rigidity EI of a guide", "N m^2", range="[0, inf)"),
+            "bend_stiffness": Field("float", 2.0e-4, "bending rigidity EI of a guide", "N m^2",
+                                    range=STRAND_CONSTANT_RANGE),
             "twist_stiffness": Field("float", None, "torsional rigidity GJ; default bend_stiffness / 1.3", "N m^2",
-                                     range="[0, inf)"),
-            "damping": Field("float", 2.0e-7, "internal bending and twisting damping", "N m^2 s", range="[0, inf)"),
+                                     range=STRAND_CONSTANT_RANGE),
+            "damping": Field("float", 2.0e-7, "internal bending and twisting damping", "N m^2 s",
+                             range=STRAND_CONSTANT_RANGE),
             "root_stiffness_scale": Field("float", 1.0, "factor on the root joint's stiffness and damping",
                                           range="[0, inf)"),
             "drag": Field("float", 0.01, "linear air drag per unit length (0 = off; wind acts through it)",

@@ -33,6 +33,20 @@ def _advice(fault) -> str:
     return str(fault).split("To fix:", 1)[1]
 
 
+def test_strand_constants_hold_at_their_bound():
+    """The strands' stiffnesses and damping run at the top of their range without a fault or a frame taken again
+    (EI 1e24 made the joint state non-finite in the first frame, which the fault then blamed on the step), and a
+    value past it is refused at load, naming the key."""
+    from hairwarp.scene import STRAND_CONSTANT_RANGE, SceneError
+
+    top = STRAND_CONSTANT_RANGE.strip("[]").split(",")[1].strip()
+    keys = ("strands.bend_stiffness", "strands.twist_stiffness", "strands.damping")
+    assert _run(TINY, [f"{key}={top}" for key in keys], 6) is None
+    for key in keys:
+        with pytest.raises(SceneError, match=f"{key}: must be in"):
+            hw.Scene.load(TINY, [f"{key}={10.0 * float(top)}"])
+
+
 def test_hair_speed_check_matches_the_velocities_read_back():
     """The per-strand speeds the check writes are the norms of the vertex velocities (a non-finite one reads inf),
     and the fault bit is set exactly when one exceeds the bound."""
