@@ -636,6 +636,13 @@ def test_threads_report_states_goals_and_efficiency():
     assert "| dynamics (aba + integrate) | 2.000 | 1.000 | 2.00x | 1.60x | 125 % |" in text
     assert "- dynamics: 2.00x (goal >= 1.9x on 2 cores: met); 2 independent copies reach 1.60x" in text
     assert "- frame: 1.25x (goal >= 1.8x on 2 cores: not met)" in text and "keeps 69 %" in text
+    # the sweep's frame at the suite's thread count is the same measure as the scene's frame: set side by side
+    sweep = {"dynamics": "d", "frame": "s.toml", "rows": [
+        {"threads": 1, "dynamics_ms": 2.0, "dynamics_speedup": 1.0, "frame_ms": 48.0, "frame_speedup": 1.0},
+        {"threads": 2, "dynamics_ms": 1.0, "dynamics_speedup": 2.0, "frame_ms": 30.0, "frame_speedup": 1.6}]}
+    text = "\n".join(md_threads({"threads": 2, "cores": 2, "scenes": [scene], "sweep": sweep}))
+    assert ("frame at 2 threads is the frame of the s.toml table above, timed again later in the run: 1.60x here "
+            "against 1.25x there (30.00 ms against 40.00 ms on 2 threads, 48.00 against 50.00 on one)") in text
 
 
 

@@ -397,7 +397,24 @@ def md_threads(data: dict) -> list[str]:
         lines += [f"Skipped: {data['skipped']}.", ""]
     if data.get("sweep"):
         lines += md_sweep(data["sweep"])
+        lines += _sweep_against_table(data)
     return lines
+
+
+def _sweep_against_table(data: dict) -> list[str]:
+    """A line setting the sweep's frame at N threads beside the same frame in its scene's table: the one measure
+    taken twice in a run, minutes apart, which shows how far the machine drifted between them."""
+    sweep = data["sweep"]
+    row = next((r for r in sweep["rows"] if r["threads"] == data["threads"]), None)
+    scene = next((s for s in data["scenes"] if s["scene"] == sweep["frame"]), None)
+    table = next((r for r in scene["rows"] if r["stage"] == FRAME_STAGE), None) if scene else None
+    if row is None or table is None or data["threads"] < 2:
+        return []
+    return [f"- The sweep's frame at {data['threads']} threads is the frame of the {sweep['frame']} table above, timed "
+            f"again later in the run: {row['frame_speedup']:.2f}x here against {table['speedup']:.2f}x there "
+            f"({row['frame_ms']:.2f} ms against {table['tn_ms']:.2f} ms on {data['threads']} threads, "
+            f"{sweep['rows'][0]['frame_ms']:.2f} against {table['t1_ms']:.2f} on one). The one measure taken twice "
+            "in a run shows how far the machine drifted between them (README, \"Threads\").", ""]
 
 
 def md_sweep(sweep_data: dict) -> list[str]:
