@@ -389,6 +389,9 @@ class StaticLinks:
         links.strand_color_array = wp.array(links.strand_colors.astype(np.int32), dtype=wp.int32, device=dev)
         bounds = np.searchsorted(links.strand_colors[order], np.arange(links.strand_colors.max(initial=0) + 2))
         links.color_views = [links.color_strands[int(lo):int(hi)] for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+        # links broken within a step by the sweeps' answer (``update_warm``), and the strands the sweeps solve again
+        links.solved_breaks = wp.zeros(1, dtype=wp.int32, device=dev)
+        links.strand_redo = wp.zeros(G, dtype=wp.int32, device=dev)
         return links
 
     def _transport(self, model, state):
@@ -433,22 +436,32 @@ class StaticLinks:
         (``state_out``'s) and the link's axis (``link_response_ends``; launch only)."""
         if self.link_count == 0:
             return
-        launch(self.executor, link_kernels.link_response_ends, self.link_count,
-               [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
-                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
-                int(self.warm_start), self.link_warm, state_in.vertex_positions, state_out.vertex_velocities, dt, 0],
-               [self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+        self._response_ends(model, state_in, state_out.vertex_velocities, dt, answered=False, break_solved=False)
 
-    def update_warm(self, model, state_in, answered_velocities, dt):
+    def update_warm(self, model, state_in, answered_velocities, dt, break_solved: bool = False) -> bool:
         """Keep each link's force of the step as the sweeps answered it (:attr:`link_warm`), which the next step's
-        free step takes with :attr:`warm_start` (``link_response_ends`` with ``answered``; launch only)."""
-        if self.link_count == 0 or not self.warm_start:
-            return
-        launch(self.executor, link_kernels.link_response_ends, self.link_count,
-               [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
-                self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
-                int(self.warm_start), self.link_warm, state_in.vertex_positions, answered_velocities, dt, 1],
-               [self.ends], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+        free step takes with :attr:`warm_start` (``link_response_ends`` with ``answered``; launch only). With
+        ``break_solved``, links whose ends the answer carries past their break length break within the step instead,
+        their strands marked in :attr:`strand_redo` and counted in :attr:`solved_breaks`, both zeroed first.
+        Returns whether it launched."""
+        if self.link_count == 0 or not (self.warm_start or break_solved):
+            return False
+        if break_solved:
+            zero = self.executor.zero if self.executor is not None else (lambda *arrays: [a.zero_() for a in arrays])
+            zero(self.solved_breaks, self.strand_redo)
+        self._response_ends(model, state_in, answered_velocities, dt, answered=True, break_solved=break_solved)
+        return True
+
+    def _response_ends(self, model, state_in, velocities, dt, *, answered: bool, break_solved: bool):
+        inputs = [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
+                  self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
+                  int(self.warm_start), self.link_warm, state_in.vertex_positions, velocities, dt, int(answered),
+                  int(break_solved), self.break_length]
+        n = len(inputs)
+        # the counts add up and the strands' marks OR together per chunk (``hairwarp.executor``)
+        launch(self.executor, link_kernels.link_response_ends, self.link_count, inputs,
+               [self.ends, self.link_broken_total, self.solved_breaks, self.strand_redo], device=self.device,
+               min_chunk=GATHER_MIN_CHUNK, private_add=[n + 1, n + 2], private_or=[n + 3])
 
     def free_step_rate(self, seg_mass: np.ndarray, dt: float) -> float:
         """The links' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the most link stiffness

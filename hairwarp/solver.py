@@ -10,6 +10,7 @@ import warp as wp
 from hairwarp.executor import Executor, launch
 from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels import contacts as contact_kernels
+from hairwarp.kernels import links as link_kernels
 from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
@@ -265,6 +266,7 @@ class Solver:
             self.answered_sweeps = [wp.zeros(model.vert_count, dtype=wp.vec3, device=device) for _ in range(2)]
             self.held = _dampers(n, device, dampers)
             self.swept = _dampers(n, device, dampers)
+            self.solved = _dampers(n, device, dampers)
             factors = self.factors = articulated.DamperFactors()
             for name in ("Dinv", "A", "B", "DA", "DB"):
                 setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
@@ -633,22 +635,33 @@ class Solver:
                   state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd,
                   self.free_velocities, self.answered_velocities]
         held_on = [held, int(contacts_swept), *(contacts.sweep_inputs() if contacts_swept else self._no_sweep_contacts),
-                   self.swept, self.scratch, self.factors]
+                   self.swept, self.solved, self.scratch, self.factors]
         # symmetric Gauss-Seidel: the colours forward, then back (always forward, the sweeps' error leaned one way
         # at every step, and hair at rest on a body crept); an odd count's last sweep goes the way the next step's
         # first comes back; every sweep after the first solves the same matrices
         turn = self.sweep_turn if count % 2 else 0
         factor_cos_half = math.cos(0.5 * self.factor_turn)
         self.sweep_turn = (self.sweep_turn + count) % 2
-        for sweep in range(count):
+        def sweep_colors(sweep, order, redo):
             before, after = self.answered_sweeps[sweep % 2], self.answered_sweeps[1 - sweep % 2]
-            for strands in (links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views)):
+            for strands in order:
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
-                        int(sweep == 0 and count > 1), self.carried, factor_cos_half, int(sweep == count - 1)]
+                        int(sweep == 0 and count > 1), self.carried, factor_cos_half, int(sweep >= count - 1),
+                        int(redo), links.strand_redo]
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])
-        links.update_warm(model, state_in, self.answered_velocities, self.dt)
+
+        for sweep in range(count):
+            sweep_colors(sweep, links.color_views if (sweep + turn) % 2 == 0 else reversed(links.color_views), False)
+        # at steps up to BREAK_SOLVED_STEP a link that the answer carries past its break breaks within the step, and
+        # the strands it tied are solved again without it (``link_response_ends``); on a GPU or in a capture the
+        # sweep that does so always runs, its strands unmarked returning at once
+        break_solved = self._dt_host is not None and self._dt_host <= float(link_kernels.BREAK_SOLVED_STEP)
+        if links.update_warm(model, state_in, self.answered_velocities, self.dt, break_solved) and break_solved:
+            if model.device.is_cuda or model.device.is_capturing or int(links.solved_breaks.numpy()[0]) > 0:
+                sweep_colors(count, links.color_views, True)
+                links.update_warm(model, state_in, self.answered_velocities, self.dt)
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)

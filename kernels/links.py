@@ -23,11 +23,11 @@ wp.set_module_options({"enable_backward": False})
 # round-off, so the damping term, which acts along that direction, is left out.
 LINK_MIN_LENGTH = wp.constant(1.0e-7)
 
-#: Longest step [s] at which a link solved after the free step looks a step ahead for its break (``link_forces``):
-#: 1/220 s, where the scenes' ``response = "auto"`` hands over to the forms of long steps (8 substeps of 30 fps and
-#: more). Longer steps take their breaks again at ``links.break_step`` (1/120 s) instead, where a look a step ahead
-#: broke links that no fine run breaks (the mohawk at one step a frame: 26; ``long_hair_shoulders``' limp nod: 1).
-BREAK_LOOK_STEP = wp.constant(1.0 / 220.0)
+#: Longest step [s] at which a link solved after the free step breaks within the step, where the sweeps' answer
+#: carries its ends past its break length (``link_response_ends``, ``hairwarp.Solver``): 1/220 s, where the scenes'
+#: ``response = "auto"`` hands over to the forms of long steps (8 substeps of 30 fps and more). Longer steps take
+#: their breaks again at ``links.break_step`` (1/120 s) instead.
+BREAK_SOLVED_STEP = wp.constant(1.0 / 220.0)
 
 # Largest lever scale of an implicit mass: a spring at the far end of its segment, (L / (L/2))^2.
 MAX_LEVER_SCALE = wp.constant(4.0)
@@ -194,9 +194,8 @@ def link_forces(
     ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
 
     A link stretched past ``link_break_length`` [m] breaks here for good, before it acts (``link_broken[link] = 1``,
-    counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links; with
-    ``response``, at steps up to :data:`BREAK_LOOK_STEP`, also one whose ends part fast enough to pass it within
-    the step.
+    counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links (with
+    ``response`` a link also breaks within the step: ``link_response_ends``).
     Otherwise it adds +f at x_a' to segment a (less its spin about a's axis): to ``seg_force`` [N] and ``seg_torque``
     [N m] about a's origin, world. With ``implicit_springs`` the force is the link's backward-Euler force over the
     step, ``f = k (l - h u') - c (n . u') n`` with the end-of-step relative velocity ``u' = u + h W f``, solved per
@@ -246,14 +245,7 @@ def link_forces(
         xb = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -link_frac_b[link] * seg_length[b]))
         l = xb - xa
         length = wp.length(l)
-        reach = length
-        if response != 0 and h <= BREAK_LOOK_STEP and length > LINK_MIN_LENGTH:
-            # solved after the free step, the link acts through the whole step: one whose ends part fast enough to
-            # pass its break length within the step breaks now, or its backward-Euler force would pull them back as
-            # if it held (``kernels.sweeps``)
-            u0 = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities, xb)
-            reach = length - h * wp.dot(u0, l / length)
-        if length > link_break_length or reach > link_break_length:
+        if length > link_break_length:
             link_broken[link] = 1
             wp.atomic_add(link_broken_total, 0, 1)
             continue
@@ -469,8 +461,16 @@ def link_response_ends(
     # 1: ``vertex_velocities`` are the sweeps' answer, linearised at the step's start, and the link's force over the
     # step at them goes to ``link_warm`` instead
     answered: int,
+    # With ``answered``: 1 where a link whose ends the answer carries past ``break_length`` [m] breaks in the step
+    break_solved: int,
+    break_length: float,
     # Out:
     ends: LinkEnds,
+    # With ``break_solved``: the links broken (``link_broken``, counted in ``link_broken_total[0]`` and in
+    # ``solved_breaks[0]``) and, per strand, 1 where one of its links broke (``strand_redo``)
+    link_broken_total: wp.array(dtype=wp.int32),
+    solved_breaks: wp.array(dtype=wp.int32),
+    strand_redo: wp.array(dtype=wp.int32),
 ):
     """One thread per link: what the sweeps read of its ends over the step (``LinkEnds``): each end's force on its own
     free velocities with the other end still, ``+-(k l) - P v_own`` [N, world], and the link's axis ``n``. With
@@ -484,7 +484,15 @@ def link_response_ends(
     step already (``link_warm``, ``link_forces``), which the ends' parts leave out: the same linear answer, in which
     the free step's body contacts carry the load of the links too (``hairwarp.Solver._warm_start``). (Applied in the
     free step at one step a frame, ``k l`` kicked the hair apart, where a segment's half-dozen links are far stiffer
-    than its mass allows explicitly.)"""
+    than its mass allows explicitly.)
+
+    With ``break_solved`` (steps up to :data:`BREAK_SOLVED_STEP`) a link whose ends the answer carries past its break
+    length, ``|l - h u'| > break_length``, breaks within the step: it is marked broken, its force of the step is
+    zero, and the strands at its two ends are marked in ``strand_redo``, which the sweeps then solve again without it
+    (``hairwarp.Solver._respond``). Held through the step, such a link pulled its ends back with more than it holds
+    at its break (up to 2.6 times on the shoulders' nod at 10x) and whipped a tip to 27.6 m/s. A link the answer keeps
+    within its break holds, however fast its ends parted at the step's start: a look ahead at those speeds alone
+    tore twice the links that fine steps tear in a 3 rev/s spin, whose links slow the parting within the step."""
     link = tid_offset + wp.tid()
     if link_broken[link] != 0:
         if answered != 0:
@@ -500,6 +508,14 @@ def link_response_ends(
     k = link_stiffness * link_scale[link]
     if answered != 0:
         u = v_a - v_b
+        if break_solved != 0 and wp.length(l - h * u) > break_length:
+            link_broken[link] = 1
+            wp.atomic_add(link_broken_total, 0, 1)
+            wp.atomic_add(solved_breaks, 0, 1)
+            strand_redo[link_seg_a[link] // seg_per_strand] = 1
+            strand_redo[link_seg_b[link] // seg_per_strand] = 1
+            link_warm[link] = wp.vec3()
+            return
         link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
         return
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)

@@ -164,9 +164,11 @@ def link_sweep(
     response: ContactResponse,
     seg_entry_start: wp.array(dtype=wp.int32),
     sweep_contacts: SweepContacts,
-    # The sweeps' dampers: their blocks, built by the step's first sweep (the hair contacts' there already with
-    # ``contacts_swept``) and the same in every later one; their forces, written here
+    # The hair contacts' dampers as the contacts' gather left them whole, with ``contacts_swept``
     dampers: InteractionResponse,
+    # The sweeps' dampers: their blocks, built by the step's first sweep (``held`` or ``dampers``, and the links') and
+    # the same in every later one; their forces, written here
+    solved: InteractionResponse,
     # Scratch: with ``reuse`` (every sweep of a step after its first; ``carried``) the factors of the strand's matrix
     # that the first made (or an earlier step)
     scratch: AbaScratch,
@@ -184,6 +186,10 @@ def link_sweep(
     # 1 on the step's last sweep, whose answer the strand keeps: only then its joints are turned and its forward
     # kinematics run (the sweeps before read only ``answered_velocities``, from the joint velocities)
     last: int,
+    # 1 on a sweep after the last that solves again, from its free step and with its factors made afresh, only the
+    # strands marked in ``strand_redo`` (a link of theirs broke within the step: ``links.link_response_ends``)
+    redo: int,
+    strand_redo: wp.array(dtype=wp.int32),
     # Out: the strand answered, from the free step's result
     joint_q_out: wp.array(dtype=wp.quat),
     joint_qd_out: wp.array(dtype=wp.vec3),
@@ -213,12 +219,18 @@ def link_sweep(
     little of it. Hair contacts can join two strands of one colour, which a sweep then solves at once (Jacobi, each
     with the whole damper): the colours are the links', fixed for the run."""
     strand = color_strands[tid_offset + wp.tid()]
+    if redo != 0 and strand_redo[strand] == 0:
+        return
     S = chains.seg_per_strand
     h = dt[0]
     link_count = link_point_a.shape[0]
     reusing = int(reuse)
     keeping = int(keep)
-    if carried[0] != 0:
+    if redo != 0:
+        # its matrix lost the broken links' dampers: factors made afresh, kept where the frame's later steps carry
+        reusing = 0
+        keeping = int(carried[0] != 0 or carried[1] != 0)
+    elif carried[0] != 0:
         reusing = 1
         # factors made at a shape the strand has since left solve another matrix, which under violent motion flung
         # tips at 30-40 m/s (a head spinning at 3 rev/s): made afresh, and kept for the frame's later steps
@@ -318,19 +330,19 @@ def link_sweep(
                     torque += spin_free_torque(arm, f)
             if reusing == 0:
                 eye = wp.identity(n=3, dtype=float)
-                dampers.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad)
-                dampers.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
-                dampers.C[seg] = C + w_sum * eye + Cd
-        elif reusing == 0 and contacts_swept == 0:
-            dampers.A[seg] = A
-            dampers.B[seg] = B
-            dampers.C[seg] = C
-        dampers.force[seg] = force
-        dampers.torque[seg] = torque
+                solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad)
+                solved.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
+                solved.C[seg] = C + w_sum * eye + Cd
+        elif reusing == 0:
+            solved.A[seg] = A
+            solved.B[seg] = B
+            solved.C[seg] = C
+        solved.force[seg] = force
+        solved.torque[seg] = torque
     # the strand's answer from its free step, with the factors of the step's first sweep kept
     for k in range(S):
         scratch.qdd[strand * S + k] = joint_qd_out[strand * S + k]
-    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, dampers, factors, reusing,
+    damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, solved, factors, reusing,
                  keeping)
     if last != 0:
         b = strand * bases.per_strand

@@ -977,12 +977,15 @@ def test_links_warm_start_gives_the_same_steps():
     assert error[True] <= 1.1 * error[False], error
 
 
-@pytest.mark.parametrize("with_contacts", [False, True])
-def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
+@pytest.mark.parametrize("with_contacts, h, break_length", [
+    (False, 1.0 / 60.0, 1.0), (True, 1.0 / 60.0, 1.0), (True, 1.0 / 240.0, 2.0e-4)])
+def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts, h, break_length):
     """A step with the links' sweeps captured in a Warp graph on the CPU (one thread) and replayed gives the eager
     step's bits, with what the sweeps keep between their launches spoilt before the replay: nothing of the step
     happens on the host, and the colours' launches are fixed. ``with_contacts``: hair contacts detected in the step
-    and solved in the sweeps too, their per-step list spoilt as well."""
+    and solved in the sweeps too, their per-step list spoilt as well. At 1/240 s with links that break within the
+    step (``BREAK_SOLVED_STEP``), the sweep that solves their strands again runs in the capture whatever it finds,
+    its unmarked strands returning at once, where the eager step runs it only when a link broke."""
     from hairwarp.interactions import StaticLinks
     from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
@@ -993,7 +996,7 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
     params = StrandParams(density=1300.0, radius=1.0e-3, bend_stiffness=1e-6, damping=0.0, drag=0.0)
     model = Model.build(np.stack([roots, roots + 0.01 * dirs, roots + 0.02 * dirs], axis=1), params, segments=2)
     links = StaticLinks.build(model.rest_vertex_positions, neighbours=2, radius=0.006, stiffness=5.0, damping=0.01,
-                              break_length=1.0, response=True, sweeps=2)
+                              break_length=break_length, response=True, sweeps=2)
     contacts = None
     if with_contacts:
         contacts = HairContacts.build(model.rest_vertex_positions, threshold=0.004, stiffness=20.0, damping=0.01,
@@ -1005,16 +1008,25 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
     start = model.state()
     start.joint_qd.assign(np.random.default_rng(3).normal(0.0, 1.0, (model.seg_count, 3)).astype(np.float32))
     solver.forward_kinematics(start, control)
-    h = 1.0 / 60.0
     eager, replayed = model.state(), model.state()
+    kept = {a: a.numpy().copy() for a in (links.link_broken, links.link_broken_total, links.link_warm)}
     solver.step(start, eager, control, h)
+    broken = links.link_broken.numpy().copy()
+    if break_length < 1.0:  # links broke within the step, and their strands were solved again
+        assert 0 < broken.sum() < links.link_count and links.solved_breaks.numpy()[0] == broken.sum()
+        assert links.strand_redo.numpy().sum() > 0
+    for a, value in kept.items():  # the replay starts where the eager step did
+        a.assign(value)
     with wp.ScopedCapture(device=model.device) as capture:
         solver.step(start, replayed, control, h)
     replayed.joint_q.zero_()
     replayed.joint_qd.zero_()
+    for a, value in kept.items():
+        a.assign(value)
     # what the sweeps keep between their launches, spoilt: the replay must make it again
     spoilt = [solver.free_q, solver.free_qd, solver.free_velocities, solver.answered_velocities, solver.swept.force,
-              solver.swept.C, solver.dampers.C, *solver.answered_sweeps]
+              solver.swept.C, solver.solved.force, solver.solved.C, solver.dampers.C, links.strand_redo,
+              links.solved_breaks, *solver.answered_sweeps]
     if with_contacts:
         listed = contacts.sweep_contacts.end.numpy() - contacts.seg_entry_start.numpy()[:-1]
         assert contacts.sweeps_contacts and listed.sum() > 0  # the sweeps solved contacts
@@ -1026,6 +1038,7 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts):
     assert not np.array_equal(eager.joint_qd.numpy(), start.joint_qd.numpy())  # the step did something
     for key in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
         np.testing.assert_array_equal(getattr(replayed, key).numpy(), getattr(eager, key).numpy())
+    np.testing.assert_array_equal(links.link_broken.numpy(), broken)
 
 
 def test_fault_names_the_response_stage():

@@ -436,7 +436,7 @@ def test_response_damper_blocks_match_their_product_form():
     xform = start.seg_xform.numpy().astype(float)
     rot, origin = Rotation.from_quat(xform[:, 3:]), xform[:, :3]
     arm = links.ends.arm.numpy().astype(float)
-    got = {name: getattr(solver.swept, name).numpy().astype(float) for name in ("A", "B", "C")}
+    got = {name: getattr(solver.solved, name).numpy().astype(float) for name in ("A", "B", "C")}
     spin_free = np.diag([1.0, 1.0, 0.0])
     order = np.argsort(links.seg_b, kind="stable")  # b slots in link order of their segment b
     slot_b = np.empty(links.link_count, int)
