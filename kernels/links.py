@@ -466,10 +466,9 @@ def link_response_ends(
     break_length: float,
     # Out:
     ends: LinkEnds,
-    # With ``break_solved``: the links broken (``link_broken``, counted in ``link_broken_total[0]`` and in
-    # ``solved_breaks[0]``) and, per strand, 1 where one of its links broke (``strand_redo``)
+    # With ``break_solved``: the links broken (``link_broken``, counted in ``link_broken_total[0]``) and, per strand,
+    # 1 where one of its links broke (``strand_redo``: stores of 1 only, the same whichever thread stores)
     link_broken_total: wp.array(dtype=wp.int32),
-    solved_breaks: wp.array(dtype=wp.int32),
     strand_redo: wp.array(dtype=wp.int32),
 ):
     """One thread per link: what the sweeps read of its ends over the step (``LinkEnds``): each end's force on its own
@@ -508,14 +507,15 @@ def link_response_ends(
     k = link_stiffness * link_scale[link]
     if answered != 0:
         u = v_a - v_b
-        if break_solved != 0 and wp.length(l - h * u) > break_length:
-            link_broken[link] = 1
-            wp.atomic_add(link_broken_total, 0, 1)
-            wp.atomic_add(solved_breaks, 0, 1)
-            strand_redo[link_seg_a[link] // seg_per_strand] = 1
-            strand_redo[link_seg_b[link] // seg_per_strand] = 1
-            link_warm[link] = wp.vec3()
-            return
+        if break_solved != 0:
+            reach = l - h * u
+            if wp.dot(reach, reach) > break_length * break_length:
+                link_broken[link] = 1
+                wp.atomic_add(link_broken_total, 0, 1)
+                strand_redo[link_seg_a[link] // seg_per_strand] = 1
+                strand_redo[link_seg_b[link] // seg_per_strand] = 1
+                link_warm[link] = wp.vec3()
+                return
         link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
         return
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)

@@ -1013,7 +1013,7 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts, h,
     solver.step(start, eager, control, h)
     broken = links.link_broken.numpy().copy()
     if break_length < 1.0:  # links broke within the step, and their strands were solved again
-        assert 0 < broken.sum() < links.link_count and links.solved_breaks.numpy()[0] == broken.sum()
+        assert 0 < broken.sum() < links.link_count and links.link_broken_total.numpy()[0] == broken.sum()
         assert links.strand_redo.numpy().sum() > 0
     for a, value in kept.items():  # the replay starts where the eager step did
         a.assign(value)
@@ -1026,7 +1026,7 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts, h,
     # what the sweeps keep between their launches, spoilt: the replay must make it again
     spoilt = [solver.free_q, solver.free_qd, solver.free_velocities, solver.answered_velocities, solver.swept.force,
               solver.swept.C, solver.solved.force, solver.solved.C, solver.dampers.C, links.strand_redo,
-              links.solved_breaks, *solver.answered_sweeps]
+              *solver.answered_sweeps]
     if with_contacts:
         listed = contacts.sweep_contacts.end.numpy() - contacts.seg_entry_start.numpy()[:-1]
         assert contacts.sweeps_contacts and listed.sum() > 0  # the sweeps solved contacts
