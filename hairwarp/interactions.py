@@ -243,6 +243,8 @@ class StaticLinks:
         strand_colors: numpy int32 (G,), each strand's colour, no two linked strands sharing one
             (:func:`strand_colors`); strand_color_array: the same on the device; color_strands: int32 (G,) on the
             device, the strands by colour; color_views: a view of ``color_strands`` per colour, in order.
+        strand_redo: int32 (G,) on the device, 1 where a link of the strand broke within the last step by the sweeps'
+            answer (:meth:`update_warm`), which the sweeps then solve again.
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the links), or None.
     """
 

@@ -249,8 +249,9 @@ class Solver:
         m = n if self.responders else 1
         dampers = self.dampers = _dampers(m, device)
         # the links' Gauss-Seidel sweeps (``sweeps.link_sweep``): the free step's result each sweep starts from; the
-        # hair contacts' dampers, held through the sweeps; the sweeps' dampers (the links' and the contacts', their
-        # blocks the same in every sweep); the inverse inertias shared
+        # hair contacts' dampers, held through the sweeps (``held``) or whole as the contacts' gather leaves them for
+        # the sweeps to solve (``swept``); the sweeps' dampers (``solved``: the links' and the contacts', their blocks
+        # the same in every sweep, built again for a strand the sweeps solve again); the inverse inertias shared
         self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
         # the order of the colours in a step's first sweep: forward (0) or back (1); a step of an odd count of sweeps
         # turns it for the next (``hairwarp.Stepper`` sets it from its parity before each step)
