@@ -389,12 +389,15 @@ class Executor:
             for a in arrays:
                 a.zero_()
             return
-        views = self._views
         for a in arrays:
-            have = views.get(id(a))
-            if have is None or have[0] is not a:
-                have = views[id(a)] = (a, a.numpy())
-            have[1].fill(0)
+            self.host_view(a).fill(0)
+
+    def host_view(self, array) -> np.ndarray:
+        """The numpy view of a CPU ``array``, made once and kept (``array.numpy()`` builds a new one each call)."""
+        have = self._views.get(id(array))
+        if have is None or have[0] is not array:
+            have = self._views[id(array)] = (array, array.numpy())
+        return have[1]
 
     # -- partitions ----------------------------------------------------------------------
 

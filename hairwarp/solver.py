@@ -660,7 +660,7 @@ class Solver:
         # sweep that does so always runs, its strands unmarked returning at once
         break_solved = self._dt_host is not None and self._dt_host <= float(link_kernels.BREAK_SOLVED_STEP)
         if links.update_warm(model, state_in, self.answered_velocities, self.dt, break_solved) and break_solved:
-            if model.device.is_cuda or model.device.is_capturing or links.strand_redo.numpy().any():
+            if model.device.is_cuda or model.device.is_capturing or ex.host_view(links.strand_redo).any():
                 sweep_colors(count, links.color_views, True)
                 links.update_warm(model, state_in, self.answered_velocities, self.dt)
         if project:

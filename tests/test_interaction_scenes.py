@@ -136,7 +136,7 @@ def test_violent_shake_breaks_links_as_numpy_counts():
             near |= np.abs(length - links.break_length) < BREAK_BAND
     broken = links.link_broken.numpy()[: links.link_count].astype(bool)
     assert 10 < ever.sum() < links.link_count // 2
-    assert within >= 5, within  # links the answer broke within the step, before any step started past their break
+    assert within >= 5, within  # links the answer broke before any step started past their break (53 here)
     np.testing.assert_array_equal(broken[~near], ever[~near])
     assert links.broken_count() == broken.sum()
 
