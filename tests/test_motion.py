@@ -186,6 +186,32 @@ def test_axis_turns_in_closed_form_match_the_quaternion_derivatives(cls):
             np.testing.assert_allclose(rotation, want_rotation, rtol=0.0, atol=1e-13)
 
 
+@pytest.mark.parametrize("interpolation", ["smooth", "monotone", "linear"])
+def test_keyframes_in_plain_floats_match_their_numpy_curves(interpolation):
+    """Keyframes sample themselves in plain floats (the runner asks for a sample and a pose around every step); the
+    general path composes the numpy curves ``_rotation`` and ``_translation``. Both agree to float64 round-off (1e-12
+    of the largest value: the accelerations divide by the interval's square and sum a few dozen products), inside
+    the intervals, at and just past the keys, and held before and after them; so do the poses."""
+    from hairwarp.motion import _PivotMotion
+
+    m = _keyframes()
+    m = Keyframes(m.times, m.translations, m.rotations, pivot=PIVOT, rest_position=REST, interpolation=interpolation)
+    times = np.concatenate([np.linspace(-0.5, 3.0, 141), m.times, m.times + 1e-9, m.times - 1e-9])
+    for t in times:
+        fast, general = m.evaluate(t), _PivotMotion.evaluate(m, t)
+        for name in ("position", "rotation", "linear_velocity", "angular_velocity", "linear_acceleration",
+                     "angular_acceleration"):
+            want = getattr(general, name)
+            got = getattr(fast, name)
+            assert got.shape == want.shape and got.dtype == want.dtype
+            np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12 * max(1.0, float(np.abs(want).max())),
+                                       err_msg=f"{name} at t = {t}")
+        position, rotation = m.pose(t)
+        want_position, want_rotation = _PivotMotion.pose(m, t)
+        np.testing.assert_allclose(position, want_position, rtol=0.0, atol=1e-13)
+        np.testing.assert_allclose(rotation, want_rotation, rtol=0.0, atol=1e-13)
+
+
 def test_nod_swings_about_the_pivot():
     """A nod about a pivot below the head moves the head origin; the distance to the pivot is kept."""
     m = Nod(30.0, period=1.0, ramp=0.0, pivot=PIVOT, rest_position=REST)
