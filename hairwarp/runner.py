@@ -92,7 +92,8 @@ class Stepper:
         executor = getattr(solver, "executor", None)
         threaded = executor is not None and executor.parallel
         self.use_graph = (model.device.is_cuda if use_graph is None else bool(use_graph)) and not threaded
-        self._graphs = [None, None]
+        self._graphs = {}  # (parity, sweep turn) -> the captured step
+        self._frame_step = 0  # the step's index in its frame: the links' sweeps turn by it (``step``)
         solver.set_dt(self.dt)
 
     @property
@@ -102,24 +103,27 @@ class Stepper:
 
     def step(self):
         s_in, s_out = self.states[self.parity], self.states[1 - self.parity]
-        # the links' sweeps: a step of an odd count goes the other way round its colours from the last (a graph
-        # keeps the way it was captured with, one per parity)
-        self.solver.sweep_turn = self.parity
+        # the links' sweeps: a step of an odd count goes the other way round its colours from the step before it in
+        # the frame, every frame starting the same way (``Solver.sweep_turn``); a graph keeps the way it was captured
+        # with, one per parity and way
+        turn = self._frame_step % 2
+        self.solver.sweep_turn = turn
         if self.use_graph:
-            graph = self._graphs[self.parity]
+            graph = self._graphs.get((self.parity, turn))
             if graph is None:
-                # the first step of each parity runs eagerly (loading the modules), the graph is captured after
+                # the first step of each parity and way runs eagerly (loading the modules), the graph is captured after
                 self.solver.step(s_in, s_out, self.control, self.dt)
-                self.solver.sweep_turn = self.parity
+                self.solver.sweep_turn = turn
                 with wp.ScopedCapture(device=self.solver.model.device) as capture:
                     self.solver.step(s_in, s_out, self.control, self.dt)
-                self._graphs[self.parity] = capture.graph
+                self._graphs[(self.parity, turn)] = capture.graph
             else:
                 self.solver.plan_factors()  # what the captured sweep reads (``Solver.plan_factors``)
                 wp.capture_launch(graph)
         else:
             self.solver.step(s_in, s_out, self.control, self.dt)
         self.parity = 1 - self.parity
+        self._frame_step += 1
         self.time += self.dt
 
     def step_dt(self, substeps: int | None = None) -> float:
@@ -156,6 +160,7 @@ class Stepper:
         # every frame makes its own factors for the links' sweeps: a frame taken again, or a run resumed at it, solves
         # as the run that went through it did
         self.solver.expire_factors()
+        self._frame_step = 0
         for _ in range(self.substeps):
             if before_step is not None:
                 before_step(self.time + self.dt, self.control)

@@ -167,9 +167,12 @@ class Solver:
 
     ``sweep_turn`` (0 or 1) is the order of the strands' colours in the next step's first sweep of links solved after
     the free step, forward or back; a step of an odd count of sweeps turns it, so that one sweep a step runs the
-    colours forward and back in turn. :class:`hairwarp.Stepper` sets it from its parity before each step (so a
-    checkpoint and the graphs captured per parity keep it); a caller that steps the solver itself and restores a run
-    sets it as it was.
+    colours forward and back in turn. :class:`hairwarp.Stepper` sets it before each step from the step's place in its
+    frame, every frame starting forward (a checkpoint, taken between frames, and the graphs captured per parity and
+    turn keep it): turned by the run's parity instead, a frame of one step and 25 sweeps ended on the other way round
+    from the frame before, and hair at rest flickered (``long_hair_shoulders`` without its colliders at one step a
+    frame: tips at 1.93 mm/s in the 6th second, every other frame back where it was; 0.017 started alike). A caller
+    that steps the solver itself and restores a run sets it as it was.
 
     ``factor_steps`` (:data:`FACTOR_STEPS`) is how many steps one factorisation of the strands' matrices serves in
     those sweeps where a step takes one (:meth:`plan_factors`; 1: every step its own). :class:`hairwarp.Stepper`
