@@ -338,6 +338,9 @@ class StaticLinks:
         # with ``response``: the free step takes each link's force of the last step (``link_warm``) and the response
         # the change (set by ``hairwarp.Solver.set_dt`` for each step)
         links.warm_start = False
+        # with ``warm_start`` at long steps: the speed [m/s] by which the force kept falls off with the ends' relative
+        # speed (``kernels.links.link_response_ends``); 0 keeps it whole (set with ``warm_start``)
+        links.warm_gate = 0.0
         links.seg_a = a.astype(np.int32)
         links.seg_b = b.astype(np.int32)
         links.frac_a = fa
@@ -446,7 +449,8 @@ class StaticLinks:
         """Keep each link's force of the step as the sweeps answered it (:attr:`link_warm`), which the next step's
         free step takes with :attr:`warm_start` (``link_response_ends`` with ``answered``; launch only). With
         ``break_solved``, links whose ends the answer carries past their break length break within the step instead,
-        their strands marked in :attr:`strand_redo` (zeroed first). Returns whether it launched."""
+        their strands marked in :attr:`strand_redo` (zeroed first). With :attr:`warm_gate` each link keeps the share
+        of its force that its ends' parting speed leaves. Returns whether it launched."""
         if self.link_count == 0 or not (self.warm_start or break_solved):
             return False
         if break_solved:
@@ -461,7 +465,7 @@ class StaticLinks:
         inputs = [model.seg_per_strand, self.stiffness, self.damping, self.link_scale, self.link_point_a,
                   self.link_point_b, self.link_broken, self.link_seg_a, self.link_seg_b, self.link_b_slot,
                   int(self.warm_start), self.link_warm, state_in.vertex_positions, velocities, dt, int(answered),
-                  int(break_solved), self.break_length]
+                  int(break_solved), self.break_length, self.warm_gate]
         # the count of links broken adds up per chunk where they may break (``hairwarp.executor``)
         launch(self.executor, link_kernels.link_response_ends, self.link_count, inputs,
                [self.ends, self.link_broken_total, self.strand_redo], device=self.device, min_chunk=GATHER_MIN_CHUNK,
@@ -480,13 +484,20 @@ class StaticLinks:
         per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
         return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
 
+    def step_sweeps(self, dt: float) -> int:
+        """The sweeps a step of ``dt`` seconds takes as the links start it now (:attr:`warm_start`,
+        :attr:`warm_gate`, set by the solver for the step): a warm step's count where it takes the whole force of the
+        last step, a cold step's where it takes none or the gated share."""
+        return max(1, self.sweeps_at(dt, cold=not self.warm_start or self.warm_gate > 0.0))
+
     def sweeps_at(self, dt: float, cold: bool = False) -> int:
         """The sweeps a step of ``dt`` seconds takes. One that starts from the links' force of the last step
         (:attr:`warm_start`): :attr:`sweeps` up to :data:`SWEEP_REFERENCE_STEP`, and a step k times as long
         k ** :data:`WARM_SWEEP_GROWTH` times as many (rounded up). One that starts ``cold``: :data:`COLD_SWEEPS` times
         as many up to that step and k ** :data:`SWEEP_GROWTH` times those at longer ones. Steps longer than
         :data:`SWEEP_GROWTH_STEP` take its count. With the default 1: 1 at 8 substeps of 30 fps, 16 at 2, and 25 at
-        one step a frame, which starts cold."""
+        one step a frame, which starts cold (or from the gated share of the last force, :attr:`warm_gate`, which
+        takes a cold step's count: :meth:`step_sweeps`)."""
         k = min(float(dt), SWEEP_GROWTH_STEP) / SWEEP_REFERENCE_STEP
         base, growth = (self.sweeps * COLD_SWEEPS, SWEEP_GROWTH) if cold else (self.sweeps, WARM_SWEEP_GROWTH)
         return max(base, math.ceil(base * k ** growth - 1e-9))

@@ -604,7 +604,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "sweeps": Field("int", 1, "with the step response: Gauss-Seidel sweeps over the strands' links and "
                             "hair contacts after the free step, per step of up to 1/240 s that starts from the "
                             "links' last force (the warm start, at steps under 1/45 s), a step k times as long k^2 "
-                            "times as many (16 at 1/60 s); a step that starts cold twice as many, k^1.5 times those "
+                            "times as many (16 at 1/60 s); a step that starts cold, or at longer steps from the share "
+                            "of that force its ends' parting leaves, twice as many, k^1.5 times those "
                             "(25 at one step a frame); more hold the hair nearer its backward-Euler step, each "
                             "costs about one more response solve",
                             range="[1, 64]"),

@@ -55,6 +55,25 @@ LINK_RATE_LIMIT = 2.0
 WARM_START_STEP = 1.0 / 45.0
 WARM_START_RATE = 8.0
 
+#: Speed [m/s] by which, at the steps those bounds leave out, each link's force of the last step that the free step
+#: takes falls off with the speed its ends parted at in that step's answer: ``f / (1 + |u'|^2 / s^2)``
+#: (``kernels.links.link_response_ends``, ``StaticLinks.warm_gate``; the sweeps solve the rest, so the step's linear
+#: answer is the same). A link at rest carries its force whole, and the free step's body contacts take the load of
+#: the links as well as the hair's weight; one whose ends jitter or part fast starts cold. Started cold, hair at rest
+#: on a body at one step a frame traded its load between the free step's contacts and the links' sweeps every step
+#: and never settled: ``long_hair_shoulders`` with its head still, tips at 10 mm/s in the 6th second (0.012 now,
+#: 0.013 with the whole force); and five strands linked side by side gained 1.2 % of their energy in a frame against
+#: a still sphere (``test_linked_strands_never_gain_energy_against_a_still_sphere``; their energy now only falls).
+#: The whole force at one step a frame faulted the shoulders' frame 7 in motion (taken again in 2 steps) and sped limp
+#: linked hair (EI 1e-7, 8 segments, no hair contacts) to 2.75 m/s; gated: no fault, and 1.43 m/s (1.62 cold) over
+#: eight draws of gravity. At 0.01 m/s the shoulders rested at 0.2 mm/s, at 0.1 the limp hair reached 2.28 m/s.
+#: Only where the scene has colliders (the load it shares is theirs to take) and links' free-step rates up to
+#: ``WARM_GATE_RATE``: hair hanging free swung on at one step a frame with it (40 of the shoulders' strands without
+#: colliders: 13.6 mm/s in the 4th second, 0.69 cold, 1.2 at 8 substeps), and links of 1,000 N/m on ``long_hair`` (rate
+#: 33 at 8 substeps) faulted the response in the first frame.
+WARM_GATE_SPEED = 0.03
+WARM_GATE_RATE = 16.0
+
 #: Shortest step [s] at which the links take no warm start when the hair contacts are solved after the free step too
 #: (``Solver._warm_start``; the step from which ``response = "auto"`` solves them there, ``runner.AUTO_RESPONSE_DT``).
 #: The links' last force was held in balance by the contacts' last force, which the free step does not take; at
@@ -418,10 +437,14 @@ class Solver:
         if self.links is None:
             return
         warm = self._warm_start(self._dt_host)
-        if self.links.warm_start and not warm:
+        gate = 0.0
+        if not warm and WARM_GATE_SPEED > 0.0 and self._warm_start(self._dt_host, gated=True):
+            warm, gate = True, WARM_GATE_SPEED
+        if self.links.warm_start and (not warm or gate != self.links.warm_gate):
             # forces kept while the warm start was on would be stale when a later step turns it on again
             self.links.link_warm.zero_()
         self.links.warm_start = warm
+        self.links.warm_gate = gate
 
     def expire_factors(self):
         """Make the next step of links solved after the free step factor its matrices afresh (``plan_factors``):
@@ -446,7 +469,7 @@ class Solver:
         if not self.link_sweeps:
             return
         links = self.links
-        count = max(1, links.sweeps_at(self._dt_host, cold=not links.warm_start))
+        count = links.step_sweeps(self._dt_host)
         contacts_respond = self.contacts is not None and self.contacts.response
         carries = count == 1 and links.warm_start and not contacts_respond and self.factor_steps > 1
         age = self._factor_age
@@ -460,7 +483,7 @@ class Solver:
             wp.copy(self.carried, self._carried_presets[flags])
             self._carried_set = flags
 
-    def _warm_start(self, dt: float) -> bool:
+    def _warm_start(self, dt: float, gated: bool = False) -> bool:
         """Whether links solved after the free step put their force of the last step into it at steps of ``dt``
         (``StaticLinks.link_warm``, kept after each step's sweeps), the response then solving the change: for the linear
         part of the step the same answer (``kernels.links.link_response_ends``), but the free step's body contacts carry
@@ -473,18 +496,29 @@ class Solver:
         stability grid jitters at one step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the
         mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks. Not where hair contacts are
         solved after the free step too, at steps from ``WARM_START_CONTACTS_STEP`` on (their last force is not
-        carried), nor in a frame taken again (:attr:`warm_start_allowed`)."""
+        carried), nor in a frame taken again (:attr:`warm_start_allowed`).
+
+        With ``gated``: whether it takes the gated force (:data:`WARM_GATE_SPEED`) where the bounds of step and rate
+        leave out the whole one, as :meth:`_set_warm_start` asks: with colliders and a rate up to
+        :data:`WARM_GATE_RATE`; the other conditions hold as they are."""
         links = self.links
-        if not links.response or dt >= WARM_START_STEP or not self._warm_start_allowed:
+        if not links.response or (dt >= WARM_START_STEP and not gated) or not self._warm_start_allowed:
             return False
         contacts = self.contacts
         if contacts is not None and contacts.enabled and contacts.response \
                 and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9):
             return False
-        # the rate per second of step, read from the host once per stiffness: a new step size costs no copy
+        if gated:  # where a body holds the hair, and links not too stiff for a force lagged a step
+            return self.body_contacts.enabled and dt * self._link_rate_per_second() <= WARM_GATE_RATE
+        return dt * self._link_rate_per_second() <= WARM_START_RATE
+
+    def _link_rate_per_second(self) -> float:
+        """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per
+        stiffness: a new step size costs no copy."""
+        links = self.links
         if self._link_rate is None or self._link_rate[0] != links.stiffness:
             self._link_rate = (links.stiffness, links.free_step_rate(self.model.seg_mass.numpy(), 1.0))
-        return dt * self._link_rate[1] <= WARM_START_RATE
+        return self._link_rate[1]
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""
@@ -590,7 +624,7 @@ class Solver:
         links = self.links if self.link_sweeps else None
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
         # the sweeps this step takes (``StaticLinks.sweeps_at``)
-        count = max(1, links.sweeps_at(self._dt_host, cold=not links.warm_start)) if links is not None else 0
+        count = links.step_sweeps(self._dt_host) if links is not None else 0
         if links is None and contacts is None:  # responders without a pair: links asked for, none built
             if project:
                 with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):

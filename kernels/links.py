@@ -464,6 +464,9 @@ def link_response_ends(
     # With ``answered``: 1 where a link whose ends the answer carries past ``break_length`` [m] breaks in the step
     break_solved: int,
     break_length: float,
+    # With ``answered``: > 0, the speed [m/s] by which the force kept for the next free step falls off with the ends'
+    # relative speed in the answer, ``1 / (1 + |u'|^2 / s^2)`` of it (``StaticLinks.warm_gate``); 0 keeps it whole
+    warm_gate: float,
     # Out:
     ends: LinkEnds,
     # With ``break_solved``: the links broken (``link_broken``, counted in ``link_broken_total[0]``) and, per strand,
@@ -516,7 +519,10 @@ def link_response_ends(
                 strand_redo[link_seg_b[link] // seg_per_strand] = 1
                 link_warm[link] = wp.vec3()
                 return
-        link_warm[link] = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
+        f = k * l - (h * k) * u - (link_damping * link_scale[link]) * wp.dot(n, u) * n
+        if warm_gate > 0.0:
+            f = f / (1.0 + wp.dot(u, u) / (warm_gate * warm_gate))
+        link_warm[link] = f
         return
     P = (h * k) * wp.identity(n=3, dtype=float) + (link_damping * link_scale[link]) * wp.outer(n, n)
     kl = k * l

@@ -927,11 +927,11 @@ def test_link_sweeps_take_energy_out_of_a_lattice(k):
     assert gap[1] > gap[8] > gap[64], ratio
 
 
-def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float):
+def _stretched_lattice(h: float, steps: int, warm_start, amplitude: float):
     """A 3 x 4 grid of one-segment pendulums (as ``_tied_lattice``'s, ``implicit_joints``) tied by links of 2 N/m and
     0.002 N s/m, released with its joints turned at random by about ``amplitude`` [rad], run ``steps`` steps of ``h``
     with 64 sweeps a step (converged), the links' force of the last step in the free step or not
-    (``Solver._warm_start``).
+    (``Solver._warm_start``), or ``"gated"`` the share of it that ``WARM_GATE_SPEED`` keeps.
     Returns the tips [m], the joint velocities [rad/s] and the links' free-step rate at ``h``."""
     import hairwarp as hw
     from hairwarp.interactions import StaticLinks
@@ -944,8 +944,8 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float)
                               response=True)
     links.sweeps_at = lambda dt, cold=False: 64
     solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
-    if not warm_start:
-        solver._warm_start = lambda dt: False
+    if warm_start != True:  # noqa: E712 (True, False or "gated")
+        solver._warm_start = lambda dt, gated=False: warm_start == "gated" and gated
     turn = Rotation.from_rotvec(np.random.default_rng(5).normal(0.0, amplitude, (12, 3)) * [1.0, 1.0, 0.0])
     control = model.control()
     state, other = model.state(), model.state()
@@ -954,7 +954,8 @@ def _stretched_lattice(h: float, steps: int, warm_start: bool, amplitude: float)
     for _ in range(steps):
         solver.step(state, other, control, h)
         state, other = other, state
-    assert links.warm_start is warm_start and int(state.fault.numpy()[0]) == 0
+    assert links.warm_start is bool(warm_start) and (links.warm_gate > 0.0) is (warm_start == "gated")
+    assert int(state.fault.numpy()[0]) == 0
     tips = state.vertex_positions.numpy().astype(np.float64).reshape(12, 2, 3)[:, 1]
     return tips, state.joint_qd.numpy().astype(np.float64), links.free_step_rate(model.seg_mass.numpy(), h)
 
@@ -965,11 +966,14 @@ def test_links_warm_start_gives_the_same_steps():
     answer. A stretched lattice (``_stretched_lattice``), three steps of 1/960 s (the first starts cold): the joint
     velocities agree with the whole force solved in the response to 1e-4 of their largest change (measured 5e-6). At
     1/240 s the free step's turns part the two, by a term that falls with the step faster than its square, and both
-    are as near the answer of steps of 1/7680 s over three steps (tips 78.7 and 78.6 um from it)."""
-    one = {warm: _stretched_lattice(1.0 / 960.0, 3, warm, 0.01) for warm in (True, False)}
+    are as near the answer of steps of 1/7680 s over three steps (tips 78.7 and 78.6 um from it). Any share of the
+    last force gives that answer: so does the gated one of long steps (``WARM_GATE_SPEED``), each link's falling off
+    with the speed its ends part at (measured 5e-6 too)."""
+    one = {warm: _stretched_lattice(1.0 / 960.0, 3, warm, 0.01) for warm in (True, False, "gated")}
     change = np.abs(one[False][1]).max()  # from rest
     assert change > 0.1  # the stretched links set the lattice moving
     np.testing.assert_allclose(one[True][1], one[False][1], rtol=0.0, atol=1e-4 * change)
+    np.testing.assert_allclose(one["gated"][1], one[False][1], rtol=0.0, atol=1e-4 * change)
     fine = _stretched_lattice(1.0 / 7680.0, 96, False, 0.05)[0]
     error = {warm: np.sqrt(np.sum((_stretched_lattice(1.0 / 240.0, 3, warm, 0.05)[0] - fine) ** 2, axis=1).mean())
              for warm in (True, False)}
