@@ -537,7 +537,7 @@ class Simulation:
     def _pose_a_frame_from(self, t: float, direction: int):
         """The head pose a frame after (``direction`` 1) or before (-1) ``t``, for the teleport test. Each is
         computed once: the pose a frame after a step is the one a frame before the step two frames on (kept by
-        step number; a pose costs as much as a motion sample, and keyframes take 50 us)."""
+        step number; keyframes take 7 us a pose and 18 a sample, in plain floats)."""
         dt = self.stepper.dt
         key = round(t / dt) + direction * round(self.frame_dt / dt)
         cache = self._poses
