@@ -621,6 +621,29 @@ def test_threads_frame_timings_run_the_same_frames():
     assert all(r.ran == expected for r in runs), [r.ran for r in runs]
 
 
+def test_threads_sweep_times_the_frame_its_table_times(monkeypatch):
+    """The sweep's frame of the default scene is the frame its scene table times, dense hair included
+    (``FRAME_STAGE``): the report sets the two side by side as one measure taken twice."""
+    from hairwarp.benchmarks import threads
+    from hairwarp.runner import Simulation
+
+    calls = []
+    dense_curves = Simulation.dense_curves
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return dense_curves(self, *args, **kwargs)
+
+    monkeypatch.setattr(Simulation, "dense_curves", counted)
+    monkeypatch.setattr(threads, "SWEEP_SIZE", (4, 3))
+    monkeypatch.setattr(threads, "WARMUP_FRAMES", 1)
+    monkeypatch.setattr(threads, "FRAMES_PER_TIMING", 2)
+    monkeypatch.setattr(threads.GATE, "enabled", False)
+    data = threads.sweep([1], rounds=1, min_s=0.0, overrides=["groom.count=9", "dense.count=8", "sim.substeps=1"])
+    assert data["rows"][0]["frame_ms"] > 0.0
+    assert len(calls) == threads.FRAMES_PER_TIMING  # one dense evaluation a timed frame
+
+
 def test_threads_report_states_goals_and_efficiency():
     from hairwarp.benchmarks.threads import md_threads
 

@@ -261,8 +261,9 @@ def sweep_counts(threads: int) -> list[int]:
 
 def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
     """Speed-up against one thread at each of ``counts`` threads: the dynamics step of :data:`SWEEP_SIZE` (the
-    dynamics suite's canonical strands) and a whole frame of the default scene: medians of interleaved rounds, each
-    speed-up the median of the rounds' ratios to the first count."""
+    dynamics suite's canonical strands) and a whole frame of the default scene, its dense hair included, as its table
+    times it (:data:`FRAME_STAGE`): medians of interleaved rounds, each speed-up the median of the rounds' ratios to
+    the first count."""
     from hairwarp.benchmarks.common import BENCH_DT
     from hairwarp.benchmarks.ours import canonical_model
     from hairwarp.runner import Simulation
@@ -296,7 +297,7 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=()) -> dict:
         gates.append(GATE.wait())
         for n in counts:
             dyn[n].append(_time(steps[n], min_s))
-            frame[n].append(_time_frames(sims[n], saved[n], sims[n].advance_frame))
+            frame[n].append(_time_frames(sims[n], saved[n], _stages(sims[n])[FRAME_STAGE]))
     first = counts[0]
     return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
             "guides": sims[first].model.strand_count, "gate": _gate_summary(gates), "rows": [
