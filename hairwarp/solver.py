@@ -61,8 +61,8 @@ WARM_START_RATE = 8.0
 #: answer is the same). A link at rest carries its force whole, and the free step's body contacts take the load of
 #: the links as well as the hair's weight; one whose ends jitter or part fast starts cold. Started cold, hair at rest
 #: on a body at one step a frame traded its load between the free step's contacts and the links' sweeps every step
-#: and never settled: ``long_hair_shoulders`` with its head still, tips at 10 mm/s in the 6th second (0.012 now,
-#: 0.013 with the whole force); and five strands linked side by side gained 1.2 % of their energy in a frame against
+#: and never settled: ``long_hair_shoulders`` with its head still, tips at 9.6 mm/s in the 6th second (0.013 now, as
+#: with the whole force); and five strands linked side by side gained 1.2 % of their energy in a frame against
 #: a still sphere (``test_linked_strands_never_gain_energy_against_a_still_sphere``; their energy now only falls).
 #: The whole force at one step a frame faulted the shoulders' frame 7 in motion (taken again in 2 steps) and sped limp
 #: linked hair (EI 1e-7, 8 segments, no hair contacts) to 2.75 m/s; gated: no fault, and 1.43 m/s (1.62 cold) over
@@ -276,7 +276,7 @@ class Solver:
         # the same in every sweep, built again for a strand the sweeps solve again); the inverse inertias shared
         self.link_sweeps = links is not None and links.response and links.sweeps > 0 and links.link_count > 0
         # the order of the colours in a step's first sweep: forward (0) or back (1); a step of an odd count of sweeps
-        # turns it for the next (``hairwarp.Stepper`` sets it from its parity before each step)
+        # turns it for the next (``hairwarp.Stepper`` sets it from the step's place in its frame before each step)
         self.sweep_turn = 0
         self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
         self._warm_start_allowed = True
@@ -623,7 +623,7 @@ class Solver:
         implicit = int(self.integrator == Integrator.IMPLICIT_JOINTS)
         links = self.links if self.link_sweeps else None
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
-        # the sweeps this step takes (``StaticLinks.sweeps_at``)
+        # the sweeps this step takes (``StaticLinks.step_sweeps``)
         count = links.step_sweeps(self._dt_host) if links is not None else 0
         if links is None and contacts is None:  # responders without a pair: links asked for, none built
             if project:

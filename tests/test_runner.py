@@ -583,24 +583,35 @@ def test_checkpoint_restores_a_run_whose_sweeps_turn_step_by_step():
     _assert_frames_repeat_after_restore(sim, 3)
 
 
+def _shoulders_at_one_step_a_frame(colliders: bool):
+    """40 of ``long_hair_shoulders``' strands with the head still, at one step a frame, with or without colliders."""
+    from hairwarp.benchmarks.robustness import build, head_still, raw_scene, set_key, without_colliders
+
+    raw = head_still(raw_scene("long_hair_shoulders"))
+    raw = set_key(set_key(raw if colliders else without_colliders(raw), "sim.substeps", 1), "groom.count", 40)
+    return Simulation(build(raw, "long_hair_shoulders", overrides=["dense.count=0"]))
+
+
+def _tips_over(sim, frames: int) -> np.ndarray:
+    """The guide tips [m] after each of ``frames`` frames, (frames, G, 3)."""
+    G, S = sim.model.strand_count, sim.model.seg_per_strand
+    tips = []
+    for _ in range(frames):
+        sim.advance_frame()
+        tips.append(sim.guide_curves()[0].reshape(G, S + 1, 3)[:, S].astype(float))
+    return np.asarray(tips)
+
+
 def test_linked_hair_at_rest_does_not_flicker_at_one_step_a_frame():
     """At one step a frame the links solved after the free step take 25 sweeps a step, an odd count: turned by the
     run's parity, every frame ended its sweeps the other way round from the frame before, and hair at rest flickered
     between two shapes (here the fastest tip moved 0.74 mm a frame after 4 s and came back the next, 0.03 mm in two
     frames). Every frame now starts its sweeps the same way (``Solver.sweep_turn`` from the step's place in its frame):
     0.016 mm a frame, settling. Bound 0.1 mm, between the two."""
-    from hairwarp.benchmarks.robustness import build, head_still, raw_scene, set_key, without_colliders
-
-    raw = set_key(set_key(without_colliders(head_still(raw_scene("long_hair_shoulders"))), "sim.substeps", 1),
-                  "groom.count", 40)
-    sim = Simulation(build(raw, "long_hair_shoulders", overrides=["dense.count=0"]))
+    sim = _shoulders_at_one_step_a_frame(colliders=False)
     links = sim.solver.links
     assert links.response and links.step_sweeps(sim.stepper.dt) == 25  # an odd count
-    G, S = sim.model.strand_count, sim.model.seg_per_strand
-    tips = []
-    for _ in range(120):
-        sim.advance_frame()
-        tips.append(sim.guide_curves()[0].reshape(G, S + 1, 3)[:, S].astype(float))
+    tips = _tips_over(sim, 120)
     assert np.linalg.norm(tips[-1] - tips[-2], axis=1).max() < 1e-4
 
 
@@ -611,17 +622,10 @@ def test_linked_hair_resting_on_a_body_comes_to_rest_at_one_step_a_frame():
     at 12.3 mm/s in the 5th second, the fastest 1.03 mm in the last frame. The free step now takes the share of each
     link's last force that its ends' parting speed leaves (``WARM_GATE_SPEED``): 0.56 mm/s and 0.014 mm. Bounds 2
     mm/s and 0.1 mm, between the two."""
-    from hairwarp.benchmarks.robustness import build, head_still, raw_scene, set_key
-
-    raw = set_key(set_key(head_still(raw_scene("long_hair_shoulders")), "sim.substeps", 1), "groom.count", 40)
-    sim = Simulation(build(raw, "long_hair_shoulders", overrides=["dense.count=0"]))
+    sim = _shoulders_at_one_step_a_frame(colliders=True)
     links = sim.solver.links
     assert links.warm_start and links.warm_gate > 0.0 and sim.collider_set is not None
-    G, S = sim.model.strand_count, sim.model.seg_per_strand
-    tips = []
-    for _ in range(150):
-        sim.advance_frame()
-        tips.append(sim.guide_curves()[0].reshape(G, S + 1, 3)[:, S].astype(float))
+    tips = _tips_over(sim, 150)
     speed = np.linalg.norm(np.diff(tips[-31:], axis=0), axis=2) * sim.scene.sim.fps
     assert np.sqrt(np.mean(speed**2)) < 2e-3
     assert np.linalg.norm(tips[-1] - tips[-2], axis=1).max() < 1e-4
