@@ -280,6 +280,7 @@ class Solver:
         self.sweep_turn = 0
         self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
         self._warm_start_allowed = True
+        self._held_written = True  # whether the hair contacts' held dampers may hold a step's values (``_respond``)
         if self.link_sweeps:
             self.free_q = wp.zeros(n, dtype=wp.quat, device=device)
             self.free_qd = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -632,7 +633,11 @@ class Solver:
             return
         dampers = self.dampers
         held = self.held if links is not None else dampers  # the hair contacts' dampers
-        ex.zero(held.A, held.B, held.C, held.force, held.torque)
+        if contacts is not None or self._held_written:
+            # only the hair contacts' gather writes them: links alone read them zero, as made (0.16 ms a frame of
+            # the mohawk's calling thread, the pool's threads waiting)
+            ex.zero(held.A, held.B, held.C, held.force, held.torque)
+        self._held_written = contacts is not None
         if contacts is not None:
             # every strand's inverse inertia at the step's start, which each contact's split reads at both its sides
             ex.launch(articulated.strand_inverse_inertia, model.strand_count,

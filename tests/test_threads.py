@@ -57,6 +57,29 @@ def test_prepared_launches_follow_new_arguments_and_struct_fields():
         ex.close()
 
 
+@wp.kernel
+def _shifted(tid_offset: int, shift: wp.vec3, factor: float, x: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3)):
+    i = tid_offset + wp.tid()
+    y[i] = factor * x[i] + shift
+
+
+def test_prepared_launches_key_numbers_by_value():
+    """A prepared launch is found again by its arguments: arrays and vectors by identity, numbers by value (another
+    float object of the same value, or the same value as an int, reuses it; another value is seen), a list given
+    for a vector, which has no hash, too; every launch computes what its arguments ask."""
+    x = wp.array(np.arange(300, dtype=np.float32).reshape(100, 3), dtype=wp.vec3)
+    for threads in (1, 3):
+        ex = Executor("cpu", threads, min_chunk=10)
+        y = wp.zeros(100, dtype=wp.vec3)
+        shift = wp.vec3(1.0, 2.0, 3.0)
+        for vector, factor, packed in ((shift, 2.0, 1), (shift, float("2.0"), 1), (shift, 2.5, 2),
+                                       (wp.vec3(1.0, 2.0, -3.0), 2.5, 3), ([4.0, 5.0, 6.0], 2.5, 4), (shift, 2, 4)):
+            ex.launch(_shifted, 100, [vector, factor, x], [y])
+            np.testing.assert_array_equal(y.numpy(), float(factor) * x.numpy() + np.asarray(vector, np.float32))
+            assert len(ex._prepared) == packed
+        ex.close()
+
+
 def test_batch_runs_independent_launches_together():
     """Launches held in a batch run when it ends, with the results of launching them one by one."""
     x = wp.array(np.arange(5000, dtype=np.float32), dtype=float)
