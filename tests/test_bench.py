@@ -669,6 +669,35 @@ def test_threads_report_states_goals_and_efficiency():
 
 
 
+def test_join_gate_waits_for_the_probe_and_records_what_it_saw(monkeypatch):
+    """The threads suite's join gate (``JoinGate``) starts a pair of timings once the join probe is back within
+    ``JOIN_FRACTION`` of its usual value (the upper quartile of its probes so far, after ``JOIN_FIRST_PROBES``), waits
+    no longer than ``JOIN_MAX_WAIT_S``, and records every probe; one high outlier does not hold every pair after it."""
+    from hairwarp.benchmarks import threads
+
+    gate = threads.JoinGate(2)
+    try:
+        assert gate.probe(reps=2, rounds=1) > 0.0  # the real probe: its table timed on one thread and on two
+        seen = iter([1.68, 2.10, 1.66, 1.69, 1.30, 1.35, 1.67, 1.64, 1.20])
+        monkeypatch.setattr(gate, "probe", lambda: next(seen))
+        monkeypatch.setattr(threads.time, "sleep", lambda seconds: None)
+        first = [gate.wait() for _ in range(4)]  # 2.10, an outlier among them
+        assert [r["probe"] for r in first] == [1.68, 2.10, 1.66, 1.69] and not any(r["low"] for r in first)
+        fifth = gate.wait()  # 1.30 and 1.35 below 85 % of the upper quartile (1.69 or more): waits for 1.67
+        assert fifth["probe"] == 1.67 and not fifth["low"]
+        assert not gate.wait()["low"]  # 1.64: within
+        monkeypatch.setattr(threads, "JOIN_MAX_WAIT_S", 0.0)
+        assert gate.wait()["low"]  # 1.20, and no time to wait: timed anyway, and said so
+        summary = gate.summary()
+        assert (summary["pairs"], summary["low"], summary["min"], summary["median"]) == (7, 1, 1.20, 1.67)
+        assert 1.68 <= summary["usual"] < 1.70 and gate.summary(6)["pairs"] == 1
+    finally:
+        gate.close()
+    assert threads._join_words(summary).startswith(
+        "the join probe 1.67x at the median of 7 pairs of timings, 1.20x at the lowest; 1 of 7 pairs began with it "
+        "below 85 % of its usual 1.6")
+
+
 def test_threads_speed_up_is_the_median_of_each_rounds_ratio():
     """Timings of a quiet 2-core machine (one-thread and two-thread dynamics of long_hair, ms, three rounds): the
     one-thread side ran at 1.88 ms in one round and 2.33-2.71 in the others. Its best against the other side's best
