@@ -1087,11 +1087,16 @@ class HairContacts:
                     prep.call(c)
             return task
 
-        # the trees first (every thread that waits on one waits on a thread fitting it), the segment tree's chunks
-        # next (the smaller tree is fitted first)
+        # the trees first (every thread that waits on one waits on a thread fitting it), then half the segment tree's
+        # chunks (the smaller tree is fitted first), the vertex-face chunks, and the other half last: the threads end
+        # on the small chunks (a mohawk's vertex-face chunk costs three of its segment-segment ones), so none waits
+        # long for the last (the mohawk on two threads, 60 detections interleaved with the order before, three
+        # runs: 3.7-4.0 ms against 3.8-4.1, each detection 3-4 % shorter than its pair)
+        half = (len(ss_chunks) + 1) // 2
         ex.run([fit(self.seg_bvh, seg_fitted), fit(self.strip_bvh, strip_fitted),
-                *(chunk(ss, c, seg_fitted) for c in range(len(ss_chunks))),
-                *(chunk(vf, c, strip_fitted) for c in range(len(vf_chunks)))])
+                *(chunk(ss, c, seg_fitted) for c in range(half)),
+                *(chunk(vf, c, strip_fitted) for c in range(len(vf_chunks))),
+                *(chunk(ss, c, seg_fitted) for c in range(half, len(ss_chunks)))])
         ex.finish(vf)
         ex.finish(ss)
         self._append_chunk_contacts(views, len(vf_chunks) + len(ss_chunks), fault)
