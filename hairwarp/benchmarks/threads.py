@@ -56,6 +56,9 @@ JOIN_FIRST_PROBES = 4
 #: Longest wait for the probe before one pair of timings [s] (the slow spells seen last 15-60 s), and in all.
 JOIN_MAX_WAIT_S, JOIN_BUDGET_S = 30.0, 240.0
 
+#: Times a pair of timings is taken again when the probe after it is low (a spell began within it).
+JOIN_RETRIES = 2
+
 
 @wp.kernel
 def _probe_work(tid_offset: int, terms: int, x: wp.array(dtype=float)):
@@ -76,7 +79,8 @@ class JoinGate:
     where copies never wait. The probe is a small table of independent work (:data:`PROBE_SIZE`), timed on one
     thread and on N: 1.66-1.69x outside the spells, 1.34-1.39x within. A pair of timings starts once the probe is
     back within :data:`JOIN_FRACTION` of its usual value (:meth:`usual`), or when the wait for it (or the run's
-    budget) is spent; every call records what it saw.
+    budget) is spent, and is taken again when the probe after it is low (:meth:`pair`); every call records what it
+    saw.
     """
 
     def __init__(self, threads: int):
@@ -86,6 +90,7 @@ class JoinGate:
         self.one, self.many = Executor("cpu", 1), Executor("cpu", threads, min_chunk=1)
         self.x = wp.zeros(PROBE_SIZE[0], dtype=float, device="cpu")
         self.waited_s, self.probes, self.seen = 0.0, [], []
+        self.redone, self.ended_low = 0, 0  # pairs timed again; pairs kept with the probe after them still low
 
     def probe(self, reps: int = 40, rounds: int = 5) -> float:
         """The probe's speed-up now: the median of ``rounds`` interleaved ratios, each side the mean of ``reps``
@@ -128,14 +133,34 @@ class JoinGate:
         self.probes.append(record)
         return record
 
-    def summary(self, since: int = 0) -> dict:
-        """What the probes before the pairs from the ``since``-th on saw: their count, the low ones, the wait, the
-        probe's range and its usual value."""
-        seen = self.probes[since:]
+    def pair(self, measure):
+        """``measure()`` (one pair of timings) once :meth:`wait` lets it start, taken again, up to
+        :data:`JOIN_RETRIES` times, while the probe after it is low: a spell that began within the pair reached its
+        timings (one side of it slowed, the other not); its result."""
+        for attempt in range(JOIN_RETRIES + 1):
+            self.wait()
+            result = measure()
+            after = self.probe()
+            self.seen.append(after)
+            low = self._low(after)
+            if not low or attempt == JOIN_RETRIES:
+                self.redone += attempt
+                self.ended_low += int(low)
+                return result
+
+    def mark(self) -> tuple[int, int, int]:
+        """Where the record stands now, for :meth:`summary` of what comes after."""
+        return len(self.probes), self.redone, self.ended_low
+
+    def summary(self, since: tuple[int, int, int] = (0, 0, 0)) -> dict:
+        """What the gate saw after the :meth:`mark` ``since``: the probes before each pair (their count, the low
+        ones, the wait, the probe's range and its usual value), the pairs timed again and those kept with the probe
+        low after them."""
+        seen = self.probes[since[0]:]
         values = [p["probe"] for p in seen]
         usual = self.usual()
-        return {"pairs": len(seen), "low": sum(p["low"] for p in seen),
-                "waited_s": round(sum(p["waited_s"] for p in seen), 1),
+        return {"pairs": len(seen), "low": sum(p["low"] for p in seen), "redone": self.redone - since[1],
+                "ended_low": self.ended_low - since[2], "waited_s": round(sum(p["waited_s"] for p in seen), 1),
                 "usual": None if usual is None else round(usual, 3),
                 "min": min(values) if values else None, "median": statistics.median(values) if values else None,
                 "fraction": JOIN_FRACTION}
@@ -290,25 +315,33 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
     spent_copies = {name: [] for name in stages[1]}
     load_before = list(os.getloadavg())
     gates = []
-    probes_from = len(join.probes) if join is not None else 0
+    probes_from = join.mark() if join is not None else None
     for _ in range(rounds):
         gates.append(GATE.wait())  # each round begins once other programs leave the cores alone (or says not)
         for name in [n for n in stages[1] for _ in range(FRAME_PAIRS if n == FRAME_STAGE else 1)]:
-            if join is not None and device == "cpu" and threads > 1:
-                join.wait()  # and each pair once the machine lets threads meet at joins (or says not)
-            for t, sim in sims.items():
-                if name == FRAME_STAGE:
-                    spent = _time_frames(sim, saved[id(sim)], stages[t][name])
-                else:
-                    spent = _time(stages[t][name], min_s)
-                spent_in[t][name].append(spent)
+
+            def measure(name=name):
+                spent = {}
+                for t, sim in sims.items():
+                    if name == FRAME_STAGE:
+                        spent[t] = _time_frames(sim, saved[id(sim)], stages[t][name])
+                    else:
+                        spent[t] = _time(stages[t][name], min_s)
+                if threads > 1:
+                    if name == FRAME_STAGE:
+                        spent["copies"] = _time_frames_copies(copies, [saved[id(c)] for c in copies],
+                                                              [c[name] for c in copy_stages])
+                    else:
+                        spent["copies"] = _time_copies([c[name] for c in copy_stages], min_s)
+                return spent
+
+            # each pair once the machine lets threads meet at joins, and again if it stopped within it (or says so)
+            gated = join is not None and device == "cpu" and threads > 1
+            spent = join.pair(measure) if gated else measure()
+            for t in sims:
+                spent_in[t][name].append(spent[t])
             if threads > 1:
-                if name == FRAME_STAGE:
-                    spent = _time_frames_copies(copies, [saved[id(c)] for c in copies],
-                                                [c[name] for c in copy_stages])
-                else:
-                    spent = _time_copies([c[name] for c in copy_stages], min_s)
-                spent_copies[name].append(spent)
+                spent_copies[name].append(spent["copies"])
     load_after = list(os.getloadavg())
     rows = []
     for name in stages[1]:
@@ -410,17 +443,19 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=(), join: JoinGate | N
     dyn = {n: [] for n in counts}
     frame = {n: [] for n in counts}
     gates = []
-    probes_from = len(join.probes) if join is not None else 0
+    probes_from = join.mark() if join is not None else None
     for _ in range(rounds):
         gates.append(GATE.wait())
-        if join is not None:
-            join.wait()
-        for n in counts:
-            dyn[n].append(_time(steps[n], min_s))
-        if join is not None:
-            join.wait()
-        for n in counts:
-            frame[n].append(_time_frames(sims[n], saved[n], _stages(sims[n])[FRAME_STAGE]))
+        def timed_dynamics():
+            return {n: _time(steps[n], min_s) for n in counts}
+
+        def timed_frames():
+            return {n: _time_frames(sims[n], saved[n], _stages(sims[n])[FRAME_STAGE]) for n in counts}
+
+        for series, measure in ((dyn, timed_dynamics), (frame, timed_frames)):
+            spent = join.pair(measure) if join is not None else measure()
+            for n in counts:
+                series[n].append(spent[n])
     first = counts[0]
     return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
             "guides": sims[first].model.strand_count, "gate": _gate_summary(gates),
@@ -500,8 +535,9 @@ def md_threads(data: dict) -> list[str]:
              "leave N independent copies at full speed (its threads wait for each other at every join): a *join "
              "probe*, a small table of independent work timed on one thread and on N before each pair of timings, "
              "falls then, and the pair waits up to 30 s for it to come back within "
-             f"{100 * JOIN_FRACTION:.0f} % of its usual value, the upper quartile of its probes so far (`JoinGate`); "
-             "its record is part of the figure too.", "",
+             f"{100 * JOIN_FRACTION:.0f} % of its usual value, the upper quartile of its probes so far, and is "
+             f"timed again (up to {JOIN_RETRIES} times) when the probe after it is low (`JoinGate`); its record is "
+             "part of the figure too.", "",
              "![speed-up per stage](threads.png)", ""]
     copies = all("copies_speedup" in r for s in data["scenes"] for r in s["rows"])
     if copies:
@@ -587,7 +623,8 @@ def _join_words(join: dict | None) -> str:
     return (f"the join probe {join['median']:.2f}x at the median of {join['pairs']} pairs of timings, "
             f"{join['min']:.2f}x at the lowest; {join['low']} of {join['pairs']} pairs began with it below "
             f"{100 * join['fraction']:.0f} % of its usual {join['usual']:.2f}x, after {join['waited_s']:g} s of "
-            "waiting in all")
+            f"waiting in all; {join.get('redone', 0)} timed again after it fell within them, "
+            f"{join.get('ended_low', 0)} kept with it still low")
 
 
 def _verdicts(scene: dict, goals: dict) -> list[str]:
