@@ -633,12 +633,12 @@ class Executor:
                 None if chunks is None else tuple(chunks),
                 None if not per_chunk else tuple((i, tuple(map(id, v))) for i, v in sorted(per_chunk.items())))
         try:
-            # the arguments themselves: arrays and structs compare by identity, numbers and vectors by value (a
-            # tenth of the Python of a key built argument by argument, which on the mohawk's 143 launches a frame
-            # cost 0.7 ms of the calling thread, while the pool's threads wait)
+            # the arguments themselves: arrays and structs compare by identity, numbers by value (a tenth of the
+            # Python of a key built argument by argument, which on the mohawk's 143 launches a frame cost 0.7 ms of
+            # the calling thread, while the pool's threads wait)
             key = (*head, *args)
             prep = self._prepared.get(key)
-        except TypeError:  # an unhashable argument (a list for a vector): by identity, numbers by value
+        except TypeError:  # an argument without a hash (a Warp vector, a list): by identity, numbers by value
             key = (*head, _BY_IDENTITY, *[(a,) if a.__class__ in _NUMBERS else id(a) for a in args])
             prep = self._prepared.get(key)
         if prep is None:

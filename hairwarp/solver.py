@@ -633,9 +633,10 @@ class Solver:
             return
         dampers = self.dampers
         held = self.held if links is not None else dampers  # the hair contacts' dampers
-        if contacts is not None or self._held_written:
-            # only the hair contacts' gather writes them: links alone read them zero, as made (0.16 ms a frame of
-            # the mohawk's calling thread, the pool's threads waiting)
+        if contacts is not None or self._held_written or model.device.is_cuda or model.device.is_capturing:
+            # only the hair contacts' gather writes them: links alone read them zero, as made, and on the CPU they
+            # are not zeroed again (0.16 ms a frame of the mohawk's calling thread, the pool's threads waiting); a
+            # captured step, replayed after steps of another kind, zeroes them always
             ex.zero(held.A, held.B, held.C, held.force, held.torque)
         self._held_written = contacts is not None
         if contacts is not None:
