@@ -117,8 +117,10 @@ def _quat_multiply_floats(a, b) -> list[float]:
             a[3] * b[3] - (a[0] * b[0] + a[1] * b[1] + a[2] * b[2])]
 
 
-def _rotate_floats(q, v) -> list[float]:
-    """:func:`quat_rotate` of sequences of floats, as a list."""
+def rotate_floats(q, v) -> list[float]:
+    """The vector ``v`` (3 floats) rotated by the unit quaternion ``q`` (x, y, z, w) in plain floats
+    (:func:`quat_rotate` as a list): for the host work that runs at every step, where numpy's per-call cost is larger
+    than the arithmetic."""
     t = [2.0 * c for c in _cross_floats(q, v)]
     c = _cross_floats(q, t)
     return [v[k] + q[3] * t[k] + c[k] for k in range(3)]
@@ -891,7 +893,7 @@ class Keyframes(_PivotMotion):
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         q, _, _, d, _, _ = self._curves(float(t), derivatives=False)
-        r = _rotate_floats(q, self._keys.offset)
+        r = rotate_floats(q, self._keys.offset)
         n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         p = self._keys.pivot
         return (np.array([p[0] + d[0] + r[0], p[1] + d[1] + r[1], p[2] + d[2] + r[2]]),
@@ -903,7 +905,7 @@ class Keyframes(_PivotMotion):
         qc = [-q[0], -q[1], -q[2], q[3]]
         w = [2.0 * v for v in _quat_multiply_floats(qd, qc)[:3]]
         al = [2.0 * v for v in _quat_multiply_floats(qdd, qc)[:3]]
-        r = _rotate_floats(q, self._keys.offset)
+        r = rotate_floats(q, self._keys.offset)
         wr = _cross_floats(w, r)
         accel = [a + b + c for a, b, c in zip(ddd, _cross_floats(al, r), _cross_floats(w, wr))]
         n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])

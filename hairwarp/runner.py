@@ -20,9 +20,9 @@ import warp as wp
 from hairwarp.interactions import REBUILD_FRAMES
 from hairwarp.kernels.types import Fault
 from hairwarp.model import Model, resolve_device
-from hairwarp.motion import MotionSample
+from hairwarp.motion import MotionSample, rotate_floats
 from hairwarp.solver import SimulationFault, Solver
-from hairwarp.state import hair_ball, rotate_floats
+from hairwarp.state import hair_ball
 
 #: Shortest step [s] at which ``response = "auto"`` (links and hair contacts) solves their forces after the free step,
 #: on the relative motion of each pair (``kernels.articulated.interaction_response``): at 7 substeps of 30 fps and

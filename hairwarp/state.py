@@ -7,6 +7,8 @@ import math
 import numpy as np
 import warp as wp
 
+from hairwarp.motion import rotate_floats
+
 
 class State:
     """What a step reads and writes. Create with ``model.state()``.
@@ -123,15 +125,6 @@ def hair_ball(model) -> tuple[list[float], float]:
     points = np.asarray(model.rest_vertex_positions, dtype=float).reshape(-1, 3)
     centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
     return centre.tolist(), float(np.linalg.norm(points - centre, axis=1).max())
-
-
-def rotate_floats(q, v) -> list[float]:
-    """The vector ``v`` (3 floats) rotated by the unit quaternion ``q`` (x, y, z, w) in plain floats: for the host
-    tests that run at every step, where numpy's per-call cost is larger than the arithmetic."""
-    x, y, z, w = q
-    vx, vy, vz = v
-    tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
-    return [vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx]
 
 
 def _carried_speed(pose, velocity, centre, reach: float) -> float:

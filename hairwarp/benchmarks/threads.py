@@ -295,8 +295,8 @@ def _on_threads(run, count: int):
 def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: float = 0.2, device="cpu",
                 join: JoinGate | None = None) -> dict:
     """Per-stage seconds on 1 and ``threads`` threads (medians of ``rounds`` interleaved rounds) and the speed-ups
-    (medians of the rounds' ratios); with ``join``, each stage's pair of timings waits for the join probe
-    (:class:`JoinGate`)."""
+    (medians of the rounds' ratios); with ``join``, each stage's pair of timings waits for the join probe and is
+    taken again when the probe falls within it (:meth:`JoinGate.pair`)."""
     from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
@@ -315,7 +315,7 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
     spent_copies = {name: [] for name in stages[1]}
     load_before = list(os.getloadavg())
     gates = []
-    probes_from = join.mark() if join is not None else None
+    since = join.mark() if join is not None else None
     for _ in range(rounds):
         gates.append(GATE.wait())  # each round begins once other programs leave the cores alone (or says not)
         for name in [n for n in stages[1] for _ in range(FRAME_PAIRS if n == FRAME_STAGE else 1)]:
@@ -357,7 +357,7 @@ def bench_scene(path, threads: int, *, overrides=(), rounds: int = 5, min_s: flo
     return {"scene": Path(path).name, "guides": m.strand_count, "segments": m.seg_per_strand,
             "substeps": int(scene.sim.substeps), "threads": threads, "rounds": rounds, "rows": rows,
             "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in load_after],
-            "gate": _gate_summary(gates), **({"join": join.summary(probes_from)} if join is not None else {})}
+            "gate": _gate_summary(gates), **({"join": join.summary(since)} if join is not None else {})}
 
 
 def _gate_summary(gates: list[dict]) -> dict:
@@ -443,7 +443,7 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=(), join: JoinGate | N
     dyn = {n: [] for n in counts}
     frame = {n: [] for n in counts}
     gates = []
-    probes_from = join.mark() if join is not None else None
+    since = join.mark() if join is not None else None
     for _ in range(rounds):
         gates.append(GATE.wait())
         def timed_dynamics():
@@ -459,7 +459,7 @@ def sweep(counts, *, rounds: int, min_s: float, overrides=(), join: JoinGate | N
     first = counts[0]
     return {"dynamics": f"{G} x {S}", "frame": "long_hair.toml",
             "guides": sims[first].model.strand_count, "gate": _gate_summary(gates),
-            **({"join": join.summary(probes_from)} if join is not None else {}), "rows": [
+            **({"join": join.summary(since)} if join is not None else {}), "rows": [
                 {"threads": n, "dynamics_ms": 1e3 * statistics.median(dyn[n]),
                  "dynamics_speedup": _paired(dyn[first], dyn[n]),
                  "frame_ms": 1e3 * statistics.median(frame[n]), "frame_speedup": _paired(frame[first], frame[n])}
