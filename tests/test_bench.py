@@ -480,12 +480,37 @@ def test_robustness_convergence_floor_on_the_tiny_scene():
 
     gravity = raw_scene("tiny").get("sim", {}).get("gravity", [0.0, 0.0, -9.81])
     assert perturbed(raw_scene("tiny"))["sim"]["gravity"] == [g * (1.0 + PERTURBATION) for g in gravity]
-    conv = bench_convergence((1, 2), 4, 0.3, scene_name="tiny")
+    conv = bench_convergence((1, 2), 4, 0.3, scene_name="tiny", finer=(8,))
     assert conv["perturbation"] == PERTURBATION
     assert set(conv["variants"]) == {"links", "no links", "free hair", "colliders only"}
     for v in conv["variants"].values():
         assert v["reference_fault"] is None and all(r["fault"] is None for r in v["rows"])
         assert 0.0 < v["reference_again_mm"] < min(r["tip_rms_mm"] for r in v["rows"])
+        # each run against the next finer, through the finer run; the first sensitivity run is the one above
+        assert [d["substeps"] for d in v["successive"]] == [[1, 2], [2, 4], [4, 8]]
+        assert all(d["tip_rms_mm"] > 0.0 for d in v["successive"])
+        assert v["sensitivity"][0]["tip_rms_mm"] == v["reference_again_mm"]
+        # a thousand times the change of gravity moves the tips farther (free hanging hair: about 1000 times)
+        assert v["sensitivity"][-1]["tip_rms_mm"] > 10.0 * v["sensitivity"][0]["tip_rms_mm"]
+
+
+def test_robustness_successive_differences_read_a_first_order_method_as_order_1():
+    """Tips off the exact answer by c h (a first-order method, h = 1/n): each run against the next finer differs by
+    c (h - h/2), halving with the step, order 1 at every halving; against the finest run the last halving reads
+    log2(3) = 1.58 (the differences c (4h - h) and c (2h - h))."""
+    from hairwarp.benchmarks.robustness import convergence_orders, halving_orders, successive_differences
+
+    exact = np.zeros((5, 3, 3))
+    runs = {n: {"fault": None, "tips": exact + [0.012 / n, 0.0, 0.0]} for n in (1, 2, 4, 8, 16)}
+    pairs = successive_differences(runs)
+    assert [d["substeps"] for d in pairs] == [[1, 2], [2, 4], [4, 8], [8, 16]]
+    # float64: round-off of a few operations on millimetres
+    assert np.allclose([d["tip_rms_mm"] for d in pairs], [6.0, 3.0, 1.5, 0.75], rtol=1e-12)
+    assert np.allclose(halving_orders([d["tip_rms_mm"] for d in pairs]), 1.0, rtol=1e-12)
+    rows = [{"fault": None, "dt": 1.0 / n, "tip_rms_mm": 12.0 * (1.0 / n - 1.0 / 16)} for n in (1, 2, 4, 8)]
+    assert abs(convergence_orders(rows)["finest_order"] - np.log2(3.0)) < 1e-12
+    runs[4]["fault"] = {"stage": "dynamics"}
+    assert halving_orders([d["tip_rms_mm"] for d in successive_differences(runs)]) == [None, None, None]
 
 
 def test_robustness_spin_keys_turn_at_the_spin_rate():

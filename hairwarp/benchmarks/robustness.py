@@ -67,6 +67,7 @@ SIZES = {
         "sweep_segments": (8, 16, 31, 64), "sweep_substeps": (1, 2, 8, 32), "sweep_ei": (1e-7, 2e-4, 1e-2),
         "sweep_s": 1.5,
         "conv_s": 2.0, "conv_substeps": (1, 2, 4, 8, 16), "conv_ref": 32, "conv_overrides": (),
+        "conv_finer": (64, 128),
         "fr_scenes": SCENES, "fr_frames": None,
         "teleport_after_s": 1.0, "teleport_overrides": (),
         "extreme_s": 3.0, "extreme_overrides": (), "extreme_scenes": EXTREME_SCENES,
@@ -76,6 +77,7 @@ SIZES = {
         "rest_scenes": ("tiny", "long_hair", "long_hair_shoulders"), "rest_s": 3.0, "rest_second": 3,
         "sweep_segments": (8, 31), "sweep_substeps": (1, 8), "sweep_ei": (2e-4,), "sweep_s": 0.5,
         "conv_s": 1.0, "conv_substeps": (1, 2, 4, 8), "conv_ref": 16, "conv_overrides": ("groom.max_strands=75",),
+        "conv_finer": (32,),
         "fr_scenes": ("tiny", "long_hair_shoulders"), "fr_frames": 30,
         "teleport_after_s": 1.0, "teleport_overrides": ("groom.max_strands=75",),
         "extreme_s": 1.0, "extreme_overrides": ("groom.max_strands=75",),
@@ -469,18 +471,46 @@ def convergence_variants(base: dict) -> dict:
             "free hair": (without_colliders(alone), False), "colliders only": (alone, False)}
 
 
+def successive_differences(runs: dict) -> list[dict]:
+    """Each run's tips against the next finer run's (``runs``: substeps -> :func:`run_scene` result), coarse to fine:
+    ``{"substeps": (n, m), "tip_rms_mm", "median_strand_mm"}``, None past a fault. A method of order p divides these by
+    2^p at each halving of the step, whatever the finest run; the differences to one reference divide by 2^p + 1 at
+    the halving next to it (3 in a first-order method: an "order" of 1.58)."""
+    out = []
+    steps = sorted(runs)
+    for n, m in zip(steps, steps[1:]):
+        a, b = runs[n], runs[m]
+        ok = a["fault"] is None and b["fault"] is None
+        out.append({"substeps": [n, m], "tip_rms_mm": 1e3 * tip_rms_error(a["tips"], b["tips"]) if ok else None,
+                    "median_strand_mm": strand_spread(a["tips"], b["tips"])["median_strand_mm"] if ok else None})
+    return out
+
+
+def halving_orders(values: list) -> list:
+    """``log2`` of each ratio of consecutive values (the order of each halving), None where one is missing."""
+    return [math.log2(a / b) if a and b else None for a, b in zip(values, values[1:])]
+
+
+#: Relative changes of gravity of the convergence part's sensitivity runs (besides :data:`PERTURBATION`): the reference
+#: run's tips respond to a change of any source, the step's error being one; the size of their response against the
+#: change's is the scene's own order, which no step can beat.
+SENSITIVITY = (1.0e-3, 1.0e-2)
+
+
 def bench_convergence(substeps, ref: int, duration: float, overrides=(), scene_name: str = "long_hair",
-                      log=lambda m: None) -> dict:
+                      finer=(), log=lambda m: None) -> dict:
     base = raw_scene(scene_name)
     variants = {}
     for label, (raw, goal) in convergence_variants(base).items():
         runs = {}
-        for n in (ref, *substeps):
+        for n in (ref, *substeps, *finer):
             scene = build(set_key(raw, "sim.substeps", int(n)), scene_name, overrides)
             runs[n] = run_scene(scene, int(round(duration * float(scene.sim.fps))))
         reference = runs[ref]
-        again = run_scene(build(set_key(perturbed(raw), "sim.substeps", int(ref)), scene_name, overrides),
-                          len(reference["tips"]) - 1)
+        frames = len(reference["tips"]) - 1
+        changes = (PERTURBATION, *SENSITIVITY)
+        again = {c: run_scene(build(set_key(perturbed(raw, c / PERTURBATION), "sim.substeps", int(ref)), scene_name,
+                                    overrides), frames) for c in changes}
         strands = int(reference["tips"].shape[1])
         rows = []
         for n in substeps:
@@ -492,21 +522,34 @@ def bench_convergence(substeps, ref: int, duration: float, overrides=(), scene_n
             rows.append({"substeps": n, "dt": 1.0 / (float(scene.sim.fps) * n), "fault": r["fault"],
                          "tip_rms_mm": None if err is None else 1e3 * err,
                          "strands_over_50mm_at_end": int((end > 0.05).sum()), "wall_s": r["wall_s"], **spread})
-        floor = (1e3 * tip_rms_error(again["tips"], reference["tips"])
-                 if reference["fault"] is None and again["fault"] is None else None)
+        sensitivity = [{"gravity_change": c,
+                        "tip_rms_mm": (1e3 * tip_rms_error(again[c]["tips"], reference["tips"])
+                                       if reference["fault"] is None and again[c]["fault"] is None else None)}
+                       for c in changes]
         orders = convergence_orders(rows)
         if not goal:
             orders["meets"] = None  # a diagnosis: no goal
-        variants[label] = {"rows": rows, "reference_fault": reference["fault"], "reference_again_mm": floor,
-                           **orders,
+        successive = successive_differences(runs)
+        variants[label] = {"rows": rows, "reference_fault": reference["fault"],
+                           "reference_again_mm": sensitivity[0]["tip_rms_mm"], **orders,
                            "median_order": fit_exponent([row["dt"] for row in rows if row.get("median_strand_mm")],
                                                         [row["median_strand_mm"] for row in rows
-                                                         if row.get("median_strand_mm")])}
+                                                         if row.get("median_strand_mm")]),
+                           "successive": successive,
+                           "successive_orders": halving_orders([d["tip_rms_mm"] for d in successive]),
+                           "successive_median_orders": halving_orders([d["median_strand_mm"] for d in successive]),
+                           "sensitivity": sensitivity,
+                           "sensitivity_order": fit_exponent([c["gravity_change"] for c in sensitivity],
+                                                             [c["tip_rms_mm"] for c in sensitivity])}
         log(f"convergence {label}: " + ", ".join(f"{row['substeps']}: {_f(row['tip_rms_mm'])} mm" for row in rows)
             + f", order {_f(variants[label]['order'])}, finest halving {_f(variants[label]['finest_order'])}, "
-            f"{ref} again {_f(floor)} mm")
+            f"{ref} again {_f(sensitivity[0]['tip_rms_mm'])} mm; successive "
+            + ", ".join(f"{d['substeps'][0]}-{d['substeps'][1]} {_f(d['tip_rms_mm'])}" for d in successive)
+            + " mm; gravity changed by " + ", ".join(f"{c['gravity_change']:g}: {_f(c['tip_rms_mm'])}"
+                                                      for c in sensitivity) + " mm")
     return {"scene": scene_name, "duration_s": duration, "reference_substeps": ref, "overrides": list(overrides),
-            "goal_order": GOAL_ORDER, "perturbation": PERTURBATION, "strands": strands, "variants": variants}
+            "goal_order": GOAL_ORDER, "perturbation": PERTURBATION, "strands": strands, "finer": list(finer),
+            "variants": variants}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1044,7 +1087,7 @@ def suite_robustness(config, out, log=lambda m: None) -> dict:
     part("sweep", lambda: bench_sweep(size["sweep_segments"], size["sweep_substeps"], size["sweep_ei"],
                                       size["sweep_s"], log=log))
     part("convergence", lambda: bench_convergence(size["conv_substeps"], size["conv_ref"], size["conv_s"],
-                                                  size["conv_overrides"], log=log))
+                                                  size["conv_overrides"], finer=size["conv_finer"], log=log))
     part("frame_rate", lambda: bench_frame_rate(size["fr_scenes"], size["fr_frames"], log))
     part("teleport", lambda: bench_teleport(size["teleport_after_s"], size["teleport_overrides"], log=log))
     part("extreme", lambda: {"duration_s": size["extreme_s"], "overrides": list(size["extreme_overrides"]),
@@ -1273,6 +1316,27 @@ def md_robustness(data: dict) -> list[str]:
             medians = ", ".join(_f(r["median_strand_mm"]) for r in v["rows"])
             shares = ", ".join(_pct(r["worst_share"]) for r in v["rows"])
             lines.append(f"| {label} | {medians} | {_f(v.get('median_order'), 2)} | {shares} |")
+    with_successive = [(label, v) for label, v in conv["variants"].items() if v.get("successive")]
+    if with_successive:
+        pairs = ", ".join(f"{d['substeps'][0]}-{d['substeps'][1]}" for d in with_successive[0][1]["successive"])
+        changes = ", ".join(f"{c['gravity_change']:g}" for c in with_successive[0][1]["sensitivity"])
+        lines += ["", f"Each run against the next finer, to {conv['finer'][-1] if conv.get('finer') else ref_n} "
+                  f"substeps, RMS over frames and guides, and the order of each halving: a method of order p "
+                  f"divides these differences by 2^p at every halving, where the differences to one reference above "
+                  f"divide by 2^p + 1 at the halving next to it (the finest halving's 1.58 in a first-order method). "
+                  f"*Gravity changed*: the {ref_n}-substep run with gravity changed by {changes} (relative), its tips "
+                  f"against the reference's, and the exponent of that response in the change. The step's error is "
+                  f"such a change: where the scene answers a change of gravity by less than in proportion (strands "
+                  f"that settle on one side of the head or of each other, or the other), it answers the step so too, "
+                  f"and no step falls faster than that exponent.", "",
+                  f"| variant | {pairs} substeps [mm] | orders | median strand's orders | gravity changed [mm] | "
+                  f"exponent |", "|---|---|---|---|---|---:|"]
+        for label, v in with_successive:
+            lines.append(f"| {label} | {', '.join(_f(d['tip_rms_mm']) for d in v['successive'])} "
+                         f"| {', '.join(_f(x, 2) for x in v['successive_orders'])} "
+                         f"| {', '.join(_f(x, 2) for x in v['successive_median_orders'])} "
+                         f"| {', '.join(_f(c['tip_rms_mm']) for c in v['sensitivity'])} "
+                         f"| {_f(v.get('sensitivity_order'), 2)} |")
     lines += ["", "### Frame-rate steps", "",
               f"Each shipped scene with links (the scene's `[links]`; the defaults where it ships none, marked *), its "
               f"head motion and frames, at 2 and 1 substeps against {fr['reference_substeps']}: tips RMS over frames "
