@@ -1486,6 +1486,8 @@ def summary(data: dict) -> list[str]:
     out.append(f"sweep: {sw['counts']['ok']}/{len(sw['cells'])} cells ok {_v(sw['meets'])}")
     for label, v in data["convergence"]["variants"].items():
         goal = "no goal" if v["meets"] is None else f"goal >= {GOAL_ORDER:g}"
-        out.append(f"convergence {label}: order {_f(v['order'], 2)}, finest halving {_f(v.get('finest_order'), 2)} "
-                   f"({goal}) {_v(v['meets'])}; the reference again {_f(v.get('reference_again_mm'))} mm")
+        out.append(f"convergence {label}: order {_f(v['order'], 2)}, finest halving {_f(v.get('finest_order'), 2)}, "
+                   f"between successive runs {_f((v.get('successive_orders') or [None])[-1], 2)} ({goal}) "
+                   f"{_v(v['meets'])}; the reference again {_f(v.get('reference_again_mm'))} mm, the scene's answer "
+                   f"to gravity's change of exponent {_f(v.get('sensitivity_order'), 2)}")
     return out
