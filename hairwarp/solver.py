@@ -37,8 +37,9 @@ EXPLICIT_SUBSTEPS_WORTH_NAMING = 10_000
 DEFAULT_MAX_ROTATION = 1.0
 
 #: Largest turn of a joint [rad] since the factors a step solves with were made (``Solver.factor_turn``): a strand
-#: turned further makes its own (``sweeps.link_sweep``).
-FACTOR_TURN = 0.2
+#: turned further makes its own (``sweeps.link_sweep``). At 0.2 rad, ``long_hair_shoulders`` without its colliders
+#: faulted on its nod ten times as fast (docs/interactions.md, "Factors carried over steps").
+FACTOR_TURN = 0.1
 
 #: Steps that one factorisation of the strands' matrices serves in the links' sweeps after the free step, the first
 #: of them making it (``Solver.plan_factors``; 1: every step its own). 8: a frame at the shipped 8 substeps.
