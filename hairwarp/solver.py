@@ -815,6 +815,14 @@ class Solver:
         if self.colliders is not None:
             self.colliders.peak_speed = float(terms["colliders"])
 
+    def fastest_guide(self) -> tuple[float, float] | None:
+        """The fastest guide vertex at the last :meth:`check` [m/s] and the speed the run's motion explains [m/s]
+        (:meth:`speed_bound` over ``speed_margin``); None where that check measured no speed (no step yet, or
+        ``speed_margin`` infinite). One small read from the device."""
+        if self._control is None or not self.speed_margin < math.inf:
+            return None
+        return float(self.strand_speed.numpy().max()), self.speed_bound() / self.speed_margin
+
     def speed_bound(self, control=None) -> float:
         """The fastest [m/s] a guide vertex may move at the end of a frame: ``speed_margin`` times the sum of
         :meth:`speed_terms`, the speed the run's own motion explains. Hair that whips faster than a few times what
