@@ -597,9 +597,10 @@ class Simulation:
         """
         bits = self._advance_frame()
         fastest = self.solver.fastest_guide()
-        if fastest is not None and fastest[1] > 0.0 and math.isfinite(fastest[0]) \
-                and fastest[0] > self.peak_speed[0] * fastest[1]:
-            self.peak_speed = (fastest[0] / fastest[1], self.stepper.frame, *fastest)
+        if fastest is not None and fastest[1] > 0.0:
+            ratio = fastest[0] / fastest[1]
+            if math.isfinite(ratio) and ratio > self.peak_speed[0]:
+                self.peak_speed = (ratio, self.stepper.frame, *fastest)
         return bits
 
     def whip_note(self) -> str | None:

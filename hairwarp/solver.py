@@ -817,11 +817,11 @@ class Solver:
 
     def fastest_guide(self) -> tuple[float, float] | None:
         """The fastest guide vertex at the last :meth:`check` [m/s] and the speed the run's motion explains [m/s]
-        (:meth:`speed_bound` over ``speed_margin``); None where that check measured no speed (no step yet, or
-        ``speed_margin`` infinite). One small read from the device."""
+        (the sum of :meth:`speed_terms`, which :meth:`speed_bound` takes ``speed_margin`` times); None where that
+        check measured no speed (no step yet, or ``speed_margin`` infinite). One small read from the device."""
         if self._control is None or not self.speed_margin < math.inf:
             return None
-        return float(self.strand_speed.numpy().max()), self.speed_bound() / self.speed_margin
+        return float(self.strand_speed.numpy().max()), sum(self.speed_terms().values())
 
     def speed_bound(self, control=None) -> float:
         """The fastest [m/s] a guide vertex may move at the end of a frame: ``speed_margin`` times the sum of

@@ -449,13 +449,18 @@ def test_strands_whose_joints_turn_far_make_their_own_factors():
     assert broken < 1.5 * fine_broken, (broken, fine_broken)
 
 
-def _fast_nod(colliders=True, overrides=()):
+def _fast_nod_scene(colliders=True, overrides=()):
     """``long_hair_shoulders`` on its nod ten times as fast (the robustness suite's extreme motion)."""
     from hairwarp.benchmarks.robustness import build, faster_motion, raw_scene, without_colliders
 
     raw = raw_scene("long_hair_shoulders")
     raw["head"]["motion"] = faster_motion(raw["head"]["motion"], 10.0)
-    return Simulation(build(raw if colliders else without_colliders(raw), "long_hair_shoulders", list(overrides)))
+    return build(raw if colliders else without_colliders(raw), "long_hair_shoulders", list(overrides))
+
+
+def _fast_nod(colliders=True, overrides=()):
+    """A :class:`Simulation` of :func:`_fast_nod_scene`."""
+    return Simulation(_fast_nod_scene(colliders, overrides))
 
 
 def _fast_nod_run(overrides=()):
@@ -481,7 +486,7 @@ def test_a_run_notes_hair_that_whips_past_twice_what_its_motion_explains(tmp_pat
     peaks at 9.2 m/s and the notes say nothing of it."""
     from hairwarp.runner import WHIP_NOTE_RATIO, simulate
 
-    result = simulate(_fast_nod().scene, tmp_path / "nod.usdc", frames=4, progress=False, preview=False)
+    result = simulate(_fast_nod_scene(), tmp_path / "nod.usdc", frames=4, progress=False, preview=False)
     notes = [n for n in result.notes if "times the" in n and "explains" in n]
     assert len(notes) == 1 and notes[0].startswith("frame 3: guides reached") and "(now 8)" in notes[0], result.notes
     finer = _fast_nod(overrides=["sim.substeps=10"])
