@@ -51,7 +51,9 @@ LINK_STEP_RATE = 0.7
 #: (``Simulation.whip_note``). Measured peaks: the shipped scenes 0.51-1.21; a 3 rev/s spin and the shipped motions
 #: played ten times as fast at 32 substeps 1.17-1.60 (``long_hair`` at its 8: 1.40); at the shipped 8 substeps, where
 #: linked hair whips harder than at finer steps, 2.23 (``long_hair_shoulders``' nod, 19.0 m/s against 9.9 at 32),
-#: 2.27 (its spin, 26.3 against 16.5) and 2.29 (``fast_turn``'s spin, 21.7 against 15.1).
+#: 2.27 (its spin, 26.3 against 16.5) and 2.29 (``fast_turn``'s spin, 21.7 against 15.1). ``sim.whip_ratio`` (2 by
+#: default) takes the frames past it again in finer steps (the nod 11.7 m/s, the spins 18.3 and 16.4-17.0), so the
+#: note is left for guides that whip so even then, or with those retakes off.
 WHIP_NOTE_RATIO = 2.0
 
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
@@ -257,7 +259,10 @@ class Simulation:
         break_step: ``links.break_step`` [s], the longest step at which a link may break (0: any).
         refined_frames: frames taken again in steps of ``break_step`` because a link broke in them.
         fault_retries: ``sim.fault_retries``, the times a frame that faults is taken again, each in twice the steps.
-        retaken_frames: frames taken again after a fault; ``retakes``, ``(frame, steps it ran in, stage)`` of each.
+        whip_ratio: ``sim.whip_ratio``; a frame whose guides end it faster than this many times the speed the motion
+            explains is taken again as one that faults ("whip" its stage), up to ``fault_retries`` times.
+        retaken_frames: frames taken again after a fault or a whip; ``retakes``, ``(frame, steps it ran in, stage)``
+            of each.
     """
 
     def __init__(self, scene, *, device=None, threads: int | None = None):
@@ -318,7 +323,9 @@ class Simulation:
         # explains, the frame, the speed [m/s], the explained speed [m/s]); ``whip_note`` reads it
         self.peak_speed = (0.0, 0, 0.0, 0.0)
         self.fault_retries = int(sim.fault_retries)
-        self.retakes = []  # (frame, the steps it ran in, the stage of the fault that made it) of each retry
+        self.whip_ratio = float(sim.whip_ratio)
+        # (frame, the steps it ran in, the stage of the fault that made it, or "whip") of each retry
+        self.retakes = []
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
@@ -581,7 +588,10 @@ class Simulation:
 
         A frame that faults is taken again from its start in twice the steps, up to ``sim.fault_retries`` times
         (:attr:`retakes` lists them): a frame the step does not resolve is simulated in steps that do, and the run
-        stops only when the last of them faults too.
+        stops only when the last of them faults too. So is a frame whose fastest guide vertex ends it past
+        ``sim.whip_ratio`` times the speed the motion explains, and the last take is kept: on motion several times a
+        scene's own, linked hair whips harder at 8 substeps than at fine steps (``long_hair_shoulders`` on its nod
+        played ten times as fast: 19.0 m/s at 8, 9.9 at 32, 11.7 with its one whipping frame taken again in 16).
 
         At steps longer than ``links.break_step`` a frame in which a link breaks, or that ends with one stretched past
         its break length, is taken again from its start in steps no longer than the break step
@@ -610,10 +620,12 @@ class Simulation:
         if ratio < WHIP_NOTE_RATIO:
             return None
         margin = self.solver.speed_margin
-        return (f"frame {frame}: guides reached {speed:.3g} m/s, {ratio:.2g} times the {explained:.3g} m/s the motion "
-                f"explains (at sim.speed_margin = {margin:g} times a run faults); on motion this fast a longer step "
-                f"can whip hair harder than finer ones (long_hair_shoulders on its nod played ten times as fast: 19.0 "
-                f"m/s at 8 substeps, 9.2 at 10): compare a run with more substeps (now {self.stepper.substeps})")
+        steps = [n for f, n, _ in self.retakes if f == frame]
+        again = f" in the {max(steps)} steps it was taken again in" if steps else ""
+        return (f"frame {frame}: guides reached {speed:.3g} m/s{again}, {ratio:.2g} times the {explained:.3g} m/s the "
+                f"motion explains (at sim.speed_margin = {margin:g} times a run faults); on motion this fast a longer "
+                f"step can whip hair harder than finer ones (long_hair_shoulders on its nod played ten times as fast: "
+                f"19.0 m/s at 8 substeps, 9.2 at 10): compare a run with more substeps (now {self.stepper.substeps})")
 
     def _advance_frame(self) -> Fault:
         fine = self._break_substeps()
@@ -638,21 +650,14 @@ class Simulation:
 
     def _frame_retaken(self, saved: dict, substeps: int | None = None) -> tuple[Fault, int]:
         """The frame in ``substeps`` steps (None: the stepper's), from the checkpoint ``saved`` of its start; after a
-        fault, again from there in twice the steps, up to :attr:`fault_retries` times. Returns its bits and the steps
-        it ran in."""
+        fault, or where its fastest guide vertex ended it past ``sim.whip_ratio`` times the speed the motion explains,
+        again from there in twice the steps, up to :attr:`fault_retries` times. Returns its bits and the steps it ran
+        in."""
         steps = self.stepper.substeps if substeps is None else int(substeps)
         tried = []
         while True:
             try:
-                if steps == self.stepper.substeps:
-                    return self._frame(), steps
-                self._poses = {}  # kept by step number: another step size
-                self.solver.warm_start_allowed = False
-                try:
-                    return self._frame(steps), steps
-                finally:
-                    self._poses = {}
-                    self.solver.warm_start_allowed = True
+                bits = self._frame_in(steps)
             except SimulationFault as fault:
                 tried.append(steps)
                 if len(tried) > self.fault_retries:
@@ -662,9 +667,35 @@ class Simulation:
                     raise SimulationFault(f"{fault} (The frame was taken again in {again} steps (sim.fault_retries = "
                                           f"{self.fault_retries}), and faulted each time.)", frame=fault.frame,
                                           stage=fault.stage, bits=fault.bits) from None
-                self.restore(saved)
-                steps *= 2
-                self.retakes.append((self.stepper.frame + 1, steps, fault.stage))
+                stage = fault.stage
+            else:
+                if len(tried) >= self.fault_retries or not self._whipped():
+                    return bits, steps
+                tried.append(steps)
+                stage = "whip"
+            self.restore(saved)
+            steps *= 2
+            self.retakes.append((self.stepper.frame + 1, steps, stage))
+
+    def _frame_in(self, steps: int) -> Fault:
+        """The frame in ``steps`` steps; at other than the stepper's own, with no warm start from its last step."""
+        if steps == self.stepper.substeps:
+            return self._frame()
+        self._poses = {}  # kept by step number: another step size
+        self.solver.warm_start_allowed = False
+        try:
+            return self._frame(steps)
+        finally:
+            self._poses = {}
+            self.solver.warm_start_allowed = True
+
+    def _whipped(self) -> bool:
+        """Whether the frame just taken ended with a guide vertex past ``sim.whip_ratio`` times the speed the motion
+        explains (never where that ratio is 0 or the speed bound is off)."""
+        if not self.whip_ratio > 0.0:
+            return False
+        fastest = self.solver.fastest_guide()
+        return fastest is not None and fastest[0] > self.whip_ratio * fastest[1] > 0.0
 
     @property
     def retaken_frames(self) -> int:
@@ -1422,8 +1453,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     if sim.refined_frames:
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
-    if sim.retaken_frames:
-        notes.append(_retakes_note(sim))
+    notes.extend(note for note in (_retakes_note(sim), _retakes_note(sim, whips=True)) if note is not None)
     if sim.stiff_links_note is not None:
         notes.append(sim.stiff_links_note)
     whip = sim.whip_note()
@@ -1432,14 +1462,26 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     return kept
 
 
-def _retakes_note(sim) -> str:
-    """The run's note on its frames taken again after a fault (``sim.fault_retries``): how many, the first few with
-    the steps they ran in and the stage that faulted, and what would spare them."""
-    last = {}
+def _retakes_note(sim, whips: bool = False) -> str | None:
+    """The run's note on its frames taken again after a fault (``sim.fault_retries``), or with ``whips`` on those
+    taken again only because their guides whipped (``sim.whip_ratio``): how many, the first few with the steps they
+    ran in and what made them, and what would spare them; None where there are none."""
+    last, whipped = {}, {}
     for frame, steps, stage in sim.retakes:
         last[frame] = (steps, stage)  # the steps it finally ran in
-    shown = ", ".join(f"{f} in {n} steps ({stage})" for f, (n, stage) in list(last.items())[:4])
+        whipped[frame] = whipped.get(frame, True) and stage == "whip"
+    last = {f: taken for f, taken in last.items() if whipped[f] == whips}
+    if not last:
+        return None
+    shown = ", ".join(f"{f} in {n} steps" + ("" if whips else f" ({stage})")
+                      for f, (n, stage) in list(last.items())[:4])
     more = f" and {len(last) - 4} more" if len(last) > 4 else ""
     n = sim.stepper.substeps
-    return (f"{sim.retaken_frames} frames faulted at {n} substep{'s' if n != 1 else ''} and were taken again in more "
-            f"steps: frame {shown}{more}; raise sim.substeps to run them at the scene's own steps")
+    at = f"at {n} substep{'s' if n != 1 else ''}"
+    frames = f"{len(last)} frame{'s' if len(last) != 1 else ''}"
+    if whips:
+        return (f"{frames} whipped their guides past sim.whip_ratio = {sim.whip_ratio:g} times the speed the "
+                f"motion explains {at} and were taken again in more steps: frame {shown}{more}; motion this fast "
+                f"wants more sim.substeps")
+    return (f"{frames} faulted {at} and were taken again in more steps: frame {shown}{more}; raise "
+            f"sim.substeps to run them at the scene's own steps")

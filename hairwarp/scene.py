@@ -432,6 +432,12 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                              "twice the steps (2: in 2 and then 4 times the substeps); the run stops "
                                              "with the fault only when the last faults too (0: at once)",
                                    range="[0, 8]"),
+            "whip_ratio": Field("float", 2.0, "a frame whose fastest guide vertex ends it faster than this many times "
+                                              "the speed the motion explains (as sim.speed_margin measures it) is "
+                                              "taken again from its start in twice the steps, up to "
+                                              "sim.fault_retries times: on motion several times a scene's own, "
+                                              "linked hair whips harder at long steps than at fine ones (0: never)",
+                                range="[0, inf)"),
             "seed": Field("int", 0, "seed of every random choice of the run", range="[0, inf)"),
         },
         doc="time stepping and the device",

@@ -220,9 +220,10 @@ BLOW_UP_SPEED = 200.0
 def _stability_scene(kind: str, stiffness: float, quick: bool, overrides=()):
     from hairwarp.scene import Scene
 
+    # no frame taken again for a whip: taken in finer steps, the explicit springs' growth would not show
     base = [f"groom.count={60 if quick else 150}", "sim.segments=12", "sim.substeps=8", "dense.count=0",
             "head.motion.kind=turn", "head.motion.amplitude_deg=60", "head.motion.period=0.8",
-            "head.motion.start=0.0", "head.motion.ramp=0.1", *overrides]
+            "head.motion.start=0.0", "head.motion.ramp=0.1", "sim.whip_ratio=0", *overrides]
     if kind == "links":
         base += ["links.enabled=true", f"links.stiffness={stiffness}", "links.damping=0.002", "links.radius=0.02",
                  "links.break_length=1.0"]
