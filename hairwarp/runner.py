@@ -315,7 +315,8 @@ class Simulation:
         self._poses = {}  # step number -> head pose, for the teleport test
         self._applied_at_start = None  # (t, what _applied(t) gave): the head at the next step's start
         self._ahead = {}  # step end time -> what _applied gave, for the frame being advanced
-        self.stiff_links_note = None  # set where ``links.response = "auto"`` solves stiff links after the free step
+        # set where ``links.response = "auto"`` solves stiff links after the free step, or "link" keeps them in it
+        self.stiff_links_note = None
         self.links = self._build_links(scene.links)
         self.break_step = float(scene.links.break_step)
         self.refined_frames = 0  # frames taken again because a link broke in them (``links.break_step``)
@@ -361,9 +362,16 @@ class Simulation:
                                   damping=float(cfg.damping), break_length=float(cfg.break_length),
                                   response=self._response(cfg.response), sweeps=int(cfg.sweeps),
                                   device=self.model.device)
-        if cfg.response == "auto" and not links.response:
+        if cfg.response in ("auto", "link") and not links.response:
             rate = links.free_step_rate(self.model.seg_mass.numpy(), self.scene.step_dt)
-            if rate > LINK_STEP_RATE:  # too stiff for the free step's per-link solve
+            if rate > LINK_STEP_RATE and cfg.response == "link":  # as asked, though they may gain energy
+                self.stiff_links_note = (
+                    f"links.response = \"link\" solves each link alone in the free step, but at this step they are "
+                    f"too stiff for it (free-step rate {rate:.3g}, past {LINK_STEP_RATE:g}): strands they tie may gain "
+                    f"energy (docs/interactions.md); links.response = \"auto\" solves them after the free step, or "
+                    f"links.stiffness <= {float(cfg.stiffness) * (LINK_STEP_RATE / rate) ** 2:.3g} N/m keeps them "
+                    f"stable in it")
+            elif rate > LINK_STEP_RATE:  # too stiff for the free step's per-link solve
                 links.response = True
                 self.stiff_links_note = (
                     f"links.response = \"auto\" solved the links after the free step: at this step they are too "

@@ -752,7 +752,8 @@ def test_contact_response_takes_energy_out_of_limp_hair_at_frame_rate():
 def test_a_run_notes_links_that_auto_solved_after_the_free_step(tmp_path):
     """``links.response = "auto"`` solving links too stiff for the free step at 8 substeps says so in the run's notes,
     with the free-step rate and the stiffness that keeps them in the free step; at that stiffness they stay there
-    and the run has no such note."""
+    and the run has no such note. Links kept in the free step as asked (``"link"``) past that rate are noted too:
+    there they may gain energy (``test_linked_strands_never_gain_energy_against_a_still_sphere``)."""
     from hairwarp.runner import LINK_STEP_RATE
 
     over = ["groom.count=40", "sim.segments=6", "dense.count=0", "sim.frames=2", "output.preview=false",
@@ -768,3 +769,10 @@ def test_a_run_notes_links_that_auto_solved_after_the_free_step(tmp_path):
     assert softer == pytest.approx(2.0 * (LINK_STEP_RATE / rate) ** 2, rel=1e-2)
     sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", [*over, f"links.stiffness={0.99 * softer}"]))
     assert not sim.links.response and sim.stiff_links_note is None
+    # asked to stay in the free step (links.response = "link"), they do, and the note says what that risks
+    forced = [*over, 'links.response="link"']
+    sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", [*forced, "links.stiffness=2.0"]))
+    assert not sim.links.response and sim.stiff_links_note.startswith('links.response = "link" solves each link')
+    assert f"free-step rate {rate:.3g}" in sim.stiff_links_note and f"<= {softer:.3g} N/m" in sim.stiff_links_note
+    sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", [*forced, f"links.stiffness={0.99 * softer}"]))
+    assert sim.stiff_links_note is None

@@ -601,8 +601,8 @@ def bench_frame_rate(scenes=SCENES, frames=None, log=lambda m: None) -> dict:
                         for n in INTERMEDIATE_SUBSTEPS)
         log(f"frame rate {name}: {mid}; 2 substeps {_fault(two)} broken {two['broken_links']} tips "
             f"{_f(two['tip_rms_mm'])} mm ({two['refined_frames']} frames taken again, {two['retaken_frames']} after "
-            f"a fault); 1 substep {_fault(one)} broken {one['broken_links']} tips {_f(one['tip_rms_mm'])} mm "
-            f"({one['refined_frames']} taken again, {one['retaken_frames']} after a fault)")
+            f"a fault or a whip); 1 substep {_fault(one)} broken {one['broken_links']} tips {_f(one['tip_rms_mm'])} mm "
+            f"({one['refined_frames']} taken again, {one['retaken_frames']} after a fault or a whip)")
     return {"reference_substeps": 16, "goal_2_mm": GOAL_FR2_MM, "goal_1_mm": GOAL_FR1_MM, "perturbation": PERTURBATION,
             "rows": rows}
 
@@ -1074,7 +1074,7 @@ def chart_grid(sweep: dict, path) -> Path:
                fontsize=8, frameon=False)
     fig.suptitle(f"Stability grid: {sweep['scene']} on its head motion, {sweep['duration_s']:g} s per cell\n"
                  f"(ok: its fastest vertex; fault: its stage; burst: a vertex > {sweep['burst_m_s']:g} m/s; hatched: "
-                 f"frames taken again in finer steps after a fault; small: wall time)", fontsize=9)
+                 f"frames taken again in finer steps after a fault or a whip; small: wall time)", fontsize=9)
     fig.tight_layout(rect=(0, 0.05, 1, 0.95))
     fig.savefig(path)
     plt.close(fig)
@@ -1165,16 +1165,18 @@ def _by_step(r: dict, before: str = "; ", after: str = "") -> str:
 def _again(r: dict) -> str:
     """The frames taken again at ``links.break_step`` (``bench_frame_rate``), where the run records them."""
     n, m = r.get("refined_frames"), r.get("retaken_frames")
-    return ("" if not n else f"; {n} frames taken again") + ("" if not m else f"; {m} taken again after a fault")
+    return (("" if not n else f"; {n} frames taken again")
+            + ("" if not m else f"; {m} taken again after a fault or a whip"))
 
 
 def _retaken_line(sweep: dict) -> str:
-    """The grid's line on the cells whose frames were taken again after a fault (``sim.fault_retries``), or ""."""
+    """The grid's line on the cells whose frames were taken again after a fault or a whip (``sim.fault_retries``,
+    ``sim.whip_ratio``), or ""."""
     retaken = [c for c in sweep["cells"] if c.get("retaken")]
     if not retaken:
         return ""
-    return ("- Frames taken again after a fault, in twice the steps (`sim.fault_retries`, 2 by default; the cell is ok "
-            "when every frame ran): " + "; ".join(
+    return ("- Frames taken again after a fault or a whip, in twice the steps (`sim.fault_retries`, 2 by default; "
+            "`sim.whip_ratio`; the cell is ok when every frame ran): " + "; ".join(
                 f"{_cell_name(c)}: {c['retaken']} of {c['frames_done']} (frames "
                 + ", ".join(f"{f} in {n}" for f, n, _ in c["retakes"][:4])
                 + (", ..." if len(c["retakes"]) > 4 else "") + f"; {c['retakes'][0][2]})" for c in retaken) + ".")
@@ -1370,8 +1372,9 @@ def md_robustness(data: dict) -> list[str]:
               "how closely any run can follow the reference's motion. *Broken links*: at the step (at 16 substeps; "
               "by the step: those neither reference run breaks, which break with the step, not the motion; frames "
               "taken again: a frame of steps longer than `links.break_step`, 1/120 s, in which a link broke is taken "
-              "again from its start in steps that short, and its breaks are that frame's; taken again after a fault: "
-              "a frame that faults is taken again from its start in twice the steps, up to `sim.fault_retries` (2) "
+              "again from its start in steps that short, and its breaks are that frame's; taken again after a fault "
+              "or a whip: a frame that faults, or whose guides end it past `sim.whip_ratio` (2) times the speed the "
+              "motion explains, is taken again from its start in twice the steps, up to `sim.fault_retries` (2) "
               "times).", "",
               "| scene | 16 again | 4 substeps | 2 substeps | broken links (at 16; by the step) | tips [mm] | verdict "
               "| 1 substep | broken links (by the step) | tips [mm] | verdict |",
