@@ -1486,10 +1486,11 @@ def _retakes_note(sim, whips: bool = False) -> str | None:
     more = f" and {len(last) - 4} more" if len(last) > 4 else ""
     n = sim.stepper.substeps
     at = f"at {n} substep{'s' if n != 1 else ''}"
-    frames = f"{len(last)} frame{'s' if len(last) != 1 else ''}"
+    one = len(last) == 1
+    frames, were = f"{len(last)} frame{'' if one else 's'}", "was" if one else "were"
     if whips:
-        return (f"{frames} whipped their guides past sim.whip_ratio = {sim.whip_ratio:g} times the speed the "
-                f"motion explains {at} and were taken again in more steps: frame {shown}{more}; motion this fast "
-                f"wants more sim.substeps")
-    return (f"{frames} faulted {at} and were taken again in more steps: frame {shown}{more}; raise "
-            f"sim.substeps to run them at the scene's own steps")
+        return (f"{frames} whipped {'its' if one else 'their'} guides past sim.whip_ratio = {sim.whip_ratio:g} times "
+                f"the speed the motion explains {at} and {were} taken again in more steps: frame {shown}{more}; "
+                f"motion this fast wants more sim.substeps")
+    return (f"{frames} faulted {at} and {were} taken again in more steps: frame {shown}{more}; raise "
+            f"sim.substeps to run {'it' if one else 'them'} at the scene's own steps")

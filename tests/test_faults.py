@@ -191,7 +191,7 @@ def test_a_run_shows_and_notes_the_frames_taken_again(tmp_path, capsys):
     import re
 
     err = capsys.readouterr().err
-    note = [n for n in result.notes if "were taken again in more steps" in n]
+    note = [n for n in result.notes if " taken again in more steps" in n]
     assert len(note) == 1, result.notes
     count = int(re.match(r"(\d+) frames? faulted at 2 substeps", note[0]).group(1))
     assert 1 <= count <= 10
