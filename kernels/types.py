@@ -40,6 +40,15 @@ class Integrator(enum.IntEnum):
             2048 steps a frame divides the difference between runs by 1.5-1.8 (order 0.6-0.85), where
             ``SEMI_IMPLICIT`` divides it by 1.9-2.0 once stable; at EI 2e-3 by 1.89 (``tests/test_dynamics.py``,
             ``test_integrators_are_first_order_with_joint_springs``).
+            Most of that damping is the spring's: taken at the step's end, ``-K (theta + h w')`` damps the joint by
+            ``h K`` besides its own ``C``. Tried and not kept (2026-12-06): the damping ``max(C - h K, 0)`` instead
+            of ``C``, leaving the hair its own damping at steps shorter than ``C / K`` (1 ms on ``long_hair``). A
+            12-segment strand came 2.9 times closer to its 2048-step run at 32 steps a frame, and ``long_hair``'s
+            free hair converged at first order (its runs 0.145 and 0.071 mm apart at 32-64 and 64-128 substeps,
+            against 0.36 and 0.21); but its scenes with colliders converged no faster (orders 0.3-0.4 between
+            successive runs), and linked hair lost the damping that carried it through violent motion: the
+            shoulders' nod ten times as fast faulted at 32 substeps without colliders (a vertex at 46 m/s) and took
+            frames again in finer steps at 8.
             A part of a step in which a segment turns more than 0.05 rad takes its velocity terms at its midpoint
             velocity (``kernels.articulated.MIDPOINT_ROTATION``): explicit, they grew a whipping strand's energy
             until it went NaN; so, a free strand of 12 segments set turning at 40 rad/s a joint with no damping
