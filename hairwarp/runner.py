@@ -21,7 +21,7 @@ from hairwarp.interactions import REBUILD_FRAMES
 from hairwarp.kernels.types import Fault
 from hairwarp.model import Model, resolve_device
 from hairwarp.motion import MotionSample, rotate_floats
-from hairwarp.solver import SimulationFault, Solver
+from hairwarp.solver import DYNAMICS_STAGE, SimulationFault, Solver
 from hairwarp.state import hair_ball
 
 #: Shortest step [s] at which ``response = "auto"`` (links and hair contacts) solves their forces after the free step,
@@ -56,7 +56,26 @@ LINK_STEP_RATE = 0.7
 #: note is left for guides that whip so even then, or with those retakes off.
 WHIP_NOTE_RATIO = 2.0
 
+#: Two takes of a frame whose fastest guide vertices lie within this fraction of each other agree: the step does not
+#: make that speed. A frame taken again for a whip (``sim.whip_ratio``) in which the finer take agrees with the one
+#: before it is kept as taken, and the motion, not the step, drives its whip: ``long_hair`` slid 0.1 m at 5 Hz (ten
+#: g) whips its tips at 28-31 m/s at 32 and 128 substeps alike, 5 times the speed its motion explains, and its
+#: frames taken in 8 and 16 steps end at 13.8 and 14.5 m/s, 22.6 and 22.6, 19.8 and 18.4; a step's own whip parts its
+#: takes far more (the shoulders' nod ten times as fast 19.0 m/s at 8 steps, 10.6 at 16; frame 18 of the slide 36.3
+#: and 23.8).
+WHIP_AGREEMENT = 0.25
+
+#: Frames after one whose whip proved the motion's (:data:`WHIP_AGREEMENT`) that are not taken again for a whip: such
+#: motion whips the hair frame after frame, and each frame would be taken three times for nothing (the slide above:
+#: 48 of 60 frames, 4 times the run's time).
+WHIP_REST_FRAMES = 15
+
 _STATE_ARRAYS = ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities", "fault")
+
+
+def _agree(a: float, b: float) -> bool:
+    """Whether two takes' fastest guide vertices [m/s] lie within :data:`WHIP_AGREEMENT` of the larger."""
+    return abs(a - b) <= WHIP_AGREEMENT * max(a, b)
 
 
 def _host_copy(array) -> np.ndarray:
@@ -325,6 +344,10 @@ class Simulation:
         self.peak_speed = (0.0, 0, 0.0, 0.0)
         self.fault_retries = int(sim.fault_retries)
         self.whip_ratio = float(sim.whip_ratio)
+        # (frame, [(steps, fastest guide vertex [m/s]) of its whipping takes]) of each frame whose whip finer steps did
+        # not slow (``_whipped``); frames up to ``_whip_rest_until`` are not taken again for a whip
+        self.motion_whips = []
+        self._whip_rest_until = -1
         # (frame, the steps it ran in, the stage of the fault that made it, or "whip") of each retry
         self.retakes = []
         self.contacts = self._build_contacts(scene.interactions)
@@ -624,6 +647,15 @@ class Simulation:
     def whip_note(self) -> str | None:
         """A note where a frame's fastest guide vertex passed :data:`WHIP_NOTE_RATIO` times the speed the run's motion
         explains (:attr:`peak_speed`), else None."""
+        if self.motion_whips:
+            frame, takes = self.motion_whips[0]
+            shown = " and ".join(f"{v:.3g} m/s in {n} steps" for n, v in takes)
+            more = len(self.motion_whips) - 1
+            return (f"frame {frame}: guides whipped past sim.whip_ratio = {self.whip_ratio:g} times the speed the "
+                    f"motion explains at finer steps too ({shown}){f', and {more} frames more' if more else ''}: the "
+                    f"motion drives that whip, not the step, so such frames were kept as taken (and the "
+                    f"{WHIP_REST_FRAMES} after each not taken again for a whip); where the hair should not whip so, "
+                    f"raise strands.drag or slow the head motion")
         ratio, frame, speed, explained = self.peak_speed
         if ratio < WHIP_NOTE_RATIO:
             return None
@@ -658,32 +690,56 @@ class Simulation:
 
     def _frame_retaken(self, saved: dict, substeps: int | None = None) -> tuple[Fault, int]:
         """The frame in ``substeps`` steps (None: the stepper's), from the checkpoint ``saved`` of its start; after a
-        fault, or where its fastest guide vertex ended it past ``sim.whip_ratio`` times the speed the motion explains,
-        again from there in twice the steps, up to :attr:`fault_retries` times. Returns its bits and the steps it ran
-        in."""
+        fault, or where its fastest guide vertex ended it past ``sim.whip_ratio`` times the speed the motion explains
+        (:meth:`_whipped`), again from there in twice the steps, up to :attr:`fault_retries` times. Returns its bits
+        and the steps it ran in."""
         steps = self.stepper.substeps if substeps is None else int(substeps)
-        tried = []
+        tried = []  # (steps, the fastest guide vertex [m/s] or None, the fault or None) of each take
         while True:
             try:
                 bits = self._frame_in(steps)
             except SimulationFault as fault:
-                tried.append(steps)
+                tried.append((steps, self._fastest_speed(), fault))
                 if len(tried) > self.fault_retries:
                     if len(tried) == 1:
                         raise
-                    again = " and ".join(str(n) for n in tried[1:])
-                    raise SimulationFault(f"{fault} (The frame was taken again in {again} steps (sim.fault_retries = "
-                                          f"{self.fault_retries}), and faulted each time.)", frame=fault.frame,
-                                          stage=fault.stage, bits=fault.bits) from None
+                    raise self._retried_fault(fault, tried) from None
                 stage = fault.stage
             else:
-                if len(tried) >= self.fault_retries or not self._whipped():
+                if len(tried) >= self.fault_retries or not self._whipped(tried, steps):
                     return bits, steps
-                tried.append(steps)
+                tried.append((steps, self._fastest_speed(), None))
                 stage = "whip"
             self.restore(saved)
             steps *= 2
             self.retakes.append((self.stepper.frame + 1, steps, stage))
+
+    def _fastest_speed(self) -> float | None:
+        """The fastest guide vertex at the last check [m/s], or None where it measured none."""
+        fastest = self.solver.fastest_guide()
+        return None if fastest is None else fastest[0]
+
+    def _retried_fault(self, fault: SimulationFault, tried: list) -> SimulationFault:
+        """The fault of a frame that faulted in every take ``tried``. Where each was the hair's speed alone and the
+        last two takes' fastest vertices agree (:data:`WHIP_AGREEMENT`), finer steps do not slow the hair, and the
+        advice says what does."""
+        again = " and ".join(str(n) for n, _, _ in tried[1:])
+        retried = f"taken again in {again} steps (sim.fault_retries = {self.fault_retries})"
+        speeds = [v for _, v, _ in tried]
+        # the dynamics' own stage only: a stage that drives the speed (air drag on light strands, stiff springs)
+        # keeps its advice
+        if (all(f.bits == int(Fault.HAIR_SPEED) and f.stage == DYNAMICS_STAGE for _, _, f in tried)
+                and None not in speeds and _agree(speeds[-2], speeds[-1])):
+            what = str(fault).split(" To fix: ")[0]
+            whips = ", ".join(f"{v:.3g}" for v in speeds[:-1]) + f" and {speeds[-1]:.3g} m/s"
+            return SimulationFault(
+                f"{what} The frame was {retried}, and its guides whipped at {whips}: finer steps do not slow "
+                f"them, so the motion drives this whip, not the step. To fix: where the hair should whip so, raise "
+                f"sim.speed_margin (now {self.solver.speed_margin:g}; the hair may move that many times the speed "
+                f"the motion explains); else raise strands.drag (now {self.model.drag:g}) or slow the head motion.",
+                frame=fault.frame, stage=fault.stage, bits=fault.bits)
+        return SimulationFault(f"{fault} (The frame was {retried}, and faulted each time.)", frame=fault.frame,
+                               stage=fault.stage, bits=fault.bits)
 
     def _frame_in(self, steps: int) -> Fault:
         """The frame in ``steps`` steps; at other than the stepper's own, with no warm start from its last step."""
@@ -697,13 +753,24 @@ class Simulation:
             self._poses = {}
             self.solver.warm_start_allowed = True
 
-    def _whipped(self) -> bool:
+    def _whipped(self, tried: list, steps: int) -> bool:
         """Whether the frame just taken ended with a guide vertex past ``sim.whip_ratio`` times the speed the motion
-        explains (never where that ratio is 0 or the speed bound is off)."""
-        if not self.whip_ratio > 0.0:
+        explains, and is to be taken again in finer steps (never where that ratio is 0 or the speed bound is off).
+        Not where its take agrees with a whipping take before it in ``tried`` (:data:`WHIP_AGREEMENT`): the motion
+        drives that whip (:attr:`motion_whips`), and the next :data:`WHIP_REST_FRAMES` frames are not taken again for
+        one."""
+        frame = self.stepper.frame
+        if not self.whip_ratio > 0.0 or frame <= self._whip_rest_until:
             return False
         fastest = self.solver.fastest_guide()
-        return fastest is not None and fastest[0] > self.whip_ratio * fastest[1] > 0.0
+        if fastest is None or not fastest[0] > self.whip_ratio * fastest[1] > 0.0:
+            return False
+        before = [(n, v) for n, v, fault in tried if fault is None]
+        if before and _agree(before[-1][1], fastest[0]):
+            self.motion_whips.append((frame, [*before, (steps, fastest[0])]))
+            self._whip_rest_until = frame + WHIP_REST_FRAMES
+            return False
+        return True
 
     @property
     def retaken_frames(self) -> int:
@@ -1472,13 +1539,14 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
 
 def _retakes_note(sim, whips: bool = False) -> str | None:
     """The run's note on its frames taken again after a fault (``sim.fault_retries``), or with ``whips`` on those
-    taken again only because their guides whipped (``sim.whip_ratio``): how many, the first few with the steps they
-    ran in and what made them, and what would spare them; None where there are none."""
+    taken again only because their guides whipped (``sim.whip_ratio``) and slowed in finer steps: how many, the first
+    few with the steps they ran in and what made them, and what would spare them; None where there are none."""
     last, whipped = {}, {}
     for frame, steps, stage in sim.retakes:
         last[frame] = (steps, stage)  # the steps it finally ran in
         whipped[frame] = whipped.get(frame, True) and stage == "whip"
-    last = {f: taken for f, taken in last.items() if whipped[f] == whips}
+    motion = {frame for frame, _ in sim.motion_whips}  # the motion's whips: its own note (``whip_note``)
+    last = {f: taken for f, taken in last.items() if whipped[f] == whips and f not in motion}
     if not last:
         return None
     shown = ", ".join(f"{f} in {n} steps" + ("" if whips else f" ({stage})")

@@ -96,6 +96,9 @@ CONTACT_RATE_LIMIT = 7.5
 #: contacts) at one step a frame; ``long_hair``'s links of 1e5 N/m at 2 substeps (727) whip at 12 m/s.
 RESPONSE_RATE_LIMIT = 100.0
 
+#: The stage a fault names where the free dynamics drive it and no other stage does (``Solver._dynamics_driver``).
+DYNAMICS_STAGE = "dynamics (aba + integrate)"
+
 #: The vertex-face stiffness's largest density factor (``TriangleStrips.tri_stiffness_scale``, clamped to [1/4, 4]).
 CONTACT_DENSITY_FACTOR = 4.0
 
@@ -894,7 +897,7 @@ class Solver:
         elif rotation_only and self.max_rotation_per_step < DEFAULT_MAX_ROTATION:
             # a bound set below its default: the bound, not the hair, is what the run crossed
             stage = ("collision (body contact)" if bits & Fault.COLLISION_SPEED and not bits & Fault.JOINT_SPEED
-                     else "dynamics (aba + integrate)")
+                     else DYNAMICS_STAGE)
             what = f"a joint bent more than {bound}"
             advice = (f"raise sim.max_rotation_per_step (now {self.max_rotation_per_step:g}, default "
                       f"{DEFAULT_MAX_ROTATION:g}; a bound it sets below the default stops hair that is fine), or "
@@ -1013,7 +1016,7 @@ class Solver:
         stiff = bool(np.any(stiffness > 0.0))
         free_twist = stiff and not np.any(stiffness[:, 2] > 0.0) and not np.any(damping > 0.0)
         explicit = self.integrator in (Integrator.SEMI_IMPLICIT, Integrator.RK4)
-        stage = "dynamics (aba + integrate)"
+        stage = DYNAMICS_STAGE
         if free_twist:
             advice = ("without damping or twist stiffness the twist about each segment's own axis, which has the "
                       "least inertia (m r^2 / 2), is free and undamped, and no step size holds it: give "

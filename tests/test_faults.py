@@ -346,3 +346,43 @@ def test_links_take_no_warm_start_beside_contacts_solved_after_the_free_step_at_
         sim.advance_frame()
         assert sim.solver.contacts.response is (response == "step")
         assert sim.solver.links.warm_start is warm, (substeps, response)
+
+
+# long_hair slid 0.1 m to and fro at 5 Hz (ten g): its guides whip at 20-30 m/s at any step
+SLIDE = ['head.motion.kind="translate"', "head.motion.distance=0.1", "head.motion.period=0.2", "head.motion.ramp=0",
+         "dense.count=0", "output.preview=false"]
+
+
+def test_a_whip_that_finer_steps_do_not_slow_is_named_the_motions():
+    """``long_hair`` slid at ten g whips its guides past the speed bound (4 times the 5.8 m/s the motion explains)
+    in frame 24 at 8 substeps and as fast in that frame taken again in 16 and 32 steps (23.3, 23.6 and 23.3 m/s):
+    the fault says finer steps do not slow them and advises the speed margin, the drag or a slower motion, not more
+    substeps. A run of its own at 32 substeps without the bound is as fast in that frame (23.2 m/s). With the
+    margin raised as advised the run goes on; frame 12, whose whip 16 steps did not slow either (14.4 and 13.8 m/s),
+    is kept as taken, and the frames after it are not taken again for a whip (``runner.WHIP_REST_FRAMES``)."""
+    import re
+
+    from hairwarp.runner import WHIP_AGREEMENT, WHIP_REST_FRAMES
+
+    sim = Simulation(hw.Scene.load(LONG_HAIR, SLIDE))
+    with pytest.raises(SimulationFault) as info:
+        for _ in range(30):
+            sim.advance_frame()
+    fault = info.value
+    assert fault.stage == "dynamics (aba + integrate)" and "finer steps do not slow them" in str(fault), fault
+    assert "sim.speed_margin" in _advice(fault) and "sim.substeps" not in _advice(fault)
+    takes = [float(v) for v in re.search(r"whipped at ([\d.]+), ([\d.]+) and ([\d.]+) m/s", str(fault)).groups()]
+    fine = Simulation(hw.Scene.load(LONG_HAIR, [*SLIDE, "sim.substeps=32", "sim.speed_margin=inf"]))
+    for _ in range(fault.frame):
+        fine.advance_frame()
+    fastest = float(np.linalg.norm(fine.state.vertex_velocities.numpy(), axis=1).max())
+    # the separate fine run whips within the takes' own agreement of them (its motion the same, its step a quarter)
+    assert all(abs(fastest - v) <= WHIP_AGREEMENT * max(fastest, v) for v in takes), (fastest, takes)
+
+    held = Simulation(hw.Scene.load(LONG_HAIR, [*SLIDE, "sim.speed_margin=8"]))
+    for _ in range(30):
+        held.advance_frame()
+    frame, kept = held.motion_whips[0]
+    assert [n for n, _ in kept] == [8, 16] and held.whip_note().startswith(f"frame {frame}: guides whipped past")
+    resting = range(frame + 1, frame + WHIP_REST_FRAMES + 1)
+    assert not [r for r in held.retakes if r[0] in resting and r[2] == "whip"], held.retakes
