@@ -202,6 +202,10 @@ class Stepper:
 SPEED_KEY = "solver.speed_terms"
 SPEED_TERMS = ("start", "carried", "colliders", "wind")
 
+#: The checkpoint's entry for the last frame not taken again for a whip (``Simulation._whipped``): a resumed run rests
+#: as the whole run would.
+WHIP_REST_KEY = "runner.whip_rest_until"
+
 
 def _upgraded(arrays: dict) -> dict:
     """A checkpoint as this version keeps it. Earlier versions kept no links' forces of the last step (taken as none)
@@ -650,9 +654,10 @@ class Simulation:
         if self.motion_whips:
             frame, takes = self.motion_whips[0]
             shown = " and ".join(f"{v:.3g} m/s in {n} steps" for n, v in takes)
-            more = len(self.motion_whips) - 1
+            others = len(self.motion_whips) - 1
+            more = "" if others == 0 else f", and {others} frame{'s' if others > 1 else ''} more"
             return (f"frame {frame}: guides whipped past sim.whip_ratio = {self.whip_ratio:g} times the speed the "
-                    f"motion explains at finer steps too ({shown}){f', and {more} frames more' if more else ''}: the "
+                    f"motion explains at finer steps too ({shown}){more}: the "
                     f"motion drives that whip, not the step, so such frames were kept as taken (and the "
                     f"{WHIP_REST_FRAMES} after each not taken again for a whip); where the hair should not whip so, "
                     f"raise strands.drag or slow the head motion")
@@ -840,6 +845,7 @@ class Simulation:
         # what the hair speed fault's bound has seen so far (host floats): a resumed run checks against the same bound
         terms = self.solver.speed_terms(st.control)
         out[SPEED_KEY] = np.array([terms[k] for k in SPEED_TERMS], dtype=np.float64)
+        out[WHIP_REST_KEY] = np.array(self._whip_rest_until, dtype=np.int64)
         return out
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
@@ -854,7 +860,7 @@ class Simulation:
         targets = {f"state{i}.{name}": getattr(s, name) for i, s in enumerate(st.states) for name in _STATE_ARRAYS}
         targets.update({f"solver.{k}": a for k, a in self.solver.persistent_arrays().items()})
         expected = set(targets) | {"stepper.time", "stepper.frame", "stepper.parity"}
-        if set(arrays) - {SPEED_KEY} != expected:
+        if set(arrays) - {SPEED_KEY, WHIP_REST_KEY} != expected:
             raise ValueError(f"the checkpoint does not fit this scene: it holds {sorted(set(arrays) - expected)} "
                              f"more and {sorted(expected - set(arrays))} less than the simulation")
         for key, target in targets.items():  # every check before the first change: a refused one changes nothing
@@ -873,6 +879,7 @@ class Simulation:
         st.time = time_s
         st.frame = int(frame)
         st.parity = int(parity)
+        self._whip_rest_until = int(np.asarray(arrays.get(WHIP_REST_KEY, -1)).reshape(()))
         speeds = np.asarray(arrays.get(SPEED_KEY, ()), dtype=np.float64).reshape(-1)
         if len(speeds) == len(SPEED_TERMS) and np.isfinite(speeds).all():
             # the bound the run had (a checkpoint written before these were kept: the checkpoint's own motion)

@@ -386,3 +386,23 @@ def test_a_whip_that_finer_steps_do_not_slow_is_named_the_motions():
     assert [n for n, _ in kept] == [8, 16] and held.whip_note().startswith(f"frame {frame}: guides whipped past")
     resting = range(frame + 1, frame + WHIP_REST_FRAMES + 1)
     assert not [r for r in held.retakes if r[0] in resting and r[2] == "whip"], held.retakes
+
+
+def test_a_run_resumed_while_it_rests_from_whips_repeats_its_frames():
+    """A run restored from a checkpoint taken within the frames after a whip the motion drives (not taken again for
+    one: ``runner.WHIP_REST_FRAMES``) rests as the whole run does, so its frames are the same bits (the slide at ten
+    g, its margin raised: frame 12's whip kept, the checkpoint at frame 15)."""
+    scene = hw.Scene.load(LONG_HAIR, [*SLIDE, "sim.speed_margin=8"])
+    whole = Simulation(scene)
+    for _ in range(15):
+        whole.advance_frame()
+    saved = whole.checkpoint()
+    assert whole.motion_whips and whole.motion_whips[0][0] < 15 < whole.motion_whips[0][0] + 15
+    for _ in range(10):
+        whole.advance_frame()
+    resumed = Simulation(scene)
+    resumed.restore(saved)
+    for _ in range(10):
+        resumed.advance_frame()
+    assert [r for r in resumed.retakes] == [r for r in whole.retakes if r[0] > 15]
+    np.testing.assert_array_equal(resumed.state.vertex_positions.numpy(), whole.state.vertex_positions.numpy())
