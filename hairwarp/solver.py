@@ -112,7 +112,9 @@ DRAG_RATE_LIMIT = 1.0
 #: ``long_hair`` with teleports off: a turn at ten times the shipped speed 1.15, a 3 rev/s spin 1.66, a 5 Hz slide
 #: of 0.1 m (ten g) 2.30, a 30 degree nod at 6.7 Hz (22 rad/s) 1.95 and 3.18 (34.5 m/s; the run then faults in the
 #: body contact). Blow-ups that ran to the end unreported measured 4.7-53 times it (light strands 4.7-13, an
-#: undamped twist 16-53, links too stiff for the free step 6.8-55). 4 sits between the two.
+#: undamped twist 16-53, links too stiff for the free step 6.8-55). 4 sits between the two. ``long_hair`` kept on that
+#: slide for a second whips past it at every step (its free hair 5.4 and 4.8 times at 32 and 128 substeps): the
+#: motion's whip, which the fault then names as such (``runner.WHIP_AGREEMENT``), with the margin among its advice.
 SPEED_MARGIN = 4.0
 
 
