@@ -649,8 +649,9 @@ class Simulation:
         return bits
 
     def whip_note(self) -> str | None:
-        """A note where a frame's fastest guide vertex passed :data:`WHIP_NOTE_RATIO` times the speed the run's motion
-        explains (:attr:`peak_speed`), else None."""
+        """A note where a frame's whip proved the motion's (:attr:`motion_whips`: its finer take whipped as fast), or
+        else where a frame's fastest guide vertex passed :data:`WHIP_NOTE_RATIO` times the speed the run's motion
+        explains (:attr:`peak_speed`); None where neither."""
         if self.motion_whips:
             frame, takes = self.motion_whips[0]
             shown = " and ".join(f"{v:.3g} m/s in {n} steps" for n, v in takes)
