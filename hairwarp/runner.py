@@ -712,9 +712,10 @@ class Simulation:
                     raise self._retried_fault(fault, tried) from None
                 stage = fault.stage
             else:
-                if len(tried) >= self.fault_retries or not self._whipped(tried, steps):
+                whip = None if len(tried) >= self.fault_retries else self._whipped(tried, steps)
+                if whip is None:
                     return bits, steps
-                tried.append((steps, self._fastest_speed(), None))
+                tried.append((steps, whip, None))
                 stage = "whip"
             self.restore(saved)
             steps *= 2
@@ -759,24 +760,24 @@ class Simulation:
             self._poses = {}
             self.solver.warm_start_allowed = True
 
-    def _whipped(self, tried: list, steps: int) -> bool:
-        """Whether the frame just taken ended with a guide vertex past ``sim.whip_ratio`` times the speed the motion
-        explains, and is to be taken again in finer steps (never where that ratio is 0 or the speed bound is off).
-        Not where its take agrees with a whipping take before it in ``tried`` (:data:`WHIP_AGREEMENT`): the motion
-        drives that whip (:attr:`motion_whips`), and the next :data:`WHIP_REST_FRAMES` frames are not taken again for
-        one."""
+    def _whipped(self, tried: list, steps: int) -> float | None:
+        """The fastest guide vertex [m/s] of the frame just taken in ``steps`` steps where it ended past
+        ``sim.whip_ratio`` times the speed the motion explains and the frame is to be taken again in finer steps;
+        else None (also where that ratio is 0 or the speed bound is off). None too where the take agrees with a
+        whipping take before it in ``tried`` (:data:`WHIP_AGREEMENT`): the motion drives that whip
+        (:attr:`motion_whips`), and the next :data:`WHIP_REST_FRAMES` frames are not taken again for one."""
         frame = self.stepper.frame
         if not self.whip_ratio > 0.0 or frame <= self._whip_rest_until:
-            return False
+            return None
         fastest = self.solver.fastest_guide()
         if fastest is None or not fastest[0] > self.whip_ratio * fastest[1] > 0.0:
-            return False
+            return None
         before = [(n, v) for n, v, fault in tried if fault is None]
         if before and _agree(before[-1][1], fastest[0]):
             self.motion_whips.append((frame, [*before, (steps, fastest[0])]))
             self._whip_rest_until = frame + WHIP_REST_FRAMES
-            return False
-        return True
+            return None
+        return fastest[0]
 
     @property
     def retaken_frames(self) -> int:

@@ -1433,12 +1433,11 @@ def md_robustness(data: dict) -> list[str]:
             for r in run["rows"]:
                 broken = r["broken_links"] if r["broken_links"] is not None else "–"
                 again = ", ".join(f"{f} in {n} ({stage})" for f, n, stage in r.get("retakes", [])) or "–"
-                fine = r.get("fine")
-                if fine is not None:
-                    fine = (f"{_f(fine['max_speed_m_s'])}, {fine['broken_links']}" if fine["fault"] is None
-                            else f"fault at frame {fine['fault']['frame']}")
+                ref = r.get("fine")
+                fine = ("–" if ref is None else f"{_f(ref['max_speed_m_s'])}, {ref['broken_links']}"
+                        if ref["fault"] is None else f"fault at frame {ref['fault']['frame']}")
                 lines.append(f"| {run['scene']} | {r['case']} | {'free' if r['free'] else 'as shipped'} | "
-                             f"{_fault(r)} | {again} | {_f(r['max_speed_m_s'])} | {broken} | {fine or '–'} | "
+                             f"{_fault(r)} | {again} | {_f(r['max_speed_m_s'])} | {broken} | {fine} | "
                              f"{_v(r['meets'])} |")
     lines += ["", "### Peers", ""]
     mj = peers["mujoco_rest"]
