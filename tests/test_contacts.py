@@ -326,7 +326,8 @@ def test_flat_strip_pushes_as_a_plane_across_its_levels(z):
     """A tip 0.8 mm in front of a flat strip of constant width, at heights on both sides of the edge its two quads
     share (z = -12 mm): pushed as by a plane, F = k0 (s0 / s) (l / l0) (thr - 0.8 mm) along the normal, by the nearer
     quad alone. Near the edge both quads are within reach: each pushing nearly doubled the force there (1.75 times at
-    0.5 mm below it, 1.99 at 0.1 mm), and giving the shared edge to the upper quad dropped the lower's force at once as the tip crossed it."""
+    0.5 mm below it, 1.99 at 0.1 mm), and giving the shared edge to the upper quad dropped the lower's force at once
+    as the tip crossed it."""
     k, d = 10.0, 0.0008
     zs = np.array([0.0, -0.012, -0.024])
     s0 = np.stack([np.zeros(3), np.zeros(3), zs], axis=1)
