@@ -138,7 +138,13 @@ def quad_feature_owned(second: int, w: wp.vec3) -> bool:
 
     With ``(u, v)`` the point's place on the quad (u across, from strand a to strand b; v along, from level k to
     k+1), points on either strand (u = 0 or 1) are segment-segment contacts: otherwise a vertex beside a strand would
-    be pushed once per quad along it. Which of a strip's quads takes a vertex is ``nearest_quad_of_strip``'s.
+    be pushed once per quad along it. Along the strip every quad within reach pushes, the edge two quads share
+    included: the force is the sum of the quads' penalties, continuous and the gradient of their energy. A rule that
+    gave the shared edge to the upper quad dropped the lower quad's force at once as a vertex crossed it (0.8 mm in
+    front of a flat strip, 1.99 times as hard 0.1 mm to the root's side of the edge as 0.1 mm to the tip's); only
+    the nearer quad pushing, as a plane would, made the force jump in direction where a folded strip's two quads are
+    equally near, and ``fast_turn``'s hair resting on the head moved 0.141 mm a frame (0.004 mm with every quad
+    pushing; ``test_flat_strip_pushes_with_each_quad_within_reach``, docs/interactions.md).
     """
     u = w[1]
     if second != 0:
@@ -160,37 +166,6 @@ def closest_point_quad(p: wp.vec3, a0: wp.vec3, b0: wp.vec3, a1: wp.vec3, b1: wp
     if dd1 < dd0:
         return 1, w1, dd1
     return 0, w0, dd0
-
-
-@wp.func
-def quad_distance_sq(p: wp.vec3, quad: int, seg_per_strand: int, strip_pairs: wp.array(dtype=wp.vec2i),
-                     vertex_positions: wp.array(dtype=wp.vec3)) -> float:
-    """Squared distance [m^2] of p from strip quad ``quad`` (``closest_point_quad``)."""
-    qa, qb = strip_quad_origins(quad, seg_per_strand, strip_pairs)
-    second, w, dsq = closest_point_quad(p, vertex_positions[qa], vertex_positions[qb], vertex_positions[qa + 1],
-                                        vertex_positions[qb + 1])
-    return dsq
-
-
-@wp.func
-def nearest_quad_of_strip(p: wp.vec3, quad: int, dsq: float, seg_per_strand: int,
-                          strip_pairs: wp.array(dtype=wp.vec2i), vertex_positions: wp.array(dtype=wp.vec3)) -> bool:
-    """Whether ``quad``, at squared distance ``dsq`` from p, is nearer to p than the quads beside it on its strip
-    (levels k - 1 and k + 1; a tie goes to the upper one): a vertex is pushed by one quad of a strip, along the
-    gradient of its distance from the strip, and the force stays continuous where that quad changes.
-
-    Near the edge two quads share, both are within reach: with each pushing, a vertex in front of a flat strip was
-    pushed up to twice as hard just below a level's edge as in the middle of a quad, and a rule that gave the shared
-    edge to the upper quad dropped the lower quad's force at once as the vertex crossed it
-    (``test_flat_strip_pushes_as_a_plane_across_its_levels``)."""
-    k = quad % seg_per_strand
-    if k > 0:
-        if quad_distance_sq(p, quad - 1, seg_per_strand, strip_pairs, vertex_positions) < dsq:
-            return False
-    if k < seg_per_strand - 1:
-        if quad_distance_sq(p, quad + 1, seg_per_strand, strip_pairs, vertex_positions) <= dsq:
-            return False
-    return True
 
 
 @wp.func
@@ -531,8 +506,8 @@ def vertex_face_contacts(
     vertex a box test, a slab test against the quad's plane, the alignment cutoff (``vertex_tangents``) and the
     exact closest point of the quad. Appends (vertex, triangle, barycentric weights) for the nearer of the quad's two
     triangles, and as the gap the distance of the vertex from the quad in the rest pose (``rest_gaps``) or
-    ``repel_distance``. Whether the quad pushes the vertex is the force's test at every step (``quad_feature_owned``,
-    ``nearest_quad_of_strip``)."""
+    ``repel_distance``. Whether the quad pushes the vertex is the force's test at every step
+    (``quad_feature_owned``)."""
     blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + VERTEX_BLOCK - 1) // VERTEX_BLOCK
     strand = blk // blocks
@@ -694,10 +669,6 @@ def contact_force(
         if second != 0:
             corner = wp.vec4(0.0, wt[0], wt[2], wt[1])
         if not quad_feature_owned(second, wt):
-            return
-        if dsq >= reach * reach:
-            return
-        if not nearest_quad_of_strip(xa, ib // 2, dsq, seg_per_strand, strip_pairs, vertex_positions):
             return
         xb = (corner[0] * vertex_positions[qa] + corner[1] * vertex_positions[qb] + corner[2] * vertex_positions[qa + 1]
               + corner[3] * vertex_positions[qb + 1])

@@ -322,14 +322,14 @@ def test_vertex_face_closed_form_with_density_scale():
 
 
 @pytest.mark.parametrize("z", [-0.0100, -0.0115, -0.0119, -0.0121, -0.0125, -0.0140])
-def test_flat_strip_pushes_as_a_plane_across_its_levels(z):
+def test_flat_strip_pushes_with_each_quad_within_reach(z):
     """A tip 0.8 mm in front of a flat strip of constant width, at heights on both sides of the edge its two quads
-    share (z = -12 mm): pushed as by a plane, F = k0 (s0 / s) (l / l0) (thr - 0.8 mm) along the normal, by the nearer
-    quad alone. Near the edge both quads are within reach: each pushing nearly doubled the force there (1.75 times at
-    0.5 mm below it, 1.99 at 0.1 mm), and giving the shared edge to the upper quad dropped the lower's force at once
-    as the tip crossed it."""
-    k, d = 10.0, 0.0008
-    zs = np.array([0.0, -0.012, -0.024])
+    share (z = -12 mm): each quad within reach pushes it, k0 (s0 / s) (l / l0) (thr - d_q) along the tip's offset from
+    its closest point on quad q, d_q its distance from the quad (0.8 mm over the quad, or to the edge beside it): the
+    force is continuous across the edge and the gradient of the quads' energy. (A rule that gave the shared edge to
+    the upper quad pushed the tip 1.99 times as hard 0.1 mm to the root's side of the edge as 0.1 mm to the tip's.)"""
+    k, d, edge = 10.0, 0.0008, -0.012
+    zs = np.array([0.0, edge, -0.024])
     s0 = np.stack([np.zeros(3), np.zeros(3), zs], axis=1)
     s1 = np.stack([np.full(3, 0.010), np.zeros(3), zs], axis=1)
     tip = np.array([0.005, d, z])
@@ -339,12 +339,19 @@ def test_flat_strip_pushes_as_a_plane_across_its_levels(z):
     contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16, segment_segment=False,
                           skip_neighbour_strips=False, rest_gaps=False)
     force, _, _ = _apply(contacts, _model(3, 2), _state(verts))
-    found = contacts.contact_list()
-    if abs(z + 0.012) < 0.001:
-        assert len(found["kind"]) == 2  # both quads of the strip are within reach of the tip
-    expected = k * (contacts.strips.width_ref / 0.010) * (SEG_LEN / REFERENCE_SEGMENT_LENGTH) * (THRESHOLD - d)
-    np.testing.assert_allclose(force[2 * 2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * expected)
-    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
+    k_eff = k * (contacts.strips.width_ref / 0.010) * (SEG_LEN / REFERENCE_SEGMENT_LENGTH)
+    expected = np.zeros(3)
+    for top, bottom in ((0.0, edge), (edge, -0.024)):  # the quads' closest points, in float64
+        closest = np.array([tip[0], 0.0, np.clip(z, bottom, top)])
+        offset = tip - closest
+        dist = np.linalg.norm(offset)
+        if dist < THRESHOLD:
+            expected += k_eff * (THRESHOLD - dist) * offset / dist
+    if abs(z - edge) < 0.001:
+        assert len(contacts.contact_list()["kind"]) == 2  # both quads of the strip are within reach of the tip
+    scale = np.linalg.norm(expected)
+    np.testing.assert_allclose(force[2 * 2 + 1], expected, rtol=FORCE_RTOL, atol=FORCE_RTOL * scale)
+    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * scale)
 
 
 def test_parting_strip_fades_out():

@@ -195,7 +195,7 @@ def test_strand_dropped_on_another_does_not_cross(contacts_on):
 
 
 # Stiffnesses [N/m, at 1 cm segments; the scene's are 2.9 cm] between the largest stable explicit and implicit ones
-# of the quick stability scene at h = 1/240 s (links: 7 / 15 N/m a link there, contacts 250 / 500 N/m a contact;
+# of the quick stability scene at h = 1/240 s (links: 7 / 15 N/m a link there, contacts 200 / 700 N/m a contact;
 # docs/interactions.md has the sweep), each over the scene's 2.86 times the reference length.
 BETWEEN_LIMITS = {"links": 12.0 / 2.86, "contacts": 400.0 / 2.86}
 
