@@ -137,14 +137,15 @@ def quad_feature_owned(second: int, w: wp.vec3) -> bool:
     both of the strip's strands.
 
     With ``(u, v)`` the point's place on the quad (u across, from strand a to strand b; v along, from level k to
-    k+1), points on either strand (u = 0 or 1) are segment-segment contacts: otherwise a vertex beside a strand would
-    be pushed once per quad along it. Along the strip every quad within reach pushes, the edge two quads share
-    included: the force is the sum of the quads' penalties, continuous and the gradient of their energy. A rule that
-    gave the shared edge to the upper quad dropped the lower quad's force at once as a vertex crossed it (0.8 mm in
-    front of a flat strip, 1.99 times as hard 0.1 mm to the root's side of the edge as 0.1 mm to the tip's); only
-    the nearer quad pushing, as a plane would, made the force jump in direction where a folded strip's two quads are
-    equally near, and ``fast_turn``'s hair resting on the head moved 0.141 mm a frame (0.004 mm with every quad
-    pushing; ``test_flat_strip_pushes_with_each_quad_within_reach``, docs/interactions.md).
+    k+1), points on either strand (u = 0 or 1) are segment-segment contacts: otherwise a vertex beside a strand
+    would be pushed once per quad along it. Along the strip every quad within reach pushes, the edge two quads share
+    included: the force is the sum of the quads' penalties, continuous, and where the stiffness factors are constant
+    the gradient of their energy. A rule that gave the shared edge to the upper quad dropped the lower quad's force
+    at once as a vertex crossed it (0.8 mm in front of a flat strip, 1.99 times as hard 0.1 mm to the root's side of
+    the edge as 0.1 mm to the tip's); only the nearer quad pushing, as a plane would, made the force jump in
+    direction where a folded strip's two quads are equally near, and ``fast_turn``'s hair resting on the head moved
+    0.141 mm a frame (0.004 mm with every quad pushing; ``test_flat_strip_pushes_with_each_quad_within_reach``,
+    docs/interactions.md).
     """
     u = w[1]
     if second != 0:

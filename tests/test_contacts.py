@@ -324,10 +324,11 @@ def test_vertex_face_closed_form_with_density_scale():
 @pytest.mark.parametrize("z", [-0.0100, -0.0115, -0.0119, -0.0121, -0.0125, -0.0140])
 def test_flat_strip_pushes_with_each_quad_within_reach(z):
     """A tip 0.8 mm in front of a flat strip of constant width, at heights on both sides of the edge its two quads
-    share (z = -12 mm): each quad within reach pushes it, k0 (s0 / s) (l / l0) (thr - d_q) along the tip's offset from
-    its closest point on quad q, d_q its distance from the quad (0.8 mm over the quad, or to the edge beside it): the
-    force is continuous across the edge and the gradient of the quads' energy. (A rule that gave the shared edge to
-    the upper quad pushed the tip 1.99 times as hard 0.1 mm to the root's side of the edge as 0.1 mm to the tip's.)"""
+    share (z = -12 mm): each quad within reach pushes it, k0 (s0 / s) (l / l0) (thr - d_q) along the tip's offset
+    from its closest point on quad q, d_q its distance from the quad (0.8 mm over the quad, or to the edge beside
+    it): the force is continuous across the edge and, the strip's width constant, the gradient of the quads' energy.
+    (A rule that gave the shared edge to the upper quad pushed the tip 1.99 times as hard 0.1 mm to the root's side
+    of the edge as 0.1 mm to the tip's.)"""
     k, d, edge = 10.0, 0.0008, -0.012
     zs = np.array([0.0, edge, -0.024])
     s0 = np.stack([np.zeros(3), np.zeros(3), zs], axis=1)
