@@ -736,9 +736,8 @@ class Simulation:
         again = " and ".join(str(n) for n, _, _ in tried[1:])
         retried = f"taken again in {again} steps (sim.fault_retries = {self.fault_retries})"
         speeds = [v for _, v, _ in tried]
-        # the dynamics' own stage only: a stage that drives the speed (air drag on light strands, stiff springs)
-        # keeps its advice
-        # a take kept for a whip (no fault) counts as one whose speed went past the bounds
+        # the dynamics' own stage only (a stage that drives the speed, air drag on light strands or stiff springs,
+        # keeps its advice); a take kept for a whip (no fault) counts as one whose speed went past the bounds
         if (all(f is None or (f.bits == int(Fault.HAIR_SPEED) and f.stage == DYNAMICS_STAGE) for _, _, f in tried)
                 and None not in speeds and _agree(speeds[-2], speeds[-1])):
             what = str(fault).split(" To fix: ")[0]
