@@ -357,6 +357,8 @@ class Simulation:
         self._whip_rest_until = -1
         # (frame, the steps it ran in, the stage of the fault that made it, or "whip") of each retry
         self.retakes = []
+        # set where the hair contacts are solved after the free step at a step too long for them to settle
+        self.contact_rest_note = None
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
@@ -432,11 +434,19 @@ class Simulation:
             strips = TriangleStrips.build(model.rest_vertex_positions, model.root_uv, model.grid_shape,
                                           device=model.device)
         per_frame = cfg.detect == "frame"
+        response = self._response(cfg.response)
+        if response and self.scene.step_dt >= AUTO_RESPONSE_DT * (1.0 - 1e-9):
+            self.contact_rest_note = (
+                f"hair contacts are solved after the free step at this step ({self.scene.step_dt:.3g} s, "
+                f"interactions.response = \"{cfg.response}\"): hair resting on the body may keep crawling by a "
+                f"few mm/s with the head still (docs/interactions.md, \"Hair contacts solved after the free step do "
+                f"not quite settle at long steps\"); steps shorter than {AUTO_RESPONSE_DT:.3g} s settle, and "
+                f"interactions.response = \"mass\" settles gentle motion but breaks links in violent motion")
         return HairContacts.build(
             model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
             damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
             capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
-            detect_each_step=not per_frame, response=self._response(cfg.response), device=model.device,
+            detect_each_step=not per_frame, response=response, device=model.device,
         )
 
     def _build_dense(self, cfg):
@@ -1541,8 +1551,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
     notes.extend(note for note in (_retakes_note(sim), _retakes_note(sim, whips=True)) if note is not None)
-    if sim.stiff_links_note is not None:
-        notes.append(sim.stiff_links_note)
+    notes.extend(note for note in (sim.stiff_links_note, sim.contact_rest_note) if note is not None)
     whip = sim.whip_note()
     if whip is not None:
         notes.append(whip)
