@@ -187,6 +187,9 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
 
+#: Fewest strands per chunk of the hair contacts' per-strand launches of their warm start (``HairContacts.warm_start``).
+WARM_MIN_CHUNK = 16
+
 
 def strand_colors(strand_a, strand_b, strand_count: int) -> np.ndarray:
     """A colour per strand such that no two strands joined by a pair (``strand_a[i]``, ``strand_b[i]``) share one:
@@ -720,10 +723,19 @@ class HairContacts:
         buffer: the ``kernels.contacts.ContactBuffer`` of these arrays, as the kernels take them.
         sweep_contacts: the ``kernels.contacts.SweepContacts`` the links' sweeps solve in a step, listed by
             :meth:`gather_response` (on the CPU).
+        warm_force, warm_torque: vec3 (G*S,), each segment's contact force [N, world] and torque about its origin
+            [N m, world] in the last step's answer of the links' sweeps, kept by :meth:`update_warm` for the next free
+            step where :attr:`warm_start` is set.
         executor: the solver's :class:`hairwarp.executor.Executor` (set when a Solver takes the contacts), or None.
     """
 
     executor = None
+    #: Whether the free step takes each segment's contact force of the last step (:attr:`warm_force`,
+    #: :attr:`warm_torque`), the links' sweeps solving the change (set by the solver: ``Solver.contact_warm_start``)
+    warm_start = False
+    #: Speed [m/s] of a pair's relative motion at which its force kept for the next step is halved
+    #: (``kernels.contacts.contact_warm_forces``; 0: kept whole)
+    warm_gate = 0.0
     _chunk_buffers = None
     _order_views = None  # host views of the contact arrays (``_canonical_order``)
     #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
@@ -881,6 +893,9 @@ class HairContacts:
         sweep.friction = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
         sweep.free = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
         contacts.sweep_contacts = sweep
+        # each segment's contact force of the last step, which the next free step takes (``warm_start``)
+        contacts.warm_force = wp.zeros(G * S, dtype=wp.vec3, device=dev)
+        contacts.warm_torque = wp.zeros(G * S, dtype=wp.vec3, device=dev)
         # without the lists (a GPU), the response's split counts one contact a segment (``contact_response_split``)
         contacts._one_count = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
@@ -958,7 +973,22 @@ class HairContacts:
 
     def sweep_inputs(self) -> list:
         """What ``kernels.sweeps.link_sweep`` reads of the contacts (after its ``contacts_swept`` flag)."""
-        return [self._strip_pairs, self.buffer, self._response_buffer, self.seg_entry_start, self.sweep_contacts]
+        return [self._strip_pairs, self.buffer, self._response_buffer, self.seg_entry_start, self.sweep_contacts,
+                int(self.warm_start), self.warm_force, self.warm_torque]
+
+    def update_warm(self, model, state_in, answered_velocities):
+        """Keep each segment's contact force in the links' sweeps' answer (``answered_velocities``, linearised at
+        the frames of ``state_in``), which the next free step takes with :attr:`warm_start`
+        (``kernels.contacts.contact_warm_forces``, gated by :attr:`warm_gate`; launch only)."""
+        launch(self.executor, contact_kernels.contact_warm_forces, model.strand_count,
+               [model.seg_per_strand, *self.sweep_inputs()[:5], state_in.seg_xform, answered_velocities,
+                float(self.warm_gate)], [self.warm_force, self.warm_torque], device=self.device,
+               min_chunk=WARM_MIN_CHUNK)
+
+    def clear_warm(self):
+        """Forget the contacts' forces of the last step (a teleport, or the warm start turned off)."""
+        self.warm_force.zero_()
+        self.warm_torque.zero_()
 
     @property
     def enabled(self) -> bool:
@@ -1238,8 +1268,15 @@ class HairContacts:
     def gather(self, model, seg_force, seg_torque, seg_implicit_mass):
         """The second pass of :meth:`apply`: every segment adds the entries of the contacts that push it (on a GPU
         every contact adds its entries to its segments with atomics, in any order). With ``response`` the forces are
-        the response's, and there is nothing to add."""
-        if not self.enabled or self.response:
+        the response's, and there is nothing to add but, with :attr:`warm_start`, each segment's force of the last
+        step (``kernels.contacts.contact_warm_add``)."""
+        if not self.enabled:
+            return
+        if self.response:
+            if self.warm_start:
+                launch(self.executor, contact_kernels.contact_warm_add, model.strand_count,
+                       [model.seg_per_strand, self.warm_force, self.warm_torque], [seg_force, seg_torque],
+                       device=self.device, min_chunk=WARM_MIN_CHUNK)
             return
         if self.device.is_cuda or self.scatter:
             launch(self.executor, contact_kernels.contact_scatter, self.capacity,

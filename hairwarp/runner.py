@@ -211,8 +211,8 @@ WHIP_REST_KEY = "runner.whip_rest_until"
 
 
 def _upgraded(arrays: dict) -> dict:
-    """A checkpoint as this version keeps it. Earlier versions kept no links' forces of the last step (taken as none)
-    and each body contact's friction share alone
+    """A checkpoint as this version keeps it. Earlier versions kept no links' or hair contacts' forces of the last
+    step (taken as none) and each body contact's friction share alone
     (``solver.body_contacts.beta``, 1 sticking, less sliding), which this one keeps as ``share`` beside the contact's
     slip speed (``solver.body_contacts.slip``): a sticking vertex had none, a sliding one is taken as sliding
     (``kernels.articulated.STICK_SLIP``)."""
@@ -220,6 +220,11 @@ def _upgraded(arrays: dict) -> dict:
     if "solver.links.link_broken" in out and "solver.links.link_warm" not in out:
         # links' forces of the last step (``Solver._warm_start``), kept since 2026-12-05: the next step starts cold
         out["solver.links.link_warm"] = np.zeros((len(np.asarray(out["solver.links.link_broken"])), 3), np.float32)
+    if "solver.contacts.contact_counter" in out and "solver.contacts.warm_force" not in out:
+        # hair contacts' forces of the last step (``Solver.contact_warm_start``), kept since 2026-12-06: none
+        segments = len(np.asarray(out["state0.joint_q"]))
+        out["solver.contacts.warm_force"] = np.zeros((segments, 3), np.float32)
+        out["solver.contacts.warm_torque"] = np.zeros((segments, 3), np.float32)
     old = "solver.body_contacts.beta"
     if old not in out or "solver.body_contacts.slip" in out:
         return out
@@ -357,13 +362,12 @@ class Simulation:
         self._whip_rest_until = -1
         # (frame, the steps it ran in, the stage of the fault that made it, or "whip") of each retry
         self.retakes = []
-        # set where the hair contacts are solved after the free step at a step too long for them to settle
-        self.contact_rest_note = None
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
                              speed_margin=float(sim.speed_margin),
                              threads=int(sim.threads) if threads is None else threads)
+        self.contact_rest_note = self._contact_rest_note(scene.interactions)
         control = self.model.control(root_frames=self.surface is not None)
         control.set_motion(self.motion.evaluate(0.0))
         if self.surface is not None:
@@ -434,20 +438,27 @@ class Simulation:
             strips = TriangleStrips.build(model.rest_vertex_positions, model.root_uv, model.grid_shape,
                                           device=model.device)
         per_frame = cfg.detect == "frame"
-        response = self._response(cfg.response)
-        if response and self.scene.step_dt >= AUTO_RESPONSE_DT * (1.0 - 1e-9):
-            self.contact_rest_note = (
-                f"hair contacts are solved after the free step at this step ({self.scene.step_dt:.3g} s, "
-                f"interactions.response = \"{cfg.response}\"): hair resting on the body may keep crawling by a "
-                f"few mm/s with the head still (docs/interactions.md, \"Hair contacts solved after the free step do "
-                f"not quite settle at long steps\"); steps shorter than {AUTO_RESPONSE_DT:.3g} s settle, and "
-                f"interactions.response = \"mass\" settles gentle motion but breaks links in violent motion")
         return HairContacts.build(
             model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
             damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
             capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
-            detect_each_step=not per_frame, response=response, device=model.device,
+            detect_each_step=not per_frame, response=self._response(cfg.response), device=model.device,
         )
+
+    def _contact_rest_note(self, cfg) -> str | None:
+        """The run's note where its hair contacts are solved after the free step at steps too long for them to settle
+        as they start each step cold (``Solver.contact_warm_start``: without the links' sweeps, or on a GPU), else
+        None."""
+        contacts, dt = self.contacts, self.scene.step_dt
+        if contacts is None or not contacts.response or dt < AUTO_RESPONSE_DT * (1.0 - 1e-9) \
+                or self.solver.contact_warm_start(dt):
+            return None
+        where = "on a GPU" if self.model.device.is_cuda else "without the links' sweeps"
+        return (f"hair contacts are solved after the free step at this step ({dt:.3g} s, interactions.response = "
+                f"\"{cfg.response}\") {where}, starting each step cold: hair resting on the body may keep crawling "
+                f"by a few mm/s with the head still (docs/interactions.md, \"Hair contacts start from their last "
+                f"force at long steps\"); steps shorter than {AUTO_RESPONSE_DT:.3g} s settle, and "
+                f"interactions.response = \"mass\" settles gentle motion but breaks links in violent motion")
 
     def _build_dense(self, cfg):
         if not cfg.count and cfg.density is None:

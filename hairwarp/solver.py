@@ -336,7 +336,8 @@ class Solver:
         # what the links' sweeps read of the hair contacts where they hold them (``kernels.sweeps.link_sweep``)
         self._no_sweep_contacts = [wp.zeros(1, dtype=wp.vec2i, device=device), contact_kernels.ContactBuffer(),
                                    contact_kernels.ContactResponse(), wp.zeros(1, dtype=wp.int32, device=device),
-                                   contact_kernels.SweepContacts()]
+                                   contact_kernels.SweepContacts(), 0, wp.zeros(1, dtype=wp.vec3, device=device),
+                                   wp.zeros(1, dtype=wp.vec3, device=device)]
 
     @staticmethod
     def _loads(seg_force, seg_torque, has_force, seg_implicit_mass, has_implicit_mass):
@@ -441,6 +442,13 @@ class Solver:
                 self.expire_factors()
 
     def _set_warm_start(self):
+        contacts = self.contacts
+        if contacts is not None:
+            warm = self.contact_warm_start(self._dt_host)
+            if contacts.warm_start and not warm:
+                contacts.clear_warm()  # stale when a later step turns it on again
+            contacts.warm_start = warm
+            contacts.warm_gate = WARM_GATE_SPEED
         if self.links is None:
             return
         warm = self._warm_start(self._dt_host)
@@ -513,11 +521,32 @@ class Solver:
             return False
         contacts = self.contacts
         if contacts is not None and contacts.enabled and contacts.response \
-                and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9):
+                and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and not self.contact_warm_start(dt):
             return False
         if gated:  # where a body holds the hair, and links not too stiff for a force lagged a step
             return self.body_contacts.enabled and dt * self._link_rate_per_second() <= WARM_GATE_RATE
         return dt * self._link_rate_per_second() <= WARM_START_RATE
+
+    def contact_warm_start(self, dt: float) -> bool:
+        """Whether the hair contacts, solved by the links' sweeps after the free step, put each segment's contact
+        force of the last step into it at steps of ``dt`` (``HairContacts.warm_start``), the sweeps then solving the
+        change, as the links do (:meth:`_warm_start`): at steps from ``WARM_START_CONTACTS_STEP`` on, on the CPU (the
+        sweeps solve the contacts where each segment lists its own), not in a frame taken again
+        (:attr:`warm_start_allowed`). Each contact keeps its force by the gate of ``WARM_GATE_SPEED`` on its pair's
+        relative speed (``kernels.contacts.contact_warm_forces``).
+
+        Started cold, a strand resting on other hair over the head fell in the free step, which the head's contacts
+        caught and took its whole weight; the sweeps then pushed it off the head with the hair contacts' springs, and
+        in the next step it fell again: hair never settled at long steps (``long_hair`` with its head still, 2.9 mm/s
+        in the 6th second at 2 substeps with 81 tips moving more than 0.1 mm a frame, 2.5 at 4, 2.4 at one step a
+        frame; ``fast_turn`` 3.3 and 2.0 at 2 and 4 substeps). With the warm start, and the links' with it: 0.17, 0.31
+        and 0.064 mm/s, ``fast_turn`` 0.029 and 0.092, no tip moving (docs/interactions.md, "Hair contacts start from
+        their last force at long steps"). Whole, the lagged force drove violent motion: ``fast_turn`` at 4 substeps
+        broke 28 links (none at 16 substeps) and took 3 frames again after whips, the mohawk broke 19 (2); gated, none
+        and 3."""
+        contacts = self.contacts
+        return bool(dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
+                    and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and self._warm_start_allowed)
 
     def _link_rate_per_second(self) -> float:
         """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per
@@ -549,6 +578,8 @@ class Solver:
             self.colliders.reset_contacts()
         if self.links is not None:
             self.links.link_warm.zero_()
+        if self.contacts is not None:
+            self.contacts.clear_warm()
 
 
     def _accumulate_forces(self, state, control, detect_body: bool = False):
@@ -712,6 +743,8 @@ class Solver:
             if model.device.is_cuda or model.device.is_capturing or ex.host_view(links.strand_redo).any():
                 sweep_colors(count, links.color_views, True)
                 links.update_warm(model, state_in, self.answered_velocities, self.dt)
+        if contacts_swept and contacts.warm_start:  # their force in the answer, for the next free step
+            contacts.update_warm(model, state_in, self.answered_velocities)
         if project:
             with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
                 self.colliders.project(model, state_out, control, self.dt, state_in, detected=True)
@@ -760,9 +793,10 @@ class Solver:
             ``colliders.vert_exempt`` (vertices inside a collider at rest leave the exemption once out),
             ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
             frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
-            or step from the state), ``body_contacts.slip``, ``body_contacts.share`` and ``body_contacts.force``
-            (each vertex's speed over its collider, its friction share at long steps and the force the collider put
-            on it last step, from which the next step starts).
+            or step from the state), ``contacts.warm_force`` and ``contacts.warm_torque`` (each segment's hair contact
+            force of the last step, which the next free step takes), ``body_contacts.slip``, ``body_contacts.share``
+            and ``body_contacts.force`` (each vertex's speed over its collider, its friction share at long steps and
+            the force the collider put on it last step, from which the next step starts).
         """
         out = {}
         if self.body_contacts.enabled:
@@ -778,6 +812,8 @@ class Solver:
         if self.contacts is not None:
             out["contacts.contact_counter"] = self.contacts.contact_counter
             out["contacts.contact_overflow"] = self.contacts.contact_overflow
+            out["contacts.warm_force"] = self.contacts.warm_force
+            out["contacts.warm_torque"] = self.contacts.warm_torque
         return out
 
     def measure_start_speed(self, state):

@@ -1307,3 +1307,75 @@ def contact_scatter(
             wp.atomic_add(seg_force, seg, entry_force[4 * slot + e])
             wp.atomic_add(seg_torque, seg, entry_torque[4 * slot + e])
             wp.atomic_add(seg_spring_mass, seg, entry_mass[4 * slot + e])
+
+
+@wp.kernel
+def contact_warm_forces(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    # Model:
+    seg_per_strand: int,
+    # The contacts the links' sweeps solved (``SweepContacts``, as ``kernels.sweeps.link_sweep`` reads them):
+    strip_pairs: wp.array(dtype=wp.vec2i),
+    contacts: ContactBuffer,
+    response: ContactResponse,
+    seg_entry_start: wp.array(dtype=wp.int32),
+    sweep: SweepContacts,
+    # State: the step's start (frames); every strand's answer after the sweeps, linearised at the start
+    seg_xform: wp.array(dtype=wp.transform),
+    answered: wp.array(dtype=wp.vec3),
+    # Speed [m/s] of the pair's relative motion at which a contact keeps half its force (0: the whole force)
+    gate: float,
+    # Out: each segment's hair contact force [N, world] and torque about its origin [N m, world] in the answer
+    warm_force: wp.array(dtype=wp.vec3),
+    warm_torque: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: the force its segments' hair contacts put on them in the links' sweeps' answer, each
+    entry's force as the sweeps solve it (``sweep_entry_force``) with both sides at their answer, which the next step's
+    free step takes (``contact_warm_add``; ``hairwarp.HairContacts.warm_start``), the sweeps then solving the change.
+    Each contact keeps ``1 / (1 + |u|^2 / gate^2)`` of its force, ``u`` the pair's relative velocity in the answer: a
+    contact at rest carries its force whole, one that slides or parts fast starts cold, as before."""
+    strand = tid_offset + wp.tid()
+    S = seg_per_strand
+    for k in range(S):
+        seg = strand * S + k
+        xf = seg_xform[seg]
+        R = wp.transform_get_rotation(xf)
+        origin = wp.transform_get_translation(xf)
+        force = wp.vec3()
+        torque = wp.vec3()
+        for j in range(seg_entry_start[seg], sweep.end[seg]):
+            entry = sweep.entries[j]
+            slot = entry // 4
+            n = response.normal[slot]
+            u = contact_relative_velocity(slot, S, strip_pairs, contacts, response, answered)
+            un = wp.dot(u, n)
+            f = response.share[entry] * (response.coef[slot] * (response.target[slot] - un) * n
+                                         - sweep.friction[j] * (u - un * n))
+            if gate > 0.0:
+                f = f / (1.0 + wp.dot(u, u) / (gate * gate))
+            f_local = wp.quat_rotate_inv(R, f)
+            force += f_local
+            torque += spin_free_torque(wp.quat_rotate_inv(R, response.point[entry] - origin), f_local)
+        warm_force[seg] = wp.quat_rotate(R, force)
+        warm_torque[seg] = wp.quat_rotate(R, torque)
+
+
+@wp.kernel
+def contact_warm_add(
+    # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
+    tid_offset: int,
+    seg_per_strand: int,
+    # Each segment's hair contact force and torque of the last step (``contact_warm_forces``)
+    warm_force: wp.array(dtype=wp.vec3),
+    warm_torque: wp.array(dtype=wp.vec3),
+    # In and out: the free step's loads
+    seg_force: wp.array(dtype=wp.vec3),
+    seg_torque: wp.array(dtype=wp.vec3),
+):
+    """One thread per strand: add its segments' hair contact forces of the last step to the free step's loads."""
+    strand = tid_offset + wp.tid()
+    for k in range(seg_per_strand):
+        seg = strand * seg_per_strand + k
+        seg_force[seg] = seg_force[seg] + warm_force[seg]
+        seg_torque[seg] = seg_torque[seg] + warm_torque[seg]

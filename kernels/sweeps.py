@@ -164,6 +164,11 @@ def link_sweep(
     response: ContactResponse,
     seg_entry_start: wp.array(dtype=wp.int32),
     sweep_contacts: SweepContacts,
+    # With ``contacts_warm`` the free step took each segment's hair contact force of the last step, which the sweeps
+    # leave out of the contacts' forces (``hairwarp.HairContacts.warm_start``): [N, world] and [N m, world]
+    contacts_warm: int,
+    contact_warm_force: wp.array(dtype=wp.vec3),
+    contact_warm_torque: wp.array(dtype=wp.vec3),
     # The hair contacts' dampers as the contacts' gather left them whole, with ``contacts_swept``
     dampers: InteractionResponse,
     # The sweeps' dampers: their blocks, built by the step's first sweep (``held`` or ``dampers``, and the links') and
@@ -207,9 +212,10 @@ def link_sweep(
     end's velocity from the free step (``free_velocities``), ``v_other`` the other end's latest answer
     (``answered_velocities``: this sweep's where its colour came first, else the last sweep's, else its free
     step's). Its hair contacts are solved the same way (``kernels.contacts.sweep_entry_force``: the whole damper,
-    toward the other side's latest answer), or, on a GPU, held as dampers split between their sides (``held``).
-    The strand is then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep
-    only) and its answer published (``answer``). A colour's strands share no link, so they are solved at once, and
+    toward the other side's latest answer; less each segment's contact force of the last step where the free step
+    took it, ``contacts_warm``), or, on a GPU, held as dampers split between their sides (``held``). The strand is
+    then solved from its free step (``damper_solve``; ``finish_response`` on the step's last sweep only) and its
+    answer published (``answer``). A colour's strands share no link, so they are solved at once, and
     each sees what the earlier colours gave: every sweep lowers the links' implicit step's error in its energy norm
     (the step's matrix is symmetric positive definite), so unlike Jacobi between strands it cannot overshoot,
     whatever the ends' masses; more sweeps converge to the backward-Euler answer of the whole lattice. Not
@@ -261,6 +267,10 @@ def link_sweep(
                 force += f
                 r = wp.quat_rotate_inv(R, response.point[sweep_contacts.entries[j]] - origin)
                 torque += spin_free_torque(r, f)
+            if contacts_warm != 0:  # the free step took the segment's contact force of the last step
+                force -= wp.quat_rotate_inv(R, contact_warm_force[seg])
+                warm = wp.quat_rotate_inv(R, contact_warm_torque[seg])
+                torque -= wp.vec3(warm[0], warm[1], 0.0)
         a_first = seg_link_start[seg]
         a_last = seg_link_start[seg + 1]
         b_first = seg_b_start[seg]

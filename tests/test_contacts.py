@@ -1048,7 +1048,8 @@ def test_captured_step_with_link_sweeps_replays_the_eager_step(with_contacts, h,
     start.joint_qd.assign(np.random.default_rng(3).normal(0.0, 1.0, (model.seg_count, 3)).astype(np.float32))
     solver.forward_kinematics(start, control)
     eager, replayed = model.state(), model.state()
-    kept = {a: a.numpy().copy() for a in (links.link_broken, links.link_broken_total, links.link_warm)}
+    warm = (contacts.warm_force, contacts.warm_torque) if with_contacts else ()  # their force of the last step
+    kept = {a: a.numpy().copy() for a in (links.link_broken, links.link_broken_total, links.link_warm, *warm)}
     solver.step(start, eager, control, h)
     broken = links.link_broken.numpy().copy()
     if break_length < 1.0:  # links broke within the step, and their strands were solved again

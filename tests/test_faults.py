@@ -330,22 +330,29 @@ def test_a_frame_taken_again_solves_its_links_without_the_warm_start():
     assert retried.solver.links.warm_start  # back at its own 2 substeps, the next frame takes it
 
 
-def test_links_take_no_warm_start_beside_contacts_solved_after_the_free_step_at_long_steps():
+@pytest.mark.parametrize("lists", [True, False])
+def test_links_take_a_warm_start_beside_contacts_solved_after_the_free_step_only_with_theirs(monkeypatch, lists):
     """The links' warm start carries their last force into the free step; where the hair contacts are solved after the
-    free step too, their last force, which held the links' in balance, is not carried, and at long steps the free
-    step moved far on the links' alone (``fast_turn`` at 2 substeps: a tip whipped to 8.3 m/s and links broke by the
-    step; the robustness suite's frame-rate table). So from ``WARM_START_CONTACTS_STEP`` on they start cold: at
-    ``fast_turn``'s 2 substeps, not at its shipped 8, and at 2 substeps again with the contacts in the free step."""
+    free step too and started cold, their last force, which held the links' in balance, was not carried, and at long
+    steps the free step moved far on the links' alone (``fast_turn`` at 2 substeps: a tip whipped to 8.3 m/s and links
+    broke by the step). The links' sweeps now carry the contacts' force too (``Solver.contact_warm_start``, from
+    ``WARM_START_CONTACTS_STEP`` on, where each segment lists its contacts: the CPU), and the links take theirs beside
+    it. Without the lists (a GPU, or ``HairContacts.scatter``) the contacts start cold from that step on, and so do
+    the links; at ``fast_turn``'s shipped 8 substeps, or with the contacts in the free step, the links take theirs."""
+    from hairwarp.interactions import HairContacts
     from hairwarp.solver import WARM_START_CONTACTS_STEP
 
+    monkeypatch.setattr(HairContacts, "scatter", not lists)
     fast_turn = SCENES / "fast_turn.toml"
     assert 1.0 / 240.0 < WARM_START_CONTACTS_STEP < 1.0 / 60.0
-    for substeps, response, warm in ((8, "step", True), (2, "step", False), (2, "mass", True)):
+    for substeps, response, warm, contacts_warm in ((8, "step", True, False), (2, "step", lists, lists),
+                                                    (2, "mass", True, False)):
         sim = Simulation(hw.Scene.load(fast_turn, ["output.preview=false", "dense.count=0", "groom.count=60",
                                                    f"sim.substeps={substeps}", f'interactions.response="{response}"']))
         sim.advance_frame()
         assert sim.solver.contacts.response is (response == "step")
         assert sim.solver.links.warm_start is warm, (substeps, response)
+        assert sim.solver.contacts.warm_start is contacts_warm, (substeps, response)
 
 
 # long_hair slid 0.1 m to and fro at 5 Hz (ten g): its guides whip at 20-30 m/s at any step
