@@ -540,7 +540,7 @@ class Solver:
         in the next step it fell again: hair never settled at long steps (``long_hair`` with its head still, 2.9 mm/s
         in the 6th second at 2 substeps with 81 tips moving more than 0.1 mm a frame, 2.5 at 4, 2.4 at one step a
         frame; ``fast_turn`` 3.3 and 2.0 at 2 and 4 substeps). With the warm start, and the links' with it: 0.17, 0.31
-        and 0.064 mm/s, ``fast_turn`` 0.029 and 0.092, no tip moving (docs/interactions.md, "Hair contacts start from
+        and 0.064 mm/s, ``fast_turn`` 0.028 and 0.092, no tip moving (docs/interactions.md, "Hair contacts start from
         their last force at long steps"). Whole, the lagged force drove violent motion: ``fast_turn`` at 4 substeps
         broke 28 links (none at 16 substeps) and took 3 frames again after whips, the mohawk broke 19 (2); gated, none
         and 3."""
