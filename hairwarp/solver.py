@@ -75,15 +75,17 @@ WARM_START_RATE = 8.0
 WARM_GATE_SPEED = 0.03
 WARM_GATE_RATE = 16.0
 
-#: Shortest step [s] at which the links take no warm start when the hair contacts are solved after the free step too
-#: (``Solver._warm_start``; the step from which ``response = "auto"`` solves them there, ``runner.AUTO_RESPONSE_DT``).
-#: The links' last force was held in balance by the contacts' last force, which the free step does not take; at
-#: long steps it moves far on the links' alone, and the response, linearised at the step's start, pulls it back past
-#: where it was. ``fast_turn`` (contacts solved after the free step) at 2 substeps: a tip whipped to 8.3 m/s and 6
-#: links broke by the step with it (9.1 m/s in a frame taken again at the break step, on the push-out of the day
-#: before), 3.49 m/s and none without, as at 8 and 16 substeps (3.52, 3.72); at 4 substeps 3.72 against 3.48. At its
-#: shipped 8 substeps it keeps the warm start: without it the same rest (0.25 mm/s in the 6th second with the head
-#: still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
+#: Shortest step [s] from which the hair contacts solved by the links' sweeps start from their last force
+#: (``Solver.contact_warm_start``; the step from which ``response = "auto"`` solves them there,
+#: ``runner.AUTO_RESPONSE_DT``), and at which the links take no warm start beside hair contacts solved after the free
+#: step that start cold (a GPU, which lists no contacts per segment; ``Solver._warm_start``): the links' last force was
+#: held in balance by the contacts' last force, which the free step did not take; at long steps it moved far on the
+#: links' alone, and the response, linearised at the step's start, pulled it back past where it was. ``fast_turn``
+#: (contacts solved after the free step, cold) at 2 substeps: a tip whipped to 8.3 m/s and 6 links broke by the step
+#: with it (9.1 m/s in a frame taken again at the break step, on the push-out of the day before), 3.49 m/s and none
+#: without, as at 8 and 16 substeps (3.52, 3.72); at 4 substeps 3.72 against 3.48. At its shipped 8 substeps, where its
+#: contacts start cold, the links keep the warm start: without it the same rest (0.25 mm/s in the 6th second with the
+#: head still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
 WARM_START_CONTACTS_STEP = 1.0 / 220.0
 
 #: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
