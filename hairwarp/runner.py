@@ -21,7 +21,7 @@ from hairwarp.interactions import REBUILD_FRAMES
 from hairwarp.kernels.types import Fault
 from hairwarp.model import Model, resolve_device
 from hairwarp.motion import MotionSample, rotate_floats
-from hairwarp.solver import DYNAMICS_STAGE, SimulationFault, Solver
+from hairwarp.solver import DYNAMICS_STAGE, WARM_START_STEP, SimulationFault, Solver
 from hairwarp.state import hair_ball
 
 #: Shortest step [s] at which ``response = "auto"`` (links and hair contacts) solves their forces after the free step,
@@ -447,18 +447,25 @@ class Simulation:
 
     def _contact_rest_note(self, cfg) -> str | None:
         """The run's note where its hair contacts are solved after the free step at steps too long for them to settle
-        as they start each step cold (``Solver.contact_warm_start``: without the links' sweeps, or on a GPU), else
-        None."""
+        as they start each step cold (``Solver.contact_warm_start``: without the links' sweeps, on a GPU, or at one
+        step a frame), else None."""
         contacts, dt = self.contacts, self.scene.step_dt
         if contacts is None or not contacts.response or dt < AUTO_RESPONSE_DT * (1.0 - 1e-9) \
                 or self.solver.contact_warm_start(dt):
             return None
-        where = "on a GPU" if self.model.device.is_cuda else "without the links' sweeps"
-        return (f"hair contacts are solved after the free step at this step ({dt:.3g} s, interactions.response = "
-                f"\"{cfg.response}\") {where}, starting each step cold: hair resting on the body may keep crawling "
-                f"by a few mm/s with the head still (docs/interactions.md, \"Hair contacts start from their last "
-                f"force at long steps\"); steps shorter than {AUTO_RESPONSE_DT:.3g} s settle, and "
-                f"interactions.response = \"mass\" settles gentle motion but breaks links in violent motion")
+        if self.model.device.is_cuda:
+            why = "on a GPU"
+        elif not self.solver.link_sweeps:
+            why = "without the links' sweeps, which carry their force from step to step"
+        else:
+            why = (f"at steps of {WARM_START_STEP:.3g} s and longer, where their force carried from step to step "
+                   "feeds limp hair's jitter")
+        return (f"hair contacts solved after the free step start each step cold at this step ({dt:.3g} s, "
+                f"interactions.response = \"{cfg.response}\"; {why}): hair resting on the body may keep crawling by a "
+                f"few mm/s with the head still (docs/interactions.md, \"Hair contacts start from their last force at "
+                f"long steps\"); with links, steps from {AUTO_RESPONSE_DT:.3g} s to under {WARM_START_STEP:.3g} s "
+                f"settle, as do shorter ones, and interactions.response = \"mass\" settles gentle motion but breaks "
+                f"links in violent motion")
 
     def _build_dense(self, cfg):
         if not cfg.count and cfg.density is None:

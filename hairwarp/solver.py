@@ -532,23 +532,25 @@ class Solver:
     def contact_warm_start(self, dt: float) -> bool:
         """Whether the hair contacts, solved by the links' sweeps after the free step, put each segment's contact
         force of the last step into it at steps of ``dt`` (``HairContacts.warm_start``), the sweeps then solving the
-        change, as the links do (:meth:`_warm_start`): at steps from ``WARM_START_CONTACTS_STEP`` on, on the CPU (the
-        sweeps solve the contacts where each segment lists its own), not in a frame taken again
-        (:attr:`warm_start_allowed`). Each contact keeps its force by the gate of ``WARM_GATE_SPEED`` on its pair's
-        relative speed (``kernels.contacts.contact_warm_forces``).
+        change, as the links do (:meth:`_warm_start`): at steps from ``WARM_START_CONTACTS_STEP`` up to
+        ``WARM_START_STEP`` (exclusive: 2 to 7 substeps of 30 fps), on the CPU (the sweeps solve the contacts where each
+        segment lists its own), not in a frame taken again (:attr:`warm_start_allowed`). Each contact keeps its force
+        by the gate of ``WARM_GATE_SPEED`` on its pair's relative speed (``kernels.contacts.contact_warm_forces``).
+        Not at one step a frame: limp linked hair (the stability grid's EI 1e-7 cells) jitters there, and the lagged
+        force fed the jitter until it burst (3.0-5.7 m/s at 8 and 31 segments, 1.35 m/s cold and at 32 substeps).
 
         Started cold, a strand resting on other hair over the head fell in the free step, which the head's contacts
         caught and took its whole weight; the sweeps then pushed it off the head with the hair contacts' springs, and
         in the next step it fell again: hair never settled at long steps (``long_hair`` with its head still, 2.9 mm/s
         in the 6th second at 2 substeps with 81 tips moving more than 0.1 mm a frame, 2.5 at 4, 2.4 at one step a
-        frame; ``fast_turn`` 3.3 and 2.0 at 2 and 4 substeps). With the warm start, and the links' with it: 0.17, 0.31
-        and 0.064 mm/s, ``fast_turn`` 0.028 and 0.092, no tip moving (docs/interactions.md, "Hair contacts start from
-        their last force at long steps"). Whole, the lagged force drove violent motion: ``fast_turn`` at 4 substeps
+        frame; ``fast_turn`` 3.3 and 2.0 at 2 and 4 substeps). With the warm start, and the links' with it: 0.17 and
+        0.31 mm/s, ``fast_turn`` 0.028 and 0.092, no tip moving (docs/interactions.md, "Hair contacts start from their
+        last force at long steps"). Whole, the lagged force drove violent motion: ``fast_turn`` at 4 substeps
         broke 28 links (none at 16 substeps) and took 3 frames again after whips, the mohawk broke 19 (2); gated, none
         and 3."""
         contacts = self.contacts
         return bool(dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
-                    and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and self._warm_start_allowed)
+                    and WARM_START_CONTACTS_STEP * (1.0 - 1e-9) <= dt < WARM_START_STEP and self._warm_start_allowed)
 
     def _link_rate_per_second(self) -> float:
         """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per
