@@ -78,7 +78,8 @@ WARM_GATE_RATE = 16.0
 #: Shortest step [s] from which the hair contacts solved by the links' sweeps start from their last force
 #: (``Solver.contact_warm_start``; the step from which ``response = "auto"`` solves them there,
 #: ``runner.AUTO_RESPONSE_DT``), and at which the links take no warm start beside hair contacts solved after the free
-#: step that start cold (a GPU, which lists no contacts per segment; ``Solver._warm_start``): the links' last force was
+#: step that start cold (on a GPU, which lists no contacts per segment, or at steps of ``WARM_START_STEP`` and longer;
+#: ``Solver._warm_start``): the links' last force was
 #: held in balance by the contacts' last force, which the free step did not take; at long steps it moved far on the
 #: links' alone, and the response, linearised at the step's start, pulled it back past where it was. ``fast_turn``
 #: (contacts solved after the free step, cold) at 2 substeps: a tip whipped to 8.3 m/s and 6 links broke by the step
