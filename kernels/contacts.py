@@ -1052,13 +1052,20 @@ def sweep_entry_force(j: int, strand: int, seg_per_strand: int, strip_pairs: wp.
     held: Gauss-Seidel, as the links'. Linear in the velocities through the sweeps (the contact is neither dropped
     nor taken up between them), so the factors of the first sweep serve every later one."""
     entry = sweep.entries[j]
+    v = sweep.free[j] + others_relative_velocity(entry // 4, strand, seg_per_strand, strip_pairs, contacts, response,
+                                                 answered_velocities, answered_before, colors)
+    return swept_entry_force(entry, sweep.friction[j], response, v)
+
+
+@wp.func
+def swept_entry_force(entry: int, friction: float, response: ContactResponse, v: wp.vec3) -> wp.vec3:
+    """The force [N, world] of the contact entry ``entry`` as the links' sweeps solve it, at its pair's relative
+    velocity ``v``: the backward-Euler push ``D (target - v_n)`` along the normal and the damper ``friction`` [N s/m]
+    on the slip, by the entry's share (``sweep_entry_force``, ``contact_warm_forces``)."""
     slot = entry // 4
     n = response.normal[slot]
-    v = sweep.free[j] + others_relative_velocity(slot, strand, seg_per_strand, strip_pairs, contacts, response,
-                                                 answered_velocities, answered_before, colors)
     vn = wp.dot(v, n)
-    return response.share[entry] * (response.coef[slot] * (response.target[slot] - vn) * n
-                                    - sweep.friction[j] * (v - vn * n))
+    return response.share[entry] * (response.coef[slot] * (response.target[slot] - vn) * n - friction * (v - vn * n))
 
 
 @wp.func
@@ -1346,12 +1353,8 @@ def contact_warm_forces(
         torque = wp.vec3()
         for j in range(seg_entry_start[seg], sweep.end[seg]):
             entry = sweep.entries[j]
-            slot = entry // 4
-            n = response.normal[slot]
-            u = contact_relative_velocity(slot, S, strip_pairs, contacts, response, answered)
-            un = wp.dot(u, n)
-            f = response.share[entry] * (response.coef[slot] * (response.target[slot] - un) * n
-                                         - sweep.friction[j] * (u - un * n))
+            u = contact_relative_velocity(entry // 4, S, strip_pairs, contacts, response, answered)
+            f = swept_entry_force(entry, sweep.friction[j], response, u)
             if gate > 0.0:
                 f = f / (1.0 + wp.dot(u, u) / (gate * gate))
             f_local = wp.quat_rotate_inv(R, f)
