@@ -187,7 +187,8 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
 
-#: Fewest strands per chunk of the hair contacts' per-strand launches of their warm start (``HairContacts.warm_start``).
+#: Fewest strands per chunk of the hair contacts' per-strand pass that keeps their forces for the next step
+#: (``HairContacts.update_warm``).
 WARM_MIN_CHUNK = 16
 
 
@@ -1274,9 +1275,9 @@ class HairContacts:
             return
         if self.response:
             if self.warm_start:
-                launch(self.executor, contact_kernels.contact_warm_add, model.strand_count,
-                       [model.seg_per_strand, self.warm_force, self.warm_torque], [seg_force, seg_torque],
-                       device=self.device, min_chunk=WARM_MIN_CHUNK)
+                launch(self.executor, contact_kernels.contact_warm_add, len(self.warm_force),
+                       [self.warm_force, self.warm_torque], [seg_force, seg_torque], device=self.device,
+                       min_chunk=GATHER_MIN_CHUNK)
             return
         if self.device.is_cuda or self.scatter:
             launch(self.executor, contact_kernels.contact_scatter, self.capacity,

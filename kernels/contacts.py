@@ -1368,7 +1368,6 @@ def contact_warm_forces(
 def contact_warm_add(
     # Launch: the first element of this launch's chunk (hairwarp.executor; 0 for one whole launch)
     tid_offset: int,
-    seg_per_strand: int,
     # Each segment's hair contact force and torque of the last step (``contact_warm_forces``)
     warm_force: wp.array(dtype=wp.vec3),
     warm_torque: wp.array(dtype=wp.vec3),
@@ -1376,9 +1375,7 @@ def contact_warm_add(
     seg_force: wp.array(dtype=wp.vec3),
     seg_torque: wp.array(dtype=wp.vec3),
 ):
-    """One thread per strand: add its segments' hair contact forces of the last step to the free step's loads."""
-    strand = tid_offset + wp.tid()
-    for k in range(seg_per_strand):
-        seg = strand * seg_per_strand + k
-        seg_force[seg] = seg_force[seg] + warm_force[seg]
-        seg_torque[seg] = seg_torque[seg] + warm_torque[seg]
+    """One thread per segment: add its hair contact force of the last step to the free step's loads."""
+    seg = tid_offset + wp.tid()
+    seg_force[seg] = seg_force[seg] + warm_force[seg]
+    seg_torque[seg] = seg_torque[seg] + warm_torque[seg]

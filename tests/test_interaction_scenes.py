@@ -708,7 +708,8 @@ def test_hair_contacts_solved_after_the_free_step_come_to_rest(substeps):
     """``long_hair`` (60 guides) with its head still at 2 and 4 substeps, where ``"auto"`` solves its links and hair
     contacts after the free step: in the 6th second its tips move no faster than 1.2 times the same hair's without
     hair contacts (the issue's bound against the scene without what it adds; measured 0.333 against 0.355 mm/s and
-    0.500 against 0.545), and no tip moves 0.1 mm in the last frame. Started cold each step, the hair contacts and the
+    0.500 against 0.545), and no tip moves 0.1 mm in the last frame (the issue's 2 mm/s moves a tip 0.07 mm a
+    frame: a tip past 0.1 mm still crawls). Started cold each step, the hair contacts and the
     head's traded the load of the hair resting on other hair and it never settled: 6.58 and 5.20 mm/s, 23 and 16 tips
     moving (``Solver.contact_warm_start``)."""
     from hairwarp.benchmarks import robustness as R
