@@ -220,8 +220,9 @@ def test_static_links_builder_is_deterministic():
 
 def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
     """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented (the links'
-    response after the free step included), the goal verdict follows from it, and the report section renders every
-    row."""
+    response after the free step and the detection as the runner pays it included), the whole frames' check is the
+    two runs' difference per step, the goal verdict follows from the larger of the two, and the report section
+    renders every row."""
     from conftest import require_ratboy
 
     require_ratboy("Ratboy_mohawk.tfx")
@@ -235,17 +236,22 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
     # the mohawk solves its links after the free step (links.response = "step"): that solve is counted
     assert cost["response"] == ["StaticLinks"] and cost["response_s"] > 0.0
     for row in cost["margins"]:
-        detection = row["refit_s"] + row["vertex_face_s"] + row["segment_segment_s"]
-        per_step_detection = detection / cost["substeps"] if row["margin"] > 0 else detection
+        per_step_detection = row["detect_s"] / cost["substeps"] if row["margin"] > 0 else row["detect_s"]
         expected = cost["links_s"] + row["forces_s"] + cost["response_s"] + per_step_detection
         # the same sums of the same float64 figures: equal up to the order of additions
         assert row["per_step_s"] == pytest.approx(expected, rel=1e-12)
         assert row["per_dynamics"] == pytest.approx(expected / cost["dynamics_s"], rel=1e-12)
         assert row["stored"] >= row["active"] > 0
+    frames = cost["frames"]
+    assert frames["with_s"] > frames["without_s"] > 0.0
+    assert frames["per_step_s"] == pytest.approx((frames["with_s"] - frames["without_s"]) / cost["substeps"],
+                                                 rel=1e-12)
     goal = data["goal"]["scene_guides"]
+    row = next(r for r in cost["margins"] if r["margin"] == goal["margin"])
+    assert goal["per_step_s"] == max(row["per_step_s"], frames["per_step_s"])
     assert goal["meets"] == (goal["per_dynamics"] <= GOAL_PER_DYNAMICS)
     text = "\n".join(md_interactions(data))
-    assert text.count("| 444 |") == len(cost["margins"])
+    assert text.count("| 444 |") == len(cost["margins"]) + 1  # the stages' rows and the whole frames' row
     assert "Largest stable stiffness" in text
 
 
