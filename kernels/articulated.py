@@ -583,7 +583,7 @@ def release_contacts(contacts: BodyContacts, vbase: int, S: int):
         contacts.force[vbase + k + 1] = wp.vec3()
 
 
-@wp.func
+@wp.func(inline=True)
 def body_contact_solve(
     chains: StrandChains,
     strand: int,

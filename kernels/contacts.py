@@ -604,7 +604,7 @@ def contact_segments(slot: int, seg_per_strand: int, strip_pairs: wp.array(dtype
     return wp.vec4i(ia, ib, -1, -1)
 
 
-@wp.func
+@wp.func(inline=True)
 def contact_force(
     slot: int,
     seg_per_strand: int,

@@ -174,13 +174,16 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
             "frames": frames, "margins": rows, "wall_s": time.perf_counter() - t_start}
 
 
-def _frame_costs(scene, without, device, motion_frames: int, frames: int) -> dict:
+def _frame_costs(scene, without, device, motion_frames: int, frames: int, dynamics_repeats: int = 0) -> dict:
     """The whole frame's cost of ``scene`` and of the same scene ``without`` its links and contacts, each a fresh
     run ``motion_frames`` frames into its motion, then ``frames`` frames each, in turn (mean wall time a frame, with
     the trees rebuilt as often as the runner does them): what the interactions add a step, read off the runs as they
-    pay it rather than summed from stages timed alone. Returns ``{"frames", "with_s", "without_s", "per_step_s"}``."""
+    pay it rather than summed from stages timed alone. With ``dynamics_repeats``, also the dynamics step on the first
+    run's state (a solver without colliders, links or contacts, on its threads; median of that many). Returns
+    ``{"frames", "substeps", "with_s", "without_s", "per_step_s"}`` and ``"dynamics_s"``."""
     from hairwarp.executor import _park_pools
     from hairwarp.runner import Simulation
+    from hairwarp.solver import Solver
 
     sims = {"with": Simulation(scene, device=device), "without": Simulation(without, device=device)}
     for sim in sims.values():
@@ -196,9 +199,58 @@ def _frame_costs(scene, without, device, motion_frames: int, frames: int) -> dic
             wp.synchronize_device(device)
             seconds[name] += time.perf_counter() - t0
     with_s, without_s = seconds["with"] / frames, seconds["without"] / frames
-    substeps = sims["with"].stepper.substeps
-    return {"frames": frames, "with_s": with_s, "without_s": without_s,
-            "per_step_s": (with_s - without_s) / substeps}
+    sim = sims["with"]
+    substeps = sim.stepper.substeps
+    out = {"frames": frames, "substeps": substeps, "with_s": with_s, "without_s": without_s,
+           "per_step_s": (with_s - without_s) / substeps, "strands": sim.model.strand_count,
+           "segments": sim.model.seg_per_strand, "links": sim.links.link_count if sim.links is not None else 0,
+           "contacts": sim.contacts is not None and bool(sim.contacts.enabled),
+           "response": [part.__class__.__name__ for part in sim.solver.responders]}
+    if dynamics_repeats:
+        model, stepper = sim.model, sim.stepper
+        dynamics = Solver(model, scene.sim.integrator, max_rotation_per_step=float(scene.sim.max_rotation_per_step),
+                          executor=sim.solver.executor)
+        dynamics.set_dt(stepper.dt)
+        out_state = model.state()
+        _park_pools()
+        out["dynamics_s"] = interleaved_medians(
+            {"dynamics": lambda: dynamics.step(stepper.state, out_state, stepper.control, stepper.dt)}, device,
+            dynamics_repeats)["dynamics"]
+    return out
+
+
+# The shipped scenes with links or hair contacts (``scenes/``), each timed with and without them by
+# ``bench_scene_interactions``; the Ratboy mohawk where its assets are found.
+INTERACTION_SCENES = ("long_hair", "long_hair_shoulders", "fast_turn", "character", "ratboy_mohawk")
+
+
+def bench_scene_interactions(quick: bool = False, device=None, names=INTERACTION_SCENES) -> dict:
+    """What the links and hair contacts add a step in each shipped scene as it ships (``_frame_costs``: the scene
+    with and without them, ``links.enabled`` and ``interactions.enabled`` off), against the scene's dynamics step:
+    the goal's figure (all interactions at most 2x the dynamics) scene by scene, each at its own density, forms
+    (``response``) and settings. Returns ``{"status": "ok", "rows": [{"scene", "strands", "segments", "substeps",
+    "links", "contacts", "response", "frames", "with_s", "without_s", "per_step_s", "dynamics_s",
+    "per_dynamics"}] or {"scene", "status": "skipped", "message"}}``."""
+    from hairwarp.interactions import REBUILD_FRAMES
+    from hairwarp.scene import Scene
+
+    device = wp.get_device(device)
+    root = Path(Scene.default_path()).parent
+    motion, frames, repeats = (10, REBUILD_FRAMES, 9) if quick else (20, 2 * REBUILD_FRAMES, 15)
+    rows = []
+    for name in names:
+        overrides = [f"sim.device='{device}'"]
+        if name == "ratboy_mohawk":
+            groom, body, skipped = ratboy_assets()
+            if skipped:
+                rows.append({"scene": name, **skipped})
+                continue
+            overrides += [f"groom.file='{groom}'", f"head.file='{body}'"]
+        scene = Scene.load(root / f"{name}.toml", overrides)
+        without = Scene.load(root / f"{name}.toml", [*overrides, "links.enabled=false", "interactions.enabled=false"])
+        fr = _frame_costs(scene, without, device, motion, frames, dynamics_repeats=repeats)
+        rows.append({"scene": name, "status": "ok", **fr, "per_dynamics": fr["per_step_s"] / fr["dynamics_s"]})
+    return {"status": "ok", "device": str(device), "rows": rows}
 
 
 def _active_contacts(contacts, model, state) -> int:
