@@ -218,18 +218,21 @@ def test_static_links_builder_is_deterministic():
     np.testing.assert_array_equal(one.seg_b, two.seg_b)
 
 
-def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
+def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypatch):
     """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented (the links'
     response after the free step and the detection as the runner pays it included), the whole frames' check is the
-    two runs' difference per step, the goal verdict follows from the larger of the two, and the report section
-    renders every row."""
+    two runs' difference per step, the goal verdict follows from the larger of the two, each shipped scene's row
+    (here one, the cheapest) is its two runs' difference against its dynamics step, and the report section renders
+    every row."""
     from conftest import require_ratboy
 
     require_ratboy("Ratboy_mohawk.tfx")
     require_ratboy("Ratboy_body.tfxmesh")
+    from hairwarp.benchmarks import interactions as bench
     from hairwarp.benchmarks.common import BenchConfig
     from hairwarp.benchmarks.interactions import GOAL_PER_DYNAMICS, md_interactions, suite_interactions
 
+    monkeypatch.setattr(bench, "INTERACTION_SCENES", ("long_hair_shoulders",))
     data = suite_interactions(BenchConfig.quick_preset(), Path("/nonexistent"))
     cost = data["cost"]["scene_guides"]
     assert cost["status"] == "ok" and cost["strands"] == 444
@@ -250,8 +253,14 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times():
     row = next(r for r in cost["margins"] if r["margin"] == goal["margin"])
     assert goal["per_step_s"] == max(row["per_step_s"], frames["per_step_s"])
     assert goal["meets"] == (goal["per_dynamics"] <= GOAL_PER_DYNAMICS)
+    (scene,) = data["scenes"]["rows"]
+    assert scene["scene"] == "long_hair_shoulders" and scene["links"] > 0 and not scene["contacts"]
+    assert scene["per_step_s"] == pytest.approx((scene["with_s"] - scene["without_s"]) / scene["substeps"], rel=1e-12)
+    assert scene["per_dynamics"] == pytest.approx(scene["per_step_s"] / scene["dynamics_s"], rel=1e-12)
+    assert scene["meets"] == (scene["per_dynamics"] <= GOAL_PER_DYNAMICS)
     text = "\n".join(md_interactions(data))
     assert text.count("| 444 |") == len(cost["margins"]) + 1  # the stages' rows and the whole frames' row
+    assert "| long_hair_shoulders | 120 × 20 |" in text
     assert "Largest stable stiffness" in text
 
 

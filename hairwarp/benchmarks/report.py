@@ -707,6 +707,11 @@ def summary_lines(results: dict, suites=None) -> list[str]:
                 lines.append(f"interactions: {g['strands']} guides, all stages {_g(g['per_dynamics'])}x the dynamics "
                              f"step (goal <= {s['interactions']['goal_per_dynamics']:g}x: "
                              f"{'meets' if g['meets'] else 'NOT MET'})")
+        rows = [r for r in s["interactions"].get("scenes", {}).get("rows", []) if r.get("status") == "ok"]
+        if rows:
+            lines.append("interactions by shipped scene: " + ", ".join(
+                f"{r['scene']} {_g(r['per_dynamics'])}x" for r in rows) + " the dynamics step (goal <= "
+                f"{s['interactions']['goal_per_dynamics']:g}x: {sum(r['meets'] for r in rows)} of {len(rows)} meet)")
     if "robustness" in names and "robustness" in s:
         from hairwarp.benchmarks.robustness import summary
 
