@@ -75,7 +75,8 @@ def _cmd_run(args) -> int:
 
     from hairwarp.runner import simulate
 
-    result = simulate(scene, out, frames=args.frames, device=args.device, progress=True, resume=args.resume)
+    result = simulate(scene, out, frames=args.frames, device=args.device, progress=True, resume=args.resume,
+                      profile=args.profile)
     print(f"cache    {Path(result.cache_path).absolute()}")  # as the set-up line names it
     if getattr(result, "preview_path", None):
         print(f"preview  {Path(result.preview_path).absolute()}")
@@ -88,7 +89,33 @@ def _cmd_run(args) -> int:
           f"{result.seconds:.2f} s in all, with the set-up and the preview")
     for note in result.notes:  # what the run noticed: buffers that overflowed, frames taken again, a held groom
         print(f"note     {note}")
+    if result.stage_seconds is not None and simulated:
+        print("\n".join(_stage_table(result.stage_seconds, result.frame_seconds, simulated)))
     return EXIT_OK
+
+
+#: The stages ``hairwarp run --profile`` lists, in a step's order (``Solver.profile_stages``), and what each holds.
+STAGES = (
+    ("dynamics", "the free step and drag"),
+    ("body collision", "detection and push-out"),
+    ("links", "their forces"),
+    ("hair contacts: detection", "pairs found"),
+    ("hair contacts: forces", "on the pairs found"),
+    ("response", "solved after the free step"),
+    ("output", "curves, checkpoints, cache"),
+)
+
+
+def _stage_table(stages: dict, frame_seconds: float, frames: int) -> list[str]:
+    """``hairwarp run --profile``'s table: each stage's time a frame and share of the frames' time, the rest (the
+    host between the stages) last."""
+    rows = [(name, what, stages[name]) for name, what in STAGES if name in stages]
+    rows.append(("other", "the host between stages", max(frame_seconds - sum(t for _, _, t in rows), 0.0)))
+    lines = ["time by stage (--profile: each stage synchronised and timed apart, a little slower than a plain run)"]
+    for name, what, seconds in rows:
+        lines.append(f"  {name:<25} {seconds / frames * 1e3:9.2f} ms a frame {100.0 * seconds / frame_seconds:5.1f} %"
+                     f"   {what}")
+    return lines
 
 
 def _counted(count: int, noun: str) -> str:
@@ -434,6 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time code of the first frame (overrides output.start_frame)")
     p.add_argument("--threads", type=_thread_count, metavar="N",
                    help="CPU threads (overrides sim.threads; 0: every core this process may use)")
+    p.add_argument("--profile", action="store_true",
+                   help="time each stage of the frames (dynamics, collision, links, hair contacts, response, output) "
+                        "and print the table at the end")
     p.add_argument("--resume", action="store_true",
                    help="continue the run a stop or a fault left beside the output, after its last complete frame")
     p.add_argument("-s", "--set", action="append", type=_override, metavar="KEY=VALUE",

@@ -832,7 +832,8 @@ class Simulation:
             # pairs for this frame, within the margin; on the CPU the trees are rebuilt every REBUILD_FRAMES frames
             # and refit in between (the contacts' order does not depend on which: HairContacts.detect)
             rebuild = self.model.device.is_cuda or self.stepper.frame % REBUILD_FRAMES == 0
-            self.contacts.detect(self.model, self.stepper.state, rebuild=rebuild)
+            with self.solver._stage("hair contacts: detection"):
+                self.contacts.detect(self.model, self.stepper.state, rebuild=rebuild)
         # the head at the end of each of the frame's steps, sampled together before the kernels: the same Python
         # between them ran 3-6 times slower (its caches cold), on one thread while the others waited
         st, t = self.stepper, self.stepper.time
@@ -1242,6 +1243,8 @@ class RunResult:
         resumed_frames: frames after the first that the stopped run had simulated (0 for a run that did not
             resume); this run simulated ``frames - resumed_frames``.
         frame_seconds: wall time of the frames alone.
+        stage_seconds: with ``profile``, the frames' wall time by stage (``Solver.profile_stages``, the hair contacts'
+            detection once a frame, ``output``: the frames' curves, checkpoints and writes), else None.
     """
 
     cache_path: Path
@@ -1253,6 +1256,7 @@ class RunResult:
     frame_stats: list[dict] = field(default_factory=list)
     resumed_frames: int = 0
     frame_seconds: float = 0.0
+    stage_seconds: dict | None = None
 
 
 class _Progress:
@@ -1307,7 +1311,7 @@ class _Progress:
 
 
 def simulate(scene, out_path, *, frames: int | None = None, device=None, progress: bool = True,
-             preview: bool | None = None, resume: bool = False) -> RunResult:
+             preview: bool | None = None, resume: bool = False, profile: bool = False) -> RunResult:
     """Run ``scene`` headless and write its USD cache to ``out_path`` and a preview PNG beside it.
 
     The cache is written frame by frame in ``<stem>.partial/`` beside ``out_path`` and moved there when the run
@@ -1320,6 +1324,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         device: Warp device; default ``sim.device``.
         progress: report progress on stderr.
         preview: render the preview picture; default ``output.preview``.
+        profile: time the frames stage by stage (:attr:`RunResult.stage_seconds`; the stages then run one after
+            another, a little slower, with the same result).
         resume: continue the run a stop or a fault left in the working folder after its last complete frame.
 
     Raises:
@@ -1354,6 +1360,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             if cache.folder.found:
                 report.note(cache.folder.found)
             sim = Simulation(scene, device=device)
+            if profile:
+                sim.solver.profile_stages()
             start = 0
             if cache.resumed_after is not None:
                 # Frames are stored at time code output.start_frame + frame; the checkpoints are named by time code.
@@ -1411,8 +1419,9 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
                              stops.requested)
     seconds = time.perf_counter() - t_start
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
+    stages = dict(sim.solver.stage_seconds) if sim.solver.stage_seconds is not None else None
     return RunResult(out_path, preview_path, frames, seconds, frame_seconds / max(frames - resumed, 1), notes,
-                     all_stats, resumed, frame_seconds)
+                     all_stats, resumed, frame_seconds, stages)
 
 
 USDA_BYTES_FACTOR = 4.0
@@ -1535,12 +1544,14 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     t0 = cache.start_frame
     run_scene = np.array(_resume_scene(scene))  # kept in every checkpoint, for --resume
     report.restart(start)
+    stages = sim.solver.stage_seconds  # profiled: what a frame spends besides its steps goes to "output"
     for frame in range(start, frames + 1):
         if frame > 0:
             bits = sim.advance_frame()
             if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
                 overflow_noted = True
                 notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
+        t_output = time.perf_counter()
         stats = sim.frame_stats()
         all_stats.append(stats)
         points, velocities = sim.guide_curves()
@@ -1557,6 +1568,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
             else:
                 shown_curves = {"guides": (points, counts)}
             kept.append((frame, shown_curves, mesh))
+        if stages is not None:
+            stages["output"] = stages.get("output", 0.0) + time.perf_counter() - t_output
         # frames taken again after a fault show as they come, not only in the notes at the end
         report.update(frame, {**stats, "retaken": sim.retaken_frames} if sim.retaken_frames else stats)
         if stops.requested is not None and frame < frames:

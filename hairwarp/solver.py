@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
 
 import numpy as np
 import warp as wp
@@ -313,6 +315,8 @@ class Solver:
                                      for flags in ((0, 0), (1, 0), (0, 1))}
         self.factor_steps = FACTOR_STEPS
         self.factor_turn = FACTOR_TURN
+        # with :meth:`profile_stages`, the seconds each stage of the steps took, by name; None: not timed
+        self.stage_seconds = None
         self._factor_age = None  # steps since the kept factors were made (None: none to use; set_dt expires them)
         m = n if self.has_forces else 1
         self.seg_force = wp.zeros(m, dtype=wp.vec3, device=device)
@@ -375,15 +379,43 @@ class Solver:
         # Each strand's forces, integration and push-out read, of what the others write, only its own: one chain of
         # chunks of strands (one wake of the threads, not four). The forward kinematics of state_out is fused in;
         # the fault bits of state_in (force stages included) carry over.
-        with self.executor.chain(self.model.strand_count, INTEGRATE_MIN_CHUNK):
+        with self._fused(self.executor.chain(self.model.strand_count, INTEGRATE_MIN_CHUNK)):
             if self.has_forces:
                 self._gather_forces()
-            self._integrate(state_in, state_out, control)
+            with self._stage("dynamics"):
+                self._integrate(state_in, state_out, control)
             if body and not self.responders:
                 # state_in: the swept test, from the detection's distances at the start
-                self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
+                with self._stage("body collision"):
+                    self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
         if self.responders:
-            self._respond(state_in, state_out, control, project=body)
+            timed = self.stage_seconds is not None  # the push-out timed apart from the response
+            with self._stage("response"):
+                self._respond(state_in, state_out, control, project=body and not timed)
+            if body and timed:
+                with self._stage("body collision"):
+                    self.colliders.project(self.model, state_out, control, self.dt, state_in, detected=True)
+
+    def profile_stages(self, on: bool = True):
+        """Time every stage of the steps from now on (:attr:`stage_seconds`: seconds by stage, summed over the steps;
+        ``on`` False: stop). Profiled, the stages run one after another, each synchronised and timed apart, rather than
+        fused into one launch over the threads: a step takes a little longer, with the same result, bit for bit. The
+        stages: ``dynamics`` (the free step and the drag), ``body collision`` (detection and push-out), ``links``
+        (their forces and their gather), ``hair contacts: detection`` (where it runs in the step), ``hair contacts:
+        forces``, and ``response`` (links and contacts solved after the free step)."""
+        self.stage_seconds = {} if on else None
+
+    def _stage(self, name: str):
+        """A block timed as stage ``name`` while profiling (:meth:`profile_stages`; not inside a graph capture, which
+        cannot synchronise), else nothing."""
+        if self.stage_seconds is None or self.model.device.is_capturing:
+            return _NOT_TIMED
+        return _StageTimer(self.stage_seconds, name, self.model.device)
+
+    def _fused(self, block):
+        """``block`` (an executor's chain or batch, which fuses launches over the threads), or, while profiling,
+        nothing: each stage's launches run, and are timed, on their own."""
+        return block if self.stage_seconds is None else _NOT_TIMED
 
     def _check_step_arguments(self, state_in, state_out, control):
         """States of this model's size and a control: a kernel reading past a smaller state's arrays would crash the
@@ -601,36 +633,45 @@ class Solver:
         model = self.model
         if not self.has_forces:
             if detect_body:
-                self.colliders.detect(model, state, control, self.dt)
+                with self._stage("body collision"):
+                    self.colliders.detect(model, state, control, self.dt)
             return
         ex = self.executor
         ex.zero(self.seg_force, self.seg_torque, *([self.seg_implicit_mass] if self.has_implicit_mass else []))
         if self.contacts is not None and self.contacts.detect_each_step:
-            self.contacts.detect(model, state)
-        with ex.batch():
-            with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):  # per strand: drag, then its links' side
+            with self._stage("hair contacts: detection"):
+                self.contacts.detect(model, state)
+        with self._fused(ex.batch()):
+            # per strand: drag, then its links' side
+            with self._fused(ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK)):
                 if self.has_drag:
-                    ex.launch(
-                        articulated.air_drag, model.seg_count,
-                        [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
-                         state.vertex_velocities],
-                        [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
-                    )
+                    with self._stage("dynamics"):
+                        ex.launch(
+                            articulated.air_drag, model.seg_count,
+                            [model.seg_per_strand, model.seg_length, model.drag, control.wind, state.vertex_positions,
+                             state.vertex_velocities],
+                            [self.seg_force, self.seg_torque], min_chunk=DRAG_MIN_CHUNK,
+                        )
                 if self.links is not None:
-                    self.links.apply_forces(model, state, self.dt, self.seg_force, self.seg_torque)
+                    with self._stage("links"):
+                        self.links.apply_forces(model, state, self.dt, self.seg_force, self.seg_torque)
                 if detect_body:
-                    self.colliders.detect(model, state, control, self.dt)
+                    with self._stage("body collision"):
+                        self.colliders.detect(model, state, control, self.dt)
             if self.contacts is not None:
-                self.contacts.apply_forces(model, state, self.dt)
+                with self._stage("hair contacts: forces"):
+                    self.contacts.apply_forces(model, state, self.dt)
 
     def _gather_forces(self):
         """The second passes of :meth:`_accumulate_forces`: every segment adds its links' and its contacts' shares,
         in this order, as one thread would: the same bits for any thread count."""
         model = self.model
         if self.links is not None:
-            self.links.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+            with self._stage("links"):
+                self.links.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
         if self.contacts is not None:
-            self.contacts.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
+            with self._stage("hair contacts: forces"):
+                self.contacts.gather(model, self.seg_force, self.seg_torque, self.seg_implicit_mass)
 
     def _integrate(self, state_in, state_out, control):
         model = self.model
@@ -1154,3 +1195,24 @@ def state_arrays(state) -> dict[str, np.ndarray]:
     """Host copies of a state's arrays (for tests and tools; not for the step loop)."""
     return {name: getattr(state, name).numpy() for name in
             ("joint_q", "joint_qd", "seg_xform", "vertex_positions", "vertex_velocities")}
+
+
+_NOT_TIMED = contextlib.nullcontext()
+
+
+class _StageTimer:
+    """Adds the wall time of its block, from a synchronised device to a synchronised device, to ``seconds[name]``
+    (``Solver.profile_stages``)."""
+
+    __slots__ = ("seconds", "name", "device", "start")
+
+    def __init__(self, seconds: dict, name: str, device):
+        self.seconds, self.name, self.device = seconds, name, device
+
+    def __enter__(self):
+        wp.synchronize_device(self.device)
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc):
+        wp.synchronize_device(self.device)
+        self.seconds[self.name] = self.seconds.get(self.name, 0.0) + time.perf_counter() - self.start

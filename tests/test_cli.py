@@ -365,6 +365,7 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
         seconds_per_frame = 0.125
         resumed_frames = 0
         notes = ["frame 1: a note of the run"]
+        stage_seconds = None
 
     def fake(scene, out, **kw):
         seen.update(scene=scene, out=out, **kw)
@@ -374,7 +375,7 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["run", str(SCENES / "tiny.toml"), "--frames", "2", "--device", "cpu", "-s", "sim.substeps=3"]) == 0
     assert seen["out"] == Path("out") / "tiny.usdc"
-    assert seen["frames"] == 2 and seen["device"] == "cpu" and seen["progress"] is True
+    assert seen["frames"] == 2 and seen["device"] == "cpu" and seen["progress"] is True and seen["profile"] is False
     assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2
     out = capsys.readouterr().out
     assert "tiny.usdc" in out and "tiny.png" in out

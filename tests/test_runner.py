@@ -753,3 +753,34 @@ def test_restore_poses_the_head_for_the_checkpoints_time(tiny):
     for _ in range(4):
         again.advance_frame()
     assert np.array_equal(sim.guide_curves()[0], again.guide_curves()[0])
+
+
+def test_a_profiled_run_times_each_stage_and_writes_the_same_cache(tmp_path, capsys):
+    """``hairwarp run --profile`` (``simulate(profile=True)``): a small ``fast_turn`` (links and hair contacts solved
+    after the free step, a body collider) times every stage it has, their sum at most the frames' wall time and most
+    of it, and the cache is the plain run's, bit for bit (read back with usd-core: profiling runs the stages one
+    after another, not fused over the threads, and changes no arithmetic). The CLI prints the table."""
+    from hairwarp.cli import STAGES, main
+
+    path = hw.Scene.default_path().parent / "fast_turn.toml"
+    over = ["groom.count=40", "dense.count=0", "output.preview=false", "sim.frames=4"]
+    scene = hw.Scene.load(path, over)
+    plain = simulate(scene, tmp_path / "plain.usdc", progress=False)
+    profiled = simulate(scene, tmp_path / "profiled.usdc", progress=False, profile=True)
+    assert plain.stage_seconds is None
+    stages = profiled.stage_seconds
+    assert set(stages) == {name for name, _ in STAGES}
+    assert all(seconds > 0.0 for seconds in stages.values())
+    assert 0.5 * profiled.frame_seconds < sum(stages.values()) <= profiled.frame_seconds
+    points = []
+    for out in ("plain", "profiled"):
+        stage = Usd.Stage.Open(str(tmp_path / f"{out}.usdc"))
+        curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Hair/guides"))
+        points.append(np.array([curves.GetPointsAttr().Get(float(t)) for t in range(5)]))
+    np.testing.assert_array_equal(points[0], points[1])
+
+    capsys.readouterr()
+    assert main(["run", str(path), "-o", str(tmp_path / "cli.usdc"), "--profile",
+                 *[a for o in over for a in ("-s", o)]]) == 0
+    text = capsys.readouterr().out
+    assert "time by stage" in text and all(f"  {name} " in text for name, _ in STAGES)
