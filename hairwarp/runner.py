@@ -346,6 +346,7 @@ class Simulation:
         self._poses = {}  # step number -> head pose, for the teleport test
         self._applied_at_start = None  # (t, what _applied(t) gave): the head at the next step's start
         self._ahead = {}  # step end time -> what _applied gave, for the frame being advanced
+        self._surface_ahead = {}  # step end time -> the scalp's root frames, for the frame being advanced
         # set where ``links.response = "auto"`` solves stiff links after the free step, or "link" keeps them in it
         self.stiff_links_note = None
         self.links = self._build_links(scene.links)
@@ -616,7 +617,10 @@ class Simulation:
         animates it, or carried by the head (``_carried``); None without a scalp binding."""
         if self._carried is not None:
             return self._carried.root_frames(sample)
-        return self.surface.root_frames(t) if self.surface is not None else None
+        if self.surface is None:
+            return None
+        frames = self._surface_ahead.get(t)  # taken with the frame's other steps' (``_frame``)
+        return frames if frames is not None else self.surface.root_frames(t)
 
     def _pose_a_frame_from(self, t: float, direction: int):
         """The head pose a frame after (``direction`` 1) or before (-1) ``t``, for the teleport test. Each is
@@ -838,16 +842,17 @@ class Simulation:
         # between them ran 3-6 times slower (its caches cold), on one thread while the others waited
         st, t = self.stepper, self.stepper.time
         n, dt = (st.substeps if substeps is None else substeps), st.step_dt(substeps)
-        ahead = {}
+        ends = []
         for _ in range(n):
-            t_end = t + dt  # as Stepper.advance_frame forms it, and then its time
-            ahead[t_end] = self._applied(t_end)
-            t = t_end
-        self._ahead = ahead
+            t = t + dt  # as Stepper.advance_frame forms it, and then its time
+            ends.append(t)
+        if self.surface is not None and self._carried is None:  # the scalp's frames at all the steps' ends at once
+            self._surface_ahead = dict(zip(ends, self.surface.root_frames_at(ends), strict=True))
+        self._ahead = {t_end: self._applied(t_end) for t_end in ends}
         try:
             return st.advance_frame(self._before_step, substeps)
         finally:
-            self._ahead = {}
+            self._ahead, self._surface_ahead = {}, {}
 
     def frame_stats(self) -> dict:
         """Counters of the frame just simulated (one small read each): broken links, contacts."""

@@ -118,6 +118,28 @@ def test_root_frame_velocities_are_the_derivatives_of_the_frames():
                                    atol=1e-5)
 
 
+def test_root_frames_of_many_times_at_once_are_each_times_own():
+    """``root_frames_at`` (a runner's frame of steps in one pass) gives each time the bits ``root_frames`` gives it
+    alone, whatever else is in the batch: a run resumed mid-frame takes its first step's frames alone and must repeat
+    the uninterrupted run. And the angular accelerations are the derivative of the angular velocities (central
+    differences of ``root_frames`` at +-1e-4 s, as it takes them)."""
+    rng = np.random.default_rng(3)
+    vertices, faces = _sphere()
+    times = np.linspace(0.0, 1.0, 11)
+    wobble = [vertices + 0.01 * np.sin(3.0 * t + 7.0 * vertices[:, [1, 2, 0]]) for t in times]
+    binding = ScalpBinding(PointTrack(times, np.array(wobble)), faces, _roots_on(vertices, faces, 30, rng),
+                           max_distance=0.02)
+    steps = [0.3 + k / 240.0 for k in range(8)]
+    for batch in (steps, steps[::-1], steps[3:5]):
+        for t, frames in zip(batch, binding.root_frames_at(batch), strict=True):
+            for got, alone in zip(frames, binding.root_frames(t), strict=True):
+                np.testing.assert_array_equal(got, alone)
+    _, w_minus, _ = binding.root_frames(0.5 - 1e-4)
+    _, w_plus, _ = binding.root_frames(0.5 + 1e-4)
+    _, _, acc = binding.root_frames(0.5)
+    np.testing.assert_allclose(acc[:, :3], (w_plus[:, :3] - w_minus[:, :3]) / 2e-4, rtol=1e-3, atol=1e-6)
+
+
 def test_a_root_far_from_the_surface_is_named():
     vertices, faces = _sphere()
     roots = vertices[:3].copy()
