@@ -94,15 +94,20 @@ def test_roots_carried_by_the_head_ride_on_its_motion_not_the_scalps():
     assert np.linalg.norm(moved, axis=1).max() > 0.05
 
 
-def test_root_frame_velocities_are_the_derivatives_of_the_frames():
-    """On a deforming mesh, the returned angular and linear velocities equal central differences of the returned
-    poses (float64; eps = 1e-5 s gives O(eps^2) truncation, well under the tolerance)."""
-    rng = np.random.default_rng(2)
+def _wobbling_binding(seed: int) -> ScalpBinding:
+    """30 roots on a sphere whose surface wobbles over 1 s (11 samples, up to 1 cm)."""
+    rng = np.random.default_rng(seed)
     vertices, faces = _sphere()
     times = np.linspace(0.0, 1.0, 11)
     wobble = [vertices + 0.01 * np.sin(3.0 * t + 7.0 * vertices[:, [1, 2, 0]]) for t in times]
-    binding = ScalpBinding(PointTrack(times, np.array(wobble)), faces, _roots_on(vertices, faces, 30, rng),
-                           max_distance=0.02)
+    return ScalpBinding(PointTrack(times, np.array(wobble)), faces, _roots_on(vertices, faces, 30, rng),
+                        max_distance=0.02)
+
+
+def test_root_frame_velocities_are_the_derivatives_of_the_frames():
+    """On a deforming mesh, the returned angular and linear velocities equal central differences of the returned
+    poses (float64; eps = 1e-5 s gives O(eps^2) truncation, well under the tolerance)."""
+    binding = _wobbling_binding(2)
     eps = 1e-5
     for t in (0.25, 0.61):
         x, vel, _ = binding.root_frames(t)
@@ -123,12 +128,7 @@ def test_root_frames_of_many_times_at_once_are_each_times_own():
     alone, whatever else is in the batch: a run resumed mid-frame takes its first step's frames alone and must repeat
     the uninterrupted run. And the angular accelerations are the derivative of the angular velocities (central
     differences of ``root_frames`` at +-1e-4 s, as it takes them)."""
-    rng = np.random.default_rng(3)
-    vertices, faces = _sphere()
-    times = np.linspace(0.0, 1.0, 11)
-    wobble = [vertices + 0.01 * np.sin(3.0 * t + 7.0 * vertices[:, [1, 2, 0]]) for t in times]
-    binding = ScalpBinding(PointTrack(times, np.array(wobble)), faces, _roots_on(vertices, faces, 30, rng),
-                           max_distance=0.02)
+    binding = _wobbling_binding(3)
     steps = [0.3 + k / 240.0 for k in range(8)]
     for batch in (steps, steps[::-1], steps[3:5]):
         for t, frames in zip(batch, binding.root_frames_at(batch), strict=True):
