@@ -137,6 +137,8 @@ def test_root_frames_of_many_times_at_once_are_each_times_own():
     _, w_minus, _ = binding.root_frames(0.5 - 1e-4)
     _, w_plus, _ = binding.root_frames(0.5 + 1e-4)
     _, _, acc = binding.root_frames(0.5)
+    # the same float64 differences, so only round-off is between them (1e-3 of a rate, 1e-6 rad/s^2 near zero); the
+    # check is on the batch's layout: its two neighbours of each time taken the other way round flip the sign
     np.testing.assert_allclose(acc[:, :3], (w_plus[:, :3] - w_minus[:, :3]) / 2e-4, rtol=1e-3, atol=1e-6)
 
 

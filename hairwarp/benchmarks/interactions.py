@@ -94,7 +94,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         free = model.state()
 
         def free_steps(respond: bool):
-            solver._factor_age = None  # the frame's first step makes its factors
+            solver.expire_factors()  # the frame's first step makes its factors, as the stepper has it
             for _ in range(substeps):
                 solver.plan_factors()
                 solver._integrate(state, free, control)
