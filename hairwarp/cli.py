@@ -85,8 +85,9 @@ def _cmd_run(args) -> int:
     if result.resumed_frames:
         resumed = f" after the {_counted(result.resumed_frames, 'frame')} of the stopped run"
     rate = f" ({result.seconds_per_frame:.3g} s a frame)" if simulated else ""  # none: no time a frame to give
+    extras = "the set-up and the preview" if getattr(result, "preview_path", None) else "the set-up"
     print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s{rate}; "
-          f"{result.seconds:.2f} s in all, with the set-up and the preview")
+          f"{result.seconds:.2f} s in all, with {extras}")
     for note in result.notes:  # what the run noticed: buffers that overflowed, frames taken again, a held groom
         print(f"note     {note}")
     if result.stage_seconds is not None and simulated:

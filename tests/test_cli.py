@@ -379,6 +379,7 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2
     out = capsys.readouterr().out
     assert "tiny.usdc" in out and "tiny.png" in out
+    assert "0.50 s in all, with the set-up and the preview" in out
     assert "note     frame 1: a note of the run" in out
 
 
@@ -392,6 +393,9 @@ def test_run_prints_what_the_run_noticed(tmp_path, capsys):
                  "dense.count=0", "-s", "output.preview=false", "--output", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert "note     frame 1: contact buffers overflowed; raise interactions.capacity" in lines
+    # the summary names what the time in all holds: no preview was rendered
+    summary = next(line for line in lines if " simulated in " in line)
+    assert summary.endswith("in all, with the set-up"), summary
 
 
 @pytest.mark.skipif(not (_has("hairwarp.groom") and _has("hairwarp.io.usd_inspect")),
