@@ -218,12 +218,44 @@ def test_static_links_builder_is_deterministic():
     np.testing.assert_array_equal(one.seg_b, two.seg_b)
 
 
-def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypatch):
+def test_missed_pairs_counts_the_repelling_pairs_a_list_found_earlier_lacks():
+    """Two straight strands cross 10 mm apart when their contacts are found (reach 2 + 1 mm: no pair stored); moved
+    to 1 mm apart, exactly one pair repels, the two segments that cross (by the closed form, the lines' distance is
+    the height between them, every other pair at least 10 mm apart along the strands), and the list lacks it. A
+    list found there, or earlier with a margin wider than the move, lacks none."""
+    from hairwarp.benchmarks.interactions import MissedPairs
+
+    S = 5  # vertices at -50, -30, -10, 10, 30, 50 mm: the strands cross in the middle of their segments 2
+
+    def polylines(height):
+        line = np.linspace(-0.05, 0.05, S + 1)
+        return [np.stack([line, 0.0 * line, 0.0 * line], axis=1),
+                np.stack([0.0 * line, line, np.full(S + 1, height)], axis=1)]
+
+    model = hw.Model.build(hw.Groom.from_polylines(polylines(0.01)), hw.StrandParams(), segments=S)
+    apart, close = model.state(), model.state()
+    close.vertex_positions.assign(np.concatenate(polylines(0.001)).astype(np.float32))
+    counted = {}
+    for margin in (0.001, 0.02):
+        contacts = HairContacts.build(model.rest_vertex_positions, None, threshold=0.002, stiffness=1.0, capacity=64,
+                                      margin=margin, detect_each_step=False)
+        check = MissedPairs(contacts, model)
+        contacts.detect(model, apart)
+        counted[margin] = check(close)
+        contacts.detect(model, close)
+        assert check(close) == (1, 0)
+        if margin == 0.001:  # the crossing segments, and nothing else within the reach
+            assert contacts.contact_list()["a"].tolist() == [2] and contacts.contact_list()["b"].tolist() == [S + 2]
+    assert counted == {0.001: (1, 1), 0.02: (1, 0)}
+
+
+def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypatch, tmp_path):
     """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented (the links'
     response after the free step and the detection as the runner pays it included), the whole frames' check is the
     two runs' difference per step, the goal verdict follows from the larger of the two, each shipped scene's row
-    (here one, the cheapest) is its two runs' difference against its dynamics step, and the report section renders
-    every row."""
+    (here one, the cheapest) is its two runs' difference against its dynamics step, what the scene's margin misses
+    is counted over every step of its frames (a detection in every step misses none), and the report section renders
+    every row and the chart of the two."""
     from conftest import require_ratboy
 
     require_ratboy("Ratboy_mohawk.tfx")
@@ -231,9 +263,10 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypa
     from hairwarp.benchmarks import interactions as bench
     from hairwarp.benchmarks.common import BenchConfig
     from hairwarp.benchmarks.interactions import GOAL_PER_DYNAMICS, md_interactions, suite_interactions
+    from hairwarp.interactions import REBUILD_FRAMES
 
     monkeypatch.setattr(bench, "INTERACTION_SCENES", ("long_hair_shoulders",))
-    data = suite_interactions(BenchConfig.quick_preset(), Path("/nonexistent"))
+    data = suite_interactions(BenchConfig.quick_preset(), tmp_path)
     cost = data["cost"]["scene_guides"]
     assert cost["status"] == "ok" and cost["strands"] == 444
     # the mohawk solves its links after the free step (links.response = "step"): that solve is counted
@@ -245,6 +278,14 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypa
         assert row["per_step_s"] == pytest.approx(expected, rel=1e-12)
         assert row["per_dynamics"] == pytest.approx(expected / cost["dynamics_s"], rel=1e-12)
         assert row["stored"] >= row["active"] > 0
+        missed = row["missed"]
+        if row["margin"] == 0:
+            assert missed is None  # a detection in every step misses none
+        else:
+            assert missed["steps"] == REBUILD_FRAMES * cost["substeps"] and missed["repelling_per_step"] > 0
+            assert 0.0 <= missed["missed_share"] <= missed["worst_step_share"] <= 1.0
+    chart = Path(data["detection_chart"])
+    assert chart == tmp_path / "bench_detection.png" and chart.stat().st_size > 0
     frames = cost["frames"]
     assert frames["with_s"] > frames["without_s"] > 0.0
     assert frames["per_step_s"] == pytest.approx((frames["with_s"] - frames["without_s"]) / cost["substeps"],
@@ -258,7 +299,9 @@ def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypa
     assert scene["per_step_s"] == pytest.approx((scene["with_s"] - scene["without_s"]) / scene["substeps"], rel=1e-12)
     assert scene["per_dynamics"] == pytest.approx(scene["per_step_s"] / scene["dynamics_s"], rel=1e-12)
     assert scene["meets"] == (scene["per_dynamics"] <= GOAL_PER_DYNAMICS)
+    assert scene["missed"] is None  # no hair contacts in that scene
     text = "\n".join(md_interactions(data))
+    assert "| 0 (every step) |" in text and "![cost against missed pairs](bench_detection.png)" in text
     assert text.count("| 444 |") == len(cost["margins"]) + 1  # the stages' rows and the whole frames' row
     assert "| long_hair_shoulders | 120 × 20 |" in text
     assert "Largest stable stiffness" in text

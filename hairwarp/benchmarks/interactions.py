@@ -23,7 +23,7 @@ MARGINS = (0.0, 0.001, 0.002, 0.004)
 
 def bench_interactions(quick: bool = False, device=None, *, groom_path=None, body_path=None,
                        motion_frames: int | None = None, repeats: int | None = None, margins=MARGINS,
-                       overrides=()) -> dict:
+                       overrides=(), missed_frames: int = 0) -> dict:
     """Cost per step of links, strip refit and contacts (detection and forces apart) next to the dynamics step.
 
     The ``ratboy_mohawk`` scene with every guide (2,219 x 31 segments; ``quick``: every 5th) and
@@ -38,7 +38,10 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     cost of the interactions is ``links + forces + response + (refit + detection) / substeps`` for a margin > 0
     (detection once per frame) and ``links + forces + response + refit + detection`` for margin 0, ``response`` the
     scene's solve of the links and contacts after the free step where it has one (``Solver._respond``: the scene's
-    free step with it less without it; the mohawk ships ``links.response = "step"``).
+    free step with it less without it; the mohawk ships ``links.response = "step"``). With ``missed_frames``, what
+    each margin > 0 costs in accuracy: the scene run again with ``interactions.margin`` at that margin, as far into
+    its motion, then :func:`missed_pairs` over that many frames (``"missed"`` of the margin's row; margin 0, a
+    detection at every step, misses none).
 
     Returns:
         ``{"status": "ok", "device", "strands", "segments", "substeps", "dt", "links", "strip_quads",
@@ -160,10 +163,18 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         detection = times["detect"]
         per_step = common["links"] + times["forces"] + response
         per_step += detection if each_step else detection / substeps
+        missed = None
+        if missed_frames and not each_step:
+            run = Simulation(ratboy_mohawk_scene(groom_path, body_path, device, 450 if quick else 0, [
+                "links.enabled=true", "interactions.enabled=true", *overrides, f"interactions.margin={margin!r}"]),
+                device=device)
+            for _ in range(motion_frames):
+                run.advance_frame()
+            missed = missed_pairs(run, missed_frames)
         rows.append({"margin": float(margin), "detect": "step" if each_step else "frame", "stored": stored,
                      "active": active, "overflowed": contacts.overflowed(),
                      **{f"{k}_s": v for k, v in times.items()}, "detection_s": detection,
-                     "per_step_s": per_step, "per_dynamics": per_step / common["dynamics"]})
+                     "per_step_s": per_step, "per_dynamics": per_step / common["dynamics"], "missed": missed})
     return {"status": "ok", "device": str(device), "strands": model.strand_count, "segments": model.seg_per_strand,
             "substeps": substeps, "dt": dt, "time_in_motion_s": motion_frames * sim.frame_dt,
             "links": links.link_count, "broken_links": links.broken_count(),
@@ -229,11 +240,13 @@ def bench_scene_interactions(quick: bool = False, device=None, names=None) -> di
     """What the links and hair contacts add a step in each shipped scene as it ships (``_frame_costs``: the scene
     with and without them, ``links.enabled`` and ``interactions.enabled`` off), against the scene's dynamics step:
     the goal's figure (all interactions at most 2x the dynamics) scene by scene, each at its own density, forms
-    (``response``) and settings. Returns ``{"status": "ok", "rows": [{"scene", "strands", "segments", "substeps",
-    "links", "contacts", "response", "frames", "with_s", "without_s", "per_step_s", "dynamics_s",
-    "per_dynamics"}] or {"scene", "status": "skipped", "message"}}``; ``names`` default
-    :data:`INTERACTION_SCENES`."""
+    (``response``) and settings; and, over the same frames of a run of its own, what finding the hair contacts once a
+    frame misses (``missed``: :func:`missed_pairs`, None without hair contacts). Returns ``{"status": "ok", "rows":
+    [{"scene", "strands", "segments", "substeps", "links", "contacts", "response", "frames", "with_s", "without_s",
+    "per_step_s", "dynamics_s", "per_dynamics", "missed"}] or {"scene", "status": "skipped", "message"}}``;
+    ``names`` default :data:`INTERACTION_SCENES`."""
     from hairwarp.interactions import REBUILD_FRAMES
+    from hairwarp.runner import Simulation
     from hairwarp.scene import Scene
 
     device = wp.get_device(device)
@@ -251,14 +264,33 @@ def bench_scene_interactions(quick: bool = False, device=None, names=None) -> di
         scene = Scene.load(root / f"{name}.toml", overrides)
         without = Scene.load(root / f"{name}.toml", [*overrides, "links.enabled=false", "interactions.enabled=false"])
         fr = _frame_costs(scene, without, device, motion, frames, dynamics_repeats=repeats)
-        rows.append({"scene": name, "status": "ok", **fr, "per_dynamics": fr["per_step_s"] / fr["dynamics_s"]})
+        # what finding the pairs once a frame misses over the same frames, in a run of its own (checking every step
+        # would weigh on the timed one)
+        sim = Simulation(scene, device=device)
+        for _ in range(motion):
+            sim.advance_frame()
+        rows.append({"scene": name, "status": "ok", **fr, "per_dynamics": fr["per_step_s"] / fr["dynamics_s"],
+                     "missed": missed_pairs(sim, frames)})
     return {"status": "ok", "device": str(device), "rows": rows}
 
 
 def _active_contacts(contacts, model, state) -> int:
     """Stored contacts that repel now: their two points closer than the threshold and than their rest gap (host
     read, for the report)."""
-    found = contacts.contact_list()
+    return int(np.count_nonzero(_repelling(contacts, model, state, contacts.contact_list())))
+
+
+def _pair_keys(found: dict) -> np.ndarray:
+    """One int64 per contact of ``found`` (``HairContacts.contact_list``) naming its pair of elements: its kind, side
+    a and, for a vertex-face contact, the quad rather than its triangle (which of the two is the nearer is taken
+    anew at every step)."""
+    b = np.where(found["kind"] == 0, found["b"] // 2, found["b"]).astype(np.int64)
+    return (found["kind"].astype(np.int64) << 62) | (found["a"].astype(np.int64) << 31) | b
+
+
+def _repelling(contacts, model, state, found: dict) -> np.ndarray:
+    """Which contacts of ``found`` repel at ``state``: their two points closer than the threshold and than their
+    rest gap (float64 from the float32 positions, host read)."""
     x = state.vertex_positions.numpy().astype(np.float64)
     S = model.seg_per_strand
     tris = contacts.strips.indices.numpy().reshape(-1, 3) if contacts.strips is not None else np.zeros((1, 3), int)
@@ -273,7 +305,68 @@ def _active_contacts(contacts, model, state) -> int:
     xa[~vf] = x[va] + w[~vf, :1] * (x[va + 1] - x[va])
     xb[~vf] = x[vb] + w[~vf, 1:2] * (x[vb + 1] - x[vb])
     reach = np.minimum(contacts.threshold, found["gap"])
-    return int(np.count_nonzero(np.linalg.norm(xa - xb, axis=1) < reach))
+    return np.linalg.norm(xa - xb, axis=1) < reach
+
+
+class MissedPairs:
+    """What a list of hair contact pairs found ahead of the steps (``interactions.detect = "frame"``: once a frame,
+    within ``threshold + margin``) misses: called on a state, it finds the pairs that repel there with a detection at
+    that very state (a :class:`hairwarp.interactions.HairContacts` built as ``contacts`` but with no margin, its trees
+    rebuilt) and returns ``(repelling, missed)``: how many there are, and how many of them the stored list of
+    ``contacts`` lacks. A missed pair pushes nothing until a later detection finds it: in that time the two strands
+    may pass into each other."""
+
+    def __init__(self, contacts, model, executor=None):
+        from hairwarp.interactions import HairContacts
+
+        self.contacts, self.model = contacts, model
+        probe = HairContacts.build(
+            model.rest_vertex_positions, contacts.strips, threshold=contacts.threshold,
+            stiffness=contacts.stiffness, capacity=2 * contacts.capacity, alignment_cutoff=contacts.alignment_cutoff,
+            segment_segment=contacts.segment_segment, margin=0.0, detect_each_step=True,
+            skip_neighbour_strips=contacts.skip_neighbour_strips, rest_gaps=contacts.rest_gaps,
+            device=contacts.device)
+        probe.executor = executor
+        self.probe = probe
+
+    def __call__(self, state) -> tuple[int, int]:
+        probe = self.probe
+        probe.detect(self.model, state, rebuild=True)
+        if probe.overflowed():
+            raise RuntimeError(f"MissedPairs: more than {probe.capacity} pairs within the threshold")
+        found = probe.contact_list()
+        want = _pair_keys(found)[_repelling(probe, self.model, state, found)]
+        have = _pair_keys(self.contacts.contact_list())
+        return len(want), int(np.count_nonzero(~np.isin(want, have)))
+
+
+def missed_pairs(sim, frames: int) -> dict:
+    """Run ``frames`` frames of ``sim`` (a :class:`hairwarp.Simulation` whose hair contacts are found once a frame),
+    checking the stored pairs at the end of every step with :class:`MissedPairs`. Returns ``{"steps",
+    "repelling_per_step", "missed_share", "worst_step_share"}`` (the share of all repelling pairs over the steps,
+    and the largest at one step), or None where the scene finds its pairs at every step or has no hair contacts."""
+    contacts = sim.contacts
+    if contacts is None or contacts.detect_each_step:
+        return None
+    check, stepper = MissedPairs(contacts, sim.model, sim.solver.executor), sim.stepper
+    counts = []
+    step = stepper.step
+
+    def checked_step():
+        step()
+        counts.append(check(stepper.state))
+
+    stepper.step = checked_step  # the instance's step, which its frames call
+    try:
+        for _ in range(frames):
+            sim.advance_frame()
+    finally:
+        del stepper.step
+    counts = np.array(counts, dtype=np.int64).reshape(-1, 2)
+    per_step = counts[:, 1] / np.maximum(counts[:, 0], 1)
+    return {"steps": len(counts), "repelling_per_step": float(counts[:, 0].mean()),
+            "missed_share": float(counts[:, 1].sum() / max(counts[:, 0].sum(), 1)),
+            "worst_step_share": float(per_step.max()) if len(per_step) else 0.0}
 
 
 def render_comparison(scene_path, out_png, *, frame: int, view="three_quarter_back", overrides=(), device=None,
@@ -419,6 +512,7 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
     and contact stiffness, implicit as shipped and explicit; and (full runs) the picture of one frame with and
     without interactions (``interactions.png`` in ``out``). ``config``: a
     :class:`hairwarp.benchmarks.common.BenchConfig`."""
+    from hairwarp.interactions import REBUILD_FRAMES
     from hairwarp.scene import Scene
 
     quick, device = bool(config.quick), config.device
@@ -428,8 +522,11 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
         if quick and strands == 0:
             continue
         log(f"interactions: cost per step, Ratboy mohawk, groom.max_strands={strands}")
+        # what each margin misses, on the scene's own guides (every guide: a minute a margin more)
         costs[label] = bench_interactions(quick=quick, device=device, margins=(0.0, margin) if quick else MARGINS,
-                                          overrides=(f"groom.max_strands={strands}",))
+                                          overrides=(f"groom.max_strands={strands}",),
+                                          missed_frames=(REBUILD_FRAMES if quick else 2 * REBUILD_FRAMES)
+                                          if strands else 0)
     log("interactions: largest stable stiffness at 1/240 s")
     stability = bench_spring_stability(quick=quick, device=device,
                                        stiffness=STABILITY_STIFFNESS[:12:3] if quick else STABILITY_STIFFNESS)
@@ -445,9 +542,62 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
         if row.get("status") == "ok":
             row["meets"] = row["per_dynamics"] <= GOAL_PER_DYNAMICS
     goal = {label: _goal_row(cost, margin) for label, cost in costs.items()}
-    return {"goal_per_dynamics": GOAL_PER_DYNAMICS, "scene_margin": margin, "cost": costs, "goal": goal,
-            "scenes": scenes, "stability": stability, "picture": picture,
-            "files": [picture["png"]] if picture else []}
+    data = {"goal_per_dynamics": GOAL_PER_DYNAMICS, "scene_margin": margin, "cost": costs, "goal": goal,
+            "scenes": scenes, "stability": stability, "picture": picture}
+    data["detection_chart"] = chart_detection(data, Path(out) / "bench_detection.png")
+    data["files"] = [f for f in (picture["png"] if picture else None, data["detection_chart"]) if f]
+    return data
+
+
+def _missed_frames(data: dict) -> str:
+    """The frames over which the margins' misses were counted, in words."""
+    steps = {row["missed"]["steps"] for cost in data.get("cost", {}).values() if cost.get("status") == "ok"
+             for row in cost["margins"] if row.get("missed")}
+    first = next((c for c in data.get("cost", {}).values() if c.get("status") == "ok"), {})
+    return f"{steps.pop() // first['substeps']}" if len(steps) == 1 and first.get("substeps") else "the measured"
+
+
+def _missed_words(row: dict) -> str:
+    """A margin row's misses for the table: share over the steps (worst step), none at a detection a step, a dash
+    where not measured."""
+    if row.get("detect") == "step":
+        return "0 (every step)"
+    m = row.get("missed")
+    return f"{m['missed_share'] * 100:.2g} % ({m['worst_step_share'] * 100:.2g} %)" if m else "–"
+
+
+def chart_detection(data: dict, path) -> str | None:
+    """The detection margins' cost per step (x the dynamics step) against the share of repelling pairs their lists
+    miss, one point a margin (a detection in every step at 0), for the cost rows that measured their misses."""
+    from hairwarp.benchmarks.report import _pyplot
+
+    costs = [c for c in data.get("cost", {}).values() if c.get("status") == "ok"
+             and any(r.get("missed") for r in c["margins"])]
+    if not costs:
+        return None
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for cost in costs:
+        xs, ys, labels = [], [], []
+        for row in cost["margins"]:
+            if row.get("detect") == "step" or row.get("missed"):
+                xs.append(0.0 if row.get("detect") == "step" else 100.0 * row["missed"]["missed_share"])
+                ys.append(row["per_dynamics"])
+                labels.append("every step" if row.get("detect") == "step" else f"{row['margin'] * 1e3:g} mm")
+        order = sorted(range(len(xs)), key=lambda i: xs[i])  # from a detection every step to the widest miss
+        xs, ys, labels = [xs[i] for i in order], [ys[i] for i in order], [labels[i] for i in order]
+        ax.plot(xs, ys, "o-", label=f"Ratboy mohawk, {cost['strands']} guides")
+        for x, y, text in zip(xs, ys, labels, strict=True):
+            ax.annotate(text, (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    ax.axhline(data.get("goal_per_dynamics", GOAL_PER_DYNAMICS), color="0.4", ls="--", lw=1, label="goal")
+    ax.set_xlabel("repelling pairs missed by the stored list [% over the steps]")
+    ax.set_ylabel("interactions per step [x the dynamics step]")
+    ax.set_title("Detection margin: cost against what it misses")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return str(path)
 
 
 def md_interactions(data: dict) -> list[str]:
@@ -470,12 +620,17 @@ def md_interactions(data: dict) -> list[str]:
               "of its links (and contacts) after the free step (its `response = \"step\"`: one sweep a step), the "
               "free steps of a frame with it less without it, the frame's first step making the factors its later "
               "ones solve with, as a run does.", "",
+              "*missed* (where measured): the pairs that repel at the end of a step (a detection at that state: "
+              "closer than the threshold and their rest gap) that the frame's stored list lacks, over the steps of "
+              f"{_missed_frames(data)} frames of the scene run again with that margin as far into its motion, and at "
+              "its worst step; a detection in every step (margin 0) misses none. The chart below draws the two "
+              "against each other.", "",
               "| guides | margin | stored / active pairs | links ms | response ms | detection ms (refit, vertex-face, "
-              "segment-segment) | forces ms | per step ms | dynamics ms | × dynamics |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "segment-segment) | forces ms | per step ms | dynamics ms | × dynamics | missed (worst step) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cost in data.get("cost", {}).values():
         if cost.get("status") != "ok":
-            lines.append(f"| – | – | {cost.get('message', cost.get('status'))} | | | | | | | |")
+            lines.append(f"| – | – | {cost.get('message', cost.get('status'))} | | | | | | | | |")
             continue
         for row in cost["margins"]:
             lines.append(
@@ -483,7 +638,10 @@ def md_interactions(data: dict) -> list[str]:
                 f"{cost['links_s'] * 1e3:.2f} | {cost.get('response_s', 0.0) * 1e3:.2f} | "
                 f"{row['detect_s'] * 1e3:.2f} ({row['refit_s'] * 1e3:.2f}, {row['vertex_face_s'] * 1e3:.2f}, "
                 f"{row['segment_segment_s'] * 1e3:.2f}) | {row['forces_s'] * 1e3:.2f} | "
-                f"{row['per_step_s'] * 1e3:.2f} | {cost['dynamics_s'] * 1e3:.2f} | {row['per_dynamics']:.2f} |")
+                f"{row['per_step_s'] * 1e3:.2f} | {cost['dynamics_s'] * 1e3:.2f} | {row['per_dynamics']:.2f} | "
+                f"{_missed_words(row)} |")
+    if data.get("detection_chart"):
+        lines += ["", f"![cost against missed pairs]({Path(data['detection_chart']).name})"]
     lines += ["", "Whole frames (the check on the stages' sum): the scene run with its links and contacts and without "
               "them, each from its start into the motion, the same frames in turn, mean wall time a frame; their "
               "difference over the substeps is what the interactions add a step as a run pays it, with what the "
@@ -510,18 +668,29 @@ def md_interactions(data: dict) -> list[str]:
         lines += ["", "Each shipped scene with links or hair contacts, as it ships, run with them and without them "
                   "(`links.enabled`, `interactions.enabled` off) as above, against its own dynamics step: the goal at "
                   "each scene's density, forms and settings (`response`: what it solves after the free step at its "
-                  "step; `stored`: the hair contacts' pairs at the last frame timed).", "",
+                  "step; `stored`: the hair contacts' pairs at the last frame timed). What finding the pairs once a "
+                  "frame costs in accuracy, over the same frames of another run of the scene: at the end of every "
+                  "step a detection at that state finds the pairs that repel there (closer than the threshold and "
+                  "their rest gap); *missed*: the share of them that the frame's stored list lacks, over all steps "
+                  "and at the worst step. A missed pair pushes nothing until the next frame's detection finds it, "
+                  "while its strands may pass into each other (`interactions.detect = \"step\"` misses none, at a "
+                  "detection a step: the margin 0 rows above).", "",
                   "| scene | guides × segments | substeps | links | contacts | response | with ms | without ms "
-                  "| interactions per step ms | dynamics ms | × dynamics | goal |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| interactions per step ms | dynamics ms | × dynamics | goal | repelling a step "
+                  "| missed (worst step) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in scenes:
             if r.get("status") != "ok":
-                lines.append(f"| {r['scene']} | {r.get('message', r.get('status'))} | | | | | | | | | | |")
+                lines.append(f"| {r['scene']} | {r.get('message', r.get('status'))} | | | | | | | | | | | | |")
                 continue
+            m = r.get("missed")
+            missed = (f"{m['repelling_per_step']:.0f} | {m['missed_share'] * 100:.2g} % "
+                      f"({m['worst_step_share'] * 100:.2g} %)") if m else "– | –"
             lines.append(f"| {r['scene']} | {r['strands']} × {r['segments']} | {r['substeps']} | {r['links']} | "
                          f"{r.get('stored', 0) if r['contacts'] else 'off'} | {', '.join(r['response']) or '–'} | "
                          f"{r['with_s'] * 1e3:.1f} | {r['without_s'] * 1e3:.1f} | {r['per_step_s'] * 1e3:.2f} | "
-                         f"{r['dynamics_s'] * 1e3:.2f} | {r['per_dynamics']:.2f} | {'✓' if r['meets'] else '✗'} |")
+                         f"{r['dynamics_s'] * 1e3:.2f} | {r['per_dynamics']:.2f} | {'✓' if r['meets'] else '✗'} | "
+                         f"{missed} |")
     st = data.get("stability")
     if st:
         lines += ["", f"Largest stable stiffness at h = {st['dt']:.4g} s (a head turn with links alone or contacts "
