@@ -325,9 +325,10 @@ class CacheWriter:
         t_start = time.perf_counter()
         prepared = self._prepare_frame(frame, curves, xforms, mesh_points)
         self.timings["check"] += time.perf_counter() - t_start
-        if checkpoint is not None:
-            self.folder.write_checkpoint(prepared["frame"], checkpoint)
-        self._author_frame(prepared, prune=checkpoint is not None)
+        state = None
+        if checkpoint is not None:  # packed here, written with the frame's layer (by the commit thread)
+            state = (prepared["frame"], self.folder.pack_checkpoint(prepared["frame"], checkpoint))
+        self._author_frame(prepared, prune=checkpoint is not None, state=state)
         for name, _, v, _ in prepared["curves"]:
             self._curves[name]["velocities"] = v is not None
 
@@ -395,7 +396,7 @@ class CacheWriter:
         return {"frame": frame, "curves": staged, "xforms": mats, "meshes": meshes}
 
 
-    def _author_frame(self, prepared: dict, converted=None, prune: bool = False) -> None:
+    def _author_frame(self, prepared: dict, converted=None, prune: bool = False, state=None) -> None:
         """Author the layer of a prepared frame and export it, then commit it (:meth:`_commit_frame`): in the commit
         thread once the previous frame's commit is done, or here (export included) without ``pipelined``.
 
@@ -403,6 +404,8 @@ class CacheWriter:
             prepared: what :meth:`_prepare_frame` returned.
             converted: called once the arrays have been copied into ``Vt`` arrays (the inputs are free again).
             prune: remove the checkpoints before this frame once the root names it.
+            state: ``(frame, bytes)`` of the frame's checkpoint (``CacheFolder.pack_checkpoint``), written and put
+                in place before the root names the frame, or None.
         """
         from pxr import Gf, Sdf
 
@@ -454,7 +457,7 @@ class CacheWriter:
         self.timings["set"] += t_set - t_converted
         if not self._pipelined:
             self._wait_commit()
-            self._commit_frame(frame, [layer], nbytes, prune)
+            self._commit_frame(frame, [layer], nbytes, prune, state)
             return
         # The export runs here, beside the previous frame's fsyncs: it holds Python's lock anyway, and in the commit
         # thread it would also take a core from the simulation's threads while they need both.
@@ -471,17 +474,20 @@ class CacheWriter:
             raise
         held = [tmp]
         self._pending_frame = frame
-        self._commit_thread = threading.Thread(target=self._commit_in_thread, args=(frame, held, nbytes, prune),
+        self._commit_thread = threading.Thread(target=self._commit_in_thread,
+                                               args=(frame, held, nbytes, prune, state),
                                                name=f"hairwarp cache commit {frame}")
         self._commit_thread.start()
 
-    def _commit_frame(self, frame: int, held: list, nbytes: int, prune: bool) -> None:
+    def _commit_frame(self, frame: int, held: list, nbytes: int, prune: bool, state=None) -> None:
         """Save the frame in ``held`` (its layer, or the temporary file it was exported to) fsynced and renamed into
-        place, then rewrite the root to name it; only then is the frame complete (:attr:`last_frame`) and the
-        checkpoints before it removed."""
+        place, and its checkpoint (``state``, as :meth:`_author_frame` takes it) before it, then rewrite the root to
+        name it; only then is the frame complete (:attr:`last_frame`) and the checkpoints before it removed."""
         t_start = time.perf_counter()
         dest, what = self.folder.frame_layer(frame), f"frame {frame}"
         try:
+            if state is not None:
+                self.folder.commit_checkpoint(*state)
             done = held.pop()
             if isinstance(done, Path):
                 self.folder.commit(done, dest, what)
@@ -496,10 +502,10 @@ class CacheWriter:
             held.clear()
             self.timings["save"] += time.perf_counter() - t_start
 
-    def _commit_in_thread(self, frame: int, held: list, nbytes: int, prune: bool) -> None:
+    def _commit_in_thread(self, frame: int, held: list, nbytes: int, prune: bool, state=None) -> None:
         """The commit thread's body: any failure is kept for :meth:`_wait_commit` to raise in the caller."""
         try:
-            self._commit_frame(frame, held, nbytes, prune)
+            self._commit_frame(frame, held, nbytes, prune, state)
         except BaseException as exc:  # noqa: BLE001 - handed over to the caller's thread
             self._commit_error = exc
 

@@ -16,6 +16,7 @@ the previous cache there stays untouched until then.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -316,11 +317,24 @@ class CacheFolder:
 
     def write_checkpoint(self, frame: int, arrays: dict[str, np.ndarray]) -> None:
         """Store the simulation state after ``frame`` (``numpy.savez``, exact bits), atomically."""
+        self.commit_checkpoint(frame, self.pack_checkpoint(frame, arrays))
+
+    def pack_checkpoint(self, frame: int, arrays: dict[str, np.ndarray]) -> memoryview:
+        """The bytes of the checkpoint file of ``frame`` (``numpy.savez`` in memory), once the space for it is
+        checked: :meth:`commit_checkpoint` writes them, where the caller's thread need not wait for the disk."""
+        self.check_space(self.dir, sum(a.nbytes for a in arrays.values()) + 65536, f"the state after frame {frame}")
+        packed = io.BytesIO()
+        np.savez(packed, **arrays)
+        return packed.getbuffer()
+
+    def commit_checkpoint(self, frame: int, packed) -> None:
+        """Write the bytes of :meth:`pack_checkpoint` under a temporary name, flush them and rename the file into
+        place (:meth:`commit`)."""
         dest = self.checkpoint_path(frame)
         tmp = dest.with_name(dest.name.replace(".state.", ".state.tmp."))
-        self.check_space(self.dir, sum(a.nbytes for a in arrays.values()) + 65536, f"the state after frame {frame}")
         try:
-            np.savez(tmp, **arrays)
+            with open(tmp, "wb") as f:
+                f.write(packed)
         except OSError as exc:
             _discard(tmp)
             raise CacheWriteError(f"writing the state after frame {frame} to {dest} failed: "
