@@ -631,8 +631,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "segment_segment": Field("bool", True, "segment against segment of different strands"),
             "detect": Field("str", "frame", "find contact pairs every step, or once per frame with a margin",
                             choices=("step", "frame")),
-            "margin": Field("float", 0.001, "detect = frame: pairs within threshold + margin are kept for the frame",
-                            "m", range="[0, inf)"),
+            "margin": Field("float", 0.001, "detect = frame: pairs within threshold + margin are kept for the frame; "
+                            "a pair that closes in from farther pushes from the next frame on (the share of pairs "
+                            "missed: hairwarp bench interactions)", "m", range="[0, inf)"),
             "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
             "response": Field("str", "auto", "contact forces solved after the free step, inside the strands' "
                               "dynamics, on each pair's relative motion (step), or explicit with the semi-implicit "
