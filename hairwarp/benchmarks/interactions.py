@@ -49,7 +49,7 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
         "refit_s", "vertex_face_s", "segment_segment_s", "forces_s", "per_step_s", "per_dynamics"}], ...}``,
         times in seconds, or ``{"status": "skipped", "message"}`` when the assets are missing.
     """
-    from hairwarp.interactions import REBUILD_FRAMES, HairContacts
+    from hairwarp.interactions import REBUILD_FRAMES
     from hairwarp.runner import Simulation
     from hairwarp.solver import Solver
 
@@ -118,13 +118,8 @@ def bench_interactions(quick: bool = False, device=None, *, groom_path=None, bod
     for margin in margins:
         # margin 0: detected in every step, inside the step (refit trees); else once a frame, between the steps
         each_step = margin <= 0.0
-        contacts = HairContacts.build(
-            model.rest_vertex_positions, base.strips, threshold=base.threshold, stiffness=base.stiffness,
-            damping=base.damping, friction=base.friction, slip_velocity=base.slip_velocity,
-            capacity=base.capacity, alignment_cutoff=base.alignment_cutoff, segment_segment=base.segment_segment,
-            margin=float(margin), detect_each_step=each_step, skip_neighbour_strips=base.skip_neighbour_strips,
-            device=device)
-        contacts.executor = solver.executor  # on the simulation's threads, as its own contacts
+        # on the simulation's threads, as its own contacts
+        contacts = _contacts_like(base, model, margin, base.capacity, solver.executor)
         contacts.detect(model, state)
         stored = contacts.contact_count()
 
@@ -317,17 +312,8 @@ class MissedPairs:
     may pass into each other."""
 
     def __init__(self, contacts, model, executor=None):
-        from hairwarp.interactions import HairContacts
-
         self.contacts, self.model = contacts, model
-        probe = HairContacts.build(
-            model.rest_vertex_positions, contacts.strips, threshold=contacts.threshold,
-            stiffness=contacts.stiffness, capacity=2 * contacts.capacity, alignment_cutoff=contacts.alignment_cutoff,
-            segment_segment=contacts.segment_segment, margin=0.0, detect_each_step=True,
-            skip_neighbour_strips=contacts.skip_neighbour_strips, rest_gaps=contacts.rest_gaps,
-            device=contacts.device)
-        probe.executor = executor
-        self.probe = probe
+        self.probe = _contacts_like(contacts, model, 0.0, 2 * contacts.capacity, executor)
 
     def __call__(self, state) -> tuple[int, int]:
         probe = self.probe
@@ -340,9 +326,24 @@ class MissedPairs:
         return len(want), int(np.count_nonzero(~np.isin(want, have)))
 
 
+def _contacts_like(base, model, margin: float, capacity: int, executor):
+    """A :class:`hairwarp.interactions.HairContacts` built as ``base`` (a scene's) but with ``margin`` (0: found in
+    every step) and ``capacity``, on ``executor``'s threads."""
+    from hairwarp.interactions import HairContacts
+
+    contacts = HairContacts.build(
+        model.rest_vertex_positions, base.strips, threshold=base.threshold, stiffness=base.stiffness,
+        damping=base.damping, friction=base.friction, slip_velocity=base.slip_velocity, capacity=capacity,
+        alignment_cutoff=base.alignment_cutoff, segment_segment=base.segment_segment, margin=float(margin),
+        detect_each_step=margin <= 0.0, skip_neighbour_strips=base.skip_neighbour_strips, rest_gaps=base.rest_gaps,
+        device=base.device)
+    contacts.executor = executor
+    return contacts
+
+
 def missed_pairs(sim, frames: int) -> dict:
     """Run ``frames`` frames of ``sim`` (a :class:`hairwarp.Simulation` whose hair contacts are found once a frame),
-    checking the stored pairs at the end of every step with :class:`MissedPairs`. Returns ``{"steps",
+    checking the stored pairs at the end of every step with :class:`MissedPairs`. Returns ``{"frames", "steps",
     "repelling_per_step", "missed_share", "worst_step_share"}`` (the share of all repelling pairs over the steps,
     and the largest at one step), or None where the scene finds its pairs at every step or has no hair contacts."""
     contacts = sim.contacts
@@ -364,7 +365,7 @@ def missed_pairs(sim, frames: int) -> dict:
         del stepper.step
     counts = np.array(counts, dtype=np.int64).reshape(-1, 2)
     per_step = counts[:, 1] / np.maximum(counts[:, 0], 1)
-    return {"steps": len(counts), "repelling_per_step": float(counts[:, 0].mean()),
+    return {"frames": frames, "steps": len(counts), "repelling_per_step": float(counts[:, 0].mean()),
             "missed_share": float(counts[:, 1].sum() / max(counts[:, 0].sum(), 1)),
             "worst_step_share": float(per_step.max()) if len(per_step) else 0.0}
 
@@ -551,10 +552,9 @@ def suite_interactions(config, out, log=lambda message: None) -> dict:
 
 def _missed_frames(data: dict) -> str:
     """The frames over which the margins' misses were counted, in words."""
-    steps = {row["missed"]["steps"] for cost in data.get("cost", {}).values() if cost.get("status") == "ok"
-             for row in cost["margins"] if row.get("missed")}
-    first = next((c for c in data.get("cost", {}).values() if c.get("status") == "ok"), {})
-    return f"{steps.pop() // first['substeps']}" if len(steps) == 1 and first.get("substeps") else "the measured"
+    frames = {row["missed"].get("frames") for cost in data.get("cost", {}).values() if cost.get("status") == "ok"
+              for row in cost["margins"] if row.get("missed")}
+    return f"{frames.pop()}" if len(frames) == 1 and None not in frames else "the measured"
 
 
 def _missed_words(row: dict) -> str:
