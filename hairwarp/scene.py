@@ -625,7 +625,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "stiffness": Field("float", 8.0, "repulsion stiffness k0; vertex-face contacts scale it by the strips' "
                                "local density and by the vertex's segment length over 1 cm (one contact a vertex: "
                                "alike at any sim.segments)", "N/m", range="[0, inf)"),
-            "damping": Field("float", 0.004, "normal damping, scaled as the stiffness", "N s/m", range="[0, inf)"),
+            "damping": Field("float", 0.004, "normal damping; vertex-face contacts scale it by the vertex's segment "
+                             "length over 1 cm (not by the density); in the free step (response mass) a pair's at most "
+                             "stops its approach in one step", "N s/m", range="[0, inf)"),
             "friction": Field("float", 0.3, "Coulomb friction coefficient", range="[0, inf)"),
             "vertex_face": Field("bool", True, "vertex against the triangle strips between guides with adjacent roots"),
             "segment_segment": Field("bool", True, "segment against segment of different strands"),

@@ -747,6 +747,12 @@ def contact_force(
     align = wp.max(1.0 - wp.abs(wp.dot(ta, tb)) - contact_alignment_cutoff, 0.0) / (1.0 - contact_alignment_cutoff)
     k_eff = k * length_scale * align
     c_eff = contact_damping * length_scale * align
+    if response.enabled == 0:
+        # In the free step the damper acts explicitly, each side slowed by its own implicit mass h c: past the pair's
+        # reduced mass over the step it would reverse the approach it damps (both sides answer it whole), and hair
+        # pressed together by several such pairs blew up at any step (long_hair with interactions.damping >= 1.5 N
+        # s/m, 400 times its own). Capped there, as the friction below is, it at most stops the approach in a step.
+        c_eff = wp.min(c_eff, 1.0 / ((inv_mass_a + inv_mass_b) * h))
     vrel = va - vb
     vn = wp.dot(vrel, n)
     fn = k_eff * (reach - dist) - c_eff * vn

@@ -236,14 +236,17 @@ def test_repulsion_vanishes_for_parallel_segments(angle):
 
 
 def test_crossing_segments_closed_form():
-    """Perpendicular crossing segments at distance delta: F = k (thr - delta) - c v_n along the separation."""
-    k, c, h, delta = 10.0, 0.01, 1.0e-3, 0.0008
+    """Perpendicular crossing segments at distance delta: F = k (thr - delta) - c v_n along the separation, the damper
+    ``c`` at most the pair's reduced mass over the step (these 2 mg segments': 1e-3 N s/m at h = 1 ms, a tenth of the
+    0.01 asked; ``test_normal_damping_in_the_free_step_never_reverses_the_approach``)."""
+    k, h, delta = 10.0, 1.0e-3, 0.0008
+    c = min(0.01, 0.5 * MASS / h)
     a0, a1 = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, -SEG_LEN])
     b0, b1 = np.array([-0.003, delta, -0.002]), np.array([0.003, delta, -0.002])
     verts = _pair(a0, a1, b0, b1)
     vel = np.zeros_like(verts)
     vel[1] = [0.0, -0.05, 0.0]  # b approaches a
-    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=k, damping=c, capacity=4, rest_gaps=False)
+    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=k, damping=0.01, capacity=4, rest_gaps=False)
     force, torque, mass = _apply(contacts, _model(2, 1), _state(verts, vel), dt=h)
     fn = k * (THRESHOLD - delta) + c * 0.05  # n = -y (from b to a); approaching adds damping
     np.testing.assert_allclose(force[0], [0.0, -fn, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * fn)
@@ -486,6 +489,33 @@ def test_friction_never_reverses_segment_pair(speed, mu):
         assert after <= 1e-4 * before  # the cap stops the slip, without reversing it
     else:
         np.testing.assert_allclose(after, before - h * coulomb / m_eff, rtol=1e-4)
+
+
+@pytest.mark.parametrize("damping", [0.01, 0.1, 10.0, 1.0e6])
+def test_normal_damping_in_the_free_step_never_reverses_the_approach(damping):
+    """Two crossing segments closing in along their normal, taken in the free step: the damper's force is
+    ``min(c, m_eff / h) v``, the closed form, so one explicit step at most stops the approach. Uncapped, a damper past
+    the pair's reduced mass over the step sent the pair apart faster than it came (both sides answer it whole), and
+    ``long_hair`` with ``interactions.damping`` of 1.5 N s/m or more blew up at any step (the scene test below).
+
+    The geometry is dyadic as in the friction tests; the spring's share (tiny here) is the closed form's as well."""
+    h, mass, k, v = 2.0e-3, 1.0e-4, 1.0e-3, 0.25
+    delta, zb, half = 2.0**-11, -(2.0**-9), 2.0**-8
+    verts = _pair([0, 0, 0], [0, 0, -(2.0**-7)], [-half, delta, zb], [half, delta, zb])
+    vel = np.zeros_like(verts)
+    vel[1] = [0.0, -v, 0.0]  # b closes in on a along -y
+    contacts = _force_law(verts, threshold=THRESHOLD, stiffness=k, damping=damping, friction=0.0, capacity=4,
+                          rest_gaps=False)
+    force, vel_new = _explicit_step(contacts, verts, vel, _model(2, 1, mass), mass, h, [0, 0, 1, 1])
+    n = np.array([0.0, -1.0, 0.0])  # from b to a
+    m_eff = 0.5 * mass
+    damper = min(damping, m_eff / h) * v
+    np.testing.assert_allclose(force[0], (k * (THRESHOLD - delta) + damper) * n, rtol=1e-5)
+    spring = h * k * (THRESHOLD - delta) / m_eff
+    closing = np.dot(vel_new[0, 0] - vel_new[1, 0], n)  # -v before: closing
+    assert -v <= closing <= spring * (1.0 + 1e-4) + 1e-9
+    if damping >= m_eff / h:
+        np.testing.assert_allclose(closing, spring, rtol=1e-3, atol=1e-6 * v)  # the approach stopped, not reversed
 
 
 @pytest.mark.parametrize("speed", [1.0e-4, 0.05, 5.0])

@@ -209,6 +209,27 @@ def test_implicit_springs_stabilise_stiffer_interactions(kind):
     assert run_until_fault(kind, stiff, implicit=False, quick=True) is not None
 
 
+@pytest.mark.parametrize("damping", [2.0, 1.0e6])
+def test_hair_contacts_as_damped_as_asked_run_in_the_free_step(damping):
+    """``long_hair`` (60 guides) with its hair contacts' damping 600 times and 3e8 times its own, taken in the free
+    step at the shipped 8 substeps: the damper is capped at what stops a pair's approach in a step
+    (``test_normal_damping_in_the_free_step_never_reverses_the_approach``), so the run goes on, its hair no faster than
+    the shipped damping's. Uncapped, every such run faulted in its first frames at 8 substeps, and at 128 too (2 N s/m
+    from 1.5 on)."""
+    over = ["groom.count=60", "dense.count=0", "output.preview=false", "sim.fault_retries=0",
+            'interactions.response="mass"']
+    fastest = []
+    for c in (0.0035, damping):
+        sim = Simulation(Scene.load(LONG_HAIR, [*over, f"interactions.damping={c}"]))
+        peak = 0.0
+        for _ in range(20):
+            sim.advance_frame()  # raises SimulationFault on a blow-up
+            peak = max(peak, sim.solver.fastest_guide()[0])
+        assert not sim.solver.contacts.response
+        fastest.append(peak)
+    assert fastest[1] <= 1.05 * fastest[0], fastest
+
+
 def test_static_links_builder_is_deterministic():
     """Two builds of the same groom give the same links in the same order (the kernels' sums then repeat)."""
     verts = np.stack([np.linspace([x, 0.0, 0.0], [x, 0.0, -0.1], 9) for x in (0.0, 0.003, 0.006)])
