@@ -183,6 +183,15 @@ SWEEP_GROWTH = 1.5
 #: (the first pass alone reached 2.65). On 2 sweeps the 64-segment limp cell burst (3.6 m/s).
 SWEEP_GROWTH_STEP = 1.0 / 45.0
 
+#: The fewest sweeps a step takes, by the links' free-step rate at that step (:meth:`StaticLinks.free_step_rate`)
+#: where it passes the largest, :data:`hairwarp.solver.WARM_START_RATE` (8), at which a warm step's count holds them:
+#: ``(rate up to, sweeps)`` for one sweep asked (``links.sweeps``; more asked, that many times as many). Stiffness makes
+#: the links stiff against the strands' inertia as a longer step does, but a step's count of its length alone held
+#: links of 70 N/m at most at 1/240 s (a 60-degree turn of 150 guides of 0.35 m, 12 segments, links within 2 cm, 1.5
+#: s): 100 N/m (rate 9.8) blew up on 2 sweeps a step, 150-300 on 4, 1,000 on 6 and 10,000 on 8. Each row is the count
+#: that held the largest rate measured within it (9.8 on 4; 12-21.8 on 6; 30.9-81.8 on 8; 97.8 and 169 on 16).
+STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (21.0, 6), (80.0, 8), (math.inf, 16))
+
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
@@ -488,11 +497,14 @@ class StaticLinks:
         per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
         return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
 
-    def step_sweeps(self, dt: float) -> int:
+    def step_sweeps(self, dt: float, rate: float = 0.0) -> int:
         """The sweeps a step of ``dt`` seconds takes as the links start it now (:attr:`warm_start`,
         :attr:`warm_gate`, set by the solver for the step): a warm step's count where it takes the whole force of the
-        last step, a cold step's where it takes none or the gated share."""
-        return max(1, self.sweeps_at(dt, cold=not self.warm_start or self.warm_gate > 0.0))
+        last step, a cold step's where it takes none or the gated share; and at least the count
+        :data:`STIFF_LINK_SWEEPS` gives links of free-step ``rate`` (:meth:`free_step_rate` at ``dt``)."""
+        count = max(1, self.sweeps_at(dt, cold=not self.warm_start or self.warm_gate > 0.0))
+        stiff = next(n for limit, n in STIFF_LINK_SWEEPS if rate <= limit)
+        return max(count, self.sweeps * stiff)
 
     def sweeps_at(self, dt: float, cold: bool = False) -> int:
         """The sweeps a step of ``dt`` seconds takes. One that starts from the links' force of the last step

@@ -519,7 +519,7 @@ class Solver:
         if not self.link_sweeps:
             return
         links = self.links
-        count = links.step_sweeps(self._dt_host)
+        count = self._step_sweeps()
         contacts_respond = self.contacts is not None and self.contacts.response
         carries = count == 1 and links.warm_start and not contacts_respond and self.factor_steps > 1
         age = self._factor_age
@@ -584,6 +584,12 @@ class Solver:
         contacts = self.contacts
         return bool(dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
                     and WARM_START_CONTACTS_STEP * (1.0 - 1e-9) <= dt < WARM_START_STEP and self._warm_start_allowed)
+
+    def _step_sweeps(self) -> int:
+        """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the
+        links' free-step rate at it)."""
+        dt = self._dt_host
+        return self.links.step_sweeps(dt, 0.0 if dt is None else dt * self._link_rate_per_second())
 
     def _link_rate_per_second(self) -> float:
         """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per
@@ -708,7 +714,7 @@ class Solver:
         links = self.links if self.link_sweeps else None
         contacts = self.contacts if self.contacts is not None and self.contacts.response else None
         # the sweeps this step takes (``StaticLinks.step_sweeps``)
-        count = links.step_sweeps(self._dt_host) if links is not None else 0
+        count = self._step_sweeps() if links is not None else 0
         if links is None and contacts is None:  # responders without a pair: links asked for, none built
             if project:
                 with ex.chain(model.strand_count, INTEGRATE_MIN_CHUNK):
