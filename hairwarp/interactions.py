@@ -188,9 +188,11 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: ``(rate up to, sweeps)`` for one sweep asked (``links.sweeps``; more asked, that many times as many). Stiffness makes
 #: the links stiff against the strands' inertia as a longer step does, but a step's count of its length alone held
 #: links of 70 N/m at most at 1/240 s (a 60-degree turn of 150 guides of 0.35 m, 12 segments, links within 2 cm, 1.5
-#: s): 100 N/m (rate 9.8) blew up on 2 sweeps a step, 150-300 on 4, 1,000 on 6 and 10,000 on 8. Each row is the count
-#: that held the largest rate measured within it (9.8 on 4; 12-21.8 on 6; 30.9-81.8 on 8; 97.8 and 169 on 16).
-STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (21.0, 6), (80.0, 8), (math.inf, 16))
+#: s; ``bench_spring_stability``): 100 N/m (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and
+#: 19 whether fewer sweeps hold is a matter of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8
+#: at 200 and 250; 3 at 100), and 12 held every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held
+#: 80-100 N/m (rates 8.7-9.8), 16 held 10,000 and 30,000 (rates 98 and 169).
+STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).

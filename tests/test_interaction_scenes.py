@@ -214,8 +214,8 @@ def test_implicit_springs_stabilise_stiffer_interactions(kind):
 def test_stiff_links_take_the_sweeps_their_rate_needs(monkeypatch, stiffness):
     """Links of 300 and 10,000 N/m (860 and 29,000 times ``long_hair``'s, free-step rates 16.5 and 95 at 1/240 s),
     solved after the free step, hold through a 60-degree turn: the step takes the sweeps
-    ``interactions.STIFF_LINK_SWEEPS`` gives their rate (6 and 16). On the count of the step's length alone (2, as the
-    step starts cold at such a rate) the same turn blows up."""
+    ``interactions.STIFF_LINK_SWEEPS`` gives their rate (12 and 16). On the count of the step's length alone (2, as
+    the step starts cold at such a rate) the same turn blows up."""
     import hairwarp.interactions as interactions
 
     assert run_until_fault("links", stiffness, implicit=True, quick=True) is None
