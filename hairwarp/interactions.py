@@ -191,7 +191,7 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: s; ``bench_spring_stability``): 100 N/m (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and
 #: 19 whether fewer sweeps hold is a matter of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8
 #: at 200 and 250; 3 at 100), and 12 held every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held
-#: 80-100 N/m (rates 8.7-9.8), 16 held 10,000 and 30,000 (rates 98 and 169).
+#: 80-100 N/m (rates 8.7-9.8), 16 held 10,000 (rate 98).
 STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
