@@ -46,6 +46,14 @@ AUTO_RESPONSE_DT = 1.0 / 220.0
 #: at 0.47. Below the rate the free step's form stays: it costs less.
 LINK_STEP_RATE = 0.7
 
+#: Hair contacts' free-step rate (``interactions.contact_step_rate``: the step times ``sqrt(k / m)``, with their
+#: largest density factor and the median segment) past which ``interactions.response = "auto"`` solves them after
+#: the free step at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit
+#: beside a semi-implicit mass, and it held contacts of 70 N/m (rate 5.5) and blew up at 100 (6.5) on the stability
+#: benchmark's turn at 1/240 s (``bench_spring_stability``); solved after it they held to 1,000 N/m. The shipped
+#: scenes' contacts lie below (1.7-5.2 at their steps: the mohawk's 5.2), and stay in the free step, which costs less.
+CONTACT_STEP_RATE = 6.0
+
 #: Fastest guide vertex of a run, as a multiple of the speed its motion explains (``Solver.speed_bound`` over
 #: ``sim.speed_margin``), from which the run's notes say that hair whipping this hard may be the step's
 #: (``Simulation.whip_note``). Measured peaks: the shipped scenes 0.51-1.21; a 3 rev/s spin and the shipped motions
@@ -364,6 +372,8 @@ class Simulation:
         self._whip_rest_until = -1
         # (frame, the steps it ran in, the stage of the fault that made it, or "whip") of each retry
         self.retakes = []
+        # set where ``interactions.response = "auto"`` solves stiff hair contacts after the free step
+        self.stiff_contacts_note = None
         self.contacts = self._build_contacts(scene.interactions)
         self.solver = Solver(self.model, sim.integrator, colliders=collider_set, links=self.links,
                              contacts=self.contacts, max_rotation_per_step=float(sim.max_rotation_per_step),
@@ -384,8 +394,8 @@ class Simulation:
 
     def _response(self, choice: str) -> bool:
         """Whether links or contacts take the response after the free step (``links.response``,
-        ``interactions.response``): ``auto`` takes it at steps of ``AUTO_RESPONSE_DT`` or longer (and links
-        past ``LINK_STEP_RATE`` at any step: ``_build_links``)."""
+        ``interactions.response``): ``auto`` takes it at steps of ``AUTO_RESPONSE_DT`` or longer (and links past
+        ``LINK_STEP_RATE``, contacts past ``CONTACT_STEP_RATE`` at any step: ``_build_links``, ``_build_contacts``)."""
         if choice == "auto":
             return self.scene.step_dt >= AUTO_RESPONSE_DT * (1.0 - 1e-9)
         return choice == "step"
@@ -432,7 +442,7 @@ class Simulation:
     def _build_contacts(self, cfg):
         if not cfg.enabled:
             return None
-        from hairwarp.interactions import HairContacts, TriangleStrips
+        from hairwarp.interactions import HairContacts, TriangleStrips, contact_step_rate
 
         model = self.model
         strips = None
@@ -440,11 +450,23 @@ class Simulation:
             strips = TriangleStrips.build(model.rest_vertex_positions, model.root_uv, model.grid_shape,
                                           device=model.device)
         per_frame = cfg.detect == "frame"
+        response = self._response(cfg.response)
+        if cfg.response == "auto" and not response:
+            rate = contact_step_rate(model.seg_mass.numpy(), model.seg_length.numpy(), float(cfg.stiffness),
+                                     self.scene.step_dt)
+            if rate > CONTACT_STEP_RATE:  # too stiff for the free step's semi-implicit mass
+                response = True
+                self.stiff_contacts_note = (
+                    f"interactions.response = \"auto\" solved the hair contacts after the free step: at this step "
+                    f"they are too stiff for it (free-step rate {rate:.3g}, past {CONTACT_STEP_RATE:g}), where they "
+                    f"would blow up (docs/interactions.md). interactions.stiffness <= "
+                    f"{float(cfg.stiffness) * (CONTACT_STEP_RATE / rate) ** 2:.3g} N/m keeps them in the free step, "
+                    f"which costs less")
         return HairContacts.build(
             model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
             damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
             capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
-            detect_each_step=not per_frame, response=self._response(cfg.response), device=model.device,
+            detect_each_step=not per_frame, response=response, device=model.device,
         )
 
     def _contact_rest_note(self, cfg) -> str | None:
@@ -1596,7 +1618,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
     notes.extend(note for note in (_retakes_note(sim), _retakes_note(sim, whips=True)) if note is not None)
-    notes.extend(note for note in (sim.stiff_links_note, sim.contact_rest_note) if note is not None)
+    notes.extend(note for note in (sim.stiff_links_note, sim.stiff_contacts_note, sim.contact_rest_note)
+                 if note is not None)
     whip = sim.whip_note()
     if whip is not None:
         notes.append(whip)

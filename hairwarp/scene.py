@@ -639,7 +639,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
             "response": Field("str", "auto", "contact forces solved after the free step, inside the strands' "
                               "dynamics, on each pair's relative motion (step), or explicit with the semi-implicit "
-                              "mass on every motion (mass); auto: step at steps of 1/220 s or longer, else mass",
+                              "mass on every motion (mass); auto: step at steps of 1/220 s or longer and for "
+                              "contacts too stiff for the free step (the step times sqrt(k/m) past 6), else mass",
                               choices=("auto", "step", "mass")),
         },
         doc="dynamic interactions (hairwarp.interactions.HairContacts on TriangleStrips)",

@@ -10,10 +10,11 @@ import numpy as np
 import warp as wp
 
 from hairwarp.executor import Executor, launch
+from hairwarp.interactions import contact_step_rate
 from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
-from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault, Integrator
+from hairwarp.kernels.types import Fault, Integrator
 
 #: Fewest strands per chunk of the integrator and of the step's chains (forces, integration, push-out): one strand's
 #: ABA and contact sweeps take a few microseconds, so 16 strands outweigh a chunk's hand-off (``hairwarp bench
@@ -91,7 +92,7 @@ WARM_GATE_RATE = 16.0
 #: head still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
 WARM_START_CONTACTS_STEP = 1.0 / 220.0
 
-#: The hair contacts' rate (with the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment
+#: The hair contacts' rate (``interactions.contact_step_rate``: the largest density factor and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
 #: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
 CONTACT_RATE_LIMIT = 7.5
@@ -104,8 +105,6 @@ RESPONSE_RATE_LIMIT = 100.0
 #: The stage a fault names where the free dynamics drive it and no other stage does (``Solver._dynamics_driver``).
 DYNAMICS_STAGE = "dynamics (aba + integrate)"
 
-#: The vertex-face stiffness's largest density factor (``TriangleStrips.tri_stiffness_scale``, clamped to [1/4, 4]).
-CONTACT_DENSITY_FACTOR = 4.0
 
 #: Step times the air drag's rate ``drag L / m`` past which a fault is the drag's: the shipped scenes take 0.008-0.013,
 #: ``tiny`` with ``strands.density = 1e-3`` takes 1e4 and whips at 35 m/s (``strands.drag = 0`` runs).
@@ -1046,7 +1045,6 @@ class Solver:
         ``responders``, has none."""
         model = self.model
         mass = model.seg_mass.numpy().astype(np.float64)
-        typical = float(np.median(mass))
         rates = {}
         links = self.links
         if links is not None and (responders or not links.response) and links.link_count > 0 \
@@ -1054,11 +1052,7 @@ class Solver:
             rates["links"] = links.free_step_rate(mass, dt)
         contacts = self.contacts
         if contacts is not None and (responders or not contacts.response) and contacts.stiffness > 0.0:
-            # the vertex-face stiffness is k0 times a density factor of at most CONTACT_DENSITY_FACTOR and the
-            # vertex's segment length over REFERENCE_SEGMENT_LENGTH (a segment-segment contact's is k0): the median
-            # segment's, as its mass
-            length = max(1.0, float(np.median(model.seg_length.numpy())) / REFERENCE_SEGMENT_LENGTH)
-            rates["contacts"] = dt * math.sqrt(CONTACT_DENSITY_FACTOR * length * contacts.stiffness / typical)
+            rates["contacts"] = contact_step_rate(mass, model.seg_length.numpy(), contacts.stiffness, dt)
         if model.drag > 0.0:
             rates["drag"] = dt * float((model.drag * model.seg_length.numpy() / mass).max())
         return rates

@@ -140,11 +140,35 @@ def test_stiff_links_in_the_free_step_name_the_links_and_their_response_runs():
                                                 'links.response="link"'], "links", "1000", "static links")
 
 
-@pytest.mark.parametrize("step", [["sim.substeps=8"], ["sim.substeps=4", 'interactions.response="mass"']])
-def test_stiff_hair_contacts_in_the_free_step_name_the_contacts(step):
-    """Contacts of 1e5 N/m in the free step (8 substeps with the automatic response, or 4 with the mass form) were
-    blamed on the dynamics with "raise substeps"; the fault names the contacts."""
-    _free_step_fault_and_its_advice(TINY, ["interactions.enabled=true", *step], "interactions", "1e5", "hair contacts")
+@pytest.mark.parametrize("substeps", [8, 4])
+def test_stiff_hair_contacts_in_the_free_step_name_the_contacts(substeps):
+    """Contacts of 1e5 N/m in the free step (the mass form, ``interactions.response = "mass"``, at 8 and 4 substeps:
+    ``"auto"`` solves contacts this stiff after it) were blamed on the dynamics with "raise substeps"; the fault names
+    the contacts."""
+    _free_step_fault_and_its_advice(TINY, ["interactions.enabled=true", f"sim.substeps={substeps}",
+                                           'interactions.response="mass"'], "interactions", "1e5", "hair contacts")
+
+
+def test_auto_solves_hair_contacts_too_stiff_for_the_free_step_after_it(tmp_path):
+    """At the shipped 8 substeps ``interactions.response = "auto"`` keeps contacts in the free step up to the rate
+    ``runner.CONTACT_STEP_RATE`` and solves stiffer ones after it: contacts of 1e5 N/m, which fault in the free step
+    (above), run, and the run's notes say why and which stiffness would keep them in the free step; ``tiny``'s own
+    stay there, with no note."""
+    from hairwarp.runner import CONTACT_STEP_RATE
+
+    over = ["output.preview=false", "interactions.enabled=true", "sim.substeps=8"]
+    sim = Simulation(hw.Scene.load(TINY, over))
+    assert not sim.contacts.response and sim.stiff_contacts_note is None
+    assert _run(TINY, [*over, "interactions.stiffness=1e5"], 6) is None
+    sim = Simulation(hw.Scene.load(TINY, [*over, "interactions.stiffness=1e5"]))
+    note = sim.stiff_contacts_note
+    assert sim.contacts.response and note.startswith('interactions.response = "auto" solved the hair contacts after')
+    softer = float(note.split("interactions.stiffness <= ")[1].split()[0])
+    sim = Simulation(hw.Scene.load(TINY, [*over, f"interactions.stiffness={0.99 * softer}"]))  # printed to 3 digits
+    assert not sim.contacts.response, CONTACT_STEP_RATE
+    result = hw.simulate(hw.Scene.load(TINY, [*over, "interactions.stiffness=1e5", "sim.frames=2"]),
+                         tmp_path / "stiff.usdc", preview=False, progress=False)
+    assert any("solved the hair contacts after the free step" in n for n in result.notes)
 
 
 def test_body_contact_fault_on_a_still_head_names_the_wind():
