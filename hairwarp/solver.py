@@ -289,6 +289,7 @@ class Solver:
         # turns it for the next (``hairwarp.Stepper`` sets it from the step's place in its frame before each step)
         self.sweep_turn = 0
         self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
+        self._contact_rate = None  # (contacts.stiffness, theirs): ``_step_sweeps``
         self._warm_start_allowed = True
         self._held_written = True  # whether the hair contacts' held dampers may hold a step's values (``_respond``)
         if self.link_sweeps:
@@ -586,9 +587,18 @@ class Solver:
 
     def _step_sweeps(self) -> int:
         """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the
-        links' free-step rate at it)."""
+        free-step rate at it of the links, or of the hair contacts where the sweeps solve them too, the stiffer)."""
         dt = self._dt_host
-        return self.links.step_sweeps(dt, 0.0 if dt is None else dt * self._link_rate_per_second())
+        if dt is None:
+            return self.links.step_sweeps(dt)
+        rate = self._link_rate_per_second()
+        contacts = self.contacts
+        if contacts is not None and contacts.response and contacts.sweeps_contacts:
+            if self._contact_rate is None or self._contact_rate[0] != contacts.stiffness:
+                self._contact_rate = (contacts.stiffness, contact_step_rate(
+                    self.model.seg_mass.numpy(), self.model.seg_length.numpy(), contacts.stiffness, 1.0))
+            rate = max(rate, self._contact_rate[1])
+        return self.links.step_sweeps(dt, dt * rate)
 
     def _link_rate_per_second(self) -> float:
         """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per

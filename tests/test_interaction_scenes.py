@@ -223,6 +223,25 @@ def test_stiff_links_take_the_sweeps_their_rate_needs(monkeypatch, stiffness):
     assert run_until_fault("links", stiffness, implicit=True, quick=True) is not None
 
 
+def test_sweeps_that_solve_the_hair_contacts_take_the_count_their_rate_needs():
+    """Where the links' sweeps solve the hair contacts too (``fast_turn``), the count follows the stiffer of the two by
+    their free-step rates (``interactions.contact_step_rate``): ``fast_turn``'s contacts 100 times stiffer (rate 24)
+    take 12 sweeps a step, where its links alone take 1 (at that stiffness the whole scene faulted at frame 42 with
+    535 links torn on one sweep, and ran its 45 frames on 12, 5 torn). The contacts in the free step leave the count to
+    the links."""
+    from hairwarp.interactions import contact_step_rate
+
+    over = ["groom.count=60", "dense.count=0", "output.preview=false"]
+    for response, expected in (("step", 12), ("mass", 1)):
+        sim = Simulation(Scene.load(SCENES / "fast_turn.toml",
+                                    [*over, "interactions.stiffness=1340", f'interactions.response="{response}"']))
+        sim.advance_frame()
+        solver, model = sim.solver, sim.model
+        rate = contact_step_rate(model.seg_mass.numpy(), model.seg_length.numpy(), 1340.0, sim.stepper.dt)
+        assert 21.0 < rate <= 85.0 and sim.links.free_step_rate(model.seg_mass.numpy(), sim.stepper.dt) < 8.0
+        assert solver._step_sweeps() == expected, response
+
+
 @pytest.mark.parametrize("damping", [2.0, 1.0e6])
 def test_hair_contacts_as_damped_as_asked_run_in_the_free_step(damping):
     """``long_hair`` (60 guides) with its hair contacts' damping 600 times and 3e8 times its own, taken in the free
