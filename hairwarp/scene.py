@@ -612,8 +612,10 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                             "links' last force (the warm start, at steps under 1/45 s), a step k times as long k^2 "
                             "times as many (16 at 1/60 s); a step that starts cold, or at longer steps from the share "
                             "of that force its ends' parting leaves, twice as many, k^1.5 times those "
-                            "(25 at one step a frame); more hold the hair nearer its backward-Euler step, each "
-                            "costs about one more response solve",
+                            "(25 at one step a frame); and at least 4, 12 or 16 times this many for links (or swept "
+                            "contacts) stiffer than the step holds on one (the step times sqrt(k/m) past 8, 10, 85); "
+                            "more hold the hair nearer its backward-Euler step, each costs about one more response "
+                            "solve",
                             range="[1, 64]"),
         },
         doc="static links (hairstyle cohesion and recovery; hairwarp.interactions.StaticLinks)",
