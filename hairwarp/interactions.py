@@ -198,9 +198,11 @@ STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
 CONTACT_DENSITY_FACTOR = 4.0
 
 
-def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float) -> float:
+def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float,
+                      density: float = CONTACT_DENSITY_FACTOR) -> float:
     """The hair contacts' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the stiffness
-    ``stiffness`` (k0 [N/m]) times the largest density factor, :data:`CONTACT_DENSITY_FACTOR`, and the median segment's
+    ``stiffness`` (k0 [N/m]) times a density factor (``density``: the largest, :data:`CONTACT_DENSITY_FACTOR`, unless
+    given; 1 for a strip of the typical density) and the median segment's
     length over :data:`REFERENCE_SEGMENT_LENGTH` (at least 1: a segment-segment contact's is k0), and ``m`` the median
     segment mass [kg] (``seg_mass``, ``seg_length`` per segment). ``interactions.response = "auto"`` solves contacts
     past ``hairwarp.runner.CONTACT_STEP_RATE`` after the free step, and a fault of the free step is theirs past
@@ -209,7 +211,7 @@ def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float) -> floa
         return 0.0
     length = max(1.0, float(np.median(np.asarray(seg_length, dtype=np.float64))) / REFERENCE_SEGMENT_LENGTH)
     mass = float(np.median(np.asarray(seg_mass, dtype=np.float64)))
-    return float(dt) * math.sqrt(CONTACT_DENSITY_FACTOR * length * float(stiffness) / mass)
+    return float(dt) * math.sqrt(float(density) * length * float(stiffness) / mass)
 
 
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
