@@ -78,14 +78,15 @@ def _cmd_run(args) -> int:
     result = simulate(scene, out, frames=args.frames, device=args.device, progress=True, resume=args.resume,
                       profile=args.profile)
     print(f"cache    {Path(result.cache_path).absolute()}")  # as the set-up line names it
-    if getattr(result, "preview_path", None):
-        print(f"preview  {Path(result.preview_path).absolute()}")
+    preview = getattr(result, "preview_path", None)
+    if preview:
+        print(f"preview  {Path(preview).absolute()}")
     simulated = result.frames - result.resumed_frames
     resumed = ""
     if result.resumed_frames:
         resumed = f" after the {_counted(result.resumed_frames, 'frame')} of the stopped run"
     rate = f" ({result.seconds_per_frame:.3g} s a frame)" if simulated else ""  # none: no time a frame to give
-    extras = "the set-up and the preview" if getattr(result, "preview_path", None) else "the set-up"
+    extras = "the set-up and the preview" if preview else "the set-up"
     print(f"{_counted(simulated, 'frame')} simulated{resumed} in {result.frame_seconds:.2f} s{rate}; "
           f"{result.seconds:.2f} s in all, with {extras}")
     for note in result.notes:  # what the run noticed: buffers that overflowed, frames taken again, a held groom

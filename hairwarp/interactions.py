@@ -202,9 +202,9 @@ def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float,
                       density: float = CONTACT_DENSITY_FACTOR) -> float:
     """The hair contacts' rate in a free step of ``dt`` seconds: ``dt sqrt(k / m)`` with ``k`` the stiffness
     ``stiffness`` (k0 [N/m]) times a density factor (``density``: the largest, :data:`CONTACT_DENSITY_FACTOR`, unless
-    given; 1 for a strip of the typical density) and the median segment's
-    length over :data:`REFERENCE_SEGMENT_LENGTH` (at least 1: a segment-segment contact's is k0), and ``m`` the median
-    segment mass [kg] (``seg_mass``, ``seg_length`` per segment). ``interactions.response = "auto"`` solves contacts
+    given; 1 for a strip of the typical density) and the median segment's length over
+    :data:`REFERENCE_SEGMENT_LENGTH` (at least 1: a segment-segment contact's is k0), and ``m`` the median segment
+    mass [kg] (``seg_mass``, ``seg_length`` per segment). ``interactions.response = "auto"`` solves contacts
     past ``hairwarp.runner.CONTACT_STEP_RATE`` after the free step, and a fault of the free step is theirs past
     ``hairwarp.solver.CONTACT_RATE_LIMIT``."""
     if not stiffness > 0.0:

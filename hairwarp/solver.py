@@ -105,7 +105,6 @@ RESPONSE_RATE_LIMIT = 100.0
 #: The stage a fault names where the free dynamics drive it and no other stage does (``Solver._dynamics_driver``).
 DYNAMICS_STAGE = "dynamics (aba + integrate)"
 
-
 #: Step times the air drag's rate ``drag L / m`` past which a fault is the drag's: the shipped scenes take 0.008-0.013,
 #: ``tiny`` with ``strands.density = 1e-3`` takes 1e4 and whips at 35 m/s (``strands.drag = 0`` runs).
 DRAG_RATE_LIMIT = 1.0
@@ -589,8 +588,6 @@ class Solver:
         """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the
         free-step rate at it of the links, or of the hair contacts where the sweeps solve them too, the stiffer)."""
         dt = self._dt_host
-        if dt is None:
-            return self.links.step_sweeps(dt)
         rate = self._link_rate_per_second()
         contacts = self.contacts
         if contacts is not None and contacts.response and contacts.sweeps_contacts:

@@ -261,6 +261,8 @@ def test_hair_contacts_as_damped_as_asked_run_in_the_free_step(damping):
             peak = max(peak, sim.solver.fastest_guide()[0])
         assert not sim.solver.contacts.response
         fastest.append(peak)
+    # more damping only slows the hair (0.718 against 0.724 m/s at the frames' ends, measured); the 5 % leave room for
+    # the contact motion's spread between runs of other forces (uncapped, the damped runs went non-finite at once)
     assert fastest[1] <= 1.05 * fastest[0], fastest
 
 
