@@ -184,15 +184,22 @@ SWEEP_GROWTH = 1.5
 SWEEP_GROWTH_STEP = 1.0 / 45.0
 
 #: The fewest sweeps a step takes, by the links' free-step rate at that step (:meth:`StaticLinks.free_step_rate`)
-#: where it passes the largest, :data:`hairwarp.solver.WARM_START_RATE` (8), at which a warm step's count holds them:
-#: ``(rate up to, sweeps)`` for one sweep asked (``links.sweeps``; more asked, that many times as many). Stiffness makes
-#: the links stiff against the strands' inertia as a longer step does, but a step's count of its length alone held
-#: links of 70 N/m at most at 1/240 s (a 60-degree turn of 150 guides of 0.35 m, 12 segments, links within 2 cm, 1.5
-#: s; ``bench_spring_stability``): 100 N/m (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and
-#: 19 whether fewer sweeps hold is a matter of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8
-#: at 200 and 250; 3 at 100), and 12 held every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held
-#: 80-100 N/m (rates 8.7-9.8), 16 held 10,000 (rate 98).
+#: where it passes 8, :data:`hairwarp.solver.WARM_START_RATE`; below it a step's own count holds them, one sweep
+#: where their typical rate allows the warm start (:meth:`StaticLinks.warm_rate`,
+#: :data:`hairwarp.solver.WARM_START_TYPICAL_RATE`), else the two of a cold or gated step (on the turn below 5-50 N/m
+#: held on two, rates 2.2-6.9, each frame at its own step): ``(rate up to, sweeps)`` for one sweep asked
+#: (``links.sweeps``; more asked, that many times as many). Stiffness makes the links stiff against the strands'
+#: inertia as a longer step does, but a step's count of its length alone held links of 70 N/m at most at 1/240 s (a
+#: 60-degree turn of 150 guides of 0.35 m, 12 segments, links within 2 cm, 1.5 s; ``bench_spring_stability``): 100 N/m
+#: (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and 19 whether fewer sweeps hold is a matter
+#: of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8 at 200 and 250; 3 at 100), and 12 held
+#: every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held 80-100 N/m (rates 8.7-9.8), 16 held 10,000
+#: (rate 98). Those runs took a faulted frame again in finer steps; at the step alone the turn holds links to 150 N/m,
+#: 200 blowing up at 1.43 s whatever the sweeps (docs/interactions.md).
 STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
+
+#: The percentile of the linked segments' free-step rates that :meth:`StaticLinks.warm_rate` takes.
+WARM_RATE_PERCENTILE = 90.0
 
 #: The vertex-face stiffness's largest density factor (``TriangleStrips.tri_stiffness_scale``, clamped to [1/4, 4]).
 CONTACT_DENSITY_FACTOR = 4.0
@@ -518,6 +525,23 @@ class StaticLinks:
         ends = np.concatenate([self.seg_a, self.seg_b])
         per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
         return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
+
+    def warm_rate(self, seg_mass: np.ndarray, dt: float) -> float:
+        """The links' typical rate in a free step of ``dt`` seconds, which bounds their warm start
+        (``hairwarp.Solver._warm_start``): the :data:`WARM_RATE_PERCENTILE` th percentile over the linked segments of
+        ``dt sqrt(k / m)``, ``k`` the segment's summed link stiffness (each link's scaled, :attr:`scale`) and ``m`` its
+        own mass (kg, ``seg_mass`` per segment); 0 without links or stiffness. Where :meth:`free_step_rate` takes the
+        stiffest segment against the median mass, this takes the many stiff ones: the lagged force grows where they
+        tie the hair together, not at a few short segments of a groom whose segments' lengths vary 70-fold (the Ratboy
+        mohawk, whose stiffest segment's rate is twice this)."""
+        if self.link_count == 0 or not self.stiffness > 0.0:
+            return 0.0
+        seg_mass = np.asarray(seg_mass, dtype=np.float64)
+        ends = np.concatenate([self.seg_a, self.seg_b])
+        per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass))
+        linked = per_segment > 0.0
+        rates = np.sqrt(per_segment[linked] * self.stiffness / seg_mass[linked])
+        return dt * float(np.percentile(rates, WARM_RATE_PERCENTILE))
 
     def step_sweeps(self, dt: float, rate: float = 0.0) -> int:
         """The sweeps a step of ``dt`` seconds takes as the links start it now (:attr:`warm_start`,

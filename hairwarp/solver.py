@@ -59,6 +59,20 @@ LINK_RATE_LIMIT = 2.0
 WARM_START_STEP = 1.0 / 45.0
 WARM_START_RATE = 8.0
 
+#: Largest typical rate of the links (``StaticLinks.warm_rate``, the 90th percentile of the linked segments' free-step
+#: rates) at which they take the whole force of the last step, on one sweep a step; a step of ``n`` warm sweeps
+#: (``StaticLinks.sweeps_at``) takes ``n ** WARM_START_RATE_GROWTH`` times it. The lagged force feeds back what the
+#: sweeps leave unsolved, times about the rate squared, and grows from step to step where the sweeps take off less
+#: than that: measured with no frame taken again (``sim.fault_retries = 0``), the links blew up at typical rates of
+#: 1.74 (``long_hair_shoulders``, links 2x, frame 12), 1.77 (150 guides of 0.35 m turning 60 degrees in 0.4 s, links
+#: within 2 cm, frame 24) and 2.15 (the mohawk, links 4x) on one sweep, held at 1.68 and 1.86; on 4 sweeps (1/120 s)
+#: held 3.16 and blew up at 3.5; on 16 (1/60 s) held 5.47 and 6.01 and blew up at 6.32. Beyond the bound a step takes
+#: the gated force (``WARM_GATE_SPEED``, with colliders) or none, on a cold step's sweeps, which held every rate of the
+#: turn from 2.2 to 6.9 (5 to 50 N/m), where the whole force faulted every frame at 8 substeps from 10 N/m up (frames
+#: taken again in 16 steps). The shipped scenes' typical rates are 0.65-1.23 at their 8 substeps.
+WARM_START_TYPICAL_RATE = 1.6
+WARM_START_RATE_GROWTH = 0.45
+
 #: Speed [m/s] by which, at the steps those bounds leave out, each link's force of the last step that the free step
 #: takes falls off with the speed its ends parted at in that step's answer: ``f / (1 + |u'|^2 / s^2)``
 #: (``kernels.links.link_response_ends``, ``StaticLinks.warm_gate``; the sweeps solve the rest, so the step's linear
@@ -288,6 +302,7 @@ class Solver:
         # turns it for the next (``hairwarp.Stepper`` sets it from the step's place in its frame before each step)
         self.sweep_turn = 0
         self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
+        self._warm_rate = None  # (links.stiffness, their typical free-step rate at a step of 1 s): ``_warm_start``
         self._contact_rate = None  # (contacts.stiffness, theirs): ``_step_sweeps``
         self._warm_start_allowed = True
         self._held_written = True  # whether the hair contacts' held dampers may hold a step's values (``_respond``)
@@ -543,7 +558,10 @@ class Solver:
         a step; on the one sweep a step it allows, 0.026 at 8 substeps). At steps shorter than ``WARM_START_STEP`` and a
         free-step rate (``StaticLinks.free_step_rate``) within ``WARM_START_RATE``: the limp linked hair of the
         stability grid jitters at one step a frame, and its lagged force fed that until it burst (4.5-5.5 m/s); the
-        mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks. Not where hair contacts are
+        mohawk at 2 substeps (rate 8.7) broke 2 links that no 16-substep run breaks. And a typical rate
+        (``StaticLinks.warm_rate``) within ``WARM_START_TYPICAL_RATE`` grown by the step's count of warm sweeps: past
+        it the lagged force grows from step to step (links of 10 N/m on ``long_hair`` faulted 14 of 30 frames at 8
+        substeps, each taken again in 16 steps). Not where hair contacts are
         solved after the free step too, at steps from ``WARM_START_CONTACTS_STEP`` on (their last force is not
         carried), nor in a frame taken again (:attr:`warm_start_allowed`).
 
@@ -559,7 +577,8 @@ class Solver:
             return False
         if gated:  # where a body holds the hair, and links not too stiff for a force lagged a step
             return self.body_contacts.enabled and dt * self._link_rate_per_second() <= WARM_GATE_RATE
-        return dt * self._link_rate_per_second() <= WARM_START_RATE
+        typical = WARM_START_TYPICAL_RATE * links.sweeps_at(dt) ** WARM_START_RATE_GROWTH
+        return dt * self._link_rate_per_second() <= WARM_START_RATE and dt * self._warm_rate_per_second() <= typical
 
     def contact_warm_start(self, dt: float) -> bool:
         """Whether the hair contacts, solved by the links' sweeps after the free step, put each segment's contact
@@ -607,6 +626,14 @@ class Solver:
         if self._link_rate is None or self._link_rate[0] != links.stiffness:
             self._link_rate = (links.stiffness, links.free_step_rate(self.model.seg_mass.numpy(), 1.0))
         return self._link_rate[1]
+
+    def _warm_rate_per_second(self) -> float:
+        """The links' typical free-step rate per second of step (``StaticLinks.warm_rate``), read from the host once
+        per stiffness."""
+        links = self.links
+        if self._warm_rate is None or self._warm_rate[0] != links.stiffness:
+            self._warm_rate = (links.stiffness, links.warm_rate(self.model.seg_mass.numpy(), 1.0))
+        return self._warm_rate[1]
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""
