@@ -291,6 +291,9 @@ class StaticLinks:
     """
 
     executor = None
+    #: Whether the links' sweeps after the free step add each end's geometric stiffness to its segment's turn
+    #: (``kernels.sweeps.link_sweep``; off only to measure what it holds)
+    geometric_stiffness = True
 
     @classmethod
     def build(

@@ -131,6 +131,8 @@ def link_sweep(
     link_stiffness: float,
     link_damping: float,
     link_scale: wp.array(dtype=float),
+    # 1: each end's force adds the bound of its geometric stiffness to its segment's turn (``link_sweep``)
+    link_geometric: int,
     # Scratch: the ends the force pass left; what ``link_response_ends`` kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -223,7 +225,15 @@ def link_sweep(
     which the later sweeps take back by degrees (a lone pair at h^2 k / m_eff ~ 50, its ends parting at 0.3 m/s
     each: 0.16 m/s off after 8 sweeps, 0.026 after 32); hair moving with its neighbours, as links hold it, has
     little of it. Hair contacts can join two strands of one colour, which a sweep then solves at once (Jacobi, each
-    with the whole damper): the colours are the links', fixed for the run."""
+    with the whole damper): the colours are the links', fixed for the run.
+
+    With ``link_geometric`` the blocks also take each end's geometric stiffness (Andrews, Teichmann and Kry 2017,
+    "Geometric stiffness for real-time constrained multibody dynamics"): the end's force ``f`` (``k l`` at the step's
+    start) turns with its segment, a turn ``d theta`` changing its torque by ``[f]x [r]x d theta`` at the arm ``r``,
+    which the solve, linearised at the step's start, leaves out and the step then takes explicitly; stiff links pulling
+    hard at the roots' segments flung them (200 N/m on the benchmark's turn at 1/240 s, 20-40 rad/s and then a
+    fault). Its bound, ``h^2 |f| |r|`` on the segment's two turns across its axis, keeps the matrix symmetric positive
+    definite and only slows a turn under a large force."""
     strand = color_strands[tid_offset + wp.tid()]
     if redo != 0 and strand_redo[strand] == 0:
         return
@@ -296,6 +306,7 @@ def link_sweep(
             # (``moment_inertia``), [sum w r]x and (sum w) I, the dampers' parts end by end; the spin about the
             # segment's axis goes at the end (``spin_free_rotation``, ``spin_free_coupling``)
             w_sum = float(0.0)
+            g_sum = float(0.0)
             wr_sum = wp.vec3()
             wrr_sum = wp.mat33()
             Ad = wp.mat33()
@@ -328,6 +339,8 @@ def link_sweep(
                         nl = Rt * n
                         m = wp.cross(arm, nl)
                         hc = h * c
+                        if link_geometric != 0:
+                            g_sum += h * hk * wp.length(link_point_b[link] - link_point_a[link]) * wp.length(arm)
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
                         Cd += wp.outer(hc * nl, nl)
@@ -340,7 +353,7 @@ def link_sweep(
                     torque += spin_free_torque(arm, f)
             if reusing == 0:
                 eye = wp.identity(n=3, dtype=float)
-                solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad)
+                solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad + g_sum * eye)
                 solved.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
                 solved.C[seg] = C + w_sum * eye + Cd
         elif reusing == 0:

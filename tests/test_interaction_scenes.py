@@ -210,19 +210,29 @@ def test_implicit_springs_stabilise_stiffer_interactions(kind):
     assert run_until_fault(kind, stiff, implicit=False, quick=True) is not None
 
 
-@pytest.mark.parametrize("stiffness", [300.0, 1000.0])
+@pytest.mark.parametrize("stiffness", [30000.0, 100000.0])
 def test_stiff_links_take_the_sweeps_their_rate_needs(monkeypatch, stiffness):
-    """Links of 300 and 1,000 N/m (860 and 2,900 times ``long_hair``'s, free-step rates 16.5 and 30 at 1/240 s),
-    solved after the free step, hold through the quick turn's 0.5 s with no frame taken again: the step takes the
-    sweeps ``interactions.STIFF_LINK_SWEEPS`` gives their rate (12). On the count of the step's length alone (2, as
-    the step starts cold at such a rate) the same turn blows up at 0.47 s. (1,000 N/m blow up at 0.53 s on these 60
-    guides whatever the sweeps, 12 to 32: that bound is not the sweeps'; the 150 guides of the benchmark's turn hold
-    to 5,000 N/m for 1.5 s.)"""
+    """Links of 30,000 and 100,000 N/m (86,000 and 290,000 times ``long_hair``'s, free-step rates 165 and 300 at
+    1/240 s), solved after the free step, hold through the quick turn's 0.5 s with no frame taken again: the step
+    takes the sweeps ``interactions.STIFF_LINK_SWEEPS`` gives their rate (16). On the count of the step's length
+    alone (2, as the step starts cold at such a rate) the same turn blows up at 0.47 s. (With the links' geometric
+    stiffness the quick turn's 60 guides hold to 3,000 N/m on those 2; the benchmark's 150 blew up from 100 N/m.)"""
     import hairwarp.interactions as interactions
 
     assert run_until_fault("links", stiffness, implicit=True, quick=True) is None
     monkeypatch.setattr(interactions, "STIFF_LINK_SWEEPS", ((math.inf, 1),))
     assert run_until_fault("links", stiffness, implicit=True, quick=True) is not None
+
+
+def test_stiff_links_hold_with_their_geometric_stiffness(monkeypatch):
+    """Links of 10,000 N/m (29,000 times ``long_hair``'s) solved after the free step hold through the quick turn with
+    no frame taken again: each end's force turns with its segment, and the sweeps take that geometric stiffness's
+    bound into the segment's turn (``kernels.sweeps.link_sweep``). Without it the solve, linearised at the step's
+    start, leaves the turn of the links' large forces to the step, and the same turn blows up at 0.5 s (on the
+    benchmark's 150 guides links blew up from 200 N/m; with it they hold to 30,000)."""
+    assert run_until_fault("links", 10000.0, implicit=True, quick=True) is None
+    monkeypatch.setattr(StaticLinks, "geometric_stiffness", False)
+    assert run_until_fault("links", 10000.0, implicit=True, quick=True) is not None
 
 
 @pytest.mark.parametrize("stiffness", [10.0, 30.0])
