@@ -32,6 +32,7 @@ import warp as wp
 from hairwarp.executor import _capturing, launch
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
+from hairwarp.kernels import sweeps as sweep_kernels
 from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault
 
 # Strip triangles narrower than this fraction of the median width would make the density-scaled
@@ -194,8 +195,10 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and 19 whether fewer sweeps hold is a matter
 #: of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8 at 200 and 250; 3 at 100), and 12 held
 #: every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held 80-100 N/m (rates 8.7-9.8), 16 held 10,000
-#: (rate 98). Those runs took a faulted frame again in finer steps; at the step alone the turn holds links to 150 N/m,
-#: 200 blowing up at 1.43 s whatever the sweeps (docs/interactions.md).
+#: (rate 98). Those runs took a faulted frame again in finer steps; at the step alone the turn held links to 150 N/m,
+#: 200 blowing up at 1.43 s whatever the sweeps, until the sweeps took the links' geometric stiffness
+#: (``kernels.sweeps.GEOMETRIC_STIFFNESS_FACTOR``): with it the turn holds every stiffness to 30,000 N/m on this
+#: table, and most on the step's own count too, but not 200 N/m (blew up on 2 and on 4 sweeps).
 STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
 
 #: The percentile of the linked segments' free-step rates that :meth:`StaticLinks.warm_rate` takes.
@@ -291,9 +294,9 @@ class StaticLinks:
     """
 
     executor = None
-    #: Whether the links' sweeps after the free step add each end's geometric stiffness to its segment's turn
-    #: (``kernels.sweeps.link_sweep``; off only to measure what it holds)
-    geometric_stiffness = True
+    #: How many times the bound of each end's geometric stiffness the links' sweeps after the free step add to its
+    #: segment's turn (``kernels.sweeps.GEOMETRIC_STIFFNESS_FACTOR``; 0 only to measure what it holds)
+    geometric_stiffness = sweep_kernels.GEOMETRIC_STIFFNESS_FACTOR
 
     @classmethod
     def build(

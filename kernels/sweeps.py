@@ -29,6 +29,17 @@ from hairwarp.kernels.spatial import skew
 
 wp.set_module_options({"enable_backward": False})
 
+#: How many times the bound of each link end's geometric stiffness, ``h^2 |f| |r|``, the sweeps add to its segment's
+#: turn (``link_sweep``; ``hairwarp.StaticLinks.geometric_stiffness``). On the benchmark's turn (150 guides, links
+#: within 2 cm, 45 frames, none taken again) at one step a frame, where the force over the step outgrows the step
+#: start's ``k l``: without the term links of 10, 30, 100, 300 and 1,000 N/m blew up at frames 34, 19, 11, 9 and 6;
+#: with the bound once 10 N/m held and the others blew up at frames 39, 20, 23 and 27; twice 30 N/m held, 100-1,000 at
+#: frames 31-36; four times every one held, and 3,000 and 10,000 N/m too (at 2 and 8 substeps as well, to 30,000).
+#: Four times moves the shipped scenes' tips against 32 substeps by no more than the scenes' own sensitivity
+#: (``fast_turn`` 6.72 mm at 8 substeps, 6.91 without the term; 16.1 at 2, 15.7; the mohawk and the shoulders the same
+#: to 0.6 mm).
+GEOMETRIC_STIFFNESS_FACTOR = 4.0
+
 
 @wp.func
 def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
@@ -131,8 +142,9 @@ def link_sweep(
     link_stiffness: float,
     link_damping: float,
     link_scale: wp.array(dtype=float),
-    # 1: each end's force adds the bound of its geometric stiffness to its segment's turn (``link_sweep``)
-    link_geometric: int,
+    # each end's force adds this many times the bound of its geometric stiffness to its segment's turn (0: none;
+    # ``link_sweep``, ``GEOMETRIC_STIFFNESS_FACTOR``)
+    link_geometric: float,
     # Scratch: the ends the force pass left; what ``link_response_ends`` kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -232,8 +244,8 @@ def link_sweep(
     start) turns with its segment, a turn ``d theta`` changing its torque by ``[f]x [r]x d theta`` at the arm ``r``,
     which the solve, linearised at the step's start, leaves out and the step then takes explicitly; stiff links pulling
     hard at the roots' segments flung them (200 N/m on the benchmark's turn at 1/240 s, 20-40 rad/s and then a
-    fault). Its bound, ``h^2 |f| |r|`` on the segment's two turns across its axis, keeps the matrix symmetric positive
-    definite and only slows a turn under a large force."""
+    fault). ``link_geometric`` times its bound, ``h^2 |f| |r|``, on the segment's two turns across its axis keeps the
+    matrix symmetric positive definite and only slows a turn under a large force."""
     strand = color_strands[tid_offset + wp.tid()]
     if redo != 0 and strand_redo[strand] == 0:
         return
@@ -339,7 +351,7 @@ def link_sweep(
                         nl = Rt * n
                         m = wp.cross(arm, nl)
                         hc = h * c
-                        if link_geometric != 0:
+                        if link_geometric > 0.0:
                             g_sum += h * hk * wp.length(link_point_b[link] - link_point_a[link]) * wp.length(arm)
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
@@ -353,7 +365,7 @@ def link_sweep(
                     torque += spin_free_torque(arm, f)
             if reusing == 0:
                 eye = wp.identity(n=3, dtype=float)
-                solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad + g_sum * eye)
+                solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad + (link_geometric * g_sum) * eye)
                 solved.B[seg] = spin_free_coupling(B + skew(wr_sum) + Bd)
                 solved.C[seg] = C + w_sum * eye + Cd
         elif reusing == 0:
