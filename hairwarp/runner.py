@@ -50,7 +50,7 @@ LINK_STEP_RATE = 0.7
 #: largest density factor and the median segment) past which ``interactions.response = "auto"`` solves them after
 #: the free step at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit
 #: beside a semi-implicit mass, and it held contacts of 70 N/m (rate 5.5) and blew up at 100 (6.5) on the stability
-#: benchmark's turn at 1/240 s (``bench_spring_stability``); solved after it they held to 1,000 N/m. The shipped
+#: benchmark's turn at 1/240 s (``bench_spring_stability``); solved after it they hold to 3,000 N/m. The shipped
 #: scenes' contacts lie below (1.7-5.2 at their steps: the mohawk's 5.2), and stay in the free step, which costs less.
 CONTACT_STEP_RATE = 6.0
 
