@@ -59,9 +59,10 @@ CONTACT_STEP_RATE = 6.0
 #: (``Simulation.whip_note``). Measured peaks: the shipped scenes 0.51-1.21; a 3 rev/s spin and the shipped motions
 #: played ten times as fast at 32 substeps 1.17-1.60 (``long_hair`` at its 8: 1.40); at the shipped 8 substeps, where
 #: linked hair whips harder than at finer steps, 2.23 (``long_hair_shoulders``' nod, 19.0 m/s against 9.9 at 32),
-#: 2.27 (its spin, 26.3 against 16.5) and 2.29 (``fast_turn``'s spin, 21.7 against 15.1). ``sim.whip_ratio`` (2 by
-#: default) takes the frames past it again in finer steps (the nod 11.7 m/s, the spins 18.3 and 16.4-17.0), so the
-#: note is left for guides that whip so even then, or with those retakes off.
+#: 2.27 (its spin, 26.3 against 16.5) and 2.29 (``fast_turn``'s spin, 21.7 against 15.1); since the links' sweeps take
+#: their geometric stiffness the shoulders' nod peaks at 1.81 (15.4 m/s) and its spin at 16.9 m/s. ``sim.whip_ratio``
+#: (2 by default) takes the frames past it again in finer steps (the nod 11.7 m/s, the spins 18.3 and 16.4-17.0), so
+#: the note is left for guides that whip so even then, or with those retakes off.
 WHIP_NOTE_RATIO = 2.0
 
 #: Two takes of a frame whose fastest guide vertices lie within this fraction of each other agree: the step does not
@@ -686,7 +687,8 @@ class Simulation:
         stops only when the last of them faults too. So is a frame whose fastest guide vertex ends it past
         ``sim.whip_ratio`` times the speed the motion explains, and the last take is kept: on motion several times a
         scene's own, linked hair whips harder at 8 substeps than at fine steps (``long_hair_shoulders`` on its nod
-        played ten times as fast: 19.0 m/s at 8, 9.9 at 32, 11.7 with its one whipping frame taken again in 16).
+        played ten times as fast: 15.4 m/s at 8, 9.9 at 32; without its links' geometric stiffness 19.0, and 11.7 with
+        its one whipping frame taken again in 16).
 
         At steps longer than ``links.break_step`` a frame in which a link breaks, or that ends with one stretched past
         its break length, is taken again from its start in steps no longer than the break step
@@ -731,7 +733,7 @@ class Simulation:
         return (f"frame {frame}: guides reached {speed:.3g} m/s{again}, {ratio:.2g} times the {explained:.3g} m/s the "
                 f"motion explains (at sim.speed_margin = {margin:g} times a run faults); on motion this fast a longer "
                 f"step can whip hair harder than finer ones (long_hair_shoulders on its nod played ten times as fast: "
-                f"19.0 m/s at 8 substeps, 9.2 at 10): compare a run with more substeps (now {self.stepper.substeps})")
+                f"15.4 m/s at 8 substeps, 9.9 at 32): compare a run with more substeps (now {self.stepper.substeps})")
 
     def _advance_frame(self) -> Fault:
         fine = self._break_substeps()
