@@ -528,9 +528,13 @@ class StaticLinks:
         if self.link_count == 0 or not self.stiffness > 0.0:
             return 0.0
         seg_mass = np.asarray(seg_mass, dtype=np.float64)
-        ends = np.concatenate([self.seg_a, self.seg_b])
-        per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass)).max()
+        per_segment = self._segment_scale(len(seg_mass)).max()
         return dt * math.sqrt(per_segment * self.stiffness / float(np.median(seg_mass)))
+
+    def _segment_scale(self, seg_count: int) -> np.ndarray:
+        """Per segment, the summed :attr:`scale` of the link ends it carries (float64, ``seg_count``)."""
+        ends = np.concatenate([self.seg_a, self.seg_b])
+        return np.bincount(ends, weights=np.tile(self.scale, 2), minlength=seg_count)
 
     def warm_rate(self, seg_mass: np.ndarray, dt: float) -> float:
         """The links' typical rate in a free step of ``dt`` seconds, which bounds their warm start
@@ -543,8 +547,7 @@ class StaticLinks:
         if self.link_count == 0 or not self.stiffness > 0.0:
             return 0.0
         seg_mass = np.asarray(seg_mass, dtype=np.float64)
-        ends = np.concatenate([self.seg_a, self.seg_b])
-        per_segment = np.bincount(ends, weights=np.tile(self.scale, 2), minlength=len(seg_mass))
+        per_segment = self._segment_scale(len(seg_mass))
         linked = per_segment > 0.0
         rates = np.sqrt(per_segment[linked] * self.stiffness / seg_mass[linked])
         return dt * float(np.percentile(rates, WARM_RATE_PERCENTILE))

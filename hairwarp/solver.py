@@ -301,9 +301,7 @@ class Solver:
         # the order of the colours in a step's first sweep: forward (0) or back (1); a step of an odd count of sweeps
         # turns it for the next (``hairwarp.Stepper`` sets it from the step's place in its frame before each step)
         self.sweep_turn = 0
-        self._link_rate = None  # (links.stiffness, their free-step rate at a step of 1 s): ``_warm_start``
-        self._warm_rate = None  # (links.stiffness, their typical free-step rate at a step of 1 s): ``_warm_start``
-        self._contact_rate = None  # (contacts.stiffness, theirs): ``_step_sweeps``
+        self._kept_rates = {}  # name -> (stiffness, rate at a step of 1 s): ``_rate_per_second``
         self._warm_start_allowed = True
         self._held_written = True  # whether the hair contacts' held dampers may hold a step's values (``_respond``)
         if self.link_sweeps:
@@ -606,34 +604,31 @@ class Solver:
     def _step_sweeps(self) -> int:
         """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the
         free-step rate at it of the links, or of the hair contacts where the sweeps solve them too, the stiffer)."""
-        dt = self._dt_host
         rate = self._link_rate_per_second()
         contacts = self.contacts
         if contacts is not None and contacts.response and contacts.sweeps_contacts:
-            if self._contact_rate is None or self._contact_rate[0] != contacts.stiffness:
-                # at a strip of the typical density: the densest strips' rate (twice this) gave the mohawk's
-                # contacts more sweeps than the step's count at 3-7 substeps and in its frames taken again at the
-                # break step, which they do not need (2 links broken at 4 substeps on them, 3 on the step's count)
-                self._contact_rate = (contacts.stiffness, contact_step_rate(
-                    self.model.seg_mass.numpy(), self.model.seg_length.numpy(), contacts.stiffness, 1.0, density=1.0))
-            rate = max(rate, self._contact_rate[1])
-        return self.links.step_sweeps(dt, dt * rate)
+            # at a strip of the typical density: the densest strips' rate (twice this) gave the mohawk's contacts more
+            # sweeps than the step's count at 3-7 substeps and in its frames taken again at the break step, which they
+            # do not need (2 links broken at 4 substeps on them, 3 on the step's count)
+            rate = max(rate, self._rate_per_second("contacts", contacts.stiffness, lambda mass: contact_step_rate(
+                mass, self.model.seg_length.numpy(), contacts.stiffness, 1.0, density=1.0)))
+        return self.links.step_sweeps(self._dt_host, self._dt_host * rate)
+
+    def _rate_per_second(self, name: str, stiffness: float, rate) -> float:
+        """A free-step rate per second of step, ``rate(seg_mass)``, read from the host once per ``stiffness`` of the
+        springs it is ``name``'s: a new step size costs no copy."""
+        kept = self._kept_rates.get(name)
+        if kept is None or kept[0] != stiffness:
+            kept = self._kept_rates[name] = (stiffness, rate(self.model.seg_mass.numpy()))
+        return kept[1]
 
     def _link_rate_per_second(self) -> float:
-        """The links' free-step rate per second of step (``StaticLinks.free_step_rate``), read from the host once per
-        stiffness: a new step size costs no copy."""
-        links = self.links
-        if self._link_rate is None or self._link_rate[0] != links.stiffness:
-            self._link_rate = (links.stiffness, links.free_step_rate(self.model.seg_mass.numpy(), 1.0))
-        return self._link_rate[1]
+        """The links' free-step rate per second of step (``StaticLinks.free_step_rate``)."""
+        return self._rate_per_second("links", self.links.stiffness, lambda mass: self.links.free_step_rate(mass, 1.0))
 
     def _warm_rate_per_second(self) -> float:
-        """The links' typical free-step rate per second of step (``StaticLinks.warm_rate``), read from the host once
-        per stiffness."""
-        links = self.links
-        if self._warm_rate is None or self._warm_rate[0] != links.stiffness:
-            self._warm_rate = (links.stiffness, links.warm_rate(self.model.seg_mass.numpy(), 1.0))
-        return self._warm_rate[1]
+        """The links' typical free-step rate per second of step (``StaticLinks.warm_rate``)."""
+        return self._rate_per_second("warm", self.links.stiffness, lambda mass: self.links.warm_rate(mass, 1.0))
 
     def forward_kinematics(self, state, control):
         """Recompute the world quantities of ``state`` from its joints."""

@@ -267,6 +267,7 @@ def test_shipped_links_keep_their_whole_last_force():
         sim = Simulation(Scene.load(SCENES / f"{name}.toml", ["groom.count=60", "dense.count=0"]))
         sim.advance_frame()
         rate = sim.links.warm_rate(sim.model.seg_mass.numpy(), sim.stepper.dt)
+        # under the bound's 1.6 (measured 0.65-1.23 with every guide; 0.3 only says the rate was taken at all)
         assert 0.3 < rate < 1.6, (name, rate)
         assert sim.links.warm_start and sim.links.warm_gate == 0.0, name
 
