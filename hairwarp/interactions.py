@@ -227,6 +227,8 @@ def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float,
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
+#: The grain of :meth:`HairContacts._slots`.
+SLOT_GRAIN = 2048
 
 #: Fewest strands per chunk of the hair contacts' per-strand pass that keeps their forces for the next step
 #: (``HairContacts.update_warm``).
@@ -1008,9 +1010,19 @@ class HairContacts:
         if not self.enabled:
             return
         counts = self._one_count if self.device.is_cuda else self.seg_entry_start  # no lists on a GPU
-        launch(self.executor, contact_kernels.contact_response_split, self.capacity,
+        launch(self.executor, contact_kernels.contact_response_split, self._slots(),
                [model.seg_per_strand, self._strip_pairs, self.buffer, counts, state_in.seg_xform, dt, dampers],
                [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+
+    def _slots(self) -> int:
+        """The buffer slots a launch over the stored contacts covers: on the CPU the stored count (a host read of
+        its counter, free there), rounded up to :data:`SLOT_GRAIN` so that a launch is packed again only when the
+        count crosses a grain; on a GPU, where reading it would wait for the device, the whole capacity (the threads
+        past the count return at once)."""
+        if self.device.is_cuda or _capturing(self.device):
+            return self.capacity
+        n = min(int(self.contact_counter.numpy()[0]), self.capacity)
+        return min(self.capacity, max(SLOT_GRAIN, -(-n // SLOT_GRAIN) * SLOT_GRAIN))
 
     def gather_response(self, model, state_in, state_out, dt, dampers, swept=None, colors=None):
         """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
