@@ -195,10 +195,13 @@ SWEEP_GROWTH_STEP = 1.0 / 45.0
 #: (rate 9.8) blew up on the 2 sweeps a cold step takes. Between rates 12 and 19 whether fewer sweeps hold is a matter
 #: of the run (6 held 150, 300 and 500 N/m and blew up at 200, 250 and 400; 8 at 200 and 250; 3 at 100), and 12 held
 #: every stiffness measured from 120 to 7,000 N/m (rates 10.7-82); 4 held 80-100 N/m (rates 8.7-9.8), 16 held 10,000
-#: (rate 98). Those runs took a faulted frame again in finer steps; at the step alone the turn held links to 150 N/m,
-#: 200 blowing up at 1.43 s whatever the sweeps, until the sweeps took the links' geometric stiffness
-#: (``kernels.sweeps.GEOMETRIC_STIFFNESS_FACTOR``): with it the turn holds every stiffness to 30,000 N/m on this
-#: table, and most on the step's own count too, but not 200 N/m (blew up on 2 and on 4 sweeps).
+#: (rate 98). Those runs took a faulted frame again in finer steps, beside the default scene's hair contacts, and took
+#: the gated warm start past where it holds (:data:`hairwarp.solver.WARM_GATE_TYPICAL_RATIO`). With the links alone,
+#: each frame at its step, their geometric stiffness in the sweeps (``kernels.sweeps.GEOMETRIC_STIFFNESS_FACTOR``) and
+#: the gated force bounded, the step's own count holds every stiffness to 30,000 N/m at 1, 2, 4 and 8 substeps, and the
+#: table keeps the links to their length: on the quick turn (60 guides, 0.5 s) links of 150, 1,000 and 10,000 N/m
+#: ended 0.27-0.31 mm long on average on it against 0.72-0.81 on the cold step's two sweeps and 0.12-0.14 on 48, their
+#: tips 22-28 mm from the 48-sweep run against 67.
 STIFF_LINK_SWEEPS = ((8.0, 1), (10.0, 4), (85.0, 12), (math.inf, 16))
 
 #: The percentile of the linked segments' free-step rates that :meth:`StaticLinks.warm_rate` takes.
@@ -559,7 +562,13 @@ class StaticLinks:
         :attr:`warm_gate`, set by the solver for the step): a warm step's count where it takes the whole force of the
         last step, a cold step's where it takes none or the gated share; and at least the count
         :data:`STIFF_LINK_SWEEPS` gives links of free-step ``rate`` (:meth:`free_step_rate` at ``dt``)."""
-        count = max(1, self.sweeps_at(dt, cold=not self.warm_start or self.warm_gate > 0.0))
+        return self.sweeps_starting(dt, rate, cold=not self.warm_start or self.warm_gate > 0.0)
+
+    def sweeps_starting(self, dt: float, rate: float, cold: bool) -> int:
+        """The sweeps a step of ``dt`` seconds takes with links of free-step ``rate``, started ``cold`` (with none
+        or the gated share of the last force) or warm: :meth:`sweeps_at`, and at least the count
+        :data:`STIFF_LINK_SWEEPS` gives the rate."""
+        count = max(1, self.sweeps_at(dt, cold=cold))
         stiff = next(n for limit, n in STIFF_LINK_SWEEPS if rate <= limit)
         return max(count, self.sweeps * stiff)
 

@@ -92,6 +92,16 @@ WARM_START_RATE_GROWTH = 0.45
 WARM_GATE_SPEED = 0.03
 WARM_GATE_RATE = 16.0
 
+#: How far past the whole force's bound on the typical rate (``WARM_START_TYPICAL_RATE`` grown by the step's sweeps,
+#: here those of a step that starts from the gated share) a step still takes the gated force. The lagged force that
+#: the gate keeps whole where the ends move slowly feeds back what the sweeps leave, as the whole one does: on the
+#: benchmark's turn (150 guides, links alone, 1/240 s, two sweeps) the joints' 99th-percentile speed over the run was
+#: the cold step's at typical rates up to 1.40 times that bound (15 N/m), 1.25 times it at 1.62 (20 N/m) and twice
+#: it at 1.98 (30 N/m); links of 30-250 N/m peaked at 20-102 rad/s gated against 7-13 cold, and 250 N/m faulted. On
+#: ``long_hair_shoulders`` at one step a frame (25 sweeps) the shipped links (1.44) ran as cold ones do, and 1.15 and
+#: 1.3 times them (1.55, 1.65) 1.23 and 1.14 times as fast.
+WARM_GATE_TYPICAL_RATIO = 1.5
+
 #: Shortest step [s] from which the hair contacts solved by the links' sweeps start from their last force
 #: (``Solver.contact_warm_start``; the step from which ``response = "auto"`` solves them there,
 #: ``runner.AUTO_RESPONSE_DT``), and at which the links take no warm start beside hair contacts solved after the free
@@ -105,6 +115,12 @@ WARM_GATE_RATE = 16.0
 #: contacts start cold, the links keep the warm start: without it the same rest (0.25 mm/s in the 6th second with the
 #: head still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
 WARM_START_CONTACTS_STEP = 1.0 / 220.0
+
+
+def _warm_typical_bound(sweeps: int) -> float:
+    """The typical free-step rate (``StaticLinks.warm_rate``) up to which a step of ``sweeps`` sweeps takes the links'
+    whole force of the last step: ``WARM_START_TYPICAL_RATE`` grown by ``WARM_START_RATE_GROWTH``."""
+    return WARM_START_TYPICAL_RATE * sweeps ** WARM_START_RATE_GROWTH
 
 #: The hair contacts' rate (``interactions.contact_step_rate``: the largest density factor and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
@@ -573,10 +589,12 @@ class Solver:
         if contacts is not None and contacts.enabled and contacts.response \
                 and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and not self.contact_warm_start(dt):
             return False
+        rate, typical = dt * self._link_rate_per_second(), dt * self._warm_rate_per_second()
         if gated:  # where a body holds the hair, and links not too stiff for a force lagged a step
-            return self.body_contacts.enabled and dt * self._link_rate_per_second() <= WARM_GATE_RATE
-        typical = WARM_START_TYPICAL_RATE * links.sweeps_at(dt) ** WARM_START_RATE_GROWTH
-        return dt * self._link_rate_per_second() <= WARM_START_RATE and dt * self._warm_rate_per_second() <= typical
+            sweeps = links.sweeps_starting(dt, rate, cold=True)
+            return (self.body_contacts.enabled and rate <= WARM_GATE_RATE
+                    and typical <= WARM_GATE_TYPICAL_RATIO * _warm_typical_bound(sweeps))
+        return rate <= WARM_START_RATE and typical <= _warm_typical_bound(links.sweeps_at(dt))
 
     def contact_warm_start(self, dt: float) -> bool:
         """Whether the hair contacts, solved by the links' sweeps after the free step, put each segment's contact
