@@ -302,6 +302,9 @@ class StaticLinks:
     #: How many times the bound of each end's geometric stiffness the links' sweeps after the free step add to its
     #: segment's turn (``kernels.sweeps.GEOMETRIC_STIFFNESS_FACTOR``; 0 only to measure what it holds)
     geometric_stiffness = sweep_kernels.GEOMETRIC_STIFFNESS_FACTOR
+    #: The longest link, in arms of its end, whose end takes that term whole (``kernels.sweeps.GEOMETRIC_ARM_RATIO``;
+    #: a large number only to measure what it holds)
+    geometric_arm_ratio = sweep_kernels.GEOMETRIC_ARM_RATIO
 
     @classmethod
     def build(

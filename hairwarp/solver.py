@@ -813,7 +813,7 @@ class Solver:
             return
         inputs = [model.chains, links.seg_link_start, links.seg_b_start, links.b_slot_link, links.link_seg_a,
                   links.link_seg_b, links.stiffness, links.damping, links.link_scale,
-                  float(links.geometric_stiffness), links.link_point_a,
+                  float(links.geometric_stiffness), float(links.geometric_arm_ratio), links.link_point_a,
                   links.link_point_b, links.link_broken, links.ends, control.bases, self.dt, implicit, self.loads,
                   state_in.joint_q, state_in.seg_xform, state_in.vertex_positions, self.free_q, self.free_qd,
                   self.free_velocities, self.answered_velocities]

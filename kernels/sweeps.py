@@ -37,8 +37,22 @@ wp.set_module_options({"enable_backward": False})
 #: frames 31-36; four times every one held, and 3,000 and 10,000 N/m too (at 2 and 8 substeps as well, to 30,000).
 #: Four times moves the shipped scenes' tips against 32 substeps by no more than the scenes' own sensitivity
 #: (``fast_turn`` 6.72 mm at 8 substeps, 6.91 without the term; 16.1 at 2, 15.7; the mohawk and the shoulders the same
-#: to 0.6 mm).
+#: to 0.6 mm). Those runs took the other kind of hair interaction beside the links; alone, the table held to 1,000
+#: N/m from three times the bound (twice: 100-1,000 N/m blew up at 1.03-1.37 s).
 GEOMETRIC_STIFFNESS_FACTOR = 4.0
+
+#: The longest link, in arms of its end (the end's distance from its segment's origin), whose end takes the whole
+#: geometric term (``link_sweep``; ``hairwarp.StaticLinks.geometric_arm_ratio``): an end on a link stretched further
+#: takes the term of one stretched this far. The term is a damper on the segment's turn in the world, and where it
+#: outweighed a limp segment's own inertia many times it flung the strand: limp linked hair (EI 1e-7, ``long_hair``
+#: on its turn with links and contacts, the robustness suite's stability grid) whipped to 6.1 m/s at 8 and 16 segments
+#: and 2 substeps (1.0 and 0.80 m/s with the term twice the bound, 1.00 without it), its tips' ends on links up to 28
+#: times their arms (the top percent past 3.8). Stiff links stretch little: on the benchmark's turn at one step a frame
+#: (100 and 1,000 N/m) no end passed 1.6 arms. At 4 arms every cell of the grid's limp row holds (0.71-1.40 m/s, none
+#: taken again) and the stiff links' table above with it (at 2, a link of 30 N/m blew up at 1.40 s); the shipped
+#: scenes' tips against 32 substeps: ``fast_turn`` 6.01 and 17.2 mm at 8 and 2 substeps (6.79 and 16.3 uncapped), the
+#: shoulders and the mohawk the same to 0.01 mm.
+GEOMETRIC_ARM_RATIO = 4.0
 
 
 @wp.func
@@ -145,6 +159,8 @@ def link_sweep(
     # each end's force adds this many times the bound of its geometric stiffness to its segment's turn (0: none;
     # ``link_sweep``, ``GEOMETRIC_STIFFNESS_FACTOR``)
     link_geometric: float,
+    # ... at most the term of a link this many arms of its end long (``GEOMETRIC_ARM_RATIO``)
+    link_geometric_arms: float,
     # Scratch: the ends the force pass left; what ``link_response_ends`` kept of each end (``LinkEnds``)
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
@@ -245,7 +261,8 @@ def link_sweep(
     which the solve, linearised at the step's start, leaves out and the step then takes explicitly; stiff links pulling
     hard at the roots' segments flung them (200 N/m on the benchmark's turn at 1/240 s, 20-40 rad/s and then a
     fault). ``link_geometric`` times its bound, ``h^2 |f| |r|``, on the segment's two turns across its axis keeps the
-    matrix symmetric positive definite and only slows a turn under a large force."""
+    matrix symmetric positive definite and only slows a turn under a large force; an end's ``|l|`` counts at most
+    ``link_geometric_arms`` times its arm."""
     strand = color_strands[tid_offset + wp.tid()]
     if redo != 0 and strand_redo[strand] == 0:
         return
@@ -352,7 +369,9 @@ def link_sweep(
                         m = wp.cross(arm, nl)
                         hc = h * c
                         if link_geometric > 0.0:
-                            g_sum += h * hk * wp.length(link_point_b[link] - link_point_a[link]) * wp.length(arm)
+                            reach = wp.length(arm)
+                            g_sum += h * hk * wp.min(wp.length(link_point_b[link] - link_point_a[link]),
+                                                     link_geometric_arms * reach) * reach
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
                         Cd += wp.outer(hc * nl, nl)
