@@ -822,6 +822,9 @@ class HairContacts:
     _order_views = None  # host views of the contact arrays (``_canonical_order``)
     #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
     scatter = False
+    #: The pair rate up to which a contact solved after the free step takes its stiffness
+    #: (``kernels.contacts.CONTACT_RESPONSE_RATE_LIMIT``; read when the response's buffers are made)
+    response_rate_limit = contact_kernels.CONTACT_RESPONSE_RATE_LIMIT
 
     @classmethod
     def build(
@@ -1006,6 +1009,7 @@ class HairContacts:
         r.enabled = int(on)
         r.friction = self.friction
         r.slip_velocity = self.slip_velocity
+        r.rate_limit = float(self.response_rate_limit)
         r.normal = wp.zeros(cap, dtype=wp.vec3, device=dev)
         r.coef = wp.zeros(cap, dtype=float, device=dev)
         r.target = wp.zeros(cap, dtype=float, device=dev)

@@ -213,6 +213,18 @@ class ContactBuffer:
     overflow: wp.array(dtype=wp.int32)
 
 
+#: The rate ``h^2 k (W_a + W_b)`` (the pair's stiffness over the step against the inverse masses of its sides'
+#: segments) up to which a hair contact solved after the free step takes its stiffness: a stiffer one is taken at it.
+#: At that rate the step's backward-Euler solve already takes 99.9 % of a lone pair's approach to its target (``rate /
+#: (1 + rate)``), so a stiffer contact would act no differently within the step; but stacks of such contacts, each
+#: solved apart from the others (split between strands, or Jacobi within a sweep's colour), blew up: on the stability
+#: benchmark's turn (150 guides, contacts alone) at one step a frame 300 N/m held (pair rates to 10,500, 3,500 at the
+#: 99th percentile), 1,000 N/m blew up at 1.33 s and 3,000 at 0.23 s. Taken at 1,000 they hold to 30,000 N/m (at
+#: 3,000: 3,000 N/m blew up at 1.33 s). The shipped scenes' contacts stay below it at every step (at one step a frame
+#: their largest rates are 250-800) and run the same bits.
+CONTACT_RESPONSE_RATE_LIMIT = 1000.0
+
+
 @wp.struct
 class ContactResponse:
     """What ``contact_force`` leaves for the step's second half, the contacts' velocity response inside the strands'
@@ -228,12 +240,14 @@ class ContactResponse:
     face's corner weights, side b; 0 none). ``friction`` and ``slip_velocity`` [m/s]: the contacts' Coulomb
     coefficient and its regularisation. ``split``: the two sides' split factors of the step's response and the
     share of the force on the free velocities that the step's solve leaves the pair, ``1 / (1 + h D (W_a + W_b))``,
-    which bounds its friction (``contact_response_split``)."""
+    which bounds its friction (``contact_response_split``). ``rate_limit``: the pair's rate ``h^2 k (W_a + W_b)``
+    (its sides' segments' inverse masses) up to which its stiffness counts (``CONTACT_RESPONSE_RATE_LIMIT``)."""
 
 
     enabled: int
     friction: float
     slip_velocity: float
+    rate_limit: float
     normal: wp.array(dtype=wp.vec3)
     coef: wp.array(dtype=float)
     target: wp.array(dtype=float)
@@ -747,6 +761,9 @@ def contact_force(
     align = wp.max(1.0 - wp.abs(wp.dot(ta, tb)) - contact_alignment_cutoff, 0.0) / (1.0 - contact_alignment_cutoff)
     k_eff = k * length_scale * align
     c_eff = contact_damping * length_scale * align
+    if response.enabled != 0:
+        # past the step's rate limit a stiffer pair acts no differently in the step (see CONTACT_RESPONSE_RATE_LIMIT)
+        k_eff = wp.min(k_eff, response.rate_limit / ((inv_mass_a + inv_mass_b) * h * h))
     if response.enabled == 0:
         # In the free step the damper acts explicitly, each side slowed by its own implicit mass h c: past the pair's
         # reduced mass over the step it would reverse the approach it damps (both sides answer it whole), and hair

@@ -251,6 +251,17 @@ def test_stiff_links_hold_with_their_geometric_stiffness(monkeypatch):
     assert run_until_fault("links", 10000.0, implicit=True, quick=True) is not None
 
 
+def test_stiff_contacts_hold_at_one_step_a_frame(monkeypatch):
+    """At one step a frame (1/30 s) the benchmark's turn (150 guides, hair contacts alone) holds contacts of 3,000 N/m
+    (430 times ``long_hair``'s) for its 1.5 s: each pair's stiffness counts up to the rate
+    ``kernels.contacts.CONTACT_RESPONSE_RATE_LIMIT`` (1,000), where the step already takes 99.9 % of a lone pair's
+    approach. Taken whole, the stacks of such contacts, each solved apart from the others, blew up at 0.23 s."""
+    over = ["sim.substeps=1"]
+    assert run_until_fault("contacts", 3000.0, implicit=True, overrides=over) is None
+    monkeypatch.setattr(HairContacts, "response_rate_limit", 1.0e30)
+    assert run_until_fault("contacts", 3000.0, implicit=True, overrides=over) is not None
+
+
 def test_limp_linked_hair_takes_the_geometric_term_of_its_ends_up_to_four_arms(monkeypatch):
     """Limp linked hair (EI 1e-7, 8 segments: the robustness suite's stability grid) on ``long_hair``'s turn with its
     links and contacts, at 2 substeps, stays under the grid's burst speed (3 m/s; 1.00 measured) for 1.5 s: an end on
