@@ -133,8 +133,9 @@ def test_a_strand_too_limp_to_hold_its_shape_is_named_and_bounded(device):
 
 def test_the_mohawk_held_as_drawn_keeps_its_links_with_the_head_still():
     # The Ratboy mohawk drawn as the unloaded rest sags 4 cm at its tips in its first frames and stretches a link to
-    # 23 mm of its 30 mm break length by frame 8 with the head still (4 broke when every link had the same
-    # stiffness); held as drawn, it moves by under 0.1 mm and keeps every link slack.
+    # 19.8 mm of its 30 mm break length by frame 8 with the head still (23 mm while its hair contacts were solved in
+    # the free step; 4 broke when every link had the same stiffness); held as drawn, it moves by under 0.1 mm and
+    # keeps every link slack.
     require_ratboy("Ratboy_mohawk.tfx")
     require_ratboy("Ratboy_body.tfxmesh")
     for hold in (True, False):
@@ -148,7 +149,7 @@ def test_the_mohawk_held_as_drawn_keeps_its_links_with_the_head_still():
             assert links.broken_count() == 0 and stretch < 1e-4
             assert np.linalg.norm(x[-1] - drawn, axis=2).max() < 1e-4
         else:
-            assert stretch > 2.0 / 3.0 * links.break_length and tips > 0.02
+            assert stretch > 0.5 * links.break_length and tips > 0.02
 
 
 def test_the_weights_stiffness_is_pinocchios_gravity_derivative(device):
