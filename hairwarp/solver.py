@@ -580,8 +580,9 @@ class Solver:
         carried), nor in a frame taken again (:attr:`warm_start_allowed`).
 
         With ``gated``: whether it takes the gated force (:data:`WARM_GATE_SPEED`) where the bounds of step and rate
-        leave out the whole one, as :meth:`_set_warm_start` asks: with colliders and a rate up to
-        :data:`WARM_GATE_RATE`; the other conditions hold as they are."""
+        leave out the whole one, as :meth:`_set_warm_start` asks: with colliders, a rate up to
+        :data:`WARM_GATE_RATE` and a typical rate within :data:`WARM_GATE_TYPICAL_RATIO` times the whole force's
+        bound on the sweeps of a step started so; the other conditions hold as they are."""
         links = self.links
         if not links.response or (dt >= WARM_START_STEP and not gated) or not self._warm_start_allowed:
             return False

@@ -369,9 +369,9 @@ def link_sweep(
                         m = wp.cross(arm, nl)
                         hc = h * c
                         if link_geometric > 0.0:
-                            reach = wp.length(arm)
+                            arm_length = wp.length(arm)
                             g_sum += h * hk * wp.min(wp.length(link_point_b[link] - link_point_a[link]),
-                                                     link_geometric_arms * reach) * reach
+                                                     link_geometric_arms * arm_length) * arm_length
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
                         Cd += wp.outer(hc * nl, nl)
