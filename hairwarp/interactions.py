@@ -785,15 +785,17 @@ class HairContacts:
             slip_velocity: regularisation speed of the Coulomb law [m/s]; capacity: contact slots;
             alignment_cutoff: least ``1 - |T_a . T_b|`` of a contact; skip_neighbour_strips, implicit_springs: see
             ``build``.
-        seg_lowers, seg_uppers: vec3 (G*S,), segment boxes grown by threshold + margin.
+        seg_lowers, seg_uppers: vec3 (G*S,), segment boxes grown by threshold + margin; seg_dir: their unit
+            directions.
         seg_block_lowers, seg_block_uppers: vec3, the boxes of blocks of ``SEG_BLOCK`` consecutive segments of a
-            strand, in the ``seg_bvh``.
+            strand, in the ``seg_bvh``; seg_block_axes, seg_block_spreads: vec3, vec2, the cones of their directions.
         quad_lowers, quad_uppers, quad_plane, quad_slab, quad_dir: per strip quad (``S P``): grown box, mean plane,
             slab half-width and along-strand direction (see ``kernels.contacts.strip_bounds``).
         vertex_tangents: vec3 (G*(S+1),), the unit strand tangents of the last detection.
         strip_lowers, strip_uppers: vec3, the boxes of blocks of ``QUAD_BLOCK`` consecutive quads of a strip, in the
-            ``strip_bvh``. A ``wp.Bvh`` rather than a ``wp.Mesh``: ``Bvh.refit`` is recorded by a CPU graph capture,
-            ``Mesh.refit`` is not (Warp 1.19), and the boxes read the state's vertices directly.
+            ``strip_bvh``; strip_axes, strip_spreads: vec3, vec2, the cones of their quads' directions. A
+            ``wp.Bvh`` rather than a ``wp.Mesh``: ``Bvh.refit`` is recorded by a CPU graph capture, ``Mesh.refit``
+            is not (Warp 1.19), and the boxes read the state's vertices directly.
         contact_kind: int32 (capacity,): ``CONTACT_VERTEX_FACE`` (a = vertex, b = triangle, w = barycentric
             weights) or ``CONTACT_SEGMENT_SEGMENT`` (a, b = segments, w = (s, t, 0) along each).
         contact_a, contact_b: int32 (capacity,). contact_w: vec3 (capacity,).
@@ -939,6 +941,9 @@ class HairContacts:
         contacts.seg_uppers = wp.zeros(G * S, dtype=wp.vec3, device=dev)
         contacts.seg_block_lowers = wp.zeros(seg_blocks, dtype=wp.vec3, device=dev)
         contacts.seg_block_uppers = wp.zeros(seg_blocks, dtype=wp.vec3, device=dev)
+        contacts.seg_dir = wp.zeros(G * S, dtype=wp.vec3, device=dev)
+        contacts.seg_block_axes = wp.zeros(seg_blocks, dtype=wp.vec3, device=dev)
+        contacts.seg_block_spreads = wp.zeros(seg_blocks, dtype=wp.vec2, device=dev)
         contacts.seg_bvh = None
         contacts.strip_bvh = None
         rest = contacts.rest_positions = wp.array(verts.reshape(-1, 3), dtype=wp.vec3, device=dev)
@@ -956,6 +961,8 @@ class HairContacts:
             contacts.vertex_tangents = wp.zeros(G * (S + 1), dtype=wp.vec3, device=dev)
             contacts.strip_lowers = wp.zeros(quad_blocks, dtype=wp.vec3, device=dev)
             contacts.strip_uppers = wp.zeros(quad_blocks, dtype=wp.vec3, device=dev)
+            contacts.strip_axes = wp.zeros(quad_blocks, dtype=wp.vec3, device=dev)
+            contacts.strip_spreads = wp.zeros(quad_blocks, dtype=wp.vec2, device=dev)
             contacts._strip_bounds(S, rest)
             contacts.strip_bvh = wp.Bvh(contacts.strip_lowers, contacts.strip_uppers)
 
@@ -1095,13 +1102,14 @@ class HairContacts:
         launch(self.executor, contact_kernels.strip_bounds, len(self.strip_lowers),
                [S, self.threshold + self.margin, self.strips.max_width, self.strips.strip_pairs, vertex_positions],
                [self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
-                self.strip_lowers, self.strip_uppers], device=self.device, min_chunk=BLOCK_MIN_CHUNK)
+                self.strip_lowers, self.strip_uppers, self.strip_axes, self.strip_spreads], device=self.device,
+               min_chunk=BLOCK_MIN_CHUNK)
 
     def _segment_bounds(self, S, vertex_positions):
         launch(self.executor, contact_kernels.segment_bounds, len(self.seg_block_lowers),
                [S, self.threshold + self.margin, vertex_positions],
-               [self.seg_lowers, self.seg_uppers, self.seg_block_lowers, self.seg_block_uppers], device=self.device,
-               min_chunk=SEGMENT_MIN_CHUNK)
+               [self.seg_lowers, self.seg_uppers, self.seg_dir, self.seg_block_lowers, self.seg_block_uppers,
+                self.seg_block_axes, self.seg_block_spreads], device=self.device, min_chunk=SEGMENT_MIN_CHUNK)
 
     def refit(self, model, state, rebuild: bool = False):
         """Fit the strip and segment BVHs to ``state``: refit (launch only; :meth:`detect` does it first), or with
@@ -1256,8 +1264,8 @@ class HairContacts:
         return [S, self.threshold + self.margin, self.alignment_cutoff, self.threshold,
                 int(self.rest_gaps), int(self.skip_neighbour_strips), self.strip_bvh.id, self.rest_positions,
                 strips.strip_pairs, strips.strand_neighbour_start, strips.strand_neighbours, state.vertex_positions,
-                self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir,
-                self.vertex_tangents]
+                self.quad_lowers, self.quad_uppers, self.quad_plane, self.quad_slab, self.quad_dir, self.strip_axes,
+                self.strip_spreads, self.vertex_tangents]
 
     def detect_segment_segment(self, model, state):
         """Append the segment-segment contacts of ``state`` to the buffers (launch only; BVH refit by
@@ -1269,7 +1277,8 @@ class HairContacts:
 
     def _segment_segment_inputs(self, S, state):
         return [S, self.threshold + self.margin, self.alignment_cutoff, self.threshold, int(self.rest_gaps),
-                self.seg_bvh.id, self.rest_positions, state.vertex_positions, self.seg_lowers, self.seg_uppers]
+                self.seg_bvh.id, self.rest_positions, state.vertex_positions, self.seg_lowers, self.seg_uppers,
+                self.seg_dir, self.seg_block_axes, self.seg_block_spreads]
 
     def _detect_launch(self, kernel, dim, inputs, fault):
         """One detection launch appending to the buffers in element order, whatever the thread count.

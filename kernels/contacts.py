@@ -196,6 +196,49 @@ def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) ->
             and lo_b[0] <= hi_a[0] and lo_b[1] <= hi_a[1] and lo_b[2] <= hi_a[2])
 
 
+# Alignment cones. A pair more nearly parallel than the alignment cutoff is no contact (1 - |T_a . T_b| below it:
+# angles under ``acos(1 - cutoff)``, 8.1 degrees at the default 0.01). Hair lies mostly along its neighbours, so most
+# of the elements a detection query meets are such pairs. A block's directions lie within a cone (the unit axis of
+# their sum, and the largest angle of one from it), and where two blocks' cones lie within that angle of each other
+# (the angle of their axes plus both spreads) every pair between them is aligned: the block is passed over whole,
+# before its elements' box tests. The same for one element against a block. Exact: the contacts found are the same,
+# the elements skipped being only those the per-pair test would reject; CONE_SLACK [rad] is taken off the angle for
+# the float32 round-off of the spreads (an acos near 1 is off by up to ~5e-4 rad) and of the dot products.
+# On the default scene's state 12 frames in, 25 % of the quad blocks its vertex blocks meet are passed over so.
+CONE_SLACK = wp.constant(4.0e-3)
+
+
+@wp.func
+def cone_spread(axis: wp.vec3, d: wp.vec3) -> float:
+    """The angle [rad] of unit direction ``d`` from a cone's unit ``axis`` (pi / 2 for a zero vector: no prune)."""
+    return wp.acos(wp.clamp(wp.dot(axis, d), -1.0, 1.0))
+
+
+@wp.func
+def cone_budget(contact_alignment_cutoff: float, spread: float):
+    """What is left of the alignment angle for another cone, given a block's ``spread`` [rad]: its cosine and sine
+    ``(cos b, sin b)``, or ``(2, 0)`` where nothing is left (no cosine exceeds 2: nothing is passed over)."""
+    budget = wp.acos(1.0 - contact_alignment_cutoff) - spread - CONE_SLACK
+    if contact_alignment_cutoff <= 0.0 or budget <= 0.0:
+        return wp.vec2(2.0, 0.0)
+    return wp.vec2(wp.cos(budget), wp.sin(budget))
+
+
+@wp.func
+def cones_aligned(axis: wp.vec3, budget: wp.vec2, axes: wp.array(dtype=wp.vec3), spreads: wp.array(dtype=wp.vec2),
+                  other: int) -> bool:
+    """Whether every direction of a block with ``axis`` and ``budget`` (``cone_budget``) lies within the alignment
+    angle of every direction of block ``other``'s cone (``axes``, and the cosines and sines of the ``spreads``),
+    either way along it: the axes' angle under the budget less the other spread, ``|a . b| > cos(budget -
+    spread)``. A block with no budget left reads nothing (curly hair's blocks spread wide)."""
+    if budget[0] > 1.0:
+        return False
+    other_spread = spreads[other]
+    if budget[0] >= other_spread[0]:  # the other spread uses up the budget
+        return False
+    return wp.abs(wp.dot(axis, axes[other])) > budget[0] * other_spread[0] + budget[1] * other_spread[1]
+
+
 @wp.struct
 class ContactBuffer:
     """Stored contact pairs, fixed capacity: per slot the ``kind`` (``CONTACT_VERTEX_FACE`` or
@@ -298,11 +341,15 @@ def segment_bounds(
     # Out:
     seg_lowers: wp.array(dtype=wp.vec3),
     seg_uppers: wp.array(dtype=wp.vec3),
+    seg_dir: wp.array(dtype=wp.vec3),
     block_lowers: wp.array(dtype=wp.vec3),
     block_uppers: wp.array(dtype=wp.vec3),
+    block_axes: wp.array(dtype=wp.vec3),
+    block_spreads: wp.array(dtype=wp.vec2),
 ):
     """One thread per block of ``SEG_BLOCK`` consecutive segments of a strand: each segment's world box [m] grown by
-    the contact reach, and their union, the block's box in the segment-block BVH."""
+    the contact reach and its unit direction, their boxes' union, the block's box in the segment-block BVH, and the
+    cone of their directions (axis, and the cosine and sine of its spread: see ``CONE_SLACK``)."""
     blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + SEG_BLOCK - 1) // SEG_BLOCK
     strand = blk // blocks
@@ -320,10 +367,20 @@ def segment_bounds(
         seg_hi = wp.max(x0, x1) + grow
         seg_lowers[seg] = seg_lo
         seg_uppers[seg] = seg_hi
+        seg_dir[seg] = wp.normalize(x1 - x0)
         lo = wp.min(lo, seg_lo)
         hi = wp.max(hi, seg_hi)
     block_lowers[blk] = lo
     block_uppers[blk] = hi
+    axis = wp.vec3()
+    for k in range(k0, k1):
+        axis += seg_dir[strand * seg_per_strand + k]
+    axis = wp.normalize(axis)
+    spread = float(0.0)
+    for k in range(k0, k1):
+        spread = wp.max(spread, cone_spread(axis, seg_dir[strand * seg_per_strand + k]))
+    block_axes[blk] = axis
+    block_spreads[blk] = wp.vec2(wp.cos(spread), wp.sin(spread))
 
 
 @wp.kernel
@@ -343,6 +400,9 @@ def segment_segment_contacts(
     # Scratch:
     seg_lowers: wp.array(dtype=wp.vec3),
     seg_uppers: wp.array(dtype=wp.vec3),
+    seg_dir: wp.array(dtype=wp.vec3),
+    seg_block_axes: wp.array(dtype=wp.vec3),
+    seg_block_spreads: wp.array(dtype=wp.vec2),
     # Out:
     contacts: ContactBuffer,
     fault: wp.array(dtype=wp.int32),
@@ -350,8 +410,9 @@ def segment_segment_contacts(
     """One thread per segment block I: every segment pair (i in I, j in a later block of another strand) closer than
     the threshold [m].
 
-    One BVH query per block (of ``SEG_BLOCK`` segments) with its box; each block found is tested segment by segment
-    against the reach-grown segment boxes before the exact closest points. Appends (i, j, (s, t, 0)) with the
+    One BVH query per block (of ``SEG_BLOCK`` segments) with its box; a block found whose every pair with I the
+    alignment cutoff rejects is passed over (``cones_aligned``), the others tested segment by segment against the
+    reach-grown segment boxes before the exact closest points. Appends (i, j, (s, t, 0)) with the
     closest-point parameters along each segment (0 at the segment origin, 1 at its end), and as the gap the distance
     of the two segments in the rest pose (``rest_gaps``) or ``repel_distance``. Pairs more nearly parallel
     than the alignment cutoff (``1 - |T_a . T_b|`` below it) are left out: their repulsion is negligible.
@@ -367,11 +428,18 @@ def segment_segment_contacts(
         x = vertex_positions[strand * (seg_per_strand + 1) + k]
         lo = wp.min(lo, x)
         hi = wp.max(hi, x)
+    budget = cone_budget(contact_alignment_cutoff, 0.0)
+    if contact_alignment_cutoff > 0.0:
+        spread = seg_block_spreads[blk]
+        budget = cone_budget(contact_alignment_cutoff, wp.atan2(spread[1], spread[0]))
+    axis = seg_block_axes[blk]
     query = wp.bvh_query_aabb(seg_block_bvh, lo, hi)
     other = int(0)
     while wp.bvh_query_next(query, other):
         other_strand = other // blocks
         if other <= blk or other_strand == strand:
+            continue
+        if cones_aligned(axis, budget, seg_block_axes, seg_block_spreads, other):
             continue
         m0 = (other - other_strand * blocks) * SEG_BLOCK
         m1 = wp.min(m0 + SEG_BLOCK, seg_per_strand)
@@ -382,7 +450,7 @@ def segment_segment_contacts(
             vj = j + other_strand
             q0 = vertex_positions[vj]
             q1 = vertex_positions[vj + 1]
-            tb = wp.normalize(q1 - q0)
+            tb = seg_dir[j]
             for k in range(k0, k1):
                 i = strand * seg_per_strand + k
                 vi = i + strand
@@ -391,7 +459,7 @@ def segment_segment_contacts(
                 if not boxes_overlap(wp.min(p0, p1), wp.max(p0, p1), j_lo, j_hi):
                     continue
                 if contact_alignment_cutoff > 0.0:
-                    if 1.0 - wp.abs(wp.dot(wp.normalize(p1 - p0), tb)) < contact_alignment_cutoff:
+                    if 1.0 - wp.abs(wp.dot(seg_dir[i], tb)) < contact_alignment_cutoff:
                         continue
                 st = wp.closest_point_edge_edge(p0, p1, q0, q1, _DEGENERATE_EDGE_SQ)
                 if st[2] < contact_threshold:
@@ -422,11 +490,14 @@ def strip_bounds(
     quad_dir: wp.array(dtype=wp.vec3),
     block_lowers: wp.array(dtype=wp.vec3),
     block_uppers: wp.array(dtype=wp.vec3),
+    block_axes: wp.array(dtype=wp.vec3),
+    block_spreads: wp.array(dtype=wp.vec2),
 ):
     """One thread per block of ``QUAD_BLOCK`` consecutive quads of a strip: each quad's world box [m] grown by the
     reach; its mean plane (unit normal n, offset n.c) and, in ``quad_slab``, the reach plus the corners' largest
     distance from that plane (a slab holding every point within the reach of the quad); its unit along-strand
-    direction; and the block's box, for the quad-block BVH. A quad wider than ``strip_max_width`` [m] (its strands
+    direction; and the block's box, for the quad-block BVH, and the cone of its quads' directions (axis, and the
+    cosine and sine of its spread: see ``CONE_SLACK``). A quad wider than ``strip_max_width`` [m] (its strands
     have parted) gets an empty box: it is no contact surface until they come back together."""
     blk = tid_offset + wp.tid()
     blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
@@ -465,6 +536,15 @@ def strip_bounds(
         quad_slab[quad] = off + contact_threshold
     block_lowers[blk] = lo
     block_uppers[blk] = hi
+    axis = wp.vec3()
+    for k in range(k0, k1):
+        axis += quad_dir[pair * seg_per_strand + k]
+    axis = wp.normalize(axis)
+    spread = float(0.0)
+    for k in range(k0, k1):
+        spread = wp.max(spread, cone_spread(axis, quad_dir[pair * seg_per_strand + k]))
+    block_axes[blk] = axis
+    block_spreads[blk] = wp.vec2(wp.cos(spread), wp.sin(spread))
 
 
 @wp.kernel
@@ -508,6 +588,8 @@ def vertex_face_contacts(
     quad_plane: wp.array(dtype=wp.vec4),
     quad_slab: wp.array(dtype=float),
     quad_dir: wp.array(dtype=wp.vec3),
+    quad_block_axes: wp.array(dtype=wp.vec3),
+    quad_block_spreads: wp.array(dtype=wp.vec2),
     vertex_tangents: wp.array(dtype=wp.vec3),
     # Out:
     contacts: ContactBuffer,
@@ -517,7 +599,8 @@ def vertex_face_contacts(
     quad of other strands closer than the threshold [m] to one of them.
 
     One BVH query per block with its box; strips of the vertex's own strand, and with ``skip_neighbour_strips`` of
-    its root neighbours, are dropped per quad block found; then per quad a box test against the block's box, and per
+    its root neighbours, are dropped per quad block found, and quad blocks and quads whose every pair with the block's
+    vertices the alignment cutoff rejects (``cones_aligned``); then per quad a box test against the block's box, and per
     vertex a box test, a slab test against the quad's plane, the alignment cutoff (``vertex_tangents``) and the
     exact closest point of the quad. Appends (vertex, triangle, barycentric weights) for the nearer of the quad's two
     triangles, and as the gap the distance of the vertex from the quad in the rest pose (``rest_gaps``) or
@@ -534,6 +617,15 @@ def vertex_face_contacts(
     for k in range(k0 + 1, k1):
         lo = wp.min(lo, vertex_positions[base + k])
         hi = wp.max(hi, vertex_positions[base + k])
+    # the cone of the block's tangents, and what it leaves of the alignment angle (CONE_SLACK)
+    axis = wp.vec3()
+    for k in range(k0, k1):
+        axis += vertex_tangents[base + k]
+    axis = wp.normalize(axis)
+    spread = float(0.0)
+    for k in range(k0, k1):
+        spread = wp.max(spread, cone_spread(axis, vertex_tangents[base + k]))
+    budget = cone_budget(contact_alignment_cutoff, spread)
     quad_blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
     query = wp.bvh_query_aabb(quad_block_bvh, lo, hi)
     found = int(0)
@@ -544,6 +636,8 @@ def vertex_face_contacts(
             if strand_in_ring(strand, ab[0], ab[1], strand_neighbour_start, strand_neighbours):
                 continue
         elif ab[0] == strand or ab[1] == strand:
+            continue
+        if cones_aligned(axis, budget, quad_block_axes, quad_block_spreads, found):
             continue
         j0 = (found - pair * quad_blocks) * QUAD_BLOCK
         j1 = wp.min(j0 + QUAD_BLOCK, seg_per_strand)
