@@ -215,6 +215,20 @@ def cone_spread(axis: wp.vec3, d: wp.vec3) -> float:
 
 
 @wp.func
+def direction_cone(dirs: wp.array(dtype=wp.vec3), first: int, last: int):
+    """The cone of unit directions ``dirs[first:last]``: its unit axis (their sum's direction) and its spread [rad],
+    the largest angle of one from the axis."""
+    axis = wp.vec3()
+    for i in range(first, last):
+        axis += dirs[i]
+    axis = wp.normalize(axis)
+    spread = float(0.0)
+    for i in range(first, last):
+        spread = wp.max(spread, cone_spread(axis, dirs[i]))
+    return axis, spread
+
+
+@wp.func
 def cone_budget(contact_alignment_cutoff: float, spread: float):
     """What is left of the alignment angle for another cone, given a block's ``spread`` [rad]: its cosine and sine
     ``(cos b, sin b)``, or ``(2, 0)`` where nothing is left (no cosine exceeds 2: nothing is passed over)."""
@@ -372,13 +386,7 @@ def segment_bounds(
         hi = wp.max(hi, seg_hi)
     block_lowers[blk] = lo
     block_uppers[blk] = hi
-    axis = wp.vec3()
-    for k in range(k0, k1):
-        axis += seg_dir[strand * seg_per_strand + k]
-    axis = wp.normalize(axis)
-    spread = float(0.0)
-    for k in range(k0, k1):
-        spread = wp.max(spread, cone_spread(axis, seg_dir[strand * seg_per_strand + k]))
+    axis, spread = direction_cone(seg_dir, strand * seg_per_strand + k0, strand * seg_per_strand + k1)
     block_axes[blk] = axis
     block_spreads[blk] = wp.vec2(wp.cos(spread), wp.sin(spread))
 
@@ -536,13 +544,7 @@ def strip_bounds(
         quad_slab[quad] = off + contact_threshold
     block_lowers[blk] = lo
     block_uppers[blk] = hi
-    axis = wp.vec3()
-    for k in range(k0, k1):
-        axis += quad_dir[pair * seg_per_strand + k]
-    axis = wp.normalize(axis)
-    spread = float(0.0)
-    for k in range(k0, k1):
-        spread = wp.max(spread, cone_spread(axis, quad_dir[pair * seg_per_strand + k]))
+    axis, spread = direction_cone(quad_dir, pair * seg_per_strand + k0, pair * seg_per_strand + k1)
     block_axes[blk] = axis
     block_spreads[blk] = wp.vec2(wp.cos(spread), wp.sin(spread))
 
@@ -618,13 +620,7 @@ def vertex_face_contacts(
         lo = wp.min(lo, vertex_positions[base + k])
         hi = wp.max(hi, vertex_positions[base + k])
     # the cone of the block's tangents, and what it leaves of the alignment angle (CONE_SLACK)
-    axis = wp.vec3()
-    for k in range(k0, k1):
-        axis += vertex_tangents[base + k]
-    axis = wp.normalize(axis)
-    spread = float(0.0)
-    for k in range(k0, k1):
-        spread = wp.max(spread, cone_spread(axis, vertex_tangents[base + k]))
+    axis, spread = direction_cone(vertex_tangents, base + k0, base + k1)
     budget = cone_budget(contact_alignment_cutoff, spread)
     quad_blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
     query = wp.bvh_query_aabb(quad_block_bvh, lo, hi)
