@@ -95,6 +95,15 @@ def _cross(a, b) -> np.ndarray:
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise ``a x b`` of (..., 3) arrays (broadcast against each other): ``np.cross``'s arithmetic, term for
+    term (the same bits), without its cost per call in axis handling (~25 us: the character scene's root frames paid
+    it 13 times a step)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a * b`` of quaternions (x, y, z, w)."""
     av, aw = a[:3], a[3]
@@ -668,7 +677,7 @@ def _pchip_tangent(s0: np.ndarray, s1: np.ndarray, h0: float, h1: float) -> np.n
     return out
 
 
-def _hermite(u: float):
+def hermite_basis(u: float):
     """Cubic Hermite basis (h00, h10, h01, h11) at ``u`` and its first two derivatives in ``u``."""
     u2, u3 = u * u, u * u * u
     h = (2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2)
@@ -711,7 +720,7 @@ def hermite_interval(values, tan0, tan1, i: int, u: float, h: float):
     """Value, first and second time derivative of the cubic Hermite curve of :func:`hermite_tangents` on key
     interval ``i`` (length ``h`` [s]) at ``u`` in [0, 1]."""
     d, m0, m1 = values, tan0[i], tan1[i]
-    (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
+    (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = hermite_basis(u)
     p = h00 * d[i] + h10 * h * m0 + h01 * d[i + 1] + h11 * h * m1
     v = (d00 * d[i] + d10 * h * m0 + d01 * d[i + 1] + d11 * h * m1) / h
     a = (e00 * d[i] + e10 * h * m0 + e01 * d[i + 1] + e11 * h * m1) / (h * h)
@@ -865,7 +874,7 @@ class Keyframes(_PivotMotion):
         if u is None:
             zero4, zero3 = [0.0] * 4, [0.0] * 3
             return k.rotations[i], zero4, zero4, k.translations[i], zero3, zero3
-        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = _hermite(u)
+        (h00, h10, h01, h11), (d00, d10, d01, d11), (e00, e10, e01, e11) = hermite_basis(u)
         s0, s1, dl = k.slope0[i], k.slope1[i], k.delta[i]
         half = [0.5 * (h10 * a + h01 * b + h11 * c) for a, b, c in zip(s0, dl, s1)]
         d0, d1 = k.translations[i], k.translations[i + 1]
@@ -929,7 +938,7 @@ class Keyframes(_PivotMotion):
         i, u, h = self._locate(t)
         if u is None:
             return self.rotations[i], np.zeros(4), np.zeros(4)
-        (_, h10, h01, h11), (_, d10, d01, d11), (_, e10, e01, e11) = _hermite(u)
+        (_, h10, h01, h11), (_, d10, d01, d11), (_, e10, e01, e11) = hermite_basis(u)
         s0, s1, dl = self._slope0[i], self._slope1[i], self._delta[i]
         phi = h10 * s0 + h01 * dl + h11 * s1
         phid = (d10 * s0 + d01 * dl + d11 * s1) / h

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import warp as wp
 
-from hairwarp.motion import rotate_floats
+from hairwarp.motion import cross_rows, rotate_floats
 
 
 class State:
@@ -114,8 +114,8 @@ def _unit_quaternions(xforms: np.ndarray) -> np.ndarray:
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Vectors ``v`` (n, 3) rotated by unit quaternions ``q`` (n, 4; x, y, z, w)."""
     u, w = q[:, :3], q[:, 3:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * cross_rows(u, v)
+    return v + w * t + cross_rows(u, t)
 
 
 def hair_ball(model) -> tuple[list[float], float]:
@@ -260,11 +260,14 @@ class Control:
                 # each root's velocity, v + w x (R r), and its strand turned rigidly about it
                 w, v = a[:, :3].astype(float), a[:, 3:].astype(float)
                 roots = _rotate(frames[:, 3:].astype(float), self._roots)
-                speed = float((np.linalg.norm(v + np.cross(w, roots), axis=1)
+                speed = float((np.linalg.norm(v + cross_rows(w, roots), axis=1)
                                + np.linalg.norm(w, axis=1) * self._strand_reach).max())
                 if speed > self.carried_speed:
                     self.carried_speed = speed
-            target.assign(a)
+            if target.device.is_cpu:  # straight into the array's host memory, as set_head does
+                target.numpy()[:] = a
+            else:
+                target.assign(a)
 
     def set_wind(self, velocity):
         """Set the wind velocity [m/s], world."""

@@ -11,6 +11,7 @@ from _character import END, NECK_CM, SCALP_STEP, head_rotation_deg, scalp_points
 from scipy.spatial.transform import Rotation
 
 import hairwarp as hw
+from hairwarp.motion import cross_rows
 from hairwarp.surface import HeadCarriedRoots, PointTrack, ScalpBinding, SurfaceError
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
@@ -140,6 +141,25 @@ def test_root_frames_of_many_times_at_once_are_each_times_own():
     # the same float64 differences, so only round-off is between them (1e-3 of a rate, 1e-6 rad/s^2 near zero); the
     # check is on the batch's layout: its two neighbours of each time taken the other way round flip the sign
     np.testing.assert_allclose(acc[:, :3], (w_plus[:, :3] - w_minus[:, :3]) / 2e-4, rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("interpolation", ["smooth", "monotone", "linear"])
+def test_a_track_evaluated_at_many_times_gives_each_times_own_bits(interpolation):
+    """``PointTrack.evaluate_many`` (the root frames' one pass over a frame's steps) gives each time the bits of
+    ``evaluate`` alone, held at the first and the last key outside them; and the row-wise cross product it goes with
+    gives ``np.cross``'s bits."""
+    rng = np.random.default_rng(5)
+    times = np.cumsum(rng.uniform(0.05, 0.2, 9))
+    track = PointTrack(times, rng.normal(0.0, 0.01, (9, 40, 3)), interpolation)
+    asked = np.concatenate([[times[0] - 0.1, times[0], times[-1], times[-1] + 1.0], times[2:5],
+                            rng.uniform(times[0], times[-1], 12)])
+    many = track.evaluate_many(asked)
+    for k, t in enumerate(asked):
+        for got, alone in zip(many, track.evaluate(t), strict=True):
+            np.testing.assert_array_equal(got[k], alone)
+    a, b = rng.normal(size=(2, 7, 5, 3))
+    np.testing.assert_array_equal(cross_rows(a, b), np.cross(a, b))
+    np.testing.assert_array_equal(cross_rows(a[0, 0], b), np.cross(a[0, 0], b))
 
 
 def test_a_root_far_from_the_surface_is_named():
