@@ -1369,7 +1369,9 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         preview: render the preview picture; default ``output.preview``.
         profile: time the frames stage by stage (:attr:`RunResult.stage_seconds`; the stages then run one after
             another, a little slower, with the same result).
-        resume: continue the run a stop or a fault left in the working folder after its last complete frame.
+        resume: continue the run a stop or a fault left in the working folder after its last complete frame; where
+            the cache is complete and its preview missing (a run stopped while drawing it), draw the preview from
+            the cache.
 
     Raises:
         ValueError: a check before the first step failed (the output, the device, memory, disk space), or
@@ -1382,7 +1384,7 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         hairwarp.preview.PreviewWriteError: the cache is complete and in place, but its preview could not be
             written (the message says both).
     """
-    from hairwarp.io.cache_folder import CacheWriteError
+    from hairwarp.io.cache_folder import CacheComplete, CacheWriteError
     from hairwarp.scene import Scene
 
     t_start = time.perf_counter()
@@ -1398,7 +1400,12 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
     # One stop handler from the lock to the preview: a signal while the simulation is built (a second or more) was
     # the default's, which ended the process silently and left the lock behind.
     with _Stops() as stops:
-        cache = _cache_writer(scene, out_path, notes, resume)
+        try:
+            cache = _cache_writer(scene, out_path, notes, resume)
+        except CacheComplete:
+            if not preview or out_path.with_suffix(".png").exists():
+                raise
+            return _preview_of_complete_cache(scene, out_path, notes, t_start)
         try:
             if cache.folder.found:
                 report.note(cache.folder.found)
@@ -1458,8 +1465,8 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
             cache.release()
         if stops.requested is not None:
             raise RunStopped(f"stopped by {_signal_name(stops.requested)} while drawing the preview; the cache "
-                             f"{out_path} is complete ({frames + 1} frames), the preview may be missing.",
-                             stops.requested)
+                             f"{out_path} is complete ({frames + 1} frames), the preview may be missing (hairwarp "
+                             f"run --resume draws it from the cache).", stops.requested)
     seconds = time.perf_counter() - t_start
     resumed = max(start - 1, 0)  # frame 0 is the rest pose, not simulated
     stages = dict(sim.solver.stage_seconds) if sim.solver.stage_seconds is not None else None
@@ -1528,6 +1535,21 @@ def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool,
     if total > free:
         raise ValueError(f"{cache.path}: the run needs about {_human_bytes(total)} on its disk ({listed}), "
                          f"{_human_bytes(free)} are free on its disk: free space, or lower sim.frames or dense.count")
+
+
+def _preview_of_complete_cache(scene, out_path: Path, notes: list, t_start: float) -> RunResult:
+    """``--resume`` where the run's cache is complete but its preview missing (a run stopped or killed while drawing
+    it): the preview drawn from the cache, no frame simulated."""
+    from pxr import Usd
+
+    from hairwarp.preview import preview_cache
+
+    stage = Usd.Stage.Open(str(out_path))
+    frames = int(round(stage.GetEndTimeCode() - stage.GetStartTimeCode()))
+    del stage
+    path = preview_cache(out_path, out_path.with_suffix(".png"), frames=int(scene.output.preview_frames))
+    notes.append(f"the cache {out_path} was complete; its missing preview was drawn from it")
+    return RunResult(out_path, path, frames, time.perf_counter() - t_start, 0.0, notes, [], frames, 0.0, None)
 
 
 def _draw_preview(scene, sim, out_path: Path, start: int, kept: list) -> Path | None:

@@ -250,7 +250,10 @@ def test_cache_size_is_linear_in_its_frames(tmp_path, frames):
 
 def test_a_stop_while_drawing_the_preview_keeps_the_complete_cache(tmp_path, monkeypatch):
     """A signal after the last frame, while the preview is drawn: the cache is complete and in place, and the run
-    reports the stop (RunStopped, exit 128 + signal) instead of dying mid-picture."""
+    reports the stop (RunStopped, exit 128 + signal) instead of dying mid-picture; ``--resume`` then draws the
+    picture from the cache instead of saying there is nothing to resume."""
+    from PIL import Image
+
     import hairwarp as hw
     import hairwarp.preview
     from hairwarp.runner import RunStopped, simulate
@@ -264,8 +267,26 @@ def test_a_stop_while_drawing_the_preview_keeps_the_complete_cache(tmp_path, mon
     with pytest.raises(RunStopped, match="while drawing the preview") as info:
         simulate(scene, out, progress=False)
     assert info.value.signum == signal.SIGTERM
+    assert "hairwarp run --resume draws it from the cache" in str(info.value)
     stage = Usd.Stage.Open(str(out))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0.0, 3.0)
+    del stage
+    picture = out.with_suffix(".png")
+    assert not picture.exists()
+
+    # --resume draws the missing picture from the cache, simulating nothing and leaving the cache as it was; then,
+    # with the picture there, it has nothing to do
+    monkeypatch.undo()
+    before = _samples(out)
+    result = simulate(scene, out, progress=False, resume=True)
+    assert (result.frames, result.resumed_frames, result.preview_path) == (3, 3, picture)
+    assert any("missing preview was drawn" in note for note in result.notes)
+    with Image.open(picture) as image:
+        assert image.size[0] > 100 and image.size[1] > 100
+    after = _samples(out)
+    assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
+    with pytest.raises(ValueError, match="is complete: nothing to resume"):
+        simulate(scene, out, progress=False, resume=True)
 
 
 def test_resume_with_nothing_stopped_says_why(tmp_path, capsys):

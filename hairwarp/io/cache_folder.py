@@ -39,6 +39,11 @@ _FIRST_KEY = "hairwarp:firstFrame"
 _CHUNKED_KEY = "hairwarp:chunked"
 
 
+class CacheComplete(UsdFileError):
+    """``--resume`` on an output whose cache is complete and in place: no stopped run left frames to continue (the
+    runner draws the preview from the cache where a stop left it missing)."""
+
+
 class CacheWriteError(RuntimeError):
     """Writing the cache failed part-way (disk full, I/O error); the message names the path, the space needed and
     where the complete frames are."""
@@ -236,7 +241,8 @@ class CacheFolder:
                     shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
             return None
         if span is None:
-            raise UsdFileError(self._nothing_to_resume())
+            complete = self.path.exists() and not any(entry != self.lock for entry in self.dir.iterdir())
+            raise (CacheComplete if complete else UsdFileError)(self._nothing_to_resume())
         last = span[1]
         if not self.checkpoint_path(last).is_file():
             raise UsdFileError(f"{self.path}: cannot resume: {self.checkpoint_path(last)} (the state after frame "
