@@ -1032,10 +1032,15 @@ class HairContacts:
         (``contact_response_split``; launch only): what :meth:`gather_response` reads."""
         if not self.enabled:
             return
-        counts = self._one_count if self.device.is_cuda else self.seg_entry_start  # no lists on a GPU
         launch(self.executor, contact_kernels.contact_response_split, self._slots(),
-               [model.seg_per_strand, self._strip_pairs, self.buffer, counts, state_in.seg_xform, dt, dampers],
-               [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+               [model.seg_per_strand, self._strip_pairs, self.buffer, self.entry_counts(), state_in.seg_xform, dt,
+                dampers], [self._response_buffer], device=self.device, min_chunk=GATHER_MIN_CHUNK)
+
+    def entry_counts(self):
+        """The segments' lists of the stored contacts' entries (``seg_entry_start``, built once per detection), or
+        an array of one element where there are none (on a GPU): what the kernels that count a segment's contacts
+        take."""
+        return self._one_count if self.device.is_cuda else self.seg_entry_start
 
     def _slots(self) -> int:
         """The buffer slots a launch over the stored contacts covers: on the CPU the stored count (a host read of

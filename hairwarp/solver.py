@@ -781,8 +781,8 @@ class Solver:
         if contacts is not None:
             # every strand's inverse inertia at the step's start, which each contact's split reads at both its sides
             ex.launch(articulated.strand_inverse_inertia, model.strand_count,
-                      [model.chains, self.dt, implicit, self.loads, state_in.joint_q], [dampers],
-                      min_chunk=INTEGRATE_MIN_CHUNK)
+                      [model.chains, self.dt, implicit, self.loads, state_in.joint_q, contacts.entry_counts()],
+                      [dampers], min_chunk=INTEGRATE_MIN_CHUNK)
             contacts.prepare_response(model, state_in, state_out, self.dt, dampers)
         if links is not None:
             links.prepare_response(model, state_in, state_out, self.dt)

@@ -1151,6 +1151,8 @@ def strand_inverse_inertia(
     implicit: int,
     loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
+    # Scratch: the hair contacts' entries per segment (``kernels.contacts.contact_segment_lists``), or one element
+    seg_entry_start: wp.array(dtype=wp.int32),
     # Out: ``phi_a``, ``phi_b``, ``phi_c`` (the inward pass keeps ``D^-1``, ``D^-1 A``, ``D^-1 B`` there meanwhile)
     dampers: InteractionResponse,
 ):
@@ -1164,9 +1166,16 @@ def strand_inverse_inertia(
     (the recursion of the operational-space inverse inertia, Featherstone, RBDA section 7.3 and Wensing et al. 2012):
     O(S), one more inward and outward pass. A force on the child moves the parent through the joint by what the
     child's articulated inertia passes on, ``X^T Psi f``; the child's acceleration is the parent's carried over
-    (projected by ``Psi^T``) plus the joint's own answer ``S D^-1 S^T f``."""
+    (projected by ``Psi^T``) plus the joint's own answer ``S D^-1 S^T f``.
+
+    Only the hair contacts' split reads it, at the segments of the stored contacts: where ``seg_entry_start`` holds
+    the segments' lists of them (on the CPU), a strand none of whose segments has one is left as it was (the
+    mohawk in motion: 154 of 444 strands)."""
     strand = tid_offset + wp.tid()
     S = chains.seg_per_strand
+    if seg_entry_start.shape[0] > (strand + 1) * S:
+        if seg_entry_start[(strand + 1) * S] == seg_entry_start[strand * S]:
+            return
     h = dt[0]
     cA = wp.mat33()
     cB = wp.mat33()

@@ -188,7 +188,7 @@ def test_inverse_inertia_matches_pinocchio(S, implicit, device):
         loads = Solver._loads(f_arr, t_arr, False, wp.zeros(1, dtype=float, device=device), False)
         wp.launch(articulated.strand_inverse_inertia, dim=1,
                   inputs=[0, model.chains, wp.array([h], dtype=float, device=device), implicit, loads,
-                          state.joint_q], outputs=[out], device=device)
+                          state.joint_q, wp.zeros(1, dtype=wp.int32, device=device)], outputs=[out], device=device)
         pm = chain_model(c["lengths"], c["masses"], c["inertias"], c["root"])
         data = pm.createData()
         q = c["q"].reshape(-1)

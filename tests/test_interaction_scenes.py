@@ -947,6 +947,39 @@ def test_hair_contacts_solved_after_the_free_step_come_to_rest(substeps):
     assert speeds[True][1] == 0, speeds
 
 
+def test_the_contacts_split_reads_the_inverse_inertia_of_contacted_strands_only():
+    """``strand_inverse_inertia`` leaves the strands without a stored hair contact as they were (the split reads the
+    inverse inertia at the stored contacts' segments only): with every strand's left as NaN before each step, a
+    frame of ``long_hair`` (60 guides, 2 substeps, its contacts solved after the free step, in its turn) ends with
+    the same bits as its twin's, and some strands were left out."""
+    from hairwarp.benchmarks import robustness as R
+
+    raw = R.set_key(R.raw_scene("long_hair"), "sim.substeps", 2)
+    sims = [Simulation(R.build(raw, "long_hair", ["groom.count=60"])) for _ in range(2)]
+    for sim in sims:
+        assert sim.contacts.response
+        for _ in range(20):
+            sim.advance_frame()
+    sim = sims[1]
+    S, G = sim.model.seg_per_strand, sim.model.strand_count
+    dampers = sim.solver.dampers
+    step = sim._before_step
+
+    def poisoned(t, control):
+        step(t, control)
+        for phi in (dampers.phi_a, dampers.phi_b, dampers.phi_c):
+            phi.fill_(float("nan"))
+
+    sim._before_step = poisoned
+    for s in sims:
+        s.advance_frame()
+    start = sim.contacts.seg_entry_start.numpy()
+    left_out = int((start[np.arange(1, G + 1) * S] == start[np.arange(G) * S]).sum())
+    assert 0 < left_out < G, left_out
+    assert np.isnan(dampers.phi_a.numpy()).any()  # the left-out strands' stay as they were
+    np.testing.assert_array_equal(sims[0].guide_curves()[0], sims[1].guide_curves()[0])
+
+
 @pytest.mark.parametrize("substeps, response, links, noted", [
     (2, "auto", False, "without the links' sweeps"), (1, "auto", True, "at steps of 0.0222 s and longer"),
     (2, "auto", True, None), (2, "mass", False, None), (8, "step", False, None)])
