@@ -639,7 +639,7 @@ class Simulation:
             still = MotionSample(sample.position, sample.rotation, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
             frames = self._root_frames(t, sample)
             if frames is not None:
-                frames = (frames[0], np.zeros_like(frames[1]), np.zeros_like(frames[2]))
+                frames = (frames[0], np.zeros_like(frames[1]), np.zeros_like(frames[1]))
             return True, still, frames
         return False, sample, self._root_frames(t, sample)
 
@@ -878,8 +878,10 @@ class Simulation:
         for _ in range(n):
             t = t + dt  # as Stepper.advance_frame forms it, and then its time
             ends.append(t)
-        if self.surface is not None and self._carried is None:  # the scalp's frames at all the steps' ends at once
-            self._surface_ahead = dict(zip(ends, self.surface.root_frames_at(ends), strict=True))
+        if self.surface is not None and self._carried is None:
+            # the scalp's frames at all the steps' ends at once; their accelerations are each step's mean
+            # (``_step_mean_frames``), not the frames' own
+            self._surface_ahead = dict(zip(ends, self.surface.root_frames_at(ends, accelerations=False), strict=True))
         self._ahead = {t_end: self._applied(t_end) for t_end in ends}
         try:
             return st.advance_frame(self._before_step, substeps)

@@ -218,23 +218,32 @@ class ScalpBinding:
         """
         return self.root_frames_at([t])[0]
 
-    def root_frames_at(self, times) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def root_frames_at(self, times, accelerations: bool = True) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """:meth:`root_frames` at each of ``times``, each the same bits as alone, in one pass of array operations over
         all of them: a runner takes a frame's steps together (``Simulation``), where a call a step spent its time in
-        numpy's overhead on a few hundred roots (the character scene: about 1.7 ms a step, a third of its frame)."""
-        o, R, omega, (od, odd) = self._frames_at([t + d for t in times for d in (0.0, -_ALPHA_EPS, _ALPHA_EPS)])
-        # every third time is one asked for; the two after it, its angular velocity just before and just after
-        o, R, od, odd = o[0::3], R[0::3], od[0::3], odd[0::3]
-        alpha = (omega[2::3] - omega[1::3]) / (2.0 * _ALPHA_EPS)
-        omega = omega[0::3]
+        numpy's overhead on a few hundred roots (the character scene: about 1.7 ms a step, a third of its frame).
+        Without ``accelerations`` the third array of each is None, and the frames are evaluated at the times alone
+        (the angular accelerations' central differences take two more): a runner takes each step's accelerations
+        as the mean over the step of the velocities (``runner._step_mean_frames``)."""
+        offsets = (0.0, -_ALPHA_EPS, _ALPHA_EPS) if accelerations else (0.0,)
+        o, R, omega, (od, odd) = self._frames_at([t + d for t in times for d in offsets])
+        # with accelerations every third time is one asked for; the two after it, its angular velocity just before
+        # and just after
+        k = len(offsets)
+        o, R, od, odd, omega_at = o[0::k], R[0::k], od[0::k], odd[0::k], omega[0::k]
         rot = R @ self._R0T_Rh
         r = np.sum(R * self._c[:, None, :], axis=-1)  # frame origin less the bound point
         origin = o + r
-        v_origin = od + cross_rows(omega, r)
-        a_origin = odd + cross_rows(alpha, r) + cross_rows(omega, cross_rows(omega, r))
+        v_origin = od + cross_rows(omega_at, r)
         quats = _matrix_to_quat(rot.reshape(-1, 3, 3)).reshape(*rot.shape[:2], 4)
-        return [(np.concatenate([origin[k], quats[k]], axis=1), np.concatenate([omega[k], v_origin[k]], axis=1),
-                 np.concatenate([alpha[k], a_origin[k]], axis=1)) for k in range(len(quats))]
+        poses = [np.concatenate([origin[i], quats[i]], axis=1) for i in range(len(quats))]
+        velocities = [np.concatenate([omega_at[i], v_origin[i]], axis=1) for i in range(len(quats))]
+        if not accelerations:
+            return [(pose, velocity, None) for pose, velocity in zip(poses, velocities, strict=True)]
+        alpha = (omega[2::3] - omega[1::3]) / (2.0 * _ALPHA_EPS)
+        a_origin = odd + cross_rows(alpha, r) + cross_rows(omega_at, cross_rows(omega_at, r))
+        return [(pose, velocity, np.concatenate([alpha[i], a_origin[i]], axis=1))
+                for i, (pose, velocity) in enumerate(zip(poses, velocities, strict=True))]
 
     @property
     def animated(self) -> bool:

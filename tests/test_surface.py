@@ -135,6 +135,12 @@ def test_root_frames_of_many_times_at_once_are_each_times_own():
         for t, frames in zip(batch, binding.root_frames_at(batch), strict=True):
             for got, alone in zip(frames, binding.root_frames(t), strict=True):
                 np.testing.assert_array_equal(got, alone)
+        # without the accelerations (a runner's, which takes each step's mean): the same poses and velocities
+        for t, (pose, velocity, none) in zip(batch, binding.root_frames_at(batch, accelerations=False), strict=True):
+            alone = binding.root_frames(t)
+            np.testing.assert_array_equal(pose, alone[0])
+            np.testing.assert_array_equal(velocity, alone[1])
+            assert none is None
     _, w_minus, _ = binding.root_frames(0.5 - 1e-4)
     _, w_plus, _ = binding.root_frames(0.5 + 1e-4)
     _, _, acc = binding.root_frames(0.5)
