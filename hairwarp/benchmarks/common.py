@@ -475,6 +475,22 @@ def ratboy_mohawk_scene(groom_path, body_path, device, max_strands: int, overrid
         f"sim.device='{device}'", *overrides])
 
 
+def timed_samples(fn, device, repeats: int) -> list[float]:
+    """Wall times [s] of ``repeats`` calls of ``fn`` behind one untimed call (which brings its arrays back into the
+    caches), with ``wp.synchronize_device`` around each."""
+    import warp as wp
+
+    fn()
+    samples = []
+    for _ in range(repeats):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        samples.append(time.perf_counter() - t0)
+    return samples
+
+
 def interleaved_medians(calls: dict, device, repeats: int) -> dict:
     """Median wall time [s] of each call (name -> function), timed in turn ``repeats`` times after one warm-up round,
     with ``wp.synchronize_device`` around each, so a load change on a shared machine hits every figure alike."""

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets, ratboy_mohawk_scene
+from hairwarp.benchmarks.common import interleaved_medians, ratboy_assets, ratboy_mohawk_scene, timed_samples
 
 # Detection margins [m] compared: 0 detects in every step; the others once per frame (the runner's default is
 # the scene's interactions.margin, 4 mm).
@@ -225,15 +225,10 @@ def _frame_costs(scene, without, device, motion_frames: int, frames: int, dynami
         if step_dynamics is not None:
             # this frame's share of the repeats: dynamics_repeats over the frames in all
             share = (frame + 1) * dynamics_repeats // frames - frame * dynamics_repeats // frames
-            _park_pools()
             if share:
-                step_dynamics()  # untimed: the frames left its arrays out of the caches, as no step of a run does
-            for _ in range(share):
-                wp.synchronize_device(device)
-                t0 = time.perf_counter()
-                step_dynamics()
-                wp.synchronize_device(device)
-                dynamics_s.append(time.perf_counter() - t0)
+                _park_pools()
+                # behind an untimed step: the frames left its arrays out of the caches, as no step of a run does
+                dynamics_s += timed_samples(step_dynamics, device, share)
     with_s, without_s = seconds["with"] / frames, seconds["without"] / frames
     substeps = stepper.substeps
     out = {"frames": frames, "substeps": substeps, "with_s": with_s, "without_s": without_s,
