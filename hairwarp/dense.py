@@ -705,17 +705,10 @@ def bench_dense(
     guide_x = wp.array(guide_rest.reshape(-1, 3), dtype=wp.vec3, device=device)
     guide_v = wp.array(np.full((guide_x.shape[0], 3), 0.1), dtype=wp.vec3, device=device)
 
+    from hairwarp.benchmarks.common import timed_samples
+
     def timed(fn):
-        fn()
-        wp.synchronize_device(device)
-        samples = []
-        for _ in range(repeats):
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            fn()
-            wp.synchronize_device(device)
-            samples.append(time.perf_counter() - t0)
-        return float(np.median(samples))
+        return float(np.median(timed_samples(fn, device, repeats)))
 
     results = []
     for n in counts:
