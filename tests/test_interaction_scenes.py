@@ -958,7 +958,7 @@ def test_the_contacts_split_reads_the_inverse_inertia_of_contacted_strands_only(
     sims = [Simulation(R.build(raw, "long_hair", ["groom.count=60"])) for _ in range(2)]
     for sim in sims:
         assert sim.contacts.response
-        for _ in range(20):
+        for _ in range(8):
             sim.advance_frame()
     sim = sims[1]
     S, G = sim.model.seg_per_strand, sim.model.strand_count
