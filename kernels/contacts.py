@@ -201,7 +201,7 @@ def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) ->
 # of the elements a detection query meets are such pairs. A block's directions lie within a cone (the unit axis of
 # their sum, and the largest angle of one from it), and where two blocks' cones lie within that angle of each other
 # (the angle of their axes plus both spreads) every pair between them is aligned: the block is passed over whole,
-# before its elements' box tests. The same for one element against a block. Exact: the contacts found are the same,
+# before its elements' box tests. Exact: the contacts found are the same,
 # the elements skipped being only those the per-pair test would reject; CONE_SLACK [rad] is taken off the angle for
 # the float32 round-off of the spreads (an acos near 1 is off by up to ~5e-4 rad) and of the dot products.
 # On the default scene's state 12 frames in, 25 % of the quad blocks its vertex blocks meet are passed over so.
