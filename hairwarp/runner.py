@@ -1405,9 +1405,10 @@ def simulate(scene, out_path, *, frames: int | None = None, device=None, progres
         try:
             cache = _cache_writer(scene, out_path, notes, resume)
         except CacheComplete:
-            if not preview or out_path.with_suffix(".png").exists():
+            # a complete cache with its preview missing, of the frames asked for: the preview drawn from it
+            if not preview or out_path.with_suffix(".png").exists() or _cached_frames(out_path) != frames:
                 raise
-            return _preview_of_complete_cache(scene, out_path, notes, t_start)
+            return _preview_of_complete_cache(scene, out_path, frames, notes, t_start)
         try:
             if cache.folder.found:
                 report.note(cache.folder.found)
@@ -1539,16 +1540,19 @@ def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool,
                          f"{_human_bytes(free)} are free on its disk: free space, or lower sim.frames or dense.count")
 
 
-def _preview_of_complete_cache(scene, out_path: Path, notes: list, t_start: float) -> RunResult:
-    """``--resume`` where the run's cache is complete but its preview missing (a run stopped or killed while drawing
-    it): the preview drawn from the cache, no frame simulated."""
+def _cached_frames(out_path: Path) -> int:
+    """The frames after the first that the cache at ``out_path`` holds."""
     from pxr import Usd
 
+    stage = Usd.Stage.Open(str(out_path))
+    return int(round(stage.GetEndTimeCode() - stage.GetStartTimeCode()))
+
+
+def _preview_of_complete_cache(scene, out_path: Path, frames: int, notes: list, t_start: float) -> RunResult:
+    """``--resume`` where the run's cache is complete but its preview missing (a run stopped or killed while drawing
+    it): the preview drawn from the cache, no frame simulated."""
     from hairwarp.preview import preview_cache
 
-    stage = Usd.Stage.Open(str(out_path))
-    frames = int(round(stage.GetEndTimeCode() - stage.GetStartTimeCode()))
-    del stage
     path = preview_cache(out_path, out_path.with_suffix(".png"), frames=int(scene.output.preview_frames))
     notes.append(f"the cache {out_path} was complete; its missing preview was drawn from it")
     return RunResult(out_path, path, frames, time.perf_counter() - t_start, 0.0, notes, [], frames, 0.0, None)

@@ -278,6 +278,9 @@ def test_a_stop_while_drawing_the_preview_keeps_the_complete_cache(tmp_path, mon
     # with the picture there, it has nothing to do
     monkeypatch.undo()
     before = _samples(out)
+    with pytest.raises(ValueError, match="is complete: nothing to resume"):  # more frames than it holds: no picture
+        simulate(scene, out, frames=5, progress=False, resume=True)
+    assert not picture.exists()
     result = simulate(scene, out, progress=False, resume=True)
     assert (result.frames, result.resumed_frames, result.preview_path) == (3, 3, picture)
     assert any("missing preview was drawn" in note for note in result.notes)
