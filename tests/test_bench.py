@@ -399,6 +399,7 @@ def test_robustness_rest_redraws_a_missed_ratio_and_judges_the_means(monkeypatch
                                   for free in (False, True))
     assert "4 draws" in rb._ratio_cell(row) and "of the means" in rb._ratio_cell(row)
 
+@pytest.mark.slow
 def test_robustness_grid_runs_cells_near_the_limit_again_and_counts_them(monkeypatch):
     """A cell whose fastest vertex comes near the burst speed runs again with gravity changed (here every cell: the
     share set to 0); a rerun that bursts fails the grid although every cell of the grid itself is ok."""
@@ -472,6 +473,7 @@ def test_robustness_strand_spread_against_a_hand_count():
     assert abs(strand_spread(tips, reference)["median_strand_mm"] - 1.0) < 1e-9
 
 
+@pytest.mark.slow
 def test_robustness_convergence_floor_on_the_tiny_scene():
     """The convergence part on the tiny scene at 1 and 2 substeps against 4: every run finishes, and its second
     reference run (gravity changed by PERTURBATION, relative) lands a finite, non-zero distance from the first: the
@@ -548,6 +550,7 @@ def test_robustness_faster_motion_plays_the_scene_motion_faster():
                                        10.0 * np.asarray(shipped.evaluate(t).angular_velocity), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_robustness_newton_rod_rests_on_its_collider():
     """Newton's VBD rod released onto the peers' capsule for 1 s (the suite adds the floor): both runs finish finite
     with the figures of the MuJoCo peer; with shape contacts the rod's surface never goes more than 1 mm into the

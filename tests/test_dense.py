@@ -574,6 +574,7 @@ def test_bench_dense_frame_reports_every_stage(monkeypatch):
     assert row["write_cheaper_than_simulate"] == (row["write_s"] < result["simulate_frame_s"])
 
 
+@pytest.mark.slow
 def test_suite_dense_quick_through_hairwarp_bench(tmp_path, monkeypatch):
     """``hairwarp bench dense --quick``: both parts run, every pipeline figure is consistent with the frame times it
     is made of, and the files written read back as the same results."""
