@@ -116,12 +116,6 @@ WARM_GATE_TYPICAL_RATIO = 1.5
 #: head still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
 WARM_START_CONTACTS_STEP = 1.0 / 220.0
 
-
-def _warm_typical_bound(sweeps: int) -> float:
-    """The typical free-step rate (``StaticLinks.warm_rate``) up to which a step of ``sweeps`` sweeps takes the links'
-    whole force of the last step: ``WARM_START_TYPICAL_RATE`` grown by ``WARM_START_RATE_GROWTH``."""
-    return WARM_START_TYPICAL_RATE * sweeps ** WARM_START_RATE_GROWTH
-
 #: The hair contacts' rate (``interactions.contact_step_rate``: the largest density factor and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
 #: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
@@ -194,6 +188,12 @@ def _integrator(value) -> Integrator:
     except KeyError:
         names = ", ".join(i.name.lower() for i in Integrator)
         raise ValueError(f"unknown integrator {value!r}; choose one of {names}") from None
+
+
+def _warm_typical_bound(sweeps: int) -> float:
+    """The typical free-step rate (``StaticLinks.warm_rate``) up to which a step of ``sweeps`` sweeps takes the links'
+    whole force of the last step: ``WARM_START_TYPICAL_RATE`` grown by ``WARM_START_RATE_GROWTH``."""
+    return WARM_START_TYPICAL_RATE * sweeps ** WARM_START_RATE_GROWTH
 
 
 class Solver:

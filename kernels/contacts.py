@@ -201,9 +201,9 @@ def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) ->
 # of the elements a detection query meets are such pairs. A block's directions lie within a cone (the unit axis of
 # their sum, and the largest angle of one from it), and where two blocks' cones lie within that angle of each other
 # (the angle of their axes plus both spreads) every pair between them is aligned: the block is passed over whole,
-# before its elements' box tests. Exact: the contacts found are the same,
-# the elements skipped being only those the per-pair test would reject; CONE_SLACK [rad] is taken off the angle for
-# the float32 round-off of the spreads (an acos near 1 is off by up to ~5e-4 rad) and of the dot products.
+# before its elements' box tests. Exact: the contacts found are the same, the elements skipped being only those the
+# per-pair test would reject; CONE_SLACK [rad] is taken off the angle for the float32 round-off of the spreads (an
+# acos near 1 is off by up to ~5e-4 rad) and of the dot products.
 # On the default scene's state 12 frames in, 25 % of the quad blocks its vertex blocks meet are passed over so.
 CONE_SLACK = wp.constant(4.0e-3)
 
@@ -436,10 +436,8 @@ def segment_segment_contacts(
         x = vertex_positions[strand * (seg_per_strand + 1) + k]
         lo = wp.min(lo, x)
         hi = wp.max(hi, x)
-    budget = cone_budget(contact_alignment_cutoff, 0.0)
-    if contact_alignment_cutoff > 0.0:
-        spread = seg_block_spreads[blk]
-        budget = cone_budget(contact_alignment_cutoff, wp.atan2(spread[1], spread[0]))
+    spread = seg_block_spreads[blk]
+    budget = cone_budget(contact_alignment_cutoff, wp.atan2(spread[1], spread[0]))
     axis = seg_block_axes[blk]
     query = wp.bvh_query_aabb(seg_block_bvh, lo, hi)
     other = int(0)
@@ -619,9 +617,13 @@ def vertex_face_contacts(
     for k in range(k0 + 1, k1):
         lo = wp.min(lo, vertex_positions[base + k])
         hi = wp.max(hi, vertex_positions[base + k])
-    # the cone of the block's tangents, and what it leaves of the alignment angle (CONE_SLACK)
-    axis, spread = direction_cone(vertex_tangents, base + k0, base + k1)
-    budget = cone_budget(contact_alignment_cutoff, spread)
+    # the cone of the block's tangents, and what it leaves of the alignment angle (CONE_SLACK); without a cutoff
+    # none (the tangents are not computed then)
+    axis = wp.vec3()
+    budget = cone_budget(contact_alignment_cutoff, 0.0)
+    if contact_alignment_cutoff > 0.0:
+        axis, spread = direction_cone(vertex_tangents, base + k0, base + k1)
+        budget = cone_budget(contact_alignment_cutoff, spread)
     quad_blocks = (seg_per_strand + QUAD_BLOCK - 1) // QUAD_BLOCK
     query = wp.bvh_query_aabb(quad_block_bvh, lo, hi)
     found = int(0)

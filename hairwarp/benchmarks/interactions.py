@@ -210,8 +210,6 @@ def _frame_costs(scene, without, device, motion_frames: int, frames: int, dynami
 
         def step_dynamics():
             dynamics.step(stepper.state, out_state, stepper.control, stepper.dt)
-
-        step_dynamics()  # the warm-up: its launches packed, its arrays touched
     seconds = {name: 0.0 for name in sims}
     dynamics_s = []
     for frame in range(frames):
