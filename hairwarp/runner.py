@@ -1137,8 +1137,9 @@ class _Stops:
         return False
 
 
-def _estimate_bytes(scene, frames: int) -> tuple[int, int]:
-    """(device and host memory of the run, bytes of one cache frame), from the scene alone (before building)."""
+def _estimate_memory(scene) -> int:
+    """Device and host memory [bytes] of the run's arrays, from the scene alone (before building; a groom file's
+    strands are bounded by the file's own size)."""
     S = int(scene.sim.segments)
     G = int(scene.groom.count) if scene.groom.generator else 0  # a groom file is bounded by its own size
     points = int(getattr(scene.groom, "points", 0) or S + 1)
@@ -1149,9 +1150,21 @@ def _estimate_bytes(scene, frames: int) -> tuple[int, int]:
     verts_per = S * (int(scene.dense.samples_per_segment) if scene.dense.basis == "linear" else 1) + 1
     dense_verts = dense_count * verts_per
     dense = dense_verts * 12 * (2 if scene.dense.velocities else 1)
-    memory = guides + 4 * dense  # device arrays, host copies, the Vt arrays of the frame
-    frame_bytes = dense + (G * (S + 1) * 24 if scene.output.guides else 0) + 2048
-    return memory, frame_bytes
+    return guides + 4 * dense  # device arrays, host copies, the Vt arrays of the frame
+
+
+def _frame_bytes(scene, sim) -> int:
+    """Bytes of one binary cache frame of the built run: its curves' points (and velocities) as written, float32,
+    and 2 KiB of transforms and bookkeeping. Counted from the built simulation, not the scene: a groom file's guides
+    (the Ratboy mohawk's frame was taken for 2 KiB against the 183 KiB it writes) and dense hair set by
+    ``dense.density`` have their counts only there."""
+    n = 2048
+    if scene.output.guides:
+        n += sim.model.strand_count * (sim.model.seg_per_strand + 1) * 24
+    if sim.dense is not None:
+        verts = int(sim.dense.curve_vertex_counts(scene.dense.basis == "linear").sum())
+        n += verts * 12 * (2 if scene.dense.velocities else 1)
+    return n
 
 
 def _available_memory() -> int | None:
@@ -1177,7 +1190,7 @@ def _preflight(scene, out_path: Path, frames: int, device) -> None:
         raise ValueError(f"{out_path}: a cache must end in one of {', '.join(USD_SUFFIXES)}, not "
                          f"{out_path.suffix or 'no suffix'!r}")
     resolve_device(device or scene.sim.device, "sim.device")
-    memory, _ = _estimate_bytes(scene, frames)
+    memory = _estimate_memory(scene)
     available = _available_memory()
     if available is not None and memory > available:
         raise ValueError(f"{scene.name}: the run needs about {_human_bytes(memory)} of memory for its arrays, "
@@ -1523,7 +1536,7 @@ def _check_disk_space(cache, scene, sim, frames: int, start: int, preview: bool,
     from hairwarp.io.cache_folder import free_bytes
     from hairwarp.io.usd_common import _human_bytes
 
-    _, frame_bytes = _estimate_bytes(scene, frames)
+    frame_bytes = _frame_bytes(scene, sim)
     text = USDA_BYTES_FACTOR if Path(cache.path).suffix.lower() == ".usda" else 1.0
     frame_bytes = int(frame_bytes * text)
     parts = _disk_needed(scene, sim, frame_bytes, frames, start, preview, text)
