@@ -523,9 +523,9 @@ def test_shipped_scenes_never_gain_energy_with_the_head_still(name, frames, in_s
     """A shipped scene with its head still: the strands' energy (kinetic, gravity and joint springs by
     ``EnergyMeter``, which matches Pinocchio, and the links' springs) never rises over a frame beyond float32
     round-off (the bound of ``test_energy_never_rises_against_a_still_body``; measured rises 7.5e-8, 2.1e-8 and
-    2.2e-7 of it). ``links.response = "auto"`` keeps ``long_hair``'s links (free-step rate 0.62) in the free step and
-    solves ``long_hair_shoulders``' (1.53, past ``LINK_STEP_RATE``) after it: in the free step they gained 4e-4 of
-    the energy in the second frame. ``fast_turn`` ships its links and hair contacts in the response (``"step"``);
+    2.2e-7 of it). ``links.response = "auto"`` keeps ``long_hair``'s links (free-step rate 0.62) in the free step;
+    ``long_hair_shoulders`` solves its own (1.53, past ``LINK_STEP_RATE``) after it, as ``"auto"`` would: in the free
+    step they gained 4e-4 of the energy in the second frame. ``fast_turn`` ships its links and hair contacts in the response (``"step"``);
     the energy counted leaves out the hair contacts' springs, and still its rises stay at round-off."""
     from hairwarp.benchmarks.stability import EnergyMeter
 
