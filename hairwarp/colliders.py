@@ -601,6 +601,8 @@ class ColliderSet:
             self.contacts.slip.fill_(0.0)
             self.contacts.share.fill_(1.0)
             self.contacts.force.zero_()
+            self.contacts.removed.zero_()
+            self.contacts.away.fill_(1.0)
             self.contacts.normal.zero_()
 
     def _check_bound(self, model):
@@ -671,6 +673,8 @@ def body_contacts(vert_count: int, device, *, enabled: bool = True):
     c.slip = wp.zeros(n, dtype=float, device=device)
     c.share = wp.full(n, 1.0, dtype=float, device=device)
     c.force = wp.zeros(n, dtype=wp.vec3, device=device)
+    c.removed = wp.zeros(n, dtype=float, device=device)
+    c.away = wp.full(n, 1.0, dtype=float, device=device)
     return c
 
 

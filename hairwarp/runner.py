@@ -239,6 +239,12 @@ def _upgraded(arrays: dict) -> dict:
         segments = len(np.asarray(out["state0.joint_q"]))
         out["solver.contacts.warm_force"] = np.zeros((segments, 3), np.float32)
         out["solver.contacts.warm_torque"] = np.zeros((segments, 3), np.float32)
+    if "solver.body_contacts.force" in out and "solver.body_contacts.away" not in out:
+        # the slip each contact took away and the time since it last held its vertex, kept since 2026-12-06: a vertex
+        # then held had its force kept, any other none
+        held = np.linalg.norm(np.asarray(out["solver.body_contacts.force"], dtype=np.float32), axis=-1) > 0.0
+        out["solver.body_contacts.removed"] = np.zeros(len(held), np.float32)
+        out["solver.body_contacts.away"] = np.where(held, 0.0, 1.0).astype(np.float32)
     old = "solver.body_contacts.beta"
     if old not in out or "solver.body_contacts.slip" in out:
         return out

@@ -897,15 +897,18 @@ class Solver:
             ``contacts.contact_counter`` and ``contacts.contact_overflow`` (the last step's count, read for the
             frame's report, and the sticky overflow flag; the pairs themselves are detected anew at every frame
             or step from the state), ``contacts.warm_force`` and ``contacts.warm_torque`` (each segment's hair contact
-            force of the last step, which the next free step takes), ``body_contacts.slip``, ``body_contacts.share``
-            and ``body_contacts.force`` (each vertex's speed over its collider, its friction share at long steps and
-            the force the collider put on it last step, from which the next step starts).
+            force of the last step, which the next free step takes), ``body_contacts.slip``, ``body_contacts.share``,
+            ``body_contacts.force``, ``body_contacts.removed`` and ``body_contacts.away`` (each vertex's speed over
+            its collider, its friction share at long steps, the force the collider put on it and the slip it took
+            away in the last step it held the vertex, from which the next step starts, and the time since).
         """
         out = {}
         if self.body_contacts.enabled:
             out["body_contacts.slip"] = self.body_contacts.slip
             out["body_contacts.share"] = self.body_contacts.share
             out["body_contacts.force"] = self.body_contacts.force
+            out["body_contacts.removed"] = self.body_contacts.removed
+            out["body_contacts.away"] = self.body_contacts.away
         if self.links is not None:
             out["links.link_broken"] = self.links.link_broken
             out["links.link_broken_total"] = self.links.link_broken_total

@@ -68,11 +68,13 @@ class BodyContacts:
     ``normal`` (world, unit; zero: no candidate), ``object_velocity`` [m/s] of the collider's surface point at
     the step's end, ``gap`` [m] the distance at the step's start less the contact layer (the approach the
     step may still make), ``friction`` (the collider's, 0 frictionless to 1 full match). Persistent across
-    steps: ``slip`` [m/s], the vertex's speed over the surface at the last step's end, and ``force`` [N, world],
-    the force the collider put on the vertex in that step (zero when none), from which the next step's friction
-    starts (``contact_friction``); at steps of CONTINUOUS_FRICTION_STEP and longer, ``share``, the tangential share
-    of the damper in [0, 1] (1 sticking, less sliding; ``matched_friction``). ``enabled`` = 0: no colliders;
-    ``stiffness`` is ``h c`` per kilogram of the strand (see ``body_contact_solve``).
+    steps, of the last step in which a collider held the vertex: ``slip`` [m/s], the vertex's speed over the surface
+    at that step's end, ``force`` [N, world], the force the collider put on it, and ``removed`` [m/s], how much
+    slower over the surface the contact left it than its free velocity, from which the next step's friction starts
+    (``contact_friction``); ``away`` [s], the time since that step (kept for CONTACT_MEMORY, then cleared); at steps
+    of CONTINUOUS_FRICTION_STEP and longer, ``share``, the tangential share of the damper in [0, 1] (1 sticking,
+    less sliding; ``matched_friction``). ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the
+    strand (see ``body_contact_solve``).
     """
 
     enabled: int
@@ -84,6 +86,8 @@ class BodyContacts:
     slip: wp.array(dtype=float)
     share: wp.array(dtype=float)
     force: wp.array(dtype=wp.vec3)
+    removed: wp.array(dtype=float)
+    away: wp.array(dtype=float)
 
 
 @wp.struct
@@ -435,6 +439,16 @@ STICK_SLIP = wp.constant(1.0e-3)
 #: contact's first step sticking, and to 2.2-2.3 m/s with the share law.
 CONTINUOUS_FRICTION_STEP = wp.constant(1.0 / 220.0)
 
+#: Time [s] a body contact's force, slip and the slip it took away are kept after a step in which it did not hold its
+#: vertex, its force fading to none over it, for the friction of the vertex held again (continuous friction only;
+#: the share law clears them at once, as it always did). Friction takes the last contact's normal force, and a
+#: contact's first step had none: a vertex between two held ones on a curved head, held and let go by turns (a
+#: third of its steps), slid there without friction, the more often the shorter the step (``long_hair``'s vertices
+#: so held 42 times in 12 frames at 64 substeps, 292 times at 256). On the head collider alone runs a step apart
+#: parted by 0.40 mm at 64-128 and 128-256 substeps; with the memory by 0.18 and 0.13 mm. A time, not a count of
+#: steps, so that the friction converges as the step shrinks: the longest step that takes continuous friction.
+CONTACT_MEMORY = wp.constant(1.0 / 220.0)
+
 #: Most solves of a strand's body contacts in a step (``body_contact_solve``): each one after the first leaves out
 #: the vertices whose damper pulled in the one before, and takes back for good those released that then went in.
 CONTACT_PASSES = wp.constant(4)
@@ -494,10 +508,10 @@ def spin_hold(chains: StrandChains, i: int, h: float, implicit: int):
 
 @wp.func
 def contact_friction(warm: wp.vec3, n: wp.vec3, slip: float, free_slip: float, friction: float, c: float):
-    """A held vertex's friction in this step, from its last step (``warm``, the force the collider put on it, and
-    ``slip``, its speed over the surface at that step's end) and this step's ``free_slip`` (before the contact acts,
-    less what gravity adds over the step): the tangential force it starts from and the share ``beta`` of the contact
-    damper ``c`` along the surface. Returns ``(W, beta)``.
+    """A held vertex's friction in this step, from its last contact (``warm``, the force the collider put on it, and
+    ``slip``, its speed over the surface at that step's end) and this step's ``free_slip`` (its speed over the
+    surface before the contact acts, less what the contact took off it in its last step): the tangential force it
+    starts from and the share ``beta`` of the contact damper ``c`` along the surface. Returns ``(W, beta)``.
 
     Every quantity is a continuous function of the state, so the solve makes no stick or slip decision that a small
     change of the data could flip. Sticking (``slip`` <= STICK_SLIP) it starts
@@ -506,12 +520,17 @@ def contact_friction(warm: wp.vec3, n: wp.vec3, slip: float, free_slip: float, f
     the carried force holds it exactly. Sliding (``slip`` >= 2 STICK_SLIP) no force is carried over and the damper
     gives Coulomb's force. In between the two blend. Each damper's force is measured at an estimate of the slip the
     step ends with: the larger of the last slip and ``free_slip``, this step's slip before the contact acts less
-    what gravity adds to it over the step (which friction takes back when the vertex rests or slides steadily). So
-    steady sliding takes exactly Coulomb's force, a slip that falls over the step a little less, and a vertex struck
-    within the step stays near the cone. Every damper is at most ``c`` (the whole contact's, ``beta`` 1). The normal
-    force is the last step's: a contact's first step has no friction, and a changing normal force acts on friction
-    a step late; both vanish with the step (at steps of CONTINUOUS_FRICTION_STEP and longer ``matched_friction``
-    holds instead)."""
+    what the contact took off it in its last step (what the loads it bears add to the slip over a step, which
+    friction takes back when the vertex rests or slides steadily). So steady sliding takes exactly Coulomb's force,
+    a slip that falls over the step a little less, and a vertex struck within the step stays near the cone. (The
+    estimate took off what gravity alone adds over the step: a vertex that a strand hanging over the head pulls
+    along the surface, its load the hanging part's weight, was taken to end the step as fast as its free step left
+    it, its friction fell short of the cone by that ratio, and it crept: ``long_hair``'s tips on a still head at
+    friction 0.6 crept 5-13 mm/s, faster the longer the step, and runs a step apart parted by 1.6-1.7 mm from 32 to
+    256 substeps.) Every damper is at most ``c`` (the whole contact's, ``beta`` 1). The normal force is the last
+    contact's: a contact's first step has no friction, and a changing normal force acts on friction a step late;
+    both vanish with the step (at steps of CONTINUOUS_FRICTION_STEP and longer ``matched_friction`` holds
+    instead)."""
     fn = wp.max(wp.dot(warm, n), 0.0)
     ft = warm - wp.dot(warm, n) * n
     if friction >= FULL_FRICTION:
@@ -534,17 +553,16 @@ def contact_friction(warm: wp.vec3, n: wp.vec3, slip: float, free_slip: float, f
 
 
 @wp.func
-def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free: wp.vec3, fall: wp.vec3, c: float,
-                  matched: int):
+def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free: wp.vec3, c: float, matched: int):
     """What a held vertex's damper starts from: the force it holds before the damper answers the step's motion
-    (the last step's normal force, and the friction ``contact_friction`` carries over), and the damper's share
-    ``beta`` along the surface, given the vertex's ``free`` velocity over the surface and what gravity adds to it
-    over the step (``fall``); with ``matched`` the last step's whole force and the share it kept
-    (``matched_friction``). Returns ``(force, beta)``."""
-    warm = contacts.force[vi]
+    (the last contact's normal force, fading over CONTACT_MEMORY after it, and the friction ``contact_friction``
+    carries over), and the damper's share ``beta`` along the surface, given the vertex's ``free`` velocity over the
+    surface; with ``matched`` the last step's whole force and the share it kept (``matched_friction``). Returns
+    ``(force, beta)``."""
+    warm = contacts.force[vi] * wp.max(1.0 - contacts.away[vi] / CONTACT_MEMORY, 0.0)
     if matched != 0:
         return warm, contacts.share[vi]
-    free_slip = wp.length(free - wp.dot(free, n) * n) - wp.length(fall - wp.dot(fall, n) * n)
+    free_slip = wp.length(free - wp.dot(free, n) * n) - contacts.removed[vi]
     carried, beta = contact_friction(warm, n, contacts.slip[vi], free_slip, contacts.friction[vi], c)
     return wp.max(wp.dot(warm, n), 0.0) * n + carried, beta
 
@@ -575,12 +593,24 @@ def contact_projector(n: wp.vec3, beta: float):
 
 
 @wp.func
-def release_contacts(contacts: BodyContacts, vbase: int, S: int):
-    """A strand none of whose vertices 1..S a collider holds in this step: no slip, force or share to carry over."""
+def forget_contact(contacts: BodyContacts, vi: int, h: float, matched: int):
+    """A vertex no collider holds in this step: its last contact's slip, force and share kept for CONTACT_MEMORY
+    (continuous friction), then none to carry over."""
+    away = contacts.away[vi] + h
+    if matched != 0 or away >= CONTACT_MEMORY:
+        contacts.slip[vi] = 0.0
+        contacts.share[vi] = 1.0
+        contacts.force[vi] = wp.vec3()
+        contacts.removed[vi] = 0.0
+        away = CONTACT_MEMORY
+    contacts.away[vi] = away
+
+
+@wp.func
+def release_contacts(contacts: BodyContacts, vbase: int, S: int, h: float, matched: int):
+    """A strand none of whose vertices 1..S a collider holds in this step (``forget_contact``)."""
     for k in range(S):
-        contacts.slip[vbase + k + 1] = 0.0
-        contacts.share[vbase + k + 1] = 1.0
-        contacts.force[vbase + k + 1] = wp.vec3()
+        forget_contact(contacts, vbase + k + 1, h, matched)
 
 
 @wp.func(inline=True)
@@ -679,14 +709,16 @@ def body_contact_solve(
             F = wp.vec3()
             if held > 0.0:
                 active = 1
-                start, beta = contact_start(contacts, vi, n, v - contacts.object_velocity[vi], h * chains.gravity, c,
-                                            matched)
+                start, beta = contact_start(contacts, vi, n, v - contacts.object_velocity[vi], c, matched)
                 n_b = wp.quat_rotate_inv(R, n)
                 P = contact_projector(n_b, beta)
                 M = hc * P
                 rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
                 F = wp.quat_rotate_inv(R, start) - c * (P * rel)
-            scratch.c[i] = wp.spatial_vector(held, target, beta, released, 0.0, 0.0)
+            free_t = float(0.0)
+            if held > 0.0:
+                free_t = wp.length((v - contacts.object_velocity[vi]) - wp.dot(v - contacts.object_velocity[vi], n) * n)
+            scratch.c[i] = wp.spatial_vector(held, target, beta, released, free_t, 0.0)
             scratch.DB[i] = M
             tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
             scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
@@ -695,7 +727,7 @@ def body_contact_solve(
                     active = 1
         if active == 0:
             if contacts.enabled != 0:
-                release_contacts(contacts, vbase, S)
+                release_contacts(contacts, vbase, S, h, matched)
             return
 
         # Inward: articulated inertias with the dampers' point inertias, the loads' bias; no joint torque (the
@@ -764,6 +796,7 @@ def body_contact_solve(
             flags = scratch.c[i]
             slip = float(0.0)
             share = float(1.0)
+            removed = float(0.0)
             force = wp.vec3()
             state = wp.spatial_bottom(flags)[0]  # 0 may be released, 1 released, -1 taken back for good
             if wp.spatial_top(flags)[0] > 0.0:
@@ -772,14 +805,16 @@ def body_contact_solve(
                 rel = v - contacts.object_velocity[vi] - target * n
                 # the force it started from (the free velocity moves only the share), and the damper's share as
                 # the solve had it
-                start, unused = contact_start(contacts, vi, n, wp.vec3(), wp.vec3(), c, matched)
+                start, unused = contact_start(contacts, vi, n, wp.vec3(), c, matched)
                 beta = wp.spatial_top(flags)[2]
                 force = start - c * (contact_projector(n, beta) * rel)
                 fn = wp.dot(force, n)
                 slip = wp.length(rel - wp.dot(rel, n) * n)
+                removed = wp.max(wp.spatial_bottom(flags)[1] - slip, 0.0)
                 if fn <= 0.0:
                     force = wp.vec3()  # it pulled: the vertex leaves (it will not be held from its free velocity)
                     slip = 0.0
+                    removed = 0.0
                     if state == 0.0:
                         state = 1.0
                         any_pulled = 1
@@ -795,6 +830,7 @@ def body_contact_solve(
             # kept for after the passes: the contacts' force and slip, the vertices released, the free velocity
             top = wp.spatial_top(flags)
             scratch.c[i] = wp.spatial_vector(top[0], top[1], top[2], state, slip, share)
+            scratch.DA[i] = wp.mat33(removed, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             scratch.Du[i] = force
             scratch.p[i] = wp.spatial_vector(w_free, wp.vec3())
         if any_pulled == 0:
@@ -807,9 +843,16 @@ def body_contact_solve(
     if contacts.enabled != 0:
         for k in range(S):
             i = strand * S + k
-            contacts.slip[vbase + k + 1] = wp.spatial_bottom(scratch.c[i])[1]
-            contacts.share[vbase + k + 1] = wp.spatial_bottom(scratch.c[i])[2]
-            contacts.force[vbase + k + 1] = scratch.Du[i]
+            vi = vbase + k + 1
+            force = scratch.Du[i]
+            if wp.length_sq(force) > 0.0:
+                contacts.slip[vi] = wp.spatial_bottom(scratch.c[i])[1]
+                contacts.share[vi] = wp.spatial_bottom(scratch.c[i])[2]
+                contacts.force[vi] = force
+                contacts.removed[vi] = scratch.DA[i][0, 0]
+                contacts.away[vi] = 0.0
+            else:
+                forget_contact(contacts, vi, h, matched)
 
 
 @wp.func
@@ -955,7 +998,7 @@ def integrate_euler(
             if wp.length_sq(contacts.normal[vbase + k + 1]) > 0.0:
                 touching = 1
         if touching == 0:
-            release_contacts(contacts, vbase, S)
+            release_contacts(contacts, vbase, S, h, wp.where(h >= CONTINUOUS_FRICTION_STEP, 1, 0))
     t_left = h
     part = int(0)
     collided = int(0)

@@ -660,6 +660,7 @@ def test_body_contact_solve_matches_float64(case):
     contacts.normal.assign(normals.astype(np.float32))
     contacts.object_velocity.assign(v_obj.astype(np.float32))
     contacts.force.assign(warm.astype(np.float32))
+    contacts.away.zero_()  # held in the last step
     contacts.slip.fill_(slip)
     contacts.friction.fill_(friction)
     X = wp.array([wp.transform_identity()], dtype=wp.transform)
@@ -715,6 +716,54 @@ def test_body_contact_solve_matches_float64(case):
         assert (approach > -0.05 * speed).all()
 
 
+def test_a_contact_is_remembered_for_a_while_after_its_vertex_leaves():
+    """A vertex the collider held keeps its contact's force, slip and the slip it took away through steps in which
+    it is not held, for ``CONTACT_MEMORY`` (its force fading over it: a vertex held again takes its friction from
+    it), then none; the share law at long steps clears them at once. Without it, a vertex held and let go by turns
+    slid without friction in every step that took it again (``test_friction_on_the_head_converges_as_the_step_
+    shrinks``)."""
+    from hairwarp.colliders import body_contacts
+    from hairwarp.kernels.articulated import CONTACT_MEMORY, CONTINUOUS_FRICTION_STEP
+
+    model, solver, Jv, _, _, _, rng = _six_segment_strand(seed=3)
+    S = model.seg_per_strand
+    w0 = rng.normal(size=(S, 3))
+    v_free = (Jv @ w0.ravel()).reshape(-1, 3)
+    X = wp.array([wp.transform_identity()], dtype=wp.transform)
+    V = wp.zeros(1, dtype=wp.spatial_vector)
+    mass = model.seg_mass.numpy().astype(float).sum()
+
+    def solve(contacts, h, held):
+        normals = np.zeros((S + 1, 3))
+        for j in held:  # each approaching its plane
+            normals[j] = -v_free[j] / np.linalg.norm(v_free[j])
+        contacts.normal.assign(normals.astype(np.float32))
+        qd = wp.array(w0.astype(np.float32), dtype=wp.vec3)
+        wp.launch(_contact_solve, 1, inputs=[model.chains, h, X, V, solver.loads, model.joint_q0, qd, contacts,
+                                             solver.scratch, solver.dampers, 0])
+
+    for h in (1.0 / 240.0, 1.0 / 60.0):
+        contacts = body_contacts(S + 1, "cpu")
+        contacts.friction.fill_(0.3)
+        contacts.force.assign(np.tile([0.0, 0.0, 9.81 * mass], (S + 1, 1)).astype(np.float32))
+        contacts.away.zero_()
+        solve(contacts, h, [3, S])  # both held: their contacts' force, slip and slip taken away
+        kept = {a: getattr(contacts, a).numpy()[S].copy() for a in ("force", "slip", "removed")}
+        assert np.linalg.norm(kept["force"]) > 0.0 and kept["slip"] > 0.0 and contacts.away.numpy()[S] == 0.0
+        continuous = h < CONTINUOUS_FRICTION_STEP
+        for step in range(1, 4):
+            solve(contacts, h, [3])  # the tip is no candidate: it left the body
+            gone = not continuous or step * h >= CONTACT_MEMORY
+            for name, value in kept.items():
+                now = getattr(contacts, name).numpy()[S]
+                np.testing.assert_array_equal(now, 0.0 * value if gone else value, err_msg=f"{name} at {step}")
+            assert contacts.away.numpy()[S] == pytest.approx(CONTACT_MEMORY if gone else step * h, rel=1e-6)
+        held_last = contacts.force.numpy()[3].copy()
+        solve(contacts, h, [])  # no vertex held: the strand's contacts are let go in the same way
+        np.testing.assert_array_equal(contacts.force.numpy()[3], held_last if continuous else 0.0 * held_last)
+        assert contacts.away.numpy()[3] == pytest.approx(h if continuous else CONTACT_MEMORY, rel=1e-6)
+
+
 def test_body_contact_friction_is_continuous():
     """No stick or slip decision: the solved velocities are a continuous function of the contact's history. A
     vertex pressed onto the body whose last tangential force grows through the cone's edge, at last slips from
@@ -745,6 +794,7 @@ def test_body_contact_friction_is_continuous():
         warm[j] = fn * n - share_of_cone * mu * fn * t
         contacts.normal.assign(normals.astype(np.float32))
         contacts.force.assign(warm.astype(np.float32))
+        contacts.away.zero_()  # held in the last step
         contacts.slip.fill_(slip)
         contacts.friction.fill_(0.3)
         qd = wp.array(w0.astype(np.float32), dtype=wp.vec3)

@@ -598,36 +598,40 @@ def _shoulders_tips(overrides=(), turning: bool = True, factor_steps: int | None
     return np.asarray(tips)
 
 
+def _tip_spread(tips: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
+    """The tips' difference to ``reference`` [m]: RMS over frames and strands, and the median strand's RMS over
+    frames (hair lying on a body sticks or slides on a small change of its load: a few strands that do so one way in
+    one run and the other in another carry most of an RMS over all)."""
+    per = np.sqrt(np.mean(np.sum((tips - reference) ** 2, axis=-1), axis=0))
+    return float(np.sqrt(np.mean(per ** 2))), float(np.median(per))
+
+
 def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
     """With the warm start the links' sweeps solve the change of their forces over a step, and one sweep a step
     (``links.sweeps`` = 1, the default) whose colours run forward and back in turn (``Solver.sweep_turn``) keeps
-    ``long_hair_shoulders`` near the answer of converged sweeps: its tips 0.20 mm RMS over the run from 6 sweeps a
-    step (which are 0.010 mm from 24; 2 symmetric sweeps 0.11). Always forward, the one sweep's error leans the same
-    way at every step, and the hair lying on the shoulders drifts from the nod on: 1.7 mm."""
+    ``long_hair_shoulders`` near the answer of converged sweeps: its tips 0.48 mm RMS over the run from 6 sweeps a
+    step (which are 0.043 mm from 24), the median strand 0.15 mm. Always forward, the one sweep's error leans the
+    same way at every step: 0.84 mm, the median strand 0.29. (With the body contacts' friction short of the cone,
+    which let hair creep over the shoulders, the forward sweeps' lean drifted it by 1.7 mm, 8 times the turned.)"""
     converged = _shoulders_tips(["links.sweeps=6"])
-
-    def rms(tips):
-        return float(np.sqrt(np.mean(np.sum((tips - converged) ** 2, axis=-1))))
-
-    turned, forward = rms(_shoulders_tips()), rms(_shoulders_tips(turning=False))
-    # twice the turned sweep's 0.20 mm, and half the forward one's lead (8.4 times): room for the float32 sums of 90
-    # frames on another machine, far from both sides of the difference the test decides
-    assert turned < 0.4e-3 and forward > 4.0 * turned, (turned, forward)
+    turned, forward = _tip_spread(_shoulders_tips(), converged), _tip_spread(_shoulders_tips(turning=False), converged)
+    # the turned sweep's RMS and median with a quarter to half of them in hand for the float32 sums of 90 frames on
+    # another machine, and the forward sweeps' median short of twice the turned one's by a fifth
+    assert turned[0] < 0.6e-3 and turned[1] < 0.25e-3 and forward[1] > 1.5 * turned[1], (turned, forward)
 
 
 def test_factors_carried_over_a_frame_keep_the_sweeps_answer():
     """The one sweep a step solves with the factors of the strands' matrices (their inertia with the links' dampers)
     that the frame's first step made (``Solver.plan_factors``): ``long_hair_shoulders`` stays as near converged
-    sweeps as with every step's own factors (tips 0.21 and 0.20 mm RMS over the run from 6 sweeps a step). Solved
-    with the free step's scratch instead of the kept factors, the carried steps tore 526 links (94 mm)."""
+    sweeps as with every step's own factors (tips 0.48 and 0.53 mm RMS over the run from 6 sweeps a step, the median
+    strand 0.15 and 0.13 mm). Solved with the free step's scratch instead of the kept factors, the carried steps tore
+    526 links (94 mm)."""
     converged = _shoulders_tips(["links.sweeps=6"], factor_steps=1)
-
-    def rms(tips):
-        return float(np.sqrt(np.mean(np.sum((tips - converged) ** 2, axis=-1))))
-
-    own, carried = rms(_shoulders_tips(factor_steps=1)), rms(_shoulders_tips())
-    # the turned sweep's bound above; carrying the factors over a frame moves the tips by a twentieth of it
-    assert own < 0.4e-3 and carried < 0.4e-3 and abs(carried - own) < 0.05e-3, (own, carried)
+    own, carried = _tip_spread(_shoulders_tips(factor_steps=1), converged), _tip_spread(_shoulders_tips(), converged)
+    # the turned sweep's bounds above; carrying the factors over a frame moves the median strand by a tenth of its
+    # bound
+    assert max(own[0], carried[0]) < 0.6e-3 and max(own[1], carried[1]) < 0.25e-3, (own, carried)
+    assert abs(carried[1] - own[1]) < 0.025e-3, (own, carried)
 
 
 # long_hair_shoulders' head shaking +-45 deg three times a second, from rest at full speed (no ramp): a strand's most

@@ -476,6 +476,16 @@ def test_checkpoint_restores_the_run_exactly():
     np.testing.assert_array_equal(slip[share < 1.0], np.float32(2.0 * STICK_SLIP))
     np.testing.assert_array_equal(slip[share >= 1.0], 0.0)
     np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
+    # a checkpoint of a version that kept neither the slip each body contact took away nor the time since it held its
+    # vertex: none taken away, and held in the last step where it kept a force (long ago where none)
+    contacts = sim.solver.body_contacts
+    held = np.linalg.norm(saved["solver.body_contacts.force"], axis=-1) > 0.0
+    assert held.any() and not held.all()
+    sim.restore({k: v for k, v in saved.items() if k not in ("solver.body_contacts.removed",
+                                                                "solver.body_contacts.away")})
+    np.testing.assert_array_equal(contacts.removed.numpy(), 0.0)
+    np.testing.assert_array_equal(contacts.away.numpy(), np.where(held, 0.0, 1.0))
+    np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
     # a checkpoint of a version that kept no links' forces of the last step (``Solver._warm_start``): none
     warm = sim.solver.links.link_warm
     warm.assign(np.ones(warm.shape + (3,), dtype=np.float32))
