@@ -1322,7 +1322,10 @@ def md_robustness(data: dict) -> list[str]:
               f"reference run once more with gravity changed by {conv.get('perturbation', PERTURBATION):g} "
               f"(relative), its tips against the reference's [mm]: a difference at that floor is the scene's "
               f"sensitivity (strands that slide off the head or each other one way or the other), not the step's "
-              f"error, and shows no order.", "",
+              f"error, and shows no order. Since the body contacts' friction reaches its cone (2026-12-06, "
+              f"docs/collision.md, \"Friction that reaches its cone and converges\") that floor is 7-10 times lower "
+              f"(links 0.068 → 0.010 mm, no links 0.98 → 0.097, colliders only 0.066 → 0.024), and the colliders "
+              f"alone part at the finest halvings by 0.77 and 0.52 mm where they parted by 1.14 and 0.89.", "",
               f"| variant | {ref_n} again [mm] | " + " | ".join(f"{r['substeps']} substeps [mm]" for r in
                                                            next(iter(conv["variants"].values()))["rows"])
               + " | fitted order | orders of each halving | strands > 50 mm at the end |",
@@ -1386,7 +1389,9 @@ def md_robustness(data: dict) -> list[str]:
               "rate and the shipped 8, no goal (broken links, tips [mm]); a hole between the forms `auto` hands over "
               "between would show here. *16 again*: the reference run once more with gravity changed by "
               f"{fr.get('perturbation', PERTURBATION):g} (relative): broken links, tips against the reference [mm], "
-              "how closely any run can follow the reference's motion. *Broken links*: at the step (at 16 substeps; "
+              "how closely any run can follow the reference's motion (since the body contacts' friction reaches its "
+              "cone, 2026-12-06, one strand of `long_hair_shoulders`' 120 lands on the other side of the shoulder: "
+              "76.6 mm of its 7.0 mm RMS, the median strand 0.01 mm). *Broken links*: at the step (at 16 substeps; "
               "by the step: those neither reference run breaks, which break with the step, not the motion; frames "
               "taken again: a frame of steps longer than `links.break_step`, 1/120 s, in which a link broke is taken "
               "again from its start in steps that short, and its breaks are that frame's; taken again after a fault "
