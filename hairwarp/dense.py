@@ -237,6 +237,7 @@ class DenseHair:
         root_samples=None,
         with_velocities: bool = True,
         device=None,
+        max_count: int | None = None,
     ) -> DenseHair:
         """Sample dense roots, bind them to guides and allocate every per-frame buffer.
 
@@ -266,6 +267,8 @@ class DenseHair:
                 the triangulation, or (row, col) grid coordinates with ``grid_shape``.
             with_velocities: allocate the velocity buffers used by ``evaluate(..., guide_velocities)``.
             device: Warp device; the default device when None.
+            max_count: the most dense strands ``count`` or ``density`` may ask for (the memory at hand), checked
+                before anything of their size is allocated.
         """
         guide_rest = np.asarray(guide_rest, dtype=np.float64)
         if guide_rest.ndim != 3 or guide_rest.shape[2] != 3 or guide_rest.shape[1] < 2 or guide_rest.shape[0] < 1:
@@ -283,6 +286,7 @@ class DenseHair:
             raise DenseHairError(f"samples_per_segment must be >= 1, got {samples_per_segment}")
         if sum(x is not None for x in (count, density, root_samples)) != 1:
             raise DenseHairError("give exactly one of count, density and root_samples")
+        self_max = None if max_count is None else int(max_count)
 
         G, n_vert = guide_rest.shape[:2]
         roots = guide_rest[:, 0]
@@ -299,6 +303,7 @@ class DenseHair:
         self.grid_shape = None
         self.triangles = None
         self.root_uv = None
+        self._max_count = self_max
 
         if grid_shape is not None:
             index, weight, sample_uv = self._bind_grid(roots, grid_shape, count, density, root_samples, rng_roots)
@@ -383,7 +388,7 @@ class DenseHair:
                 )
         else:
             area = _triangle_metrics(roots, tri)[0]
-            n = self._sample_count(count, density, area.sum())
+            n = self._sample_count(count, density, area.sum(), self._max_count)
             which = _allocate(area, n, rng)
             # Uniform point in a triangle: reflect the unit square's upper half (area-preserving).
             r = rng.random((n, 2))
@@ -421,7 +426,7 @@ class DenseHair:
                     np.linalg.norm(np.cross(b - a, d - a), axis=2) + np.linalg.norm(np.cross(d - a, c - a), axis=2)
                 ).ravel()
             )
-            n = self._sample_count(count, density, area.sum())
+            n = self._sample_count(count, density, area.sum(), self._max_count)
             cell = _allocate(area, n, rng)
             r0, c0 = cell // (cols - 1), cell % (cols - 1)
             v, u = rng.random(n), rng.random(n)
@@ -432,14 +437,21 @@ class DenseHair:
         return index, weight, np.column_stack([r0 + v, c0 + u])
 
     @staticmethod
-    def _sample_count(count, density, area):
+    def _sample_count(count, density, area, max_count=None):
         if count is not None:
             if int(count) < 1:
                 raise DenseHairError(f"count must be >= 1, got {count}")
-            return int(count)
-        if not density > 0.0:
-            raise DenseHairError(f"density must be > 0 strands/m^2, got {density}")
-        return int(round(density * area))
+            n, asked = int(count), f"count {int(count):,}"
+        else:
+            if not density > 0.0:
+                raise DenseHairError(f"density must be > 0 strands/m^2, got {density}")
+            n = int(round(density * area))
+            asked = f"density {density:g} strands/m^2 gives {n:,} strands on {area:.3g} m^2 of scalp"
+            if n == 0:
+                raise DenseHairError(f"{asked}: none to build")
+        if max_count is not None and n > max_count:
+            raise DenseHairError(f"{asked}, past the {max_count:,} that fit in memory")
+        return n
 
     def _tip_offsets(self, guide_rest, index, weight, tip_spread, rng):
         S = self.seg_per_strand

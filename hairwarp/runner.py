@@ -506,16 +506,22 @@ class Simulation:
     def _build_dense(self, cfg):
         if not cfg.count and cfg.density is None:
             return None
-        from hairwarp.dense import DenseHair
+        from hairwarp.dense import DenseHair, DenseHairError
 
         model = self.model
-        return DenseHair.build(
-            model.rest_vertex_positions, model.root_uv, count=cfg.count or None, density=cfg.density,
-            grid_shape=model.grid_shape, root_normal=model.root_normal, seed=int(cfg.seed),
-            length_variation=float(cfg.length_variation), tip_spread=float(cfg.tip_spread),
-            clumping=float(cfg.clumping), samples_per_segment=int(cfg.samples_per_segment),
-            with_velocities=bool(cfg.velocities), device=model.device,
-        )
+        available = _available_memory()
+        max_count = None if available is None else max(available // _dense_strand_bytes(self.scene), 1)
+        try:
+            return DenseHair.build(
+                model.rest_vertex_positions, model.root_uv, count=cfg.count or None, density=cfg.density,
+                grid_shape=model.grid_shape, root_normal=model.root_normal, seed=int(cfg.seed),
+                length_variation=float(cfg.length_variation), tip_spread=float(cfg.tip_spread),
+                clumping=float(cfg.clumping), samples_per_segment=int(cfg.samples_per_segment),
+                with_velocities=bool(cfg.velocities), device=model.device, max_count=max_count,
+            )
+        except DenseHairError as exc:  # one line naming the scene and its key
+            key = "dense.count" if cfg.count else "dense.density"
+            raise DenseHairError(f"{self.scene.source or self.scene.name}: {key}: {exc}") from None
 
     def dense_curves(self) -> tuple[np.ndarray, np.ndarray | None]:
         """Host copies of the dense hair's points and velocities for this frame (Hermite samples for
@@ -1152,11 +1158,16 @@ def _estimate_memory(scene) -> int:
     # per segment: two states, the ABA workspace, the model, links and contact slots (about 2 KB measured loosely
     # from the arrays each allocates); the generator's float64 polylines, a few copies while it grows them
     guides = G * S * 2048 + G * points * 24 * 4
-    dense_count = int(scene.dense.count or 0)
-    verts_per = S * (int(scene.dense.samples_per_segment) if scene.dense.basis == "linear" else 1) + 1
-    dense_verts = dense_count * verts_per
-    dense = dense_verts * 12 * (2 if scene.dense.velocities else 1)
-    return guides + 4 * dense  # device arrays, host copies, the Vt arrays of the frame
+    return guides + int(scene.dense.count or 0) * _dense_strand_bytes(scene)
+
+
+def _dense_strand_bytes(scene) -> int:
+    """Memory [bytes] a dense strand of the scene takes: its vertices' points (and velocities), four times over
+    (device arrays, host copies, the Vt arrays of the frame), and 256 bytes for its binding as it is made (float64
+    weights and scalp coordinates)."""
+    S = int(scene.sim.segments)
+    verts = S * (int(scene.dense.samples_per_segment) if scene.dense.basis == "linear" else 1) + 1
+    return 4 * verts * 12 * (2 if scene.dense.velocities else 1) + 256
 
 
 def _frame_bytes(scene, sim) -> int:

@@ -91,6 +91,21 @@ def test_bad_override_exits_2(tmp_path):
     assert r.returncode == 2 and "sim.integrator" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_dense_hair_past_memory_or_none_exits_2_naming_the_key(tmp_path, capsys):
+    """A ``dense.density`` an extra zero or six too large is refused in one line naming the scene and the key, before
+    anything of its size is allocated (1e10 strands/m^2 ran numpy out of memory with a traceback), and one that
+    gives no strand too; nothing is written."""
+    from hairwarp.cli import main
+
+    for density, said in (("1e10", "that fit in memory"), ("1e-3", "none to build")):
+        code = main(["run", str(SCENES / "tiny.toml"), "-o", str(tmp_path / "t.usdc"), "-s",
+                     f"dense.density={density}"])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+        assert str(SCENES / "tiny.toml") in err and "dense.density" in err and said in err, err
+        assert list(tmp_path.iterdir()) == []
+
+
 def test_missing_files_exit_2(tmp_path):
     for cmd in (("run", tmp_path / "nope.toml"), ("info", tmp_path / "nope.hair"), ("preview", tmp_path / "x.usdc")):
         r = _hairwarp(*cmd, cwd=tmp_path)
