@@ -406,6 +406,7 @@ def test_missed_pairs_counts_the_repelling_pairs_a_list_found_earlier_lacks():
     assert counted == {0.001: (1, 1), 0.02: (1, 0)}
 
 
+@pytest.mark.slow  # 10 s: the benchmark's harness, run by every `hairwarp bench interactions`
 def test_interactions_suite_quick_reports_the_goal_from_its_stage_times(monkeypatch, tmp_path):
     """``hairwarp bench interactions --quick``: the per-step cost is the sum of its stages as documented (the links'
     response after the free step and the detection as the runner pays it included), the whole frames' check is the
@@ -575,10 +576,12 @@ def test_links_hold_at_two_steps_a_frame():
     assert rms < 0.025, rms
 
 
+@functools.cache
 def _shoulders_tips(overrides=(), turning: bool = True, factor_steps: int | None = None) -> np.ndarray:
     """Guide tips of every frame of ``long_hair_shoulders`` as shipped (its links solved after the free step, with
-    the warm start), with ``overrides``; without ``turning`` every step's sweeps take the colours forward; with
-    ``factor_steps``, the solver's (``Solver.factor_steps``)."""
+    the warm start), with ``overrides`` (a tuple); without ``turning`` every step's sweeps take the colours forward;
+    with ``factor_steps``, the solver's (``Solver.factor_steps``). Kept for the module's tests, which share runs
+    (the run is deterministic; read only)."""
     sim = Simulation(Scene.load(SCENES / "long_hair_shoulders.toml", ["output.preview=false", *overrides]))
     if factor_steps is not None:
         sim.solver.factor_steps = factor_steps
@@ -613,7 +616,7 @@ def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
     step (which are 0.043 mm from 24), the median strand 0.15 mm. Always forward, the one sweep's error leans the
     same way at every step: 0.84 mm, the median strand 0.29. (With the body contacts' friction short of the cone,
     which let hair creep over the shoulders, the forward sweeps' lean drifted it by 1.7 mm, 8 times the turned.)"""
-    converged = _shoulders_tips(["links.sweeps=6"])
+    converged = _shoulders_tips(("links.sweeps=6",))
     turned, forward = _tip_spread(_shoulders_tips(), converged), _tip_spread(_shoulders_tips(turning=False), converged)
     # the turned sweep's RMS and median with a quarter to half of them in hand for the float32 sums of 90 frames on
     # another machine, and the forward sweeps' median short of twice the turned one's by a fifth
@@ -626,7 +629,7 @@ def test_factors_carried_over_a_frame_keep_the_sweeps_answer():
     sweeps as with every step's own factors (tips 0.48 and 0.53 mm RMS over the run from 6 sweeps a step, the median
     strand 0.15 and 0.13 mm). Solved with the free step's scratch instead of the kept factors, the carried steps tore
     526 links (94 mm)."""
-    converged = _shoulders_tips(["links.sweeps=6"], factor_steps=1)
+    converged = _shoulders_tips(("links.sweeps=6",), factor_steps=1)
     own, carried = _tip_spread(_shoulders_tips(factor_steps=1), converged), _tip_spread(_shoulders_tips(), converged)
     # the turned sweep's bounds above; carrying the factors over a frame moves the median strand by a tenth of its
     # bound
