@@ -65,8 +65,8 @@ def _stop_at_random_frame(out, sig, seed):
     return proc.returncode, err
 
 
-@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130), (signal.SIGHUP, 129),
-                                       (signal.SIGKILL, -9)])
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), pytest.param(signal.SIGINT, 130, marks=pytest.mark.slow),
+                                       pytest.param(signal.SIGHUP, 129, marks=pytest.mark.slow), (signal.SIGKILL, -9)])
 def test_stop_keeps_every_frame_and_resume_equals_an_uninterrupted_run(tmp_path, reference, sig, code):
     out = tmp_path / "tiny.usdc"
     rc, err = _stop_at_random_frame(out, sig, seed=int(sig))

@@ -223,6 +223,7 @@ def test_shoulders_scene_every_step():
     assert touched > 50  # the hair does lie on the shoulders and the head
 
 
+@pytest.mark.slow  # 4.6 s: the shoulders' scene above checks every step of a shipped scene in the default run
 def test_mohawk_scene_every_step():
     """The Ratboy mohawk on its body mesh, cut to 20 guides and the first 0.5 s of the turn, at the scene's 8
     substeps."""

@@ -388,6 +388,7 @@ SLIDE = ['head.motion.kind="translate"', "head.motion.distance=0.1", "head.motio
          "dense.count=0", "output.preview=false"]
 
 
+@pytest.mark.slow  # 5 s
 def test_a_whip_that_finer_steps_do_not_slow_is_named_the_motions():
     """``long_hair`` slid at ten g, its speed margin 3 (the bound 17.4 m/s, 3 times the 5.8 m/s the motion explains),
     whips its guides past the bound in frame 18 at 8 substeps and as fast in that frame taken again in 16 and 32 steps

@@ -251,6 +251,7 @@ def test_stiff_links_hold_with_their_geometric_stiffness(monkeypatch):
     assert run_until_fault("links", 10000.0, implicit=True, quick=True) is not None
 
 
+@pytest.mark.slow  # 3.5 s
 def test_contacts_alone_leave_the_free_step_where_they_blew_up():
     """Hair contacts alone on the benchmark's turn at 1/240 s, 65 N/m (free-step rate 5.25, past
     ``runner.CONTACT_STEP_RATE``), which ``interactions.response = "auto"`` solves after the free step, hold its 1.5 s;
@@ -271,6 +272,7 @@ def test_stiff_contacts_hold_at_one_step_a_frame(monkeypatch):
     assert run_until_fault("contacts", 3000.0, implicit=True, overrides=over) is not None
 
 
+@pytest.mark.slow  # 4.5 s
 def test_limp_linked_hair_takes_the_geometric_term_of_its_ends_up_to_four_arms(monkeypatch):
     """Limp linked hair (EI 1e-7, 8 segments: the robustness suite's stability grid) on ``long_hair``'s turn with its
     links and contacts, at 2 substeps, stays under the grid's burst speed (3 m/s; 1.00 measured) for 1.5 s: an end on

@@ -200,6 +200,7 @@ def _kill_worker_always(task):
     os.kill(os.getpid(), signal.SIGKILL)
 
 
+@pytest.mark.slow  # 4 s: Dask's retries; the faulting variant and the rerun stay in the default run
 def test_a_killed_worker_is_retried_elsewhere_and_the_wedge_completes(tmp_path):
     marker = tmp_path / "killed.pid"
     out = tmp_path / "w"
@@ -217,6 +218,7 @@ def test_a_killed_worker_is_retried_elsewhere_and_the_wedge_completes(tmp_path):
     assert not (out / tasks[0].name / f"{tasks[0].name}.partial").exists()
 
 
+@pytest.mark.slow  # 4 s
 def test_a_task_that_kills_every_worker_is_lost_after_bounded_retries(tmp_path):
     out = tmp_path / "w"
     tasks = farm.wedge_tasks(TINY, {"strands.bend_stiffness": ["1e-4"]}, out, overrides=FIXED)
