@@ -596,6 +596,8 @@ def contact_projector(n: wp.vec3, beta: float):
 def forget_contact(contacts: BodyContacts, vi: int, h: float, matched: int):
     """A vertex no collider holds in this step: its last contact's slip, force and share kept for CONTACT_MEMORY
     (continuous friction), then none to carry over."""
+    if contacts.away[vi] >= CONTACT_MEMORY:
+        return  # cleared already: most vertices, far from every collider
     away = contacts.away[vi] + h
     if matched != 0 or away >= CONTACT_MEMORY:
         contacts.slip[vi] = 0.0
