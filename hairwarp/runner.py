@@ -323,6 +323,7 @@ class Simulation:
         sim = scene.sim
         self.scene = scene
         self.groom = scene.build_groom()
+        _check_groom_memory(scene, self.groom)
         self.motion = scene.head_motion()
         head_rest = self.motion.evaluate(0.0).matrix()
         bound = scene.bind_surface(self.groom, head_rest)
@@ -1155,10 +1156,31 @@ def _estimate_memory(scene) -> int:
     S = int(scene.sim.segments)
     G = int(scene.groom.count) if scene.groom.generator else 0  # a groom file is bounded by its own size
     points = int(getattr(scene.groom, "points", 0) or S + 1)
-    # per segment: two states, the ABA workspace, the model, links and contact slots (about 2 KB measured loosely
-    # from the arrays each allocates); the generator's float64 polylines, a few copies while it grows them
-    guides = G * S * 2048 + G * points * 24 * 4
+    # the generator's float64 polylines, a few copies while it grows them
+    guides = G * S * GUIDE_SEGMENT_BYTES + G * points * 24 * 4
     return guides + int(scene.dense.count or 0) * _dense_strand_bytes(scene)
+
+
+#: Memory [bytes] a guide segment takes: two states, the ABA workspace, the model, links and contact slots (about
+#: 2 KB, measured loosely from the arrays each allocates).
+GUIDE_SEGMENT_BYTES = 2048
+
+
+def _check_groom_memory(scene, groom) -> None:
+    """A groom read from a file has its strand count only once read: the run's arrays for its guides (and dense
+    hair by count) checked against the memory at hand, as ``_preflight`` checks a generated groom's, before any is
+    allocated (ValueError, one line naming the file and the keys that lower it)."""
+    from hairwarp.io.usd_common import _human_bytes
+
+    available = _available_memory()
+    if scene.groom.generator or available is None:
+        return
+    G, S = groom.strand_count, int(scene.sim.segments)
+    need = G * S * GUIDE_SEGMENT_BYTES + int(scene.dense.count or 0) * _dense_strand_bytes(scene)
+    if need > available:
+        raise ValueError(f"{scene.groom.file}: {G:,} guides of {S} segments need about {_human_bytes(need)} of memory "
+                         f"for the run's arrays, {_human_bytes(available)} are available: lower groom.max_strands or "
+                         f"sim.segments")
 
 
 def _dense_strand_bytes(scene) -> int:

@@ -106,6 +106,30 @@ def test_dense_hair_past_memory_or_none_exits_2_naming_the_key(tmp_path, capsys)
         assert list(tmp_path.iterdir()) == []
 
 
+def test_a_groom_file_past_memory_exits_2_naming_the_keys(tmp_path, capsys, monkeypatch):
+    """A groom file's strand count is known once it is read: past the memory at hand (here made 1 MiB) its run is
+    refused in one line naming the file and the keys that lower it, before the model's arrays are allocated, and
+    nothing is written; within it the same scene runs."""
+    from hairwarp import runner
+    from hairwarp.cli import main
+    from hairwarp.groom import scalp_groom
+    from hairwarp.io.cem_hair import write_hair
+
+    write_hair(tmp_path / "g.hair", scalp_groom(count=200, length=0.25, points=13, seed=3))
+    scene = tmp_path / "s.toml"
+    scene.write_text('[sim]\nframes = 2\n[groom]\nfile = "g.hair"\n[head]\nshape = "none"\n'
+                     "[output]\npreview = false\n")
+    out = tmp_path / "out"
+    monkeypatch.setattr(runner, "_available_memory", lambda: 1 << 20)
+    assert main(["run", str(scene), "-o", str(out / "k.usdc")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert "g.hair: 200 guides of" in err and "groom.max_strands" in err and "sim.segments" in err, err
+    assert not out.exists() or list(out.iterdir()) == []
+    monkeypatch.setattr(runner, "_available_memory", lambda: 1 << 30)
+    assert main(["run", str(scene), "-o", str(out / "k.usdc")]) == 0
+
+
 def test_missing_files_exit_2(tmp_path):
     for cmd in (("run", tmp_path / "nope.toml"), ("info", tmp_path / "nope.hair"), ("preview", tmp_path / "x.usdc")):
         r = _hairwarp(*cmd, cwd=tmp_path)
