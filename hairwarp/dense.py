@@ -286,7 +286,6 @@ class DenseHair:
             raise DenseHairError(f"samples_per_segment must be >= 1, got {samples_per_segment}")
         if sum(x is not None for x in (count, density, root_samples)) != 1:
             raise DenseHairError("give exactly one of count, density and root_samples")
-        self_max = None if max_count is None else int(max_count)
 
         G, n_vert = guide_rest.shape[:2]
         roots = guide_rest[:, 0]
@@ -303,7 +302,7 @@ class DenseHair:
         self.grid_shape = None
         self.triangles = None
         self.root_uv = None
-        self._max_count = self_max
+        self._max_count = None if max_count is None else int(max_count)  # read by the binders' _sample_count
 
         if grid_shape is not None:
             index, weight, sample_uv = self._bind_grid(roots, grid_shape, count, density, root_samples, rng_roots)

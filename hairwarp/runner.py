@@ -1150,14 +1150,15 @@ class _Stops:
         return False
 
 
-def _estimate_memory(scene) -> int:
-    """Device and host memory [bytes] of the run's arrays, from the scene alone (before building; a groom file's
-    strands are bounded by the file's own size)."""
+def _estimate_memory(scene, strands: int | None = None) -> int:
+    """Device and host memory [bytes] of the run's arrays for ``strands`` guides, by default the generator's count
+    (a groom file's, none: it has its count only once read, ``_check_groom_memory``)."""
     S = int(scene.sim.segments)
-    G = int(scene.groom.count) if scene.groom.generator else 0  # a groom file is bounded by its own size
+    if strands is None:
+        strands = int(scene.groom.count) if scene.groom.generator else 0
     points = int(getattr(scene.groom, "points", 0) or S + 1)
     # the generator's float64 polylines, a few copies while it grows them
-    guides = G * S * GUIDE_SEGMENT_BYTES + G * points * 24 * 4
+    guides = strands * S * GUIDE_SEGMENT_BYTES + strands * points * 24 * 4
     return guides + int(scene.dense.count or 0) * _dense_strand_bytes(scene)
 
 
@@ -1176,7 +1177,7 @@ def _check_groom_memory(scene, groom) -> None:
     if scene.groom.generator or available is None:
         return
     G, S = groom.strand_count, int(scene.sim.segments)
-    need = G * S * GUIDE_SEGMENT_BYTES + int(scene.dense.count or 0) * _dense_strand_bytes(scene)
+    need = _estimate_memory(scene, G)
     if need > available:
         raise ValueError(f"{scene.groom.file}: {G:,} guides of {S} segments need about {_human_bytes(need)} of memory "
                          f"for the run's arrays, {_human_bytes(available)} are available: lower groom.max_strands or "

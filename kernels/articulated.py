@@ -553,17 +553,17 @@ def contact_friction(warm: wp.vec3, n: wp.vec3, slip: float, free_slip: float, f
 
 
 @wp.func
-def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free: wp.vec3, c: float, matched: int):
+def contact_start(contacts: BodyContacts, vi: int, n: wp.vec3, free_slip: float, c: float, matched: int):
     """What a held vertex's damper starts from: the force it holds before the damper answers the step's motion
     (the last contact's normal force, fading over CONTACT_MEMORY after it, and the friction ``contact_friction``
-    carries over), and the damper's share ``beta`` along the surface, given the vertex's ``free`` velocity over the
-    surface; with ``matched`` the last step's whole force and the share it kept (``matched_friction``). Returns
-    ``(force, beta)``."""
+    carries over), and the damper's share ``beta`` along the surface, given the vertex's ``free_slip`` [m/s], its
+    speed over the surface before the contact acts; with ``matched`` the last step's whole force and the share it
+    kept (``matched_friction``). Returns ``(force, beta)``."""
     warm = contacts.force[vi] * wp.max(1.0 - contacts.away[vi] / CONTACT_MEMORY, 0.0)
     if matched != 0:
         return warm, contacts.share[vi]
-    free_slip = wp.length(free - wp.dot(free, n) * n) - contacts.removed[vi]
-    carried, beta = contact_friction(warm, n, contacts.slip[vi], free_slip, contacts.friction[vi], c)
+    carried, beta = contact_friction(warm, n, contacts.slip[vi], free_slip - contacts.removed[vi],
+                                     contacts.friction[vi], c)
     return wp.max(wp.dot(warm, n), 0.0) * n + carried, beta
 
 
@@ -709,18 +709,18 @@ def body_contact_solve(
                     held = 1.0
             M = wp.mat33()
             F = wp.vec3()
+            free_slip = float(0.0)  # the vertex's speed over the surface before the contact acts
             if held > 0.0:
                 active = 1
-                start, beta = contact_start(contacts, vi, n, v - contacts.object_velocity[vi], c, matched)
+                free = v - contacts.object_velocity[vi]
+                free_slip = wp.length(free - wp.dot(free, n) * n)
+                start, beta = contact_start(contacts, vi, n, free_slip, c, matched)
                 n_b = wp.quat_rotate_inv(R, n)
                 P = contact_projector(n_b, beta)
                 M = hc * P
-                rel = wp.quat_rotate_inv(R, v - contacts.object_velocity[vi]) - target * n_b
+                rel = wp.quat_rotate_inv(R, free) - target * n_b
                 F = wp.quat_rotate_inv(R, start) - c * (P * rel)
-            free_t = float(0.0)
-            if held > 0.0:
-                free_t = wp.length((v - contacts.object_velocity[vi]) - wp.dot(v - contacts.object_velocity[vi], n) * n)
-            scratch.c[i] = wp.spatial_vector(held, target, beta, released, free_t, 0.0)
+            scratch.c[i] = wp.spatial_vector(held, target, beta, released, free_slip, 0.0)
             scratch.DB[i] = M
             tip = wp.vec3(0.0, 0.0, -chains.seg_length[i])
             scratch.p[i] = wp.spatial_vector(-wp.cross(tip, F), -F)
@@ -807,7 +807,7 @@ def body_contact_solve(
                 rel = v - contacts.object_velocity[vi] - target * n
                 # the force it started from (the free velocity moves only the share), and the damper's share as
                 # the solve had it
-                start, unused = contact_start(contacts, vi, n, wp.vec3(), c, matched)
+                start, unused = contact_start(contacts, vi, n, 0.0, c, matched)
                 beta = wp.spatial_top(flags)[2]
                 force = start - c * (contact_projector(n, beta) * rel)
                 fn = wp.dot(force, n)
@@ -829,12 +829,12 @@ def body_contact_solve(
                 if wp.dot(v - contacts.object_velocity[vi], n) < wp.spatial_top(flags)[1]:
                     state = -1.0
                     any_pulled = 1
-            # kept for after the passes: the contacts' force and slip, the vertices released, the free velocity
+            # kept for after the passes: the contacts' force, slip and the slip they took away, the vertices
+            # released, the free velocity
             top = wp.spatial_top(flags)
             scratch.c[i] = wp.spatial_vector(top[0], top[1], top[2], state, slip, share)
-            scratch.DA[i] = wp.mat33(removed, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             scratch.Du[i] = force
-            scratch.p[i] = wp.spatial_vector(w_free, wp.vec3())
+            scratch.p[i] = wp.spatial_vector(w_free, wp.vec3(removed, 0.0, 0.0))
         if any_pulled == 0:
             break
         if it < CONTACT_PASSES - 1:
@@ -851,7 +851,7 @@ def body_contact_solve(
                 contacts.slip[vi] = wp.spatial_bottom(scratch.c[i])[1]
                 contacts.share[vi] = wp.spatial_bottom(scratch.c[i])[2]
                 contacts.force[vi] = force
-                contacts.removed[vi] = scratch.DA[i][0, 0]
+                contacts.removed[vi] = wp.spatial_bottom(scratch.p[i])[0]
                 contacts.away[vi] = 0.0
             else:
                 forget_contact(contacts, vi, h, matched)
