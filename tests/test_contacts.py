@@ -16,7 +16,7 @@ from _reference import segment_distances
 from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import HairContacts, InteractionError, StaticLinks, TriangleStrips
-from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE
+from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE, PLANE_RAMP
 from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault
 
 # Distances within this of the threshold [m] may fall on either side in float32 (coordinates < 0.1 m).
@@ -329,6 +329,34 @@ def test_vertex_face_closed_form_with_density_scale():
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
                                atol=FORCE_RTOL * expected)
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * expected)
+
+
+@pytest.mark.parametrize("offset", [0.0008, 0.0004, 0.0001, 0.0, -0.0001, -0.0004])
+def test_vertex_face_force_is_continuous_through_the_strip(offset):
+    """The strip scene's tip at ``offset`` [m] in front of the face (behind it where negative): beyond
+    ``PLANE_RAMP`` times the reach from the plane the push is k (thr - d), closer it falls linearly to none at the
+    plane, k (thr - r) d / r, r = ramp * thr, always away from the plane on the tip's side. So the force does not
+    flip from +k thr to -k thr as the tip passes through the strip, which cost the step's order of convergence
+    (docs/interactions.md)."""
+    k, S2 = 10.0, 2
+    verts = _strip_scene()
+    verts[2, :, 1] += offset - 0.0008
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+                          segment_segment=False, skip_neighbour_strips=False, rest_gaps=False)
+    force, _, _ = _apply(contacts, _model(3, S2), _state(verts))
+    found = contacts.contact_list()
+    w = found["w"][0].astype(np.float64)  # as the closed-form test: the density factor at the tip's face point
+    scale = contacts.strips.width_ref * ((w[0] + w[1]) / 0.010 + w[2] / 0.008)
+    k_eff = k * scale * (SEG_LEN / REFERENCE_SEGMENT_LENGTH)
+    ramp = PLANE_RAMP * THRESHOLD
+    d = abs(offset)
+    depth = THRESHOLD - d if d >= ramp else (THRESHOLD - ramp) * d / ramp
+    expected = np.sign(offset) * k_eff * depth
+    peak = k_eff * (THRESHOLD - ramp)
+    # the force's float32 round-off (the closed-form test's), and at the plane (no side) none at all within it
+    np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * peak)
+    np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * peak)
 
 
 @pytest.mark.parametrize("z", [-0.0100, -0.0115, -0.0119, -0.0121, -0.0125, -0.0140])
