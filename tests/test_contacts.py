@@ -357,6 +357,15 @@ def test_vertex_face_force_is_continuous_through_the_strip(offset):
     # the force's float32 round-off (the closed-form test's), and at the plane (no side) none at all within it
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * peak)
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * peak)
+    # solved after the free step, the pair's force over the step takes the same depth: without damping its
+    # target separation speed is depth / h, along the normal from the face to the tip
+    h = 1.0e-3
+    solved = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16, segment_segment=False,
+                                skip_neighbour_strips=False, rest_gaps=False, response=True)
+    _apply(solved, _model(3, S2), _state(verts), dt=h)
+    response = solved._response_buffer
+    along = response.target.numpy()[0] * response.normal.numpy()[0][1]
+    np.testing.assert_allclose(along, np.sign(offset) * depth / h, rtol=FORCE_RTOL, atol=FORCE_RTOL * THRESHOLD / h)
 
 
 @pytest.mark.parametrize("z", [-0.0100, -0.0115, -0.0119, -0.0121, -0.0125, -0.0140])
