@@ -447,7 +447,7 @@ CONTINUOUS_FRICTION_STEP = wp.constant(1.0 / 220.0)
 #: so held 42 times in 12 frames at 64 substeps, 292 times at 256). On the head collider alone runs a step apart
 #: parted by 0.40 mm at 64-128 and 128-256 substeps; with the memory by 0.18 and 0.13 mm. A time, not a count of
 #: steps, so that the friction converges as the step shrinks: the longest step that takes continuous friction.
-CONTACT_MEMORY = wp.constant(1.0 / 220.0)
+CONTACT_MEMORY = wp.constant(CONTINUOUS_FRICTION_STEP)
 
 #: Most solves of a strand's body contacts in a step (``body_contact_solve``): each one after the first leaves out
 #: the vertices whose damper pulled in the one before, and takes back for good those released that then went in.
@@ -593,6 +593,13 @@ def contact_projector(n: wp.vec3, beta: float):
 
 
 @wp.func
+def shares_friction(step_dt: float) -> int:
+    """1 where a step of ``step_dt`` seconds takes the share law's friction (``matched_friction``), 0 where it takes
+    the continuous one: steps of CONTINUOUS_FRICTION_STEP and longer."""
+    return wp.where(step_dt >= CONTINUOUS_FRICTION_STEP, 1, 0)
+
+
+@wp.func
 def forget_contact(contacts: BodyContacts, vi: int, h: float, matched: int):
     """A vertex no collider holds in this step: its last contact's slip, force and share kept for CONTACT_MEMORY
     (continuous friction), then none to carry over."""
@@ -674,9 +681,7 @@ def body_contact_solve(
         mass += chains.seg_mass[strand * S + k]
     hc = contacts.stiffness * mass
     c = hc / h
-    matched = int(0)
-    if step_dt >= CONTINUOUS_FRICTION_STEP:  # the whole step's, when it is taken in parts
-        matched = 1
+    matched = shares_friction(step_dt)  # the whole step's, when it is taken in parts
 
     # An active set over the contacts (see the docstring): at most CONTACT_PASSES solves.
     for it in range(CONTACT_PASSES):
@@ -1000,7 +1005,7 @@ def integrate_euler(
             if wp.length_sq(contacts.normal[vbase + k + 1]) > 0.0:
                 touching = 1
         if touching == 0:
-            release_contacts(contacts, vbase, S, h, wp.where(h >= CONTINUOUS_FRICTION_STEP, 1, 0))
+            release_contacts(contacts, vbase, S, h, shares_friction(h))
     t_left = h
     part = int(0)
     collided = int(0)

@@ -358,7 +358,8 @@ def test_vertex_face_force_is_continuous_through_the_strip(offset):
     np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL, atol=FORCE_RTOL * peak)
     np.testing.assert_allclose(force.sum(axis=0), 0.0, atol=1e-6 * peak)
     # solved after the free step, the pair's force over the step takes the same depth: without damping its
-    # target separation speed is depth / h, along the normal from the face to the tip
+    # target separation speed is depth / h, along the normal from the face to the tip (k depth / (h k) in float32:
+    # the force's round-off, FORCE_RTOL)
     h = 1.0e-3
     solved = HairContacts.build(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16, segment_segment=False,
                                 skip_neighbour_strips=False, rest_gaps=False, response=True)
