@@ -1212,10 +1212,11 @@ def swept_entry_force(entry: int, friction: float, response: ContactResponse, v:
 @wp.func
 def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.transform), seg_per_strand: int,
                    strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
-                   vertex_velocities: wp.array(dtype=wp.vec3)):
-    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, s, D_t)``,
-    the point, the point inertia [kg] (zero: none), the force [N] on the free velocities, the side's split factor and
-    the friction coefficient [N s/m].
+                   vertex_velocities: wp.array(dtype=wp.vec3), whole: int):
+    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, s, D_t,
+    v)``, the point, the point inertia [kg] (zero: none), the force [N] on the free velocities, the side's split
+    factor (1 with ``whole``: the damper unsplit, as the links' sweeps solve it), the friction coefficient [N s/m] and
+    the pair's relative velocity [m/s, world] (``contact_relative_velocity``).
 
     The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
     at its end; each side takes it as a damper ``s D`` toward the pair's centre-of-mass velocity (Jacobi between
@@ -1226,17 +1227,20 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     D = response.coef[slot]
     share = response.share[entry]
     if D <= 0.0 or share == 0.0:
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0
+        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0, wp.vec3()
     n = response.normal[slot]
     split = response.split[slot]
-    s = split[1]
-    if share > 0.0:
-        s = split[0]
+    s = float(1.0)
+    if whole == 0:
+        s = split[1]
+        if share > 0.0:
+            s = split[0]
     vrel = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response, vertex_velocities)
     vn = wp.dot(vrel, n)
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
     if push <= 0.0:
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0  # the pair leaves faster than its spring explains: no contact
+        # the pair leaves faster than its spring explains: no contact
+        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0, vrel
     # Coulomb friction as a damper on the tangential velocity, its coefficient the cone's over the free step's slip
     # (regularised below slip_velocity): the damper's force, D_t |v_t'| <= D_t |v_t| <= mu f_n, stays in the cone,
     # and a damper never reverses the slip it acts on, however many contacts share a segment. f_n is the normal force
@@ -1252,7 +1256,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     a = wp.abs(share)
     M = (s * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
     f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
-    return r, M, f, s, Dt
+    return r, M, f, s, Dt, vrel
 
 
 @wp.kernel
@@ -1341,51 +1345,46 @@ def contact_response_gather(
 ):
     """One thread per segment: add the dampers of the contacts that push it (``response_entry``, its entries in slot
     order) to its ``InteractionResponse`` blocks, for ``kernels.articulated.interaction_response``; with
-    ``sweeping``, store the blocks of the same dampers whole (split factor 1) in ``sweep_blocks``, which the links'
-    gather adds to and ``kernels.sweeps.link_sweep`` solves with, and list the contacts in ``sweep``."""
+    ``sweeping``, instead store the blocks of the same dampers whole (split factor 1) in ``sweep_blocks``, which the
+    links' gather adds to and ``kernels.sweeps.link_sweep`` solves with, and list the contacts in ``sweep`` (the
+    sweeps read neither the split blocks nor their forces)."""
     seg = tid_offset + wp.tid()
     h = dt[0]
     A = wp.mat33()
     B = wp.mat33()
     C = wp.mat33()
-    A1 = wp.mat33()
-    B1 = wp.mat33()
-    C1 = wp.mat33()
     force = wp.vec3()
     torque = wp.vec3()
     strand = seg // seg_per_strand
     listed = seg_entry_start[seg]
     for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
         entry = seg_entries[j]
-        r, M, f, s, Dt = response_entry(entry, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts, response,
-                                        vertex_velocities)
+        r, M, f, s, Dt, vrel = response_entry(entry, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
+                                              response, vertex_velocities, sweeping)
         if wp.trace(M) > 0.0:
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
             B += Bp
             C += M
-            force += f
-            torque += spin_free_torque(r, f)
             if sweeping != 0:
-                M1 = M / s
-                Ap1, Bp1 = point_damper_blocks(r, M1)
-                A1 += Ap1
-                B1 += Bp1
-                C1 += M1
-                slot = entry // 4
                 sweep.entries[listed] = entry
                 sweep.friction[listed] = Dt
-                sweep.free[listed] = contact_relative_velocity(slot, seg_per_strand, strip_pairs, contacts, response,
-                                                               vertex_velocities) - others_relative_velocity(
-                    slot, strand, seg_per_strand, strip_pairs, contacts, response, vertex_velocities, vertex_velocities,
-                    colors)
+                sweep.free[listed] = vrel - others_relative_velocity(
+                    entry // 4, strand, seg_per_strand, strip_pairs, contacts, response, vertex_velocities,
+                    vertex_velocities, colors)
                 listed += 1
-    add_damper(dampers, seg, A, B, C, force, torque)
+            else:
+                force += f
+                torque += spin_free_torque(r, f)
     if sweeping != 0:
-        sweep_blocks.A[seg] = A1
-        sweep_blocks.B[seg] = B1
-        sweep_blocks.C[seg] = C1
+        # the sweeps solve the contacts with their whole dampers and forces of their own (``sweep_entry_force``):
+        # the split dampers are not read
+        sweep_blocks.A[seg] = A
+        sweep_blocks.B[seg] = B
+        sweep_blocks.C[seg] = C
         sweep.end[seg] = listed
+    else:
+        add_damper(dampers, seg, A, B, C, force, torque)
 
 
 @wp.kernel
@@ -1415,8 +1414,8 @@ def contact_response_scatter(
     for e in range(4):
         seg = segs[e]
         if seg >= 0:
-            r, M, f, s, Dt = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs,
-                                            contacts, response, vertex_velocities)
+            r, M, f, s, Dt, vrel = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs,
+                                                  contacts, response, vertex_velocities, 0)
             if wp.trace(M) > 0.0:
                 Ap, Bp = point_damper_blocks(r, M)
                 wp.atomic_add(dampers.A, seg, Ap)
