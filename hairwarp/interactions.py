@@ -772,6 +772,13 @@ REBUILD_FRAMES = 8
 #: Fewest force threads per chunk of the contact forces (each takes a run of 1/256 of the stored contacts).
 FORCE_MIN_CHUNK = 16
 
+#: Pairs found, as a multiple of the contacts' capacity, from which an overflow is put down to the threshold rather
+#: than to the capacity (:meth:`HairContacts.overflow_advice`): hair pressed together overflows the default 16 slots
+#: a segment by little (``fast_turn``'s turn needs 18 a segment at its densest), a threshold far past a wisp's
+#: thickness by orders (``long_hair`` with ``interactions.threshold`` 0.2 m found 9.4 million pairs for 57,600 slots,
+#: 2,600 a guide vertex, and blew up in its second frame at any step).
+THRESHOLD_OVERFLOW = 4
+
 
 class HairContacts:
     """Vertex-face (guide vertices against strips) and segment-segment contacts, with fixed-capacity buffers.
@@ -1412,6 +1419,18 @@ class HairContacts:
     def contact_count(self) -> int:
         """Contacts found in the last step, including any dropped for want of capacity (host read)."""
         return int(self.contact_counter.numpy()[0])
+
+    def overflow_advice(self) -> str:
+        """What a run whose contacts overflowed should change (host read of the last detection's count): the
+        threshold where it found :data:`THRESHOLD_OVERFLOW` times the capacity or more, else the capacity."""
+        found = self.contact_count()
+        said = f"{found:,} hair contact pairs were found for {self.capacity:,} slots and the rest dropped"
+        if found < THRESHOLD_OVERFLOW * self.capacity:
+            return f"{said}; raise interactions.capacity"
+        vertices = self.strand_count * self.seg_per_strand
+        return (f"{said} ({found / vertices:,.0f} a guide vertex); lower interactions.threshold (now "
+                f"{self.threshold:g} m: the thickness of a wisp a guide stands for, a few millimetres), or raise "
+                f"interactions.capacity")
 
     def overflowed(self) -> bool:
         """Whether any step since the build (or :meth:`reset_overflow`) found more contacts than the capacity."""

@@ -1674,7 +1674,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
             bits = sim.advance_frame()
             if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
                 overflow_noted = True
-                notes.append(f"frame {frame}: contact buffers overflowed; raise interactions.capacity")
+                notes.append(f"frame {frame}: {sim.contacts.overflow_advice()}")
         t_output = time.perf_counter()
         stats = sim.frame_stats()
         all_stats.append(stats)

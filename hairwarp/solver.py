@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from hairwarp.executor import Executor, launch
-from hairwarp.interactions import contact_step_rate
+from hairwarp.interactions import THRESHOLD_OVERFLOW, contact_step_rate
 from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
@@ -1046,6 +1046,11 @@ class Solver:
             advice = (f"raise sim.max_rotation_per_step (now {self.max_rotation_per_step:g}, default "
                       f"{DEFAULT_MAX_ROTATION:g}; a bound it sets below the default stops hair that is fine), or "
                       f"{more} (now {step})")
+        elif self._contacts_overrun(bits):
+            # a threshold far past a wisp's thickness stacks thousands of contacts on each vertex: no step holds them
+            stage = "hair contacts (more pairs than slots)"
+            what = "the strands blew up under far more hair contact pairs than the slots hold"
+            advice = f"{self.contacts.overflow_advice()}; more substeps do not help"
         elif bits & Fault.INTERACTION_RESPONSE:
             stage = "links and hair contacts (response)"
             what = "their response after the free step changed a joint by more than half a turn, or left it non-finite"
@@ -1065,6 +1070,13 @@ class Solver:
             stage, advice = self._dynamics_driver(dt, substeps, more, step)
         message = f"simulation fault at frame {frame} in {stage}: {what}. To fix: {advice}."
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
+
+    def _contacts_overrun(self, bits: Fault) -> bool:
+        """Whether the frame's hair contacts overflowed their slots :data:`THRESHOLD_OVERFLOW` times over or more
+        (``HairContacts.overflow_advice``), which drives any fault beside it."""
+        contacts = self.contacts
+        return (bool(bits & Fault.CONTACT_OVERFLOW) and contacts is not None
+                and contacts.contact_count() >= THRESHOLD_OVERFLOW * contacts.capacity)
 
     def _response_advice(self, dt: float) -> str:
         """Advice for a fault the links' and hair contacts' response drives: lower the stiffer of the two for its
