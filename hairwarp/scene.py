@@ -348,6 +348,9 @@ def _check_scene(values, given, error):
     if dense["density"] is not None and dense["count"] > 0:
         error("dense.density", f"give dense.count (now {dense['count']}) or dense.density, not both: set "
                                "dense.count = 0 for a density")
+    if not values["output"]["guides"] and dense["count"] == 0 and dense["density"] is None:
+        error("output.guides", "is false and there is no dense hair (dense.count = 0): the cache would hold no hair; "
+                               "set output.guides = true or give dense.count")
     if dense["basis"] == "catmullRom" and (dense["count"] > 0 or dense["density"] is not None) and segments < 3:
         # the cache's cubic curves take 4 vertices or more (hairwarp.io.cache); the interpolated strands have S + 1
         error("sim.segments", f"dense.basis = \"catmullRom\" needs curves of 4 vertices, 3 segments or more, got "
@@ -675,7 +678,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
     ),
     "output": Section(
         {
-            "guides": Field("bool", True, "write the guide strands to the cache"),
+            "guides": Field("bool", True, "write the guide strands to the cache (false needs dense hair: a cache holds some hair)"),
             "guide_width": Field("vec2", (0.002, 0.0005), "guide curve width at the root and at the tip", "m",
                                  range="[0, inf)"),
             "preview": Field("bool", True, "render a preview image next to the cache"),

@@ -234,6 +234,16 @@ def test_catmull_rom_dense_curves_need_three_segments(tmp_path):
     assert Scene.load(_write(tmp_path, linear)).sim.segments == 1
 
 
+def test_a_scene_that_writes_no_hair_is_refused(tmp_path):
+    """Neither guides nor dense hair in the cache: refused when the scene loads, naming output.guides (it ran and wrote
+    a cache of the head alone); either one alone loads."""
+    err = _errors(_write(tmp_path, MINIMAL + "[dense]\ncount = 0\n[output]\nguides = false\n"))
+    (path, msg), = err.errors
+    assert path == "output.guides" and "no hair" in msg
+    assert Scene.load(_write(tmp_path, MINIMAL + "[dense]\ncount = 5\n[output]\nguides = false\n")).dense.count == 5
+    assert Scene.load(_write(tmp_path, MINIMAL + "[dense]\ncount = 0\n")).output.guides
+
+
 def test_the_default_scene_nods_about_x_when_told_to():
     """long_hair.toml leaves head.motion.axis to the kind's default, so the README's ``-s head.motion.kind=nod``
     pitches the head (about x through the neck) and its turn still yaws about z."""
