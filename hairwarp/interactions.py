@@ -772,12 +772,12 @@ REBUILD_FRAMES = 8
 #: Fewest force threads per chunk of the contact forces (each takes a run of 1/256 of the stored contacts).
 FORCE_MIN_CHUNK = 16
 
-#: Pairs found, as a multiple of the contacts' capacity, from which an overflow is put down to the threshold rather
-#: than to the capacity (:meth:`HairContacts.overflow_advice`): hair pressed together overflows the default 16 slots
-#: a segment by little (``fast_turn``'s turn needs 18 a segment at its densest), a threshold far past a wisp's
-#: thickness by orders (``long_hair`` with ``interactions.threshold`` 0.2 m found 9.4 million pairs for 57,600 slots,
-#: 2,600 a guide vertex, and blew up in its second frame at any step).
-THRESHOLD_OVERFLOW = 4
+#: Pairs found a guide vertex from which an overflow of the contacts' slots is put down to the threshold rather than
+#: to the capacity (:meth:`HairContacts.overflow_advice`): hair pressed together finds a few (``fast_turn``'s turn 18
+#: at its densest, ``long_hair`` 2), a threshold far past a wisp's thickness hundreds (``long_hair`` with
+#: ``interactions.threshold`` 0.03, 0.1 and 0.2 m: 101, 828 and 2,600; at 0.2 m it blew up in its second frame at
+#: any step).
+THRESHOLD_PAIRS = 64
 
 
 class HairContacts:
@@ -1422,15 +1422,19 @@ class HairContacts:
 
     def overflow_advice(self) -> str:
         """What a run whose contacts overflowed should change (host read of the last detection's count): the
-        threshold where it found :data:`THRESHOLD_OVERFLOW` times the capacity or more, else the capacity."""
+        threshold where it found :data:`THRESHOLD_PAIRS` a guide vertex or more, else the capacity."""
         found = self.contact_count()
         said = f"{found:,} hair contact pairs were found for {self.capacity:,} slots and the rest dropped"
-        if found < THRESHOLD_OVERFLOW * self.capacity:
+        if not self.threshold_overrun():
             return f"{said}; raise interactions.capacity"
         vertices = self.strand_count * self.seg_per_strand
         return (f"{said} ({found / vertices:,.0f} a guide vertex); lower interactions.threshold (now "
                 f"{self.threshold:g} m: the thickness of a wisp a guide stands for, a few millimetres), or raise "
                 f"interactions.capacity")
+
+    def threshold_overrun(self) -> bool:
+        """Whether the last detection found :data:`THRESHOLD_PAIRS` pairs a guide vertex or more (host read)."""
+        return self.contact_count() >= THRESHOLD_PAIRS * self.strand_count * self.seg_per_strand
 
     def overflowed(self) -> bool:
         """Whether any step since the build (or :meth:`reset_overflow`) found more contacts than the capacity."""

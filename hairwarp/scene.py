@@ -678,7 +678,7 @@ SCHEMA: dict[str, Section | ArrayOf] = {
     ),
     "output": Section(
         {
-            "guides": Field("bool", True, "write the guide strands to the cache (false needs dense hair: a cache holds some hair)"),
+            "guides": Field("bool", True, "write the guide strands to the cache (false needs dense hair)"),
             "guide_width": Field("vec2", (0.002, 0.0005), "guide curve width at the root and at the tip", "m",
                                  range="[0, inf)"),
             "preview": Field("bool", True, "render a preview image next to the cache"),

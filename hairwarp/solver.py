@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from hairwarp.executor import Executor, launch
-from hairwarp.interactions import THRESHOLD_OVERFLOW, contact_step_rate
+from hairwarp.interactions import contact_step_rate
 from hairwarp.kernels import articulated, sweeps
 from hairwarp.kernels import contacts as contact_kernels
 from hairwarp.kernels import links as link_kernels
@@ -1072,11 +1072,10 @@ class Solver:
         return SimulationFault(message, frame=frame, stage=stage, bits=int(bits))
 
     def _contacts_overrun(self, bits: Fault) -> bool:
-        """Whether the frame's hair contacts overflowed their slots :data:`THRESHOLD_OVERFLOW` times over or more
-        (``HairContacts.overflow_advice``), which drives any fault beside it."""
+        """Whether the frame's hair contacts overflowed their slots with ``interactions.THRESHOLD_PAIRS`` a guide
+        vertex or more (``HairContacts.overflow_advice``), which drives any fault beside them."""
         contacts = self.contacts
-        return (bool(bits & Fault.CONTACT_OVERFLOW) and contacts is not None
-                and contacts.contact_count() >= THRESHOLD_OVERFLOW * contacts.capacity)
+        return bool(bits & Fault.CONTACT_OVERFLOW) and contacts is not None and contacts.threshold_overrun()
 
     def _response_advice(self, dt: float) -> str:
         """Advice for a fault the links' and hair contacts' response drives: lower the stiffer of the two for its

@@ -155,20 +155,17 @@ def test_stiff_hair_contacts_in_the_free_step_name_the_contacts(substeps):
 def test_a_threshold_far_past_a_wisp_names_the_hair_contacts_and_the_threshold():
     """A threshold of 0.5 m finds hundreds of pairs a guide vertex, far past the slots, and blew up in the second
     frame at any step; the fault was blamed on the dynamics with "raise sim.substeps". It names the hair contacts and
-    the threshold, and the run with a wisp's threshold finishes. An overflow by less than
-    ``THRESHOLD_OVERFLOW`` times (hair pressed together) is put down to the capacity alone."""
-    from hairwarp.interactions import THRESHOLD_OVERFLOW
+    the threshold, and the run with a wisp's threshold finishes. An overflow of slots too few for a wisp's threshold
+    is put down to the capacity alone."""
 
     small = ["groom.count=60", "dense.count=0"]
     fault = _run(LONG_HAIR, [*small, "interactions.threshold=0.5"], 4)
     assert fault is not None and fault.stage == "hair contacts (more pairs than slots)", fault
     assert "lower interactions.threshold (now 0.5 m" in _advice(fault)
     assert _run(LONG_HAIR, [*small, "interactions.threshold=0.003"], 4) is None
-    sim = Simulation(hw.Scene.load(LONG_HAIR, [*small, "output.preview=false", "interactions.capacity=100"]))
-    sim.advance_frame()
-    found = sim.contacts.contact_count()
-    assert 100 < found < THRESHOLD_OVERFLOW * 100
-    assert sim.contacts.overflow_advice().endswith("; raise interactions.capacity")
+    sim = Simulation(hw.Scene.load(LONG_HAIR, [*small, "output.preview=false", "interactions.capacity=4"]))
+    assert sim.advance_frame() & hw.Fault.CONTACT_OVERFLOW
+    assert sim.contacts.overflow_advice().endswith(" slots and the rest dropped; raise interactions.capacity")
 
 
 def test_auto_solves_hair_contacts_too_stiff_for_the_free_step_after_it(tmp_path):
