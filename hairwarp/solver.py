@@ -59,6 +59,16 @@ LINK_RATE_LIMIT = 2.0
 WARM_START_STEP = 1.0 / 45.0
 WARM_START_RATE = 8.0
 
+#: The strands' bending rate at a step (the step times the median joint's ``sqrt(k / I)`` about a bending axis,
+#: ``Solver._bend_rate_per_second``) below which the links' warm start takes the force kept gated by their ends'
+#: speed (:data:`WARM_GATE_SPEED`), not whole: limp strands have nothing of their own to hold back the free step's
+#: answer to a force lagged a step. The stability grid's limp linked hair (EI 1e-7, 16 segments, rate 0.15 at 2
+#: substeps) whipped to 3.2-5.7 m/s in four of six draws of gravity with the force whole (1.1 m/s at 8 substeps); gated,
+#: 0.76 m/s in every draw, with the head still 8.4 mm/s in the 6th second against 1.8 (cold, 24: the crawl the warm
+#: start is for). The shipped hair runs at 1.1 and more at every step to one a frame (EI 2e-4, 12 segments at 7
+#: substeps; 8 segments 0.49), and takes the force whole as before.
+WARM_START_BEND_RATE = 0.3
+
 #: Largest typical rate of the links (``StaticLinks.warm_rate``, the 90th percentile of the linked segments' free-step
 #: rates) at which they take the whole force of the last step, on one sweep a step; a step of ``n`` warm sweeps
 #: (``StaticLinks.sweeps_at``) takes ``n ** WARM_START_RATE_GROWTH`` times it. The lagged force feeds back what the
@@ -518,6 +528,8 @@ class Solver:
         gate = 0.0
         if not warm and WARM_GATE_SPEED > 0.0 and self._warm_start(self._dt_host, gated=True):
             warm, gate = True, WARM_GATE_SPEED
+        elif warm and WARM_GATE_SPEED > 0.0 and self._dt_host * self._bend_rate_per_second() < WARM_START_BEND_RATE:
+            gate = WARM_GATE_SPEED  # limp strands: the force kept falls off with the ends' speed (WARM_START_BEND_RATE)
         if self.links.warm_start and (not warm or gate != self.links.warm_gate):
             # forces kept while the warm start was on would be stale when a later step turns it on again
             self.links.link_warm.zero_()
@@ -619,6 +631,20 @@ class Solver:
         contacts = self.contacts
         return bool(dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
                     and WARM_START_CONTACTS_STEP * (1.0 - 1e-9) <= dt < WARM_START_STEP and self._warm_start_allowed)
+
+    def _bend_rate_per_second(self) -> float:
+        """The strands' bending rate per second of step (:data:`WARM_START_BEND_RATE`): the median over the joints of
+        ``sqrt(k / I)`` about a bending axis, ``I`` the child segment's inertia about the joint (as
+        :meth:`explicit_step_bound` takes it); read from the host once."""
+        kept = self._kept_rates.get("bend")
+        if kept is None:
+            m = self.model
+            mass = m.seg_mass.numpy().astype(np.float64)
+            length = m.seg_length.numpy().astype(np.float64)
+            inertia = m.seg_inertia.numpy().astype(np.float64)[:, 0] + mass * length * length / 4.0
+            kept = self._kept_rates["bend"] = (0.0, float(np.median(np.sqrt(
+                m.joint_stiffness.numpy().astype(np.float64)[:, 0] / inertia))))
+        return kept[1]
 
     def _step_sweeps(self) -> int:
         """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the

@@ -1058,6 +1058,8 @@ def _stretched_lattice(h: float, steps: int, warm_start, amplitude: float):
     solver = Solver(model, hw.Integrator.IMPLICIT_JOINTS, links=links, threads=1)
     if warm_start != True:  # noqa: E712 (True, False or "gated")
         solver._warm_start = lambda dt, gated=False: warm_start == "gated" and gated
+    # the whole force where asked: the pendulums' joints are limp, which would take it gated (WARM_START_BEND_RATE)
+    solver._bend_rate_per_second = lambda: math.inf
     turn = Rotation.from_rotvec(np.random.default_rng(5).normal(0.0, amplitude, (12, 3)) * [1.0, 1.0, 0.0])
     control = model.control()
     state, other = model.state(), model.state()

@@ -320,6 +320,43 @@ def test_each_link_end_takes_the_geometric_term_of_a_link_at_most_four_arms_long
         assert np.abs(term[:, 0, 1]).max() <= tol
 
 
+def test_limp_linked_strands_take_their_links_last_force_gated_at_long_steps():
+    """At 2 substeps limp strands (EI 1e-7: joints' rate 0.15 at the step, under ``WARM_START_BEND_RATE``) take the
+    links' force of the last step gated by their ends' speed, the shipped hair (EI 2e-4, 6.7) takes it whole. The
+    rate against the closed form of a uniform rod's joint, ``sqrt((EI / l) / (m (3 r^2 + l^2) / 12 + m l^2 / 4))``
+    (median over the segments; float32 masses and the strands' 5 % spread of lengths: 1 %)."""
+    from hairwarp.solver import WARM_GATE_SPEED, WARM_START_BEND_RATE
+
+    for ei, gated in ((1e-7, True), (2e-4, False)):
+        sim = Simulation(Scene.load(LONG_HAIR, ["groom.count=60", "dense.count=0", "output.preview=false",
+                                                "sim.segments=16", "sim.substeps=2", f"strands.bend_stiffness={ei}"]))
+        sim.advance_frame()
+        solver, radius = sim.solver, sim.scene.strands.radius
+        length = sim.model.seg_length.numpy().astype(np.float64)
+        mass = sim.model.seg_mass.numpy().astype(np.float64)
+        rate = np.median(np.sqrt((ei / length) / (mass * (3 * radius**2 + length**2) / 12 + mass * length**2 / 4)))
+        assert solver._bend_rate_per_second() == pytest.approx(rate, rel=1e-2)
+        assert (sim.stepper.dt * rate < WARM_START_BEND_RATE) == gated
+        assert solver.links.warm_start and solver.links.warm_gate == (WARM_GATE_SPEED if gated else 0.0)
+
+
+@pytest.mark.slow  # 25 s
+def test_limp_linked_hair_at_two_substeps_does_not_whip_in_any_draw(monkeypatch):
+    """The robustness suite's stability grid's limp linked cell (EI 1e-7, 16 segments, 2 substeps, 1.5 s of
+    ``long_hair``'s turn with links and contacts) in three draws of gravity (relative changes): under the burst speed
+    in each, with the links' last force gated; whole, as before ``WARM_START_BEND_RATE``, a tip whipped past it in
+    some (3.2-5.7 m/s in four of six draws; 1.1 m/s at 8 substeps)."""
+    import hairwarp.solver as solver
+    from hairwarp.benchmarks.robustness import BURST_M_S, PERTURBATION, build, perturbed, raw_scene, run_scene, set_key
+
+    raw = set_key(set_key(set_key(raw_scene("long_hair"), "sim.segments", 16), "sim.substeps", 2),
+                  "strands.bend_stiffness", 1e-7)
+    draws = [perturbed(raw, change / PERTURBATION) for change in (-2e-5, -1.5e-5, 1e-5)]
+    assert max(run_scene(build(r, "long_hair"), 45)["max_speed"] for r in draws) < BURST_M_S
+    monkeypatch.setattr(solver, "WARM_START_BEND_RATE", 0.0)
+    assert max(run_scene(build(r, "long_hair"), 45)["max_speed"] for r in draws) > BURST_M_S
+
+
 def test_stiff_links_hold_at_one_step_a_frame(monkeypatch):
     """At one step a frame (1/30 s) the benchmark's turn (150 guides) holds links of 100 N/m (290 times
     ``long_hair``'s) for its 1.5 s with no frame taken again, on ``GEOMETRIC_STIFFNESS_FACTOR`` (4) times the bound of
