@@ -1073,7 +1073,7 @@ class Solver:
                       f"{DEFAULT_MAX_ROTATION:g}; a bound it sets below the default stops hair that is fine), or "
                       f"{more} (now {step})")
         elif self._contacts_overrun(bits):
-            # a threshold far past a wisp's thickness stacks thousands of contacts on each vertex: no step holds them
+            # a threshold far past a wisp's thickness stacks hundreds of contacts on each vertex: no step holds them
             stage = "hair contacts (more pairs than slots)"
             what = "the strands blew up under far more hair contact pairs than the slots hold"
             advice = f"{self.contacts.overflow_advice()}; more substeps do not help"
