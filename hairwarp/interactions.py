@@ -1425,16 +1425,19 @@ class HairContacts:
         threshold where it found :data:`THRESHOLD_PAIRS` a guide vertex or more, else the capacity."""
         found = self.contact_count()
         said = f"{found:,} hair contact pairs were found for {self.capacity:,} slots and the rest dropped"
-        if not self.threshold_overrun():
+        per_vertex = self._pairs_per_vertex(found)
+        if per_vertex < THRESHOLD_PAIRS:
             return f"{said}; raise interactions.capacity"
-        vertices = self.strand_count * self.seg_per_strand
-        return (f"{said} ({found / vertices:,.0f} a guide vertex); lower interactions.threshold (now "
-                f"{self.threshold:g} m: the thickness of a wisp a guide stands for, a few millimetres), or raise "
-                f"interactions.capacity")
+        return (f"{said} ({per_vertex:,.0f} a guide vertex); lower interactions.threshold (now {self.threshold:g} m: "
+                f"the thickness of a wisp a guide stands for, a few millimetres), or raise interactions.capacity")
 
     def threshold_overrun(self) -> bool:
         """Whether the last detection found :data:`THRESHOLD_PAIRS` pairs a guide vertex or more (host read)."""
-        return self.contact_count() >= THRESHOLD_PAIRS * self.strand_count * self.seg_per_strand
+        return self._pairs_per_vertex(self.contact_count()) >= THRESHOLD_PAIRS
+
+    def _pairs_per_vertex(self, found: int) -> float:
+        """``found`` pairs per guide vertex (roots left out)."""
+        return found / (self.strand_count * self.seg_per_strand)
 
     def overflowed(self) -> bool:
         """Whether any step since the build (or :meth:`reset_overflow`) found more contacts than the capacity."""

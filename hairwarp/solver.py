@@ -634,17 +634,19 @@ class Solver:
 
     def _bend_rate_per_second(self) -> float:
         """The strands' bending rate per second of step (:data:`WARM_START_BEND_RATE`): the median over the joints of
-        ``sqrt(k / I)`` about a bending axis, ``I`` the child segment's inertia about the joint (as
-        :meth:`explicit_step_bound` takes it); read from the host once."""
-        kept = self._kept_rates.get("bend")
-        if kept is None:
-            m = self.model
-            mass = m.seg_mass.numpy().astype(np.float64)
-            length = m.seg_length.numpy().astype(np.float64)
-            inertia = m.seg_inertia.numpy().astype(np.float64)[:, 0] + mass * length * length / 4.0
-            kept = self._kept_rates["bend"] = (0.0, float(np.median(np.sqrt(
-                m.joint_stiffness.numpy().astype(np.float64)[:, 0] / inertia))))
-        return kept[1]
+        ``sqrt(k / I)`` about a bending axis (``_joint_inertia``); read from the host once."""
+        return self._rate_per_second("bend", 0.0, lambda mass: float(np.median(np.sqrt(
+            self.model.joint_stiffness.numpy().astype(np.float64)[:, 0] / self._joint_inertia()[:, 0]))))
+
+    def _joint_inertia(self) -> np.ndarray:
+        """Each joint's child segment's inertia [kg m^2] about the joint, per axis (float64, (G S, 3)): about its
+        centre, and about the joint for bending (host read)."""
+        m = self.model
+        mass = m.seg_mass.numpy().astype(np.float64)
+        length = m.seg_length.numpy().astype(np.float64)
+        inertia = m.seg_inertia.numpy().astype(np.float64).copy()
+        inertia[:, :2] += (mass * length * length / 4.0)[:, None]  # bending: about the joint, not the centre
+        return inertia
 
     def _step_sweeps(self) -> int:
         """The links' sweeps this step takes (``StaticLinks.step_sweeps``: by its length, how it starts and the
@@ -1034,10 +1036,7 @@ class Solver:
     def _explicit_step_limit(self) -> tuple[float, int]:
         """:meth:`explicit_step_bound` and the segment whose joint sets it."""
         m = self.model
-        mass = m.seg_mass.numpy().astype(np.float64)
-        length = m.seg_length.numpy().astype(np.float64)
-        inertia = m.seg_inertia.numpy().astype(np.float64).copy()
-        inertia[:, :2] += (mass * length * length / 4.0)[:, None]  # bending: about the joint, not the centre
+        inertia = self._joint_inertia()
         rate = np.maximum(np.sqrt(m.joint_stiffness.numpy() / inertia), m.joint_damping.numpy() / inertia)
         reach = 2.8 if self.integrator == Integrator.RK4 else 2.0
         fastest = int(np.argmax(rate.max(axis=1)))

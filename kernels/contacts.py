@@ -1213,10 +1213,10 @@ def swept_entry_force(entry: int, friction: float, response: ContactResponse, v:
 def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.transform), seg_per_strand: int,
                    strip_pairs: wp.array(dtype=wp.vec2i), contacts: ContactBuffer, response: ContactResponse,
                    vertex_velocities: wp.array(dtype=wp.vec3), whole: int):
-    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, s, D_t,
-    v)``, the point, the point inertia [kg] (zero: none), the force [N] on the free velocities, the side's split
-    factor (1 with ``whole``: the damper unsplit, as the links' sweeps solve it), the friction coefficient [N s/m] and
-    the pair's relative velocity [m/s, world] (``contact_relative_velocity``).
+    """One entry's damper on its segment ``seg``, in the segment's frame at the step's start: ``(r, M, f, D_t, v)``,
+    the point, the point inertia [kg] (zero: none; the side's split share of it, or with ``whole`` the damper unsplit,
+    as the links' sweeps solve it), the force [N] on the free velocities, the friction coefficient [N s/m] and the
+    pair's relative velocity [m/s, world] (``contact_relative_velocity``).
 
     The contact's backward-Euler normal force over the step is ``k d - D v_n'``, ``v_n'`` the pair's normal velocity
     at its end; each side takes it as a damper ``s D`` toward the pair's centre-of-mass velocity (Jacobi between
@@ -1227,7 +1227,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     D = response.coef[slot]
     share = response.share[entry]
     if D <= 0.0 or share == 0.0:
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0, wp.vec3()
+        return wp.vec3(), wp.mat33(), wp.vec3(), 0.0, wp.vec3()
     n = response.normal[slot]
     split = response.split[slot]
     s = float(1.0)
@@ -1240,7 +1240,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     push = D * (response.target[slot] - vn)  # the force over the step, k d - D v_n, on the free velocities
     if push <= 0.0:
         # the pair leaves faster than its spring explains: no contact
-        return wp.vec3(), wp.mat33(), wp.vec3(), 1.0, 0.0, vrel
+        return wp.vec3(), wp.mat33(), wp.vec3(), 0.0, vrel
     # Coulomb friction as a damper on the tangential velocity, its coefficient the cone's over the free step's slip
     # (regularised below slip_velocity): the damper's force, D_t |v_t'| <= D_t |v_t| <= mu f_n, stays in the cone,
     # and a damper never reverses the slip it acts on, however many contacts share a segment. f_n is the normal force
@@ -1256,7 +1256,7 @@ def response_entry(entry: int, h: float, seg: int, seg_xform: wp.array(dtype=wp.
     a = wp.abs(share)
     M = (s * h * a) * ((D - Dt) * wp.outer(nl, nl) + Dt * wp.identity(n=3, dtype=float))
     f = share * wp.quat_rotate_inv(R, push * n - Dt * vt)
-    return r, M, f, s, Dt, vrel
+    return r, M, f, Dt, vrel
 
 
 @wp.kernel
@@ -1359,8 +1359,8 @@ def contact_response_gather(
     listed = seg_entry_start[seg]
     for j in range(seg_entry_start[seg], seg_entry_start[seg + 1]):
         entry = seg_entries[j]
-        r, M, f, s, Dt, vrel = response_entry(entry, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
-                                              response, vertex_velocities, sweeping)
+        r, M, f, Dt, vrel = response_entry(entry, h, seg, seg_xform, seg_per_strand, strip_pairs, contacts,
+                                           response, vertex_velocities, sweeping)
         if wp.trace(M) > 0.0:
             Ap, Bp = point_damper_blocks(r, M)
             A += Ap
@@ -1414,8 +1414,8 @@ def contact_response_scatter(
     for e in range(4):
         seg = segs[e]
         if seg >= 0:
-            r, M, f, s, Dt, vrel = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs,
-                                                  contacts, response, vertex_velocities, 0)
+            r, M, f, Dt, vrel = response_entry(4 * slot + e, h, seg, seg_xform, seg_per_strand, strip_pairs,
+                                               contacts, response, vertex_velocities, 0)
             if wp.trace(M) > 0.0:
                 Ap, Bp = point_damper_blocks(r, M)
                 wp.atomic_add(dampers.A, seg, Ap)
