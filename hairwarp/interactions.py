@@ -405,6 +405,14 @@ class StaticLinks:
         links.rest_axis = axis
         # each link's share of the lattice: the mean length of the segments it joins against REFERENCE_SEGMENT_LENGTH
         links.scale = 0.5 * (length[a] + length[b]) / REFERENCE_SEGMENT_LENGTH
+        # each end's free-segment inverse mass times its mass, ``1 + 12 |r|^2 / L^2``
+        # (``kernels.links.point_inverse_mass``), ``r`` from the segment's centre to the end: a's end carries the rest
+        # offset, which the transport turns with the segment, so |r| keeps its rest length
+        arm_a = (fa - 0.5)[:, None] * (p1[a] - p0[a]) + r0
+        arm_b = (fb - 0.5)[:, None] * (p1[b] - p0[b])
+        links.lever_a = 1.0 + 12.0 * np.sum(arm_a * arm_a, axis=1) / length[a] ** 2
+        links.lever_b = 1.0 + 12.0 * np.sum(arm_b * arm_b, axis=1) / length[b] ** 2
+        links._seg_damper_weight = None
         links.link_count = len(a)
         n = max(links.link_count, 1)
         dev = links.device
@@ -481,7 +489,8 @@ class StaticLinks:
         inputs = [
             model.seg_per_strand, model.seg_length, model.seg_mass, self.seg_rest_axis,
             self.seg_link_start, self.link_seg_b, self.link_frac_a, self.link_frac_b, self.link_rest_offset,
-            self.stiffness, self.damping, self.link_scale, self.break_length, int(self.implicit_springs),
+            self.stiffness, self.damping, self.link_scale, self.seg_damper_weight(model), self.break_length,
+            int(self.implicit_springs),
             state.seg_xform, state.joint_q, state.vertex_positions, state.vertex_velocities, dt, self.link_b_slot,
             int(self.response), int(self.warm_start), self.link_warm,
         ]
@@ -493,6 +502,21 @@ class StaticLinks:
                [seg_force, seg_torque, self.link_broken, self.link_broken_total, self.b_force, self.b_torque,
                 self.link_point_a, self.link_point_b],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
+
+    def seg_damper_weight(self, model):
+        """Per segment, the sum over the links it carries (either end) of each link's scale times the bound of its
+        end's inverse mass (``kernels.links.point_inverse_mass``) [1/kg], on the device (float32, ``G*S``; built on
+        the first call from ``model``'s masses): ``h`` times the link damping times this is the share of its velocity
+        the segment's links' dampers, each solved alone in the free step, take from it in one step
+        (``kernels.links.link_forces`` caps their damping where it passes one)."""
+        if self._seg_damper_weight is None:
+            mass = model.seg_mass.numpy().astype(np.float64)
+            weight = np.zeros(len(mass))
+            if self.link_count:
+                weight = (np.bincount(self.seg_a, self.scale * self.lever_a / mass[self.seg_a], minlength=len(mass))
+                          + np.bincount(self.seg_b, self.scale * self.lever_b / mass[self.seg_b], minlength=len(mass)))
+            self._seg_damper_weight = wp.array(weight, dtype=float, device=self.device)
+        return self._seg_damper_weight
 
     def prepare_response(self, model, state_in, state_out, dt):
         """What the sweeps read of each link end over the step (:attr:`ends`): its force on its own free velocities

@@ -112,7 +112,8 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     x_a' = X_a (0, 0, -f_a L) + R_min(R_head d0 -> d_a) R_head r0 (the rest offset following a's axis, not its spin).
     With ``links.implicit_springs``, the backward-Euler force of each link alone, f = k (l - h u') - c (n . u') n with
     u' = u + h W f, solved here as a 3x3 linear system; W = sum over the two ends of 1/m + |r|^2 / (m L^2 / 12), r
-    from the segment's centre of mass.
+    from the segment's centre of mass. Either way each link's k_d is divided by h k_d times the larger of its two
+    segments' sums of their links' end bounds W (scaled as the links), where that passes 1.
 
     Returns the per-segment force and torque (the torque on a without its spin about a's axis), the link lengths,
     the spin torques left out (L, 3), and the implicit mass per segment (zero: the links add none).
@@ -134,12 +135,16 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     u = va - vb
     n = l_vec / np.maximum(length, 1e-300)[:, None]
     # each link's k_s and k_d: the mean length of its two segments (all SEG_LEN here) over the reference length
-    k, c = (np.full(links.link_count, value * SEG_LEN / REFERENCE_SEGMENT_LENGTH) for value in (links.stiffness,
-                                                                                            links.damping))
+    scale = SEG_LEN / REFERENCE_SEGMENT_LENGTH
+    k, c = (np.full(links.link_count, value * scale) for value in (links.stiffness, links.damping))
+    # each end's free-segment inverse mass, 1/m + |r|^2 / (m L^2 / 12), r from the segment's centre of mass
+    com = origin + rot.apply(np.tile([0.0, 0.0, -0.5 * SEG_LEN], (G * S, 1)))
+    Wa, Wb = ((1.0 + 12.0 * np.sum((x - com[s]) ** 2, axis=1) / SEG_LEN**2) / SEG_MASS for s, x in ((a, xa), (b, xb)))
+    # the dampers of a segment's links together take at most its velocity in a step: h c sum(scale W) <= 1
+    weight = np.bincount(a, scale * Wa, minlength=G * S) + np.bincount(b, scale * Wb, minlength=G * S)
+    c = c / np.maximum(1.0, DT * links.damping * np.maximum(weight[a], weight[b]))
     if links.implicit_springs:
-        com = origin + rot.apply(np.tile([0.0, 0.0, -0.5 * SEG_LEN], (G * S, 1)))
-        W = sum((1.0 + 12.0 * np.sum((x - com[s]) ** 2, axis=1) / SEG_LEN**2) / SEG_MASS
-                for s, x in ((a, xa), (b, xb)))
+        W = Wa + Wb
         C = DT * k[:, None, None] * np.eye(3) + c[:, None, None] * n[:, :, None] * n[:, None, :]
         lhs = np.eye(3) + DT * W[:, None, None] * C
         f = np.linalg.solve(lhs, (k[:, None] * l_vec - np.einsum("lij,lj->li", C, u))[:, :, None])[:, :, 0]

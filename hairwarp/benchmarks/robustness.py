@@ -34,7 +34,7 @@ from hairwarp.scene import tomllib  # tomli before Python 3.11
 CHART_REST = "bench_robustness_rest.png"
 CHART_GRID = "bench_robustness_grid.png"
 
-SCENES = ("tiny", "long_hair", "long_hair_shoulders", "fast_turn", "ratboy_mohawk")
+SCENES = ("tiny", "long_hair", "long_hair_shoulders", "fast_turn", "character", "ratboy_mohawk")
 
 # Goals of hair that holds up: at rest when the head is still, whole at speed, stable at frame rate.
 GOAL_REST_MM_S = 2.0  # guide tip RMS speed in the 6th second, head still [mm/s]
