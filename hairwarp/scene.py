@@ -599,7 +599,9 @@ SCHEMA: dict[str, Section | ArrayOf] = {
                                "takes it times the mean length of its two segments over 1 cm, so the hair is tied "
                                "alike at any sim.segments", "N/m", range="[0, inf)"),
             "damping": Field("float", 0.004, "spring damping k_d of a link between segments 1 cm long, scaled as the "
-                             "stiffness", "N s/m", range="[0, inf)"),
+                             "stiffness; with the links in the free step, capped on a segment whose links' dampers "
+                             "together would take more than its velocity in a step (docs/interactions.md)", "N s/m",
+                             range="[0, inf)"),
             "break_length": Field("float", 0.03, "a link stretched past this breaks for good", "m",
                                   range="(0, inf)"),
             "break_step": Field("float", 1.0 / 120.0, "longest step a link may break at: a frame of longer steps in "
