@@ -508,7 +508,8 @@ class StaticLinks:
         end's inverse mass (``kernels.links.point_inverse_mass``) [1/kg], on the device (float32, ``G*S``; built on
         the first call from ``model``'s masses): ``h`` times the link damping times this is the share of its velocity
         the segment's links' dampers, each solved alone in the free step, take from it in one step
-        (``kernels.links.link_forces`` caps their damping where it passes one)."""
+        (``kernels.links.link_forces`` caps their damping where it passes one). Links that break keep their share:
+        the cap errs toward less damping, never toward a damper that reverses its segment."""
         if self._seg_damper_weight is None:
             mass = model.seg_mass.numpy().astype(np.float64)
             weight = np.zeros(len(mass))
