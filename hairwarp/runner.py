@@ -46,6 +46,11 @@ AUTO_RESPONSE_DT = 1.0 / 220.0
 #: at 0.47. Below the rate the free step's form stays: it costs less.
 LINK_STEP_RATE = 0.7
 
+#: How many times what the median linked segment's dampers may take in a step (``kernels.links.damper_cap``) the
+#: links' damping in the free step may ask before the run notes that most of it is capped: ``character`` ships 1.3
+#: times it at its 10 substeps, where the cap holds back only the busier segments' links.
+LINK_DAMPING_NOTE_LOAD = 2.0
+
 #: Hair contacts' free-step rate (``interactions.contact_step_rate``: the step times ``sqrt(k / m)``, with their
 #: largest density factor and the median segment) past which ``interactions.response = "auto"`` solves them after
 #: the free step at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit
@@ -371,6 +376,7 @@ class Simulation:
         self._surface_ahead = {}  # step end time -> the scalp's root frames, for the frame being advanced
         # set where ``links.response = "auto"`` solves stiff links after the free step, or "link" keeps them in it
         self.stiff_links_note = None
+        self.link_damping_note = None  # set where the links' damping in the free step is mostly capped
         self.links = self._build_links(scene.links)
         self.break_step = float(scene.links.break_step)
         self.refined_frames = 0  # frames taken again because a link broke in them (``links.break_step``)
@@ -440,6 +446,8 @@ class Simulation:
                     f"energy (docs/interactions.md). links.stiffness <= "
                     f"{float(cfg.stiffness) * (LINK_STEP_RATE / rate) ** 2:.3g} N/m keeps them in the free step, "
                     f"which costs less")
+        if not links.response and links.link_count and links.damping > 0.0:
+            self.link_damping_note = self._link_damping_note(links)
         if links.link_count == 0:
             roots = np.asarray(self.model.rest_vertex_positions, dtype=float).reshape(
                 self.model.strand_count, -1, 3)[:, 0]
@@ -451,6 +459,20 @@ class Simulation:
                           f"{float(cfg.radius):g} m{spacing}; raise links.radius, or set links.enabled = false",
                           stacklevel=2)
         return links
+
+    def _link_damping_note(self, links) -> str | None:
+        """The run's note where the links' damping in the free step is past :data:`LINK_DAMPING_NOTE_LOAD` times what
+        the median linked segment's dampers may take in a step (``kernels.links.damper_cap``), else None."""
+        weight = links.seg_damper_weight(self.model).numpy().astype(np.float64)
+        load = self.scene.step_dt * links.damping * weight[weight > 0.0]
+        median = float(np.median(load))
+        if median <= LINK_DAMPING_NOTE_LOAD:
+            return None
+        return (f"links.damping = {links.damping:g} N s/m asks {median:.3g} times what the median linked segment's "
+                f"links can take in a step: in the free step each link's damper is capped where its segments' links "
+                f"together would take more than their velocity ({np.mean(load > 1.0):.0%} of the linked segments at "
+                f"this step; docs/interactions.md), so more damping holds the hair no firmer; "
+                f"{links.damping / median:.3g} N s/m acts whole on half of them")
 
     def _build_contacts(self, cfg):
         if not cfg.enabled:
@@ -1706,8 +1728,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
     notes.extend(note for note in (_retakes_note(sim), _retakes_note(sim, whips=True)) if note is not None)
-    notes.extend(note for note in (sim.stiff_links_note, sim.stiff_contacts_note, sim.contact_rest_note)
-                 if note is not None)
+    notes.extend(note for note in (sim.stiff_links_note, sim.link_damping_note, sim.stiff_contacts_note,
+                                   sim.contact_rest_note) if note is not None)
     whip = sim.whip_note()
     if whip is not None:
         notes.append(whip)

@@ -1128,6 +1128,36 @@ def test_contact_response_takes_energy_out_of_limp_hair_at_frame_rate():
     assert after <= before * (1.0 + 1e-5), f"the response raised the kinetic energy {before:.4g} -> {after:.4g} J"
 
 
+def test_a_run_notes_link_damping_that_the_free_step_mostly_caps(tmp_path):
+    """Links in the free step whose damping asks more than ``LINK_DAMPING_NOTE_LOAD`` times what the median linked
+    segment's dampers may take in a step (``kernels.links.damper_cap``: h c times the sum over the segment's links of
+    each one's scale times its end's free-segment inverse mass, recomputed here from the rest pose) are noted, with the
+    damping that acts whole on half of them. ``character`` as shipped (1.3 times) has no such note."""
+    from hairwarp.runner import LINK_DAMPING_NOTE_LOAD
+
+    over = ["dense.count=0", "sim.frames=2", "output.preview=false"]
+    assert Simulation(hw.Scene.load(SCENES / "character.toml", over)).link_damping_note is None
+    result = hw.simulate(hw.Scene.load(SCENES / "character.toml", [*over, "links.damping=0.02"]),
+                         tmp_path / "damped.usdc", preview=False)
+    note = [n for n in result.notes if n.startswith("links.damping = 0.02 N s/m asks")]
+    assert len(note) == 1, result.notes
+    sim = Simulation(hw.Scene.load(SCENES / "character.toml", [*over, "links.damping=0.02"]))
+    links, model = sim.links, sim.model
+    x = np.asarray(model.rest_vertex_positions, dtype=np.float64).reshape(model.strand_count, -1, 3)
+    p0, p1 = x[:, :-1].reshape(-1, 3), x[:, 1:].reshape(-1, 3)
+    mass, length = model.seg_mass.numpy().astype(np.float64), np.linalg.norm(p1 - p0, axis=1)
+    a, b = links.seg_a, links.seg_b
+    end_a = p0[a] + links.frac_a[:, None] * (p1[a] - p0[a]) + links.rest_offset
+    end_b = p0[b] + links.frac_b[:, None] * (p1[b] - p0[b])
+    weight = np.zeros(len(mass))
+    for seg, end in ((a, end_a), (b, end_b)):
+        r = end - 0.5 * (p0[seg] + p1[seg])
+        np.add.at(weight, seg, links.scale * (1.0 + 12.0 * np.sum(r * r, axis=1) / length[seg] ** 2) / mass[seg])
+    median = float(np.median(sim.scene.step_dt * 0.02 * weight[weight > 0.0]))
+    assert median > LINK_DAMPING_NOTE_LOAD
+    assert f"asks {median:.3g} times" in note[0] and f"{0.02 / median:.3g} N s/m acts whole" in note[0], note[0]
+
+
 def test_a_run_notes_links_that_auto_solved_after_the_free_step(tmp_path):
     """``links.response = "auto"`` solving links too stiff for the free step at 8 substeps says so in the run's notes,
     with the free-step rate and the stiffness that keeps them in the free step; at that stiffness they stay there
