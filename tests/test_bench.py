@@ -370,6 +370,30 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
 
 
 
+def test_robustness_summary_line_names_what_misses_its_goal():
+    """The report's summary line of the robustness suite counts each part's cases that meet their goal and names the
+    ones that do not: a scene whose rest misses one of its three goals, a convergence variant below first order."""
+    from hairwarp.benchmarks.robustness import summary_md
+
+    def rest(scene, resting=True):
+        return {"scene": scene, "status": "ok", "meets_speed": True, "meets_ratio": True, "meets_resting": resting}
+
+    data = {
+        "rest": {"rows": [rest("tiny"), rest("long_hair", resting=False), {"scene": "ratboy_mohawk",
+                                                                            "status": "skipped"}]},
+        "sweep": {"counts": {"ok": 3}, "cells": [{}, {}, {}], "meets": True},
+        "frame_rate": {"rows": [{"scene": "tiny", "status": "ok", "2": {"meets": True}, "1": {"meets": True}}]},
+        "teleport": {"rows": [{"case": "teleport", "meets": True}]},
+        "extreme": {"scenes": [{"scene": "long_hair", "rows": [{"case": "spin", "meets": True}]}]},
+        "convergence": {"variants": {"links": {"meets": True, "order": 1.1}, "no links": {"meets": False, "order": 0.5},
+                                     "free hair": {"meets": None, "order": 0.9}}},
+    }
+    line = summary_md(data)
+    assert "at rest with the head still 1 of 2 ✗ (long_hair)" in line, line
+    assert "stability grid 3 of 3 cells ✓" in line and "frame-rate steps 1 of 1 ✓" in line, line
+    assert "convergence in the step 1 of 2 ✗ (no links, order 0.5)" in line and "free hair" not in line, line
+
+
 def test_robustness_rest_redraws_a_missed_ratio_and_judges_the_means(monkeypatch):
     from hairwarp.benchmarks import robustness as rb
 

@@ -783,6 +783,19 @@ def _summary_md(s: dict) -> list[str]:
         from hairwarp.benchmarks.budget import summary_budget
 
         out.append(summary_budget(s["budget"]))
+    inter = s.get("interactions")
+    rows = [r for r in ((inter or {}).get("scenes") or {}).get("rows", []) if r.get("status") == "ok"]
+    if rows:
+        goal = inter["goal_per_dynamics"]
+        out.append(f"- Interactions (links and hair contacts) against the dynamics step, each shipped scene at its "
+                   f"density (goal ≤ {goal:g}×): " + ", ".join(
+                       f"{r['scene']} {r['per_dynamics']:.2f}× {'✓' if r['meets'] else '✗'}" for r in rows)
+                   + f"; {sum(bool(r['meets']) for r in rows)} of {len(rows)} met.")
+    rob = s.get("robustness")
+    if rob:
+        from hairwarp.benchmarks.robustness import summary_md
+
+        out.append(summary_md(rob))
     return out + [""]
 
 

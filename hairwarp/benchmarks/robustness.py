@@ -1519,6 +1519,31 @@ def _rerun_note(rerun: dict | None) -> str:
     return f" Rerun on {rerun['date']} at commit {rerun['git_commit']}: {', '.join(rerun['parts'])}."
 
 
+def summary_md(data: dict) -> str:
+    """One line for the report's summary: each part's goal met or not, and the scenes or variants that miss it."""
+    def part(name, rows, met, label):
+        missed = [label(r) for r in rows if not met(r)]
+        verdict = "✓" if not missed else f"✗ ({', '.join(missed)})"
+        return f"{name} {len(rows) - len(missed)} of {len(rows)} {verdict}"
+
+    rest = [r for r in data["rest"]["rows"] if r.get("status") == "ok"]
+    frame_rate = [r for r in data["frame_rate"]["rows"] if r.get("status") == "ok"]
+    extreme = [(run["scene"], r) for run in data["extreme"].get("scenes", [data["extreme"]]) for r in run["rows"]]
+    conv = [(label, v) for label, v in data["convergence"]["variants"].items() if v["meets"] is not None]
+    sweep = data["sweep"]
+    parts = [
+        part("at rest with the head still", rest, lambda r: r["meets_speed"] and r["meets_ratio"]
+             and r["meets_resting"], lambda r: r["scene"]),
+        f"stability grid {sweep['counts']['ok']} of {len(sweep['cells'])} cells {'✓' if sweep['meets'] else '✗'}",
+        part("frame-rate steps", frame_rate, lambda r: r["2"]["meets"] and r["1"]["meets"], lambda r: r["scene"]),
+        part("teleports", data["teleport"]["rows"], lambda r: r["meets"], lambda r: r["case"]),
+        part("extreme motions", extreme, lambda e: e[1]["meets"], lambda e: f"{e[0]} {e[1]['case']}"),
+        part("convergence in the step", conv, lambda c: c[1]["meets"],
+             lambda c: f"{c[0]}, order {_f(c[1]['order'], 2)}"),
+    ]
+    return "- Robustness (goals of section \"Robustness\"): " + "; ".join(parts) + "."
+
+
 def summary(data: dict) -> list[str]:
     """Plain-text lines for the terminal."""
     out = []
