@@ -109,8 +109,9 @@ def damper_cap(hc: float, weight_a: float, weight_b: float) -> float:
     Each link's damper, solved alone, takes at most its own ends' relative velocity in the step, but the links that
     share a segment each take theirs from the same segment: where they take more than its velocity together they
     reverse it, and the dampers put energy into the hair. The Jacobi bound, ``h c sum W <= 1`` per segment, keeps
-    every damper dissipative (``character`` at rest, links alone, its median segment at 1.6 of it: +1.1 mJ in a
-    frame before, at 0.01 N s/m +4.4 mJ) and leaves every link whose segments stay within it exactly as it was."""
+    every damper dissipative (``character``'s links alone, its median segment at 1.3 of it, falling from the groom
+    with the head still: +1.1 mJ in a frame before, at 0.01 N s/m +4.4 mJ) and leaves every link whose segments stay
+    within it exactly as it was."""
     load = hc * wp.max(weight_a, weight_b)
     if load > 1.0:
         return 1.0 / load
