@@ -264,6 +264,20 @@ class Solver:
         self.integrator = _integrator(integrator)
         self.colliders = colliders
         self.links = links
+        for name, part, G, S in (("links", links, None, None),
+                                 ("contacts", contacts, getattr(contacts, "strand_count", None),
+                                  getattr(contacts, "seg_per_strand", None))):
+            if part is None:
+                continue
+            segments = len(part.seg_transport) if name == "links" else G * S
+            if segments != model.seg_count or (name == "contacts" and S != model.seg_per_strand):
+                # a kernel indexing another model's segments would read past this one's arrays
+                raise ValueError(f"{name} were built for {segments} segments, not this model's {model.seg_count} "
+                                 f"({model.strand_count} strands x {model.seg_per_strand}): build them from this "
+                                 f"model's rest pose")
+        if links is not None:
+            # built here, from the host, rather than in a first step that may be captured in a graph
+            links.seg_damper_weight(model)
         self.contacts = contacts
         if isinstance(max_rotation_per_step, bool) \
                 or not isinstance(max_rotation_per_step, int | float | np.integer | np.floating) \

@@ -499,9 +499,9 @@ def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, 
     each in one line naming the argument, and change nothing when they refuse: another model's state given to
     ``forward_kinematics``, ``teleport`` or ``joint_accelerations`` (a kernel reading past a smaller state's arrays
     ended the process), a state whose ``joint_qd`` alone is short, ``State.assign`` across models, one ColliderSet
-    for two models, a collider velocity that is not 3 finite numbers, a gravity that is not finite, a fractional
-    segment count, a rotation bound that is not a positive angle, a bool step size, and arguments of the wrong
-    kind."""
+    for two models, links or hair contacts of another model, a collider velocity that is not 3 finite numbers, a
+    gravity that is not finite, a fractional segment count, a rotation bound that is not a positive angle, a bool
+    step size, and arguments of the wrong kind."""
     from hairwarp.colliders import Collider, ColliderError, ColliderSet
     from hairwarp.model import ModelError
 
@@ -533,6 +533,17 @@ def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, 
         hw.Solver(small, colliders=shared)
     with pytest.raises(TypeError, match="colliders must be a hairwarp ColliderSet"):
         hw.Solver(model, colliders=[ball])
+    # links and hair contacts built from another model's rest pose (a step with such links ended the process, such
+    # contacts ran on silently)
+    other = hw.Model.build(hw.scalp_groom(count=20, length=0.2, points=8), segments=3)
+    for name, part in (("links", hw.StaticLinks.build(other.rest_vertex_positions, radius=0.05, stiffness=1.0,
+                                                      damping=0.001, break_length=0.1)),
+                       ("contacts", hw.HairContacts.build(other.rest_vertex_positions, threshold=0.002, stiffness=7.0,
+                                                          damping=0.0035, capacity=1024))):
+        built = f"{name} were built for {other.seg_count} segments, not this model's 6 "
+        with pytest.raises(ValueError, match=built):
+            hw.Solver(small, **{name: part})
+        hw.Solver(other, **{name: part})
     posed = shared.world_matrices()
     for velocity in ((0.0, np.nan, 0.0), (1.0, 2.0)):
         with pytest.raises(ColliderError, match="collider 'ball': linear_velocity must be 3"):
