@@ -359,8 +359,8 @@ class StaticLinks:
             if not value > 0.0:
                 raise InteractionError(f"{name} must be > 0, got {value}")
         for name, value in (("stiffness", stiffness), ("damping", damping)):
-            if not value >= 0.0:
-                raise InteractionError(f"{name} must be >= 0, got {value}")
+            if not 0.0 <= value < math.inf:
+                raise InteractionError(f"{name} must be a finite number >= 0, got {value}")
         if int(neighbours) < 1:
             raise InteractionError(f"neighbours must be >= 1, got {neighbours}")
         if int(sweeps) < 1:
@@ -930,8 +930,8 @@ class HairContacts:
         if not threshold > 0.0:
             raise InteractionError(f"threshold must be > 0, got {threshold}")
         for name, value in (("stiffness", stiffness), ("damping", damping), ("friction", friction)):
-            if not value >= 0.0:
-                raise InteractionError(f"{name} must be >= 0, got {value}")
+            if not 0.0 <= value < math.inf:
+                raise InteractionError(f"{name} must be a finite number >= 0, got {value}")
         if not slip_velocity > 0.0:
             raise InteractionError(f"slip_velocity must be > 0, got {slip_velocity}")
         if not 0.0 <= alignment_cutoff < 1.0:

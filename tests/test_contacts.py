@@ -671,6 +671,19 @@ def test_strip_adjacency():
         TriangleStrips.build(verts, grid_shape=(3, 3))
 
 
+def test_hair_contacts_refuse_stiffness_damping_and_friction_that_are_not_finite():
+    """The contacts' stiffness, damping and friction coefficient must be finite and >= 0, each named in one line."""
+    verts = np.zeros((2, 3, 3))
+    verts[:, :, 2] = -np.arange(3)[None]
+    verts[1, :, 0] = 0.01
+    good = {"threshold": 0.002, "stiffness": 7.0, "damping": 0.0035, "friction": 0.3, "capacity": 64}
+    HairContacts.build(verts, **good)
+    for name in ("stiffness", "damping", "friction"):
+        for value in (-1.0, np.inf, np.nan):
+            with pytest.raises(InteractionError, match=f"{name} must be a finite number >= 0, got {value}"):
+                HairContacts.build(verts, **{**good, name: value})
+
+
 # -- the response inside the step ----------------------------------------------------------------------------------
 
 

@@ -401,6 +401,11 @@ def test_bad_input_is_named():
     verts[:, :, 2] = -np.arange(3)[None]
     with pytest.raises(InteractionError, match="radius"):
         StaticLinks.build(verts, radius=0.0, stiffness=1.0, damping=0.0, break_length=1.0)
+    for name in ("stiffness", "damping"):
+        for value in (-1.0, np.inf, np.nan):
+            with pytest.raises(InteractionError, match=f"{name} must be a finite number >= 0, got {value}"):
+                StaticLinks.build(verts, radius=1.0, break_length=1.0, **{"stiffness": 1.0, "damping": 0.0,
+                                                                         name: value})
 
 
 def _skew(v):
