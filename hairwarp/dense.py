@@ -304,6 +304,11 @@ class DenseHair:
         self.root_uv = None
         self._max_count = None if max_count is None else int(max_count)  # read by the binders' _sample_count
 
+        if grid_shape is not None and min(int(x) for x in grid_shape) < 2 and root_samples is None \
+                and int(np.prod(grid_shape)) == G:
+            # a generator's grid of one row or column (a few guides: 1 x 7 for 7) spans no cell: the roots'
+            # triangulation binds them instead, as for a groom without a grid
+            grid_shape = None
         if grid_shape is not None:
             index, weight, sample_uv = self._bind_grid(roots, grid_shape, count, density, root_samples, rng_roots)
         else:
@@ -368,7 +373,7 @@ class DenseHair:
     def _bind_triangles(self, roots, root_uv, count, density, root_samples, rng):
         G = len(roots)
         if G < 3:
-            raise DenseHairError(f"barycentric interpolation needs at least 3 guides, got {G}")
+            raise DenseHairError(f"dense hair is interpolated between guides, at least 3, got {G}")
         if root_uv is None:
             root_uv = scalp_uv(roots)
         root_uv = np.asarray(root_uv, dtype=np.float64)

@@ -13,6 +13,7 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
+import hairwarp as hw
 from hairwarp.colliders import Collider, ColliderSet
 from hairwarp.dense import DenseHair, DenseHairError, bench_dense, scalp_uv
 from hairwarp.kernels import interpolate as kernels
@@ -168,6 +169,25 @@ def test_dense_roots_inside_triangulation_with_scipy_barycentrics():
         b = dela.transform[simplex[d], :2] @ (hair.dense_root_uv[d] - dela.transform[simplex[d], 2])
         bary = dict(zip(s.tolist(), [*b, 1.0 - b.sum()], strict=True))
         np.testing.assert_allclose([bary[i] for i in tri[d]], hair.guide_weight[d, :3], atol=1e-9)
+
+
+def test_a_generator_grid_of_one_row_binds_by_the_roots_triangulation():
+    """The scalp generator lays a few guides in one row of its grid (7 guides: 1 x 7), which spans no cell: the dense
+    hair binds to the roots' triangulation instead, with SciPy's Delaunay triangles and barycentrics, as for a groom
+    without a grid (it used to refuse the grid). Fewer than 3 guides are refused, naming the count."""
+    groom = hw.scalp_groom(count=7, length=0.2, points=8)
+    assert groom.grid_shape == (1, 7)
+    guides = np.stack([np.asarray(s, dtype=np.float64) for s in groom.strands])
+    hair = DenseHair.build(guides, groom.root_uv, grid_shape=groom.grid_shape, count=500, seed=2, device=DEVICE)
+    assert hair.grid_shape is None and hair.dense_count == 500
+    dela = Delaunay(groom.root_uv)
+    assert {frozenset(t) for t in hair.triangles.tolist()} <= {frozenset(s) for s in dela.simplices.tolist()}
+    assert np.all(dela.find_simplex(hair.dense_root_uv) >= 0)
+    np.testing.assert_allclose(hair.guide_weight.sum(axis=1), 1.0, atol=1e-12)
+    two = hw.scalp_groom(count=2, length=0.2, points=8)
+    with pytest.raises(DenseHairError, match="at least 3, got 2"):
+        DenseHair.build(np.stack([np.asarray(s, dtype=np.float64) for s in two.strands]), two.root_uv,
+                        grid_shape=two.grid_shape, count=10, device=DEVICE)
 
 
 def test_gap_between_scalp_patches_is_not_bridged():
