@@ -51,6 +51,10 @@ LINK_STEP_RATE = 0.7
 #: times it at its 10 substeps, where the cap holds back only the busier segments' links.
 LINK_DAMPING_NOTE_LOAD = 2.0
 
+#: The fewest guide segments a curl of the scalp generator (``groom.curl_period``) spans before a run warns that the
+#: guides cannot draw it: four draw a helix's turn as a square in projection, fewer as a zigzag.
+CURL_SEGMENTS = 4
+
 #: Hair contacts' free-step rate (``interactions.contact_step_rate``: the step times ``sqrt(k / m)``, with their
 #: largest density factor and the median segment) past which ``interactions.response = "auto"`` solves them after
 #: the free step at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit
@@ -356,6 +360,7 @@ class Simulation:
                           f"as drawn (first: strand {int(np.flatnonzero(unstable)[0])}): too soft for their weight, "
                           f"they buckle and fall from it (raise strands.bend_stiffness, tie them with links, or let "
                           f"the groom sag: groom.hold_shape = false)", stacklevel=2)
+        self._warn_undrawn_curls(scene)
         self.frame_dt = scene.frame_dt
         self.colliders = self._build_colliders(scene)
         self._display_meshes = None  # (vertices, faces) of each collider in its frame, made once (collider_meshes)
@@ -459,6 +464,26 @@ class Simulation:
                           f"{float(cfg.radius):g} m{spacing}; raise links.radius, or set links.enabled = false",
                           stacklevel=2)
         return links
+
+    def _warn_undrawn_curls(self, scene):
+        """Warn where the scalp generator's curls are shorter than :data:`CURL_SEGMENTS` of the guides' segments: the
+        guides, resampled to ``sim.segments``, draw them as a zigzag, and the dense hair follows the guides."""
+        groom = scene.groom
+        if groom.generator != "scalp" or not float(groom.curl) > 0.0:
+            return
+        period = float(groom.curl_period)
+        segments = int(scene.sim.segments)
+        # along the drawn helix: the resampled guides' chords cut across the curls and come out shorter
+        length = float(np.median([np.linalg.norm(np.diff(np.asarray(strand, dtype=np.float64), axis=0), axis=1).sum()
+                                  for strand in self.groom.strands]))
+        if period * segments >= CURL_SEGMENTS * length:
+            return
+        chords = float(np.median(self.model.seg_length.numpy().astype(np.float64).reshape(-1, segments).sum(axis=1)))
+        warnings.warn(f"groom.curl: a curl (groom.curl_period = {period:g} m) spans {period * segments / length:.2g} "
+                      f"of the guides' segments at sim.segments = {segments}: the guides draw it as a zigzag, "
+                      f"{1e3 * chords:.3g} mm long where the groom draws {1e3 * length:.3g} mm, and the dense hair "
+                      f"follows them; {CURL_SEGMENTS} segments a curl need sim.segments >= "
+                      f"{math.ceil(CURL_SEGMENTS * length / period)}", stacklevel=3)
 
     def _link_damping_note(self, links) -> str | None:
         """The run's note where the links' damping in the free step is past :data:`LINK_DAMPING_NOTE_LOAD` times what

@@ -324,6 +324,29 @@ def test_a_motion_key_overridden_for_a_kind_that_ignores_it_is_refused():
     assert scene.with_overrides(["head.motion.kind='still'"]).head.motion.kind == "still"
 
 
+def test_curls_the_guides_cannot_draw_are_warned_with_the_segments_they_need():
+    """The scalp generator's curls (``groom.curl``) shorter than ``CURL_SEGMENTS`` guide segments along the drawn
+    helix are warned of, with the segment count that draws them: 4 segments a 0.05 m curl over 0.35 m of hair is 28.
+    At 12 segments the guides' chords shorten the hair from 0.35 m to about 0.22 m."""
+    import warnings
+
+    from hairwarp.runner import CURL_SEGMENTS, Simulation
+
+    over = ["groom.count=20", "groom.curl=0.007", "dense.count=0", "links.enabled=false",
+            "interactions.enabled=false", "output.preview=false"]
+    need = math.ceil(CURL_SEGMENTS * 0.35 / 0.05)
+    with pytest.warns(UserWarning, match=rf"groom.curl: .* spans 1.7 of the guides' segments at sim.segments = 12: .* "
+                                         rf"need sim.segments >= {need}$") as caught:
+        sim = Simulation(Scene.load(SCENES / "long_hair.toml", over))
+    shortened = float(str(caught[0].message).split("zigzag, ")[1].split(" mm")[0])
+    drawn = sim.model.seg_length.numpy().astype(float).reshape(sim.model.strand_count, -1).sum(axis=1)
+    assert shortened == pytest.approx(1e3 * np.median(drawn), rel=2e-3) and shortened < 0.7 * 350.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Simulation(Scene.load(SCENES / "long_hair.toml", [*over, f"sim.segments={need}"]))
+        Simulation(Scene.load(SCENES / "long_hair.toml", [*over[:1], *over[2:]]))  # straight hair
+
+
 def test_a_keyframed_head_is_held_still_by_overriding_its_kind_alone():
     """-s head.motion.kind=still on a scene of [[head.motion.keys]] drops its keys (no override can remove a table; they
     were refused as keys of another kind); the head then stays at the pose the keys start from, the identity. A key
