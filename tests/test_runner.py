@@ -1,6 +1,7 @@
 """End-to-end runs of scenes: the cache usd-core reads back, the preview, faults that stop a run with
 a clear message and keep what was written, the swap parity and CPU graph capture."""
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +146,15 @@ def test_the_step_api_refuses_what_would_crash_or_do_nothing(tiny):
     for threads in ("abc", 2.5, -1, "2"):
         with pytest.raises(ValueError, match="threads must be"):
             Simulation(tiny, threads=threads)
+    # more threads than cores run, slower, with a warning naming the argument and the cores
+    from hairwarp.executor import default_threads
+
+    cores = default_threads()
+    with pytest.warns(UserWarning, match=f"^threads = {cores + 1} is more than the {cores} cores this process"):
+        Simulation(tiny, threads=cores + 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Simulation(tiny, threads=cores)
     with pytest.raises(ValueError, match="no dense hair"):
         sim.dense_curves()
     # a quaternion off unit length is normalised, and the valid calls step
