@@ -190,6 +190,15 @@ def _dampers(n: int, device, inverse_inertias=None) -> articulated.InteractionRe
     return d
 
 
+def _check_built_for(model, name: str, segments: int, per_strand: int | None = None):
+    """Refuse links or hair contacts built for other segments than ``model``'s: a kernel indexing another model's
+    segments would read past this one's arrays."""
+    if segments != model.seg_count or per_strand not in (None, model.seg_per_strand):
+        raise ValueError(f"{name} were built for {segments} segments, not this model's {model.seg_count} "
+                         f"({model.strand_count} strands x {model.seg_per_strand}): build them from this model's rest "
+                         f"pose")
+
+
 def _integrator(value) -> Integrator:
     if isinstance(value, Integrator):
         return value
@@ -264,17 +273,11 @@ class Solver:
         self.integrator = _integrator(integrator)
         self.colliders = colliders
         self.links = links
-        for name, part, G, S in (("links", links, None, None),
-                                 ("contacts", contacts, getattr(contacts, "strand_count", None),
-                                  getattr(contacts, "seg_per_strand", None))):
-            if part is None:
-                continue
-            segments = len(part.seg_transport) if name == "links" else G * S
-            if segments != model.seg_count or (name == "contacts" and S != model.seg_per_strand):
-                # a kernel indexing another model's segments would read past this one's arrays
-                raise ValueError(f"{name} were built for {segments} segments, not this model's {model.seg_count} "
-                                 f"({model.strand_count} strands x {model.seg_per_strand}): build them from this "
-                                 f"model's rest pose")
+        if links is not None:
+            _check_built_for(model, "links", len(links.seg_transport))
+        if contacts is not None:
+            _check_built_for(model, "contacts", contacts.strand_count * contacts.seg_per_strand,
+                             contacts.seg_per_strand)
         if links is not None:
             # built here, from the host, rather than in a first step that may be captured in a graph
             links.seg_damper_weight(model)
