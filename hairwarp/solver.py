@@ -275,12 +275,11 @@ class Solver:
         self.links = links
         if links is not None:
             _check_built_for(model, "links", len(links.seg_transport))
+            # built here, from the host, rather than in a first step that may be captured in a graph
+            links.seg_damper_weight(model)
         if contacts is not None:
             _check_built_for(model, "contacts", contacts.strand_count * contacts.seg_per_strand,
                              contacts.seg_per_strand)
-        if links is not None:
-            # built here, from the host, rather than in a first step that may be captured in a graph
-            links.seg_damper_weight(model)
         self.contacts = contacts
         if isinstance(max_rotation_per_step, bool) \
                 or not isinstance(max_rotation_per_step, int | float | np.integer | np.floating) \
