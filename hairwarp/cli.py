@@ -71,6 +71,8 @@ def _cmd_run(args) -> int:
         ("--threads", "sim.threads", args.threads),
     ])
     scene = Scene.load(path, overrides=overrides)
+    for key, why in scene.unread_keys(o.split("=", 1)[0].strip() for o in args.set or ()):
+        warnings.warn(f"-s {key}: {why}", stacklevel=1)
     out = Path(args.output) if args.output else Path("out") / f"{scene.name}.usdc"
 
     from hairwarp.runner import simulate
@@ -307,6 +309,10 @@ def _cmd_wedge(args) -> int:
             given = "--frames" if fixed[key] == f"sim.frames={args.frames}" else f"-s {fixed[key]}"
             raise ValueError(f"{key} is both wedged (-w {key}=...) and fixed ({given}); give it one way")
     base = Scene.load(path, overrides=overrides)
+    unread = [(key, why) for key, why in base.unread_keys(params) if key.split(".", 1)[0] + ".enabled" not in params
+              and not (key.startswith("dense.") and {"dense.count", "dense.density"} & params.keys())]
+    if unread:  # every variant would run the same
+        raise ValueError(f"-w {unread[0][0]}: {unread[0][1]}")
     out = Path(args.output) if args.output else Path("out") / f"wedge_{base.name}"
     tasks = farm.wedge_tasks(path, params, out, mode="zip" if args.zip else "grid", overrides=overrides)
     farm.make_output_folder(out)  # once the variants are checked: a bad key leaves no folder behind

@@ -1046,6 +1046,24 @@ class Scene:
             data["scene"]["name"] = source.stem if source is not None else "scene"
         return cls(data, raw, source, base_dir, label)
 
+    def unread_keys(self, keys: Iterable[str]) -> list[tuple[str, str]]:
+        """The keys of ``keys`` (``section.key`` paths, as overrides give them) that this scene does not read because
+        their section is switched off (``links`` and ``interactions`` with ``enabled = false``, ``dense`` with no
+        count or density), each with why: an override of such a key changes nothing."""
+        off = {}
+        if not self.links.enabled:
+            off["links"] = ("links.enabled", "links.enabled is false in this scene")
+        if not self.interactions.enabled:
+            off["interactions"] = ("interactions.enabled", "interactions.enabled is false in this scene")
+        if not self.dense.count and self.dense.density is None:
+            off["dense"] = ("dense.count", "the scene writes no dense hair (dense.count = 0)")
+        unread = []
+        for key in keys:
+            section = key.split(".", 1)[0]
+            if section in off and key not in (off[section][0], "dense.density"):
+                unread.append((key, f"{off[section][1]}, so this changes nothing; set {off[section][0]} too"))
+        return unread
+
     def with_overrides(self, overrides: Iterable[str]) -> Scene:
         """A new scene with ``"key.path=value"`` changes, re-validated.
 

@@ -413,6 +413,13 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(runner, "simulate", fake)
     monkeypatch.chdir(tmp_path)
     assert main(["run", str(SCENES / "tiny.toml"), "--frames", "2", "--device", "cpu", "-s", "sim.substeps=3"]) == 0
+    assert "hairwarp: warning" not in capsys.readouterr().err
+    # an override of a section the scene switches off (tiny has no links) runs, with a warning that names it
+    assert main(["run", str(SCENES / "tiny.toml"), "-s", "links.damping=0.05", "-s", "sim.substeps=3"]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        "hairwarp: warning: -s links.damping: links.enabled is false in this scene, so this changes nothing; set "
+        "links.enabled too"]
+    assert main(["run", str(SCENES / "tiny.toml"), "--frames", "2", "--device", "cpu", "-s", "sim.substeps=3"]) == 0
     assert seen["out"] == Path("out") / "tiny.usdc"
     assert seen["frames"] == 2 and seen["device"] == "cpu" and seen["progress"] is True and seen["profile"] is False
     assert seen["scene"].sim.substeps == 3 and seen["scene"].sim.frames == 2

@@ -324,6 +324,23 @@ def test_a_motion_key_overridden_for_a_kind_that_ignores_it_is_refused():
     assert scene.with_overrides(["head.motion.kind='still'"]).head.motion.kind == "still"
 
 
+def test_keys_of_a_section_the_scene_switches_off_are_named_as_unread():
+    """``Scene.unread_keys``: the keys of ``links`` and ``interactions`` where the scene disables them, and of
+    ``dense`` where it writes no dense hair, each with the switch to set; the switches themselves and the keys of
+    sections that are on are read. ``hairwarp run`` warns of such ``-s`` overrides, ``hairwarp wedge`` refuses such a
+    wedged key (``tests/test_wedge.py``)."""
+    tiny = Scene.load(SCENES / "tiny.toml", ["dense.count=0"])
+    assert not tiny.links.enabled and not tiny.interactions.enabled
+    unread = dict(tiny.unread_keys(["links.damping", "links.enabled", "interactions.stiffness", "dense.clumping",
+                                    "dense.count", "dense.density", "strands.drag", "sim.frames"]))
+    assert sorted(unread) == ["dense.clumping", "interactions.stiffness", "links.damping"], unread
+    assert unread["links.damping"] == "links.enabled is false in this scene, so this changes nothing; set " \
+                                      "links.enabled too"
+    assert "dense.count = 0" in unread["dense.clumping"] and "set dense.count too" in unread["dense.clumping"]
+    assert Scene.load(SCENES / "long_hair.toml").unread_keys(["links.damping", "interactions.stiffness",
+                                                              "dense.clumping"]) == []
+
+
 def test_curls_the_guides_cannot_draw_are_warned_with_the_segments_they_need():
     """The scalp generator's curls (``groom.curl``) shorter than ``CURL_SEGMENTS`` guide segments along the drawn
     helix are warned of, with the segment count that draws them: 4 segments a 0.05 m curl over 0.35 m of hair is 28.

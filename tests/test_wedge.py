@@ -291,6 +291,11 @@ def test_bad_wedge_keys_and_unequal_zip_exit_2_with_one_line(tmp_path, capsys):
     assert main(["wedge", str(TINY), "-w", "sim.frames=2,4", "--frames", "3", "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sim.frames" in err[0] and "--frames" in err[0]
+    # a wedged key of a section the scene switches off (tiny has no links): every variant would run the same
+    assert main(["wedge", str(TINY), "-w", "links.damping=0.001,0.05", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["hairwarp: -w links.damping: links.enabled is false in this scene, so this changes nothing; set "
+                   "links.enabled too"], err
     assert not out.exists()  # nothing was submitted
 
 
