@@ -269,10 +269,8 @@ def link_forces(
             wp.atomic_add(link_broken_total, 0, 1)
             continue
 
-        # this link's k_s and k_d (``StaticLinks.link_scale``), its damping capped where its segments' dampers
-        # together would take more than their velocity in the step (``damper_cap``)
+        # this link's k_s and k_d (``StaticLinks.link_scale``)
         k = link_stiffness * link_scale[link]
-        c = link_damping * link_scale[link] * damper_cap(h * link_damping, seg_damper_weight[a], seg_damper_weight[b])
         hk = h * k
         # k_s |l| l/|l| = k_s l stays defined as l -> 0; the damping term needs a direction.
         f = k * l
@@ -285,6 +283,10 @@ def link_forces(
                 continue
             f = link_warm[link]
         if response == 0:
+            # the damping capped where the segments' dampers together would take more than their velocity in the
+            # step (``damper_cap``; the response solves its links' dampers with their strands, and reads none here)
+            c = link_damping * link_scale[link] * damper_cap(h * link_damping, seg_damper_weight[a],
+                                                             seg_damper_weight[b])
             # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
             u = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities, xb)
             if implicit_springs != 0:

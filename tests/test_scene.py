@@ -357,7 +357,8 @@ def test_curls_the_guides_cannot_draw_are_warned_with_the_segments_they_need():
         sim = Simulation(Scene.load(SCENES / "long_hair.toml", over))
     shortened = float(str(caught[0].message).split("zigzag, ")[1].split(" mm")[0])
     drawn = sim.model.seg_length.numpy().astype(float).reshape(sim.model.strand_count, -1).sum(axis=1)
-    assert shortened == pytest.approx(1e3 * np.median(drawn), rel=2e-3) and shortened < 0.7 * 350.0
+    # the warning prints the length to 3 digits: within half a unit of the third
+    assert shortened == pytest.approx(1e3 * np.median(drawn), abs=0.5) and shortened < 0.7 * 350.0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Simulation(Scene.load(SCENES / "long_hair.toml", [*over, f"sim.segments={need}"]))
