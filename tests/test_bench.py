@@ -110,6 +110,11 @@ def test_dynamics_ratios_follow_from_measured_figures(run):
         assert cfg["peers"]["pinocchio_aba_floor"]["seg_steps_per_s"] > 0
     assert d["cuda"]["device"] is None and d["cuda"]["reason"]
     assert d["profile"] and d["overhead_1x20"]
+    for p in d["profile"]:
+        # every launch of a step is timed, at the executor where it replays its prepared launches (the table of
+        # "Where a step's time goes" once came out empty): the step's kernel, in no more time than the whole step
+        assert p["calls_per_step"] >= 1 and p["calls"], p
+        assert sum(c["ms_per_step"] for c in p["calls"].values()) <= p["wall_ms_per_step"], p
 
 
 def test_accuracy_errors_and_reference_cache(run):

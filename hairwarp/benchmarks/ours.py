@@ -127,7 +127,13 @@ def time_solver(model: Model, integrator: str, dt: float, *, graph: bool, steps:
 
 def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> dict:
     """Wall time of each Warp call in a plain step (CPU launches are synchronous, so the time around a
-    launch is its argument packing plus its kernel); ms per step by call, launches per step."""
+    launch is its argument packing plus its kernel); ms per step by call, launches per step.
+
+    Timed where a launch is made: :meth:`hairwarp.executor.Executor.launch`, through which every CPU launch of the
+    step passes (it replays its prepared launches without ``wp.launch``), ``wp.launch`` for the few made directly,
+    and ``wp.copy``; a call made within another timed one (the executor's ``wp.launch`` on a GPU) counts once."""
+    from hairwarp.executor import Executor
+
     solver = Solver(model, integrator)
     states = [model.state(), model.state()]
     control = model.control()
@@ -137,14 +143,22 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
     wp.synchronize_device(model.device)
     GATE.wait()
     acc: dict[str, list] = {}
-    originals = {name: getattr(wp, name) for name in ("launch", "copy")}
+    depth = [0]
+    originals = [(wp, "launch", wp.launch), (wp, "copy", wp.copy), (Executor, "launch", Executor.launch)]
 
-    def wrap(name, orig):
+    def wrap(owner, name, orig):
         def timed(*args, **kwargs):
+            if depth[0]:
+                return orig(*args, **kwargs)
+            depth[0] += 1
             t0 = time.perf_counter()
-            out = orig(*args, **kwargs)
-            wp.synchronize_device(model.device)
-            key = getattr(args[0], "key", None) if name == "launch" else "wp.copy"
+            try:
+                out = orig(*args, **kwargs)
+                wp.synchronize_device(model.device)
+            finally:
+                depth[0] -= 1
+            kernel = args[1] if owner is Executor else args[0]
+            key = getattr(kernel, "key", None) if name == "launch" else "wp.copy"
             rec = acc.setdefault(key or name, [0.0, 0])
             rec[0] += time.perf_counter() - t0
             rec[1] += 1
@@ -152,8 +166,8 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
         return timed
 
     try:
-        for name, orig in originals.items():
-            setattr(wp, name, wrap(name, orig))
+        for owner, name, orig in originals:
+            setattr(owner, name, wrap(owner, name, orig))
         t0 = time.perf_counter()
         for _ in range(steps):
             solver.step(states[0], states[1], control, dt)
@@ -161,8 +175,8 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
         wp.synchronize_device(model.device)
         wall = (time.perf_counter() - t0) / steps
     finally:
-        for name, orig in originals.items():
-            setattr(wp, name, orig)
+        for owner, name, orig in originals:
+            setattr(owner, name, orig)
     calls = {k: {"ms_per_step": v[0] / steps * 1e3, "calls_per_step": v[1] / steps}
              for k, v in sorted(acc.items(), key=lambda kv: -kv[1][0])}
     return {"wall_ms_per_step": wall * 1e3, "calls": calls,
