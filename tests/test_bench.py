@@ -112,9 +112,11 @@ def test_dynamics_ratios_follow_from_measured_figures(run):
     assert d["profile"] and d["overhead_1x20"]
     for p in d["profile"]:
         # every launch of a step is timed, at the executor where it replays its prepared launches (the table of
-        # "Where a step's time goes" once came out empty): the step's kernel, in no more time than the whole step
+        # "Where a step's time goes" once came out empty), and when it runs (a chain of launches held for its end
+        # once timed at 0.2 % of the step): the calls take most of the step's time, and no more than all of it
         assert p["calls_per_step"] >= 1 and p["calls"], p
-        assert sum(c["ms_per_step"] for c in p["calls"].values()) <= p["wall_ms_per_step"], p
+        calls_ms = sum(c["ms_per_step"] for c in p["calls"].values())
+        assert 0.5 * p["wall_ms_per_step"] <= calls_ms <= p["wall_ms_per_step"], p
 
 
 def test_accuracy_errors_and_reference_cache(run):

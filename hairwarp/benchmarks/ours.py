@@ -129,12 +129,14 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
     """Wall time of each Warp call in a plain step (CPU launches are synchronous, so the time around a
     launch is its argument packing plus its kernel); ms per step by call, launches per step.
 
-    Timed where a launch is made: :meth:`hairwarp.executor.Executor.launch`, through which every CPU launch of the
-    step passes (it replays its prepared launches without ``wp.launch``), ``wp.launch`` for the few made directly,
-    and ``wp.copy``; a call made within another timed one (the executor's ``wp.launch`` on a GPU) counts once."""
+    On one thread, where every launch runs when it is made (with more, the executor holds a chain of launches and
+    runs them at its end), timed where a launch is made: :meth:`hairwarp.executor.Executor.launch`, through which
+    every CPU launch of the step passes (it replays its prepared launches without ``wp.launch``), ``wp.launch`` for
+    the few made directly, and ``wp.copy``; a call made within another timed one (the executor's ``wp.launch`` on a
+    GPU) counts once."""
     from hairwarp.executor import Executor
 
-    solver = Solver(model, integrator)
+    solver = Solver(model, integrator, threads=1)
     states = [model.state(), model.state()]
     control = model.control()
     for _ in range(3):
@@ -185,8 +187,8 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
 
 def aba_only_ms(model: Model, integrator: str, steps: int = 20) -> float:
     """Milliseconds of one ``aba_accelerations`` launch (the three ABA passes, no integration or
-    kinematics) on ``model``'s initial state, median of ``steps`` launches."""
-    solver = Solver(model, integrator)
+    kinematics) on ``model``'s initial state, median of ``steps`` launches, on one thread (as :func:`profile_step`)."""
+    solver = Solver(model, integrator, threads=1)
     state, control = model.state(), model.control()
     implicit = integrator == "implicit_joints"
     GATE.wait()

@@ -376,9 +376,10 @@ def md_dynamics(d: dict) -> list[str]:
                                "overhead per step**" for k, v in ov.items()) + ".")
         out.append("")
     if d.get("profile"):
-        out += ["Wall time of each Warp call in a plain step (CPU launches are synchronous), the three ABA passes "
-                "alone (`Solver.joint_accelerations`, one `aba_accelerations` launch: no integration, no kinematics) "
-                "and the compute per segment from the graph replay:", "",
+        out += ["Wall time of each Warp call in a plain step on one thread (where CPU launches run when they are "
+                "made), the three ABA passes alone on one thread (`Solver.joint_accelerations`, one "
+                "`aba_accelerations` launch: no integration, no kinematics) and the compute per segment from the "
+                "graph replay (one thread too):", "",
                 "| size | integrator | calls per step | per call: ms/step | ABA alone: ms "
                 "| graph ns per segment-step |",
                 "|---|---|---|---|---|---|"]
