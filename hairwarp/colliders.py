@@ -10,8 +10,9 @@ match), vertices inside are pushed out onto the surface and the rest of the stra
 segment lengths kept (Chang, Jin & Yu 2002).
 
 Rest vertices that start inside a collider (real grooms have them: the TressFX Ratboy mohawk has roots
-and first vertices up to 1 mm inside the body) are *exempt* from that collider: ``ColliderSet.bind``
-marks every rest vertex inside a collider, the projection leaves such a vertex alone for that collider
+and first vertices up to 1 mm inside the body) are *exempt* from that collider: ``ColliderSet.mark_exempt``
+marks every vertex inside a collider where the hair starts (``bind`` at the rest pose, ``hairwarp.Simulation`` the
+head and the world colliders posed at time 0), the projection leaves such a vertex alone for that collider
 until it is first seen clear of the contact layer (distance >= thickness), and from then on it collides
 like any other. Pushing them out at the first step kicks the strands (the joint springs hold the rest
 shape inside): on the Ratboy mohawk the first step then throws vertices at 1.4 m/s and the solver
@@ -554,14 +555,7 @@ class ColliderSet:
         The rest pose is ``model.rest_vertex_positions`` with the head at identity and world colliders at
         their current pose. Call once, before the first ``project`` (and before capturing a step).
         """
-        rest = np.asarray(model.rest_vertex_positions, dtype=float).reshape(model.strand_count, -1, 3)
-        bits = np.zeros(rest.shape[:2], dtype=np.int32)
-        if self.count:
-            distance = self.signed_distance(rest[:, 1:].reshape(-1, 3))[0]
-            for c in range(min(self.count, MAX_EXEMPT_COLLIDERS)):
-                inside = (distance[:, c] < 0.0).reshape(model.strand_count, -1)
-                bits[:, 1:] |= np.where(inside, np.int32(1 << c), np.int32(0))
-        self.vert_exempt = wp.array(bits.ravel(), dtype=wp.int32, device=self.device)
+        self.mark_exempt(model, model.rest_vertex_positions)
         self.contacts = body_contacts(model.vert_count, self.device, enabled=self.count > 0)
         self.start_clearance = wp.zeros(model.vert_count if self.count > 0 else 1, dtype=float, device=self.device)
         # each vertex's last query of each collider (detect_body_contacts): its point and the distance found
@@ -571,6 +565,40 @@ class ColliderSet:
         self.memo_point = wp.zeros(memo, dtype=wp.vec3, device=self.device)
         self.memo_distance = wp.full(memo, -UNBOUNDED, dtype=float, device=self.device)
         self.model = model
+
+    def mark_exempt(self, model, positions, head_xform=None) -> list[dict]:
+        """Mark the vertices of ``positions`` that lie inside a collider as exempt from it (module docstring):
+        ``bind`` does so at the rest pose with the head at the identity; a run whose hair starts elsewhere (the head
+        posed at its first time, world colliders at theirs) marks its start state again before the first step, or a
+        world collider would exempt vertices the start keeps clear of it and collide with those it starts through.
+
+        Args:
+            model: the bound model.
+            positions: (G*(S+1), 3) world vertex positions [m], or a ``wp.array`` of them.
+            head_xform: 4x4 head pose the positions are taken at (identity if None).
+
+        Returns:
+            Per collider with vertices inside: ``{"name", "vertices", "strands", "deepest"}`` (the deepest [m]).
+        """
+        if isinstance(positions, wp.array):
+            positions = positions.numpy()
+        pts = np.asarray(positions, dtype=float).reshape(model.strand_count, -1, 3)
+        bits = np.zeros(pts.shape[:2], dtype=np.int32)
+        found = []
+        if self.count:
+            distance = self.signed_distance(pts[:, 1:].reshape(-1, 3), head_xform)[0]
+            for c in range(min(self.count, MAX_EXEMPT_COLLIDERS)):
+                inside = (distance[:, c] < 0.0).reshape(model.strand_count, -1)
+                bits[:, 1:] |= np.where(inside, np.int32(1 << c), np.int32(0))
+                if inside.any():
+                    found.append({"name": self.colliders[c].name, "vertices": int(inside.sum()),
+                                  "strands": int(inside.any(axis=1).sum()),
+                                  "deepest": float(-distance[:, c].min())})
+        if self.vert_exempt is not None and self.vert_exempt.shape[0] == bits.size:
+            self.vert_exempt.assign(bits.ravel())  # in place: a solver's launches hold the array
+        else:
+            self.vert_exempt = wp.array(bits.ravel(), dtype=wp.int32, device=self.device)
+        return found
 
     @property
     def exempt_count(self) -> int:

@@ -411,6 +411,11 @@ class Simulation:
             control.set_root_frames(*self.surface.root_frames(0.0))
         state = self.model.state()
         self.solver.forward_kinematics(state, control)
+        self.start_inside = []  # per collider the hair starts inside: ``ColliderSet.mark_exempt``
+        if collider_set is not None:
+            # the exemptions of the hair as it starts, the head and the world colliders posed at time 0
+            self.start_inside = collider_set.mark_exempt(self.model, state.vertex_positions, self.head_matrix(0.0))
+            self._warn_started_inside(self.start_inside)
         self.stepper = Stepper(self.solver, dt=scene.step_dt, substeps=int(sim.substeps), control=control,
                                state=state)
         self.dense = self._build_dense(scene.dense)
@@ -476,6 +481,17 @@ class Simulation:
         if threads > cores:
             warnings.warn(f"{name} = {threads} is more than the {cores} cores this process may use: the threads take "
                           f"turns on them and the run is slower; {name} = 0 takes every core", stacklevel=3)
+
+    @staticmethod
+    def _warn_started_inside(found: list[dict]):
+        """Warn where the hair starts deeper than :data:`START_INSIDE_DEPTH` inside a collider: its vertices there
+        are exempt from it until they come out (``hairwarp.colliders``), so the hair passes through it."""
+        for c in found:
+            if c["deepest"] > START_INSIDE_DEPTH:
+                warnings.warn(f"collider {c['name']!r}: {c['vertices']} vertices of {c['strands']} strands start "
+                              f"inside it, up to {1e3 * c['deepest']:.3g} mm deep; they pass through it until they "
+                              f"come out: place it clear of the groom at the scene's start (the head as "
+                              f"head.motion has it at time 0)", stacklevel=3)
 
     def _warn_undrawn_curls(self, scene):
         """Warn where the scalp generator's curls are shorter than :data:`CURL_SEGMENTS` of the guides' segments: the
@@ -1052,6 +1068,11 @@ class Simulation:
     def head_matrix(self, t: float) -> np.ndarray:
         return self.motion.evaluate(t).matrix()
 
+
+#: Depth [m] inside a collider past which a run warns that the hair starts through it (``Simulation``): real grooms
+#: sink roots and first vertices into the scalp by a millimetre or so (the TressFX Ratboy's by up to 1.03 mm), which
+#: the exemption is for; deeper is a collider placed through the hair.
+START_INSIDE_DEPTH = 0.005
 
 #: The checkpoint entry of a run's scene (JSON), which ``--resume`` compares with the scene it is given.
 RESUME_SCENE_KEY = "run.scene"

@@ -815,3 +815,67 @@ def test_a_profiled_run_times_each_stage_and_writes_the_same_cache(tmp_path, cap
                  *[a for o in over for a in ("-s", o)]]) == 0
     text = capsys.readouterr().out
     assert "time by stage" in text and all(f"  {name} " in text for name, _ in STAGES)
+
+
+def _tiny_over_a_floor(floor_z: float, head_lift: float) -> hw.Scene:
+    """``tiny`` with its head held ``head_lift`` [m] above its rest pose from time 0 (keyframes) and a world plane
+    (a floor) at height ``floor_z``."""
+    import tomllib
+
+    d = tomllib.loads((hw.Scene.default_path().parent / "tiny.toml").read_text())
+    d["head"] = {"motion": {"kind": "keyframes", "keys": [{"time": 0.0, "translate": [0.0, 0.0, head_lift]},
+                                                          {"time": 1.0, "translate": [0.0, 0.0, head_lift]}]}}
+    d["colliders"] = [{"name": "floor", "kind": "plane", "translate": [0.0, 0.0, floor_z], "attach": "world"}]
+    return hw.Scene.from_dict(d)
+
+
+@pytest.mark.parametrize("head_lift", [0.0, 0.3])
+def test_exemptions_are_marked_where_the_hair_starts(head_lift):
+    """A vertex inside a collider where the run starts is exempt from it, and a run whose hair starts deeper than
+    ``START_INSIDE_DEPTH`` in one warns, naming it, its vertices, strands and depth (the hair passes through it).
+    The start is the head posed at time 0: a world plane that cuts through the hair at the head's rest pose but
+    not where the head starts (lifted 0.3 m) exempts nothing; marking the rest pose exempted 22 vertices of
+    ``long_hair_shoulders`` its nodding start keeps clear of the shoulders. Checked against the plane's distance
+    from the start state's own vertices."""
+    from hairwarp.runner import START_INSIDE_DEPTH
+
+    rest = Simulation(_tiny_over_a_floor(-10.0, 0.0)).model.rest_vertex_positions.reshape(-1, 3)
+    floor_z = float(np.quantile(rest[:, 2], 0.3))  # through the lower hair at the rest pose
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sim = Simulation(_tiny_over_a_floor(floor_z, head_lift))
+    x = sim.state.vertex_positions.numpy().astype(np.float64).reshape(sim.model.strand_count, -1, 3)
+    inside = x[:, :, 2] < floor_z
+    inside[:, 0] = False  # roots never collide, never exempt
+    np.testing.assert_array_equal(sim.collider_set.vert_exempt.numpy().reshape(inside.shape) != 0, inside)
+    said = [str(w.message) for w in caught if "start inside" in str(w.message)]
+    if head_lift > 0.0:
+        assert not inside.any() and sim.start_inside == [] and said == []
+        return
+    deepest = float(floor_z - x[:, :, 2][inside].min())
+    assert deepest > START_INSIDE_DEPTH and inside.sum() > 0
+    (c,) = sim.start_inside
+    assert c["name"] == "floor" and c["vertices"] == inside.sum() and c["strands"] == inside.any(axis=1).sum()
+    assert c["deepest"] == pytest.approx(deepest, abs=1e-5)  # float32 distances of points ~1.5 m from the origin
+    (message,) = said
+    assert f"collider 'floor': {inside.sum()} vertices of {inside.any(axis=1).sum()} strands start inside" in message
+    assert f"{1e3 * deepest:.3g} mm deep" in message
+
+
+@pytest.mark.parametrize("name", ["tiny", "long_hair", "long_hair_shoulders", "fast_turn", "character",
+                                  "ratboy_mohawk"])
+def test_shipped_scenes_start_clear_of_their_colliders(name):
+    """No shipped scene starts its hair deeper than ``START_INSIDE_DEPTH`` inside a collider (the run would warn,
+    and the hair pass through it: ``character`` drawn with seed 0 put a tip 22 mm into its torso for the whole
+    shot); the Ratboy's roots sink up to 1.03 mm into its body, which the exemption is for."""
+    from conftest import require_ratboy
+
+    from hairwarp.runner import START_INSIDE_DEPTH
+
+    if name == "ratboy_mohawk":
+        require_ratboy("Ratboy_mohawk.tfx")
+    scene = hw.Scene.load(hw.Scene.default_path().parent / f"{name}.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the Ratboy's groom drops its shortest strands, saying so
+        sim = Simulation(scene.with_overrides(["dense.count=0"]))
+    assert all(c["deepest"] <= START_INSIDE_DEPTH for c in sim.start_inside), sim.start_inside
