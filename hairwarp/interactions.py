@@ -506,9 +506,10 @@ class StaticLinks:
     def seg_damper_weight(self, model):
         """Per segment, the sum over the links it carries (either end) of each link's scale times the bound of its
         end's inverse mass (``kernels.links.point_inverse_mass``) [1/kg], on the device (float32, ``G*S``; built on
-        the first call from ``model``'s masses): ``h`` times the link damping times this is the share of its velocity
-        the segment's links' dampers, each solved alone in the free step, take from it in one step
-        (``kernels.links.link_forces`` caps their damping where it passes one). Links that break keep their share:
+        the first call from ``model``'s masses): ``h (h k + c)`` times this (``k`` the link stiffness, whose
+        backward-Euler force damps over the step too, ``c`` the damping) is the share of its velocity the segment's
+        links' dampers, each solved alone in the free step, take from it in one step (``kernels.links.link_forces``
+        caps their damping where it passes one). Links that break keep their share:
         the cap errs toward less damping, never toward a damper that reverses its segment."""
         if self._seg_damper_weight is None:
             mass = model.seg_mass.numpy().astype(np.float64)

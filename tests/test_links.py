@@ -140,9 +140,14 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     # each end's free-segment inverse mass, 1/m + |r|^2 / (m L^2 / 12), r from the segment's centre of mass
     com = origin + rot.apply(np.tile([0.0, 0.0, -0.5 * SEG_LEN], (G * S, 1)))
     Wa, Wb = ((1.0 + 12.0 * np.sum((x - com[s]) ** 2, axis=1) / SEG_LEN**2) / SEG_MASS for s, x in ((a, xa), (b, xb)))
-    # the dampers of a segment's links together take at most its velocity in a step: h c sum(scale W) <= 1
+    # the dampers of a segment's links together take at most its velocity in a step: h (h k + c) sum(scale W) <= 1,
+    # h k the backward-Euler spring's own damper over the step, the cap taken from the damping alone
     weight = np.bincount(a, scale * Wa, minlength=G * S) + np.bincount(b, scale * Wb, minlength=G * S)
-    c = c / np.maximum(1.0, DT * links.damping * np.maximum(weight[a], weight[b]))
+    busier = np.maximum(weight[a], weight[b])
+    spring_load = DT * DT * links.stiffness * busier * float(links.implicit_springs)
+    damper_load = DT * links.damping * busier
+    over = spring_load + damper_load > 1.0
+    c = c * np.where(over, np.maximum(1.0 - spring_load, 0.0) / np.where(over, damper_load, 1.0), 1.0)
     if links.implicit_springs:
         W = Wa + Wb
         C = DT * k[:, None, None] * np.eye(3) + c[:, None, None] * n[:, :, None] * n[:, None, :]
