@@ -149,10 +149,21 @@ def _cmd_schema(args) -> int:
     return EXIT_OK
 
 
+def _no_such_file(path: Path) -> FileNotFoundError:
+    """The error for a file that is not there, naming the cache a stopped or killed run left in ``<stem>.partial``
+    beside it (``hairwarp.io.cache_folder``), which holds every frame it completed."""
+    partial = path.with_name(path.stem + ".partial") / path.name
+    if partial.is_file():
+        return FileNotFoundError(f"{path.resolve()}: no such file; the run that writes it has not finished (it runs, "
+                                 f"or it stopped) and keeps its complete frames in {partial.resolve()}: read them "
+                                 f"there, or finish a stopped run with hairwarp run --resume")
+    return FileNotFoundError(f"{path.resolve()}: no such file")
+
+
 def _cmd_info(args) -> int:
     path = Path(args.file)
     if not path.exists():
-        raise FileNotFoundError(f"{path.resolve()}: no such file")
+        raise _no_such_file(path)
     if path.is_dir():
         raise ValueError(f"{path}: is a folder; name a scene (.toml), a groom or a cache in it")
     suffix = path.suffix.lower()
@@ -239,7 +250,7 @@ def _cmd_bench(args) -> int:
 def _cmd_preview(args) -> int:
     path = Path(args.cache)
     if not path.exists():
-        raise FileNotFoundError(f"{path.resolve()}: no such file")
+        raise _no_such_file(path)
     if path.is_dir():
         raise ValueError(f"{path}: is a folder; name the cache file in it")
     from hairwarp.preview import MAX_SHEET_FRAMES, cache_frames, preview_cache

@@ -102,12 +102,14 @@ def test_a_failing_run_keeps_the_previous_cache(tmp_path):
     assert after.keys() == before.keys() and all(np.array_equal(after[k], v) for k, v in before.items())
 
 
-def test_resume_refuses_a_cache_that_would_not_fit_and_takes_a_changed_simulation(tmp_path):
-    """A run that faulted (explicit stiff springs at one step a frame) leaves its frames; a resume with another dense
+def test_resume_refuses_a_cache_that_would_not_fit_and_takes_a_changed_simulation(tmp_path, capsys):
+    """A run that faulted (explicit stiff springs at one step a frame) leaves its frames; ``hairwarp info`` and
+    ``preview`` of the cache it did not write name where they are; a resume with another dense
     hair count is refused (its curves would change between frames) and leaves them, a resume at more substeps with
     the implicit integrator goes on from the last good frame and says what changed (through the API, as
     ``hairwarp run --resume`` calls it; the command's exit codes are checked above)."""
     import hairwarp as hw
+    from hairwarp.cli import main
     from hairwarp.runner import simulate
 
     out = tmp_path / "tiny.usdc"
@@ -117,6 +119,14 @@ def test_resume_refuses_a_cache_that_would_not_fit_and_takes_a_changed_simulatio
         simulate(stiff, out, frames=6, progress=False)
     partial = tmp_path / "tiny.partial" / "tiny.usdc"
     kept = _samples(partial)
+    capsys.readouterr()
+    for command in (["info", str(out)], ["preview", str(out), "-o", str(tmp_path / "p.png")]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "no such file" in err and f"frames in {partial.resolve()}" in err, err
+    last = int(max(t for _, t in kept))
+    assert main(["info", str(partial)]) == 0
+    assert f"frames 0 .. {last}: {last + 1} time samples" in capsys.readouterr().out
     with pytest.raises(ValueError, match=r"cannot resume: .*dense.count \(20, was 0\)"):
         simulate(stiff.with_overrides(["dense.count=20"]), out, frames=6, progress=False, resume=True)
     assert not out.exists() and _samples(partial).keys() == kept.keys()
