@@ -324,6 +324,8 @@ class Simulation:
             explains is taken again as one that faults ("whip" its stage), up to ``fault_retries`` times.
         retaken_frames: frames taken again after a fault or a whip; ``retakes``, ``(frame, steps it ran in, stage)``
             of each.
+        start_inside: per collider the hair starts inside, ``{"name", "vertices", "strands", "deepest"}`` [m]
+            (``ColliderSet.mark_exempt``); the run warns past ``START_INSIDE_DEPTH``.
     """
 
     def __init__(self, scene, *, device=None, threads: int | None = None):
