@@ -509,8 +509,8 @@ class StaticLinks:
         the first call from ``model``'s masses): ``h (h k + c)`` times this (``k`` the link stiffness, whose
         backward-Euler force damps over the step too, ``c`` the damping) is the share of its velocity the segment's
         links' dampers, each solved alone in the free step, take from it in one step (``kernels.links.link_forces``
-        caps their damping where it passes one). Links that break keep their share:
-        the cap errs toward less damping, never toward a damper that reverses its segment."""
+        caps their damping where it passes one). Links that break keep their share: the cap errs toward less damping,
+        never toward a damper that reverses its segment."""
         if self._seg_damper_weight is None:
             mass = model.seg_mass.numpy().astype(np.float64)
             weight = np.zeros(len(mass))
@@ -519,6 +519,17 @@ class StaticLinks:
                           + np.bincount(self.seg_b, self.scale * self.lever_b / mass[self.seg_b], minlength=len(mass)))
             self._seg_damper_weight = wp.array(weight, dtype=float, device=self.device)
         return self._seg_damper_weight
+
+    def damping_load(self, model, dt: float) -> np.ndarray:
+        """Per linked segment, how many times what its links' dampers may take in a step of ``dt`` the damping asks
+        (``kernels.links.damper_cap``, in float64 on the host): ``h c W`` over what the stiffness's own damper of the
+        step, ``h^2 k W``, leaves of 1 (``W``: :meth:`seg_damper_weight`; inf where it leaves none). Past 1 the
+        free step caps the segment's links' damping."""
+        weight = self.seg_damper_weight(model).numpy().astype(np.float64)
+        weight = weight[weight > 0.0]
+        room = 1.0 - dt * dt * self.stiffness * weight * float(self.implicit_springs)
+        damper = dt * self.damping * weight
+        return np.divide(damper, room, out=np.full_like(damper, np.inf), where=room > 0.0)
 
     def prepare_response(self, model, state_in, state_out, dt):
         """What the sweeps read of each link end over the step (:attr:`ends`): its force on its own free velocities

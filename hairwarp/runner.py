@@ -519,13 +519,7 @@ class Simulation:
     def _link_damping_note(self, links) -> str | None:
         """The run's note where the links' damping in the free step is past :data:`LINK_DAMPING_NOTE_LOAD` times what
         the median linked segment's dampers may take in a step (``kernels.links.damper_cap``), else None."""
-        weight = links.seg_damper_weight(self.model).numpy().astype(np.float64)
-        h = self.scene.step_dt
-        weight = weight[weight > 0.0]
-        # the damping's room: what the stiffness's own damper of the step (h k) leaves of the bound
-        room = 1.0 - h * h * links.stiffness * weight * float(links.implicit_springs)
-        damper = h * links.damping * weight
-        load = np.divide(damper, room, out=np.full_like(damper, np.inf), where=room > 0.0)
+        load = links.damping_load(self.model, self.scene.step_dt)
         median = float(np.median(load))
         if median <= LINK_DAMPING_NOTE_LOAD:
             return None
