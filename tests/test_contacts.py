@@ -16,7 +16,7 @@ from _reference import segment_distances
 from scipy.spatial.transform import Rotation
 
 from hairwarp.interactions import HairContacts, InteractionError, StaticLinks, TriangleStrips
-from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE, PLANE_RAMP
+from hairwarp.kernels.contacts import CONTACT_SEGMENT_SEGMENT, CONTACT_VERTEX_FACE, EDGE_RAMP, PLANE_RAMP
 from hairwarp.kernels.types import REFERENCE_SEGMENT_LENGTH, Fault
 
 # Distances within this of the threshold [m] may fall on either side in float32 (coordinates < 0.1 m).
@@ -428,6 +428,52 @@ def test_parting_strip_fades_out():
     faded, full = push(built), push(1.0e3)
     assert np.abs(full).max() > 0.0
     np.testing.assert_allclose(faded, 0.5 * full, rtol=1e-4, atol=1e-4 * np.abs(full).max())
+
+
+@pytest.mark.parametrize("x", [0.0001, 0.0003, 0.00049, 0.001])
+def test_vertex_face_push_fades_in_from_a_strands_line(x):
+    """The strip scene's tip moved across the strip to ``x`` [m] from strand 0 (0.8 mm in front of the face): the
+    push is the closed-form test's ``k_eff (thr - 0.8 mm)`` times ``min(x / (EDGE_RAMP thr), 1)``, its distance from
+    the strand over the ramp (``strand_edge_fade``)."""
+    k, S2 = 10.0, 2
+    verts = _strip_scene()
+    verts[2, :, 0] = x
+    strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+    contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16, segment_segment=False,
+                          skip_neighbour_strips=False, rest_gaps=False)
+    force, _, _ = _apply(contacts, _model(3, S2), _state(verts))
+    found = contacts.contact_list()
+    assert list(found["kind"]) == [CONTACT_VERTEX_FACE]
+    w = found["w"][0].astype(np.float64)
+    scale = contacts.strips.width_ref * ((w[0] + w[1]) / 0.010 + w[2] / 0.008)
+    k_eff = k * scale * (SEG_LEN / REFERENCE_SEGMENT_LENGTH)
+    expected = k_eff * (THRESHOLD - 0.0008) * min(x / (EDGE_RAMP * THRESHOLD), 1.0)
+    np.testing.assert_allclose(force[2 * S2 + 1], [0.0, expected, 0.0], rtol=FORCE_RTOL,
+                               atol=FORCE_RTOL * k_eff * (THRESHOLD - 0.0008))
+
+
+def test_push_is_continuous_where_a_vertex_crosses_a_strands_line():
+    """The strip scene's tip 0.8 mm in front of the strip, moved across strand 0's line in steps of 0.02 mm, with both
+    kinds of contact: the vertex-face push hands over to the segment-segment contact without a jump. Between two
+    neighbouring places the tip's force changes by at most a tenth of the face's push ``k_eff (thr - 0.8 mm)``, more
+    than the two contacts' slopes allow (the fade's ``k_eff (thr - d) / (EDGE_RAMP thr)`` per metre and the segment
+    pair's ``k`` by 0.02 mm: 5 % of it); a vertex-face push that switched off at the line changed it by the whole
+    push."""
+    k, S2 = 10.0, 2
+    pushes = []
+    for x in np.arange(-0.0006, 0.00061, 0.00002):
+        verts = _strip_scene()
+        verts[2, :, 0] = x
+        strips = TriangleStrips.build(verts, grid_shape=(1, 3))
+        contacts = _force_law(verts, strips, threshold=THRESHOLD, stiffness=k, capacity=16,
+                              skip_neighbour_strips=False, rest_gaps=False)
+        force, _, _ = _apply(contacts, _model(3, S2), _state(verts))
+        pushes.append(force[2 * S2 + 1])
+    # the density factor's largest on the quads the tip meets (their narrowest edge is 8 mm)
+    k_eff = k * (SEG_LEN / REFERENCE_SEGMENT_LENGTH) * strips.width_ref / 0.008
+    face_push = k_eff * (THRESHOLD - 0.0008)
+    assert np.abs(pushes).max() > 0.5 * face_push
+    assert np.linalg.norm(np.diff(pushes, axis=0), axis=1).max() < 0.1 * face_push
 
 
 def test_vertex_beside_a_strand_is_a_segment_contact():
