@@ -56,17 +56,18 @@ LINK_DAMPING_NOTE_LOAD = 2.0
 #: guides cannot draw it: four draw a helix's turn as a square in projection, fewer as a zigzag.
 CURL_SEGMENTS = 4
 
-#: Hair contacts' free-step rate (``interactions.contact_step_rate``: the step times ``sqrt(k / m)``, with their
-#: largest density factor and the median segment) past which ``interactions.response = "auto"`` solves them after
-#: the free step at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit
-#: beside a semi-implicit mass. On the stability benchmark's turn at 1/240 s (``bench_spring_stability``) with the
-#: default scene's links beside them it held contacts of 70 N/m (rate 5.5) and blew up at 100 (6.5); with the contacts
-#: alone, over three draws of gravity (relative changes 0, +-1e-5), 55 N/m (4.8) held in all three, 60 (5.05) blew up
-#: in two, 65 (5.25) in three, 70 (5.45) in two, at 1.23-1.37 s. Solved after it the same contacts hold the
-#: benchmark's whole sweep. The shipped scenes' contacts lie below it (1.7-1.8 at their steps) but the mohawk's (5.2,
-#: its segments of a few millimetres), which ``"auto"`` solves after the free step: its tips then lie 1.55 mm RMS from
-#: a 32-substep run over 45 frames against 6.44 in the free step, for 1.24 times the frame. In the free step below it
-#: they cost less.
+#: Hair contacts' free-step rate (``interactions.contact_step_rate``: the step times ``sqrt(k / m)``, with their largest
+#: density factor and the median segment) past which ``interactions.response = "auto"`` solves them after the free step
+#: at any step, as :data:`LINK_STEP_RATE` does the links. In the free step their spring is explicit beside a
+#: semi-implicit mass. On the stability benchmark's turn at 1/240 s (``bench_spring_stability``) with the default
+#: scene's links beside them it held contacts of 70 N/m (rate 5.5) and blew up at 100 (6.5); with the contacts alone,
+#: over three draws of gravity (relative changes 0, +-1e-5), 45 and 50 N/m (4.4, 4.6) held in all three, 55 (4.8) and 65
+#: (5.25) blew up in one, 60, 70 and 80 (5.05-5.9) in two, 100 (6.5) in three, at 1.03-1.37 s (since the vertex-face
+#: push fades in from the strands' lines, 2026-12-07; before it 55 N/m held in all three and 65 blew up in three).
+#: Solved after it the same contacts hold the benchmark's whole sweep. The shipped scenes' contacts lie below it
+#: (1.7-1.8 at their steps) but the mohawk's (5.2, its segments of a few millimetres), which ``"auto"`` solves after the
+#: free step: its tips then lie 1.55 mm RMS from a 32-substep run over 45 frames against 6.44 in the free step, for 1.24
+#: times the frame. In the free step below it they cost less.
 CONTACT_STEP_RATE = 4.5
 
 #: Fastest guide vertex of a run, as a multiple of the speed its motion explains (``Solver.speed_bound`` over
