@@ -451,7 +451,8 @@ class StaticLinks:
                                      device=dev)
         # what the sweeps read of each link end, a ends then b slots
         links.ends = link_kernels.LinkEnds()
-        for name, size in (("force", 2 * n), ("arm", 2 * n), ("axis", n)):
+        for name, size in (("force", 2 * n), ("arm", 2 * n), ("axis", n), ("twist_g", n), ("twist_m", n),
+                           ("kept_g", n), ("kept_m", n)):
             setattr(links.ends, name, wp.zeros(size, dtype=wp.vec3, device=dev))
         # the response's sweeps: strands coloured so that no two of a colour are linked
         links.sweeps = int(sweeps)
@@ -500,7 +501,7 @@ class StaticLinks:
         # its slots. No segment is written by two threads: the same bits however the segments are split.
         launch(self.executor, link_kernels.link_forces, seg_count, inputs,
                [seg_force, seg_torque, self.link_broken, self.link_broken_total, self.b_force, self.b_torque,
-                self.link_point_a, self.link_point_b],
+                self.link_point_a, self.link_point_b, self.ends.twist_g, self.ends.twist_m],
                device=self.device, min_chunk=SEGMENT_MIN_CHUNK, private_add=[n + 3])
 
     def seg_damper_weight(self, model):

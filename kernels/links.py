@@ -9,16 +9,18 @@ frame, and ``x_a' = X_a (0, 0, -f_a L_a) + R_min(R_head d0 -> d_a) R_head r0``, 
 between the two axes. So the offset turns with the head and with every bend of ``a``, but not with a's spin about
 its own axis, which nothing in a link holds (the vertex velocities do not show spin, and a thin segment's spin
 inertia is tiny): carried by a's full frame, a drifting twist swung the offset around the strand and dragged its
-neighbours out sideways after a fast head turn. The link's energy then does not depend on that spin. The torque on
-``a`` is the force's moment without its component along a's axis, which leaves out one term of the transport: as a
-bends out of the plane of ``d0`` and ``d``, the least rotation turns about ``d`` too, so the offset end moves by
+neighbours out sideways after a fast head turn. The link's energy then does not depend on that spin. As ``a`` bends
+out of the plane of ``d0`` and ``d`` the least rotation turns about ``d`` too, so the offset end moves by
 ``-(w . g)(d x o)`` besides ``w x o`` (``w`` a's angular velocity across its axis, ``o`` the turned offset,
-``g = (d0' - (d0' . d) d) / (1 + d0' . d)``, ``d0'`` the rest axis in the world; checked against finite differences),
-and the exact torque has ``-g (f . (d x o))`` besides. Measured on the shipped turns in motion, that term is 0.9 %
-(``long_hair``, frame 30) and 2.1 % (``fast_turn``, frame 18) of the links' torque summed over links, 6 % and 15 %
-at the 90th percentile of links: a small force that is not the gradient of the links' energy. The head rotation is
-the root segment's world rotation times its joint's inverse. The force acts along ``l`` at both ends: no net force,
-and no net torque but that spin component.
+``g = (d0' - (d0' . d) d) / (1 + d0' . d)``, ``d0'`` the rest axis in the world: ``offset_twist``), and the torque on
+``a`` is the force's moment without its component along a's axis plus ``-g (f . (d x o))``: the gradient of the links'
+energy in a's turn (``tests/test_links.py``, against finite differences of the energy). Every pass takes the term:
+the free step's force and its end's velocity, and the response's sweeps, in the ends' velocities and the blocks
+``J^T P J`` of the end's Jacobian ``J = -[r]x - m g^T`` (``kernels.sweeps.link_sweep``). Left out until 2026-12-07,
+it was 0.9 % (``long_hair``, frame 30) and 2.1 % (``fast_turn``, frame 18) of the links' torque summed over links,
+6 % and 15 % at the 90th percentile of links. The head rotation is the root segment's world rotation times its
+joint's inverse. The force acts along ``l`` at both ends: no net force, and no net torque but that spin component
+and the twist's term, which the head takes (the offset is carried in its frame).
 """
 
 import warp as wp
@@ -90,6 +92,45 @@ def min_rotation(a: wp.vec3, b: wp.vec3) -> wp.quat:
             c = wp.cross(a, wp.vec3(0.0, 1.0, 0.0))
         w = 0.0
     return wp.normalize(wp.quat(c[0], c[1], c[2], w))
+
+
+#: Largest ``|g|`` of the offset transport's twist term (``offset_twist``): ``tan(theta / 2)`` of a segment turned by
+#: ``theta`` from its rest axis in the head frame, exact to a quarter turn (``|g| = 1``) and held there beyond, where
+#: it grows without bound toward the half turn at which the least rotation has no limit.
+TWIST_LEVER = wp.constant(1.0)
+
+
+@wp.func
+def offset_twist(rest_axis: wp.vec3, axis: wp.vec3) -> wp.vec3:
+    """The twist lever ``g`` of a link's offset end on a segment with world axis ``axis`` and world rest axis
+    ``rest_axis`` (its rest axis turned by the head): ``(d0 - (d0 . d) d) / (1 + d0 . d)``, at most ``TWIST_LEVER``
+    long. As the segment turns by ``w`` across its axis the least rotation ``R_min(d0 -> d)`` turns by
+    ``w - (w . g) d``, so the offset ``o`` it carries moves by ``w x o - (w . g)(d x o)`` (module docstring)."""
+    c = wp.dot(rest_axis, axis)
+    g = (rest_axis - c * axis) / wp.max(1.0 + c, 1.0e-6)
+    length = wp.length(g)
+    if length > TWIST_LEVER:
+        g = g * (TWIST_LEVER / length)
+    return g
+
+
+@wp.func
+def seg_angular_velocity(seg: int, seg_per_strand: int, vertex_positions: wp.array(dtype=wp.vec3),
+                         vertex_velocities: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Angular velocity [rad/s, world] of segment ``seg`` across its axis, from its two vertex velocities
+    (``seg_point_velocity``)."""
+    v = seg_first_vertex(seg, seg_per_strand)
+    d = vertex_positions[v + 1] - vertex_positions[v]
+    return wp.cross(d, vertex_velocities[v + 1] - vertex_velocities[v]) / wp.max(wp.dot(d, d), 1.0e-20)
+
+
+@wp.func
+def offset_end_velocity(seg: int, seg_per_strand: int, vertex_positions: wp.array(dtype=wp.vec3),
+                        vertex_velocities: wp.array(dtype=wp.vec3), p: wp.vec3, g: wp.vec3, m: wp.vec3) -> wp.vec3:
+    """Velocity [m/s] of a link's offset end at ``p`` on segment ``seg``: the segment's rigid field at ``p``
+    (``seg_point_velocity``) and the transport's twist, ``-(w . g) m``, ``m = d x o`` (``offset_twist``)."""
+    w = seg_angular_velocity(seg, seg_per_strand, vertex_positions, vertex_velocities)
+    return seg_point_velocity(seg, seg_per_strand, vertex_positions, vertex_velocities, p) - wp.dot(w, g) * m
 
 
 @wp.func
@@ -220,6 +261,8 @@ def link_forces(
     b_torque: wp.array(dtype=wp.vec3),
     link_point_a: wp.array(dtype=wp.vec3),
     link_point_b: wp.array(dtype=wp.vec3),
+    link_twist_g: wp.array(dtype=wp.vec3),
+    link_twist_m: wp.array(dtype=wp.vec3),
 ):
     """One thread per segment a: the seed's spring-dampers of the links that hang their rest offset on a (links
     ``seg_link_start[a]`` to ``seg_link_start[a + 1] - 1``, sorted by a).
@@ -227,14 +270,17 @@ def link_forces(
     A link stretched past ``link_break_length`` [m] breaks here for good, before it acts (``link_broken[link] = 1``,
     counted once in ``link_broken_total[0]``, as ``link_break`` does), so a step pays one pass over the links (with
     ``response`` a link also breaks within the step: ``link_response_ends``).
-    Otherwise it adds +f at x_a' to segment a (less its spin about a's axis): to ``seg_force`` [N] and ``seg_torque``
-    [N m] about a's origin, world. With ``implicit_springs`` the force is the link's backward-Euler force over the
+    Otherwise it adds +f at x_a' to segment a: to ``seg_force`` [N] and ``seg_torque`` [N m] about a's origin, world,
+    the moment less its spin about a's axis and with the offset transport's twist term ``-g (m . f)``
+    (``offset_twist``), so that the torque is the link energy's gradient in a's turn; the end's velocity takes the
+    term's ``-(w . g) m`` too. With ``implicit_springs`` the force is the link's backward-Euler force over the
     step, ``f = k (l - h u') - c (n . u') n`` with the end-of-step relative velocity ``u' = u + h W f``, solved per
     link: ``W`` bounds the inverse masses of the two ends (``point_inverse_mass``), so however stiff the link and
     long the step, f never exceeds what stops the ends' relative motion, and the link adds no inertia to the common
     motion of the hair it ties. Without, f is the seed's explicit force. With ``response`` the link adds no force
     here (with ``warm_start`` its force of the last step, ``link_warm``): its ends go to ``link_point_a``,
-    ``link_point_b``, and the response solves its force over the step inside the strands' dynamics. Segment b's
+    ``link_point_b``, its offset end's twist to ``link_twist_g``, ``link_twist_m``, and the response solves its force
+    over the step inside the strands' dynamics. Segment b's
     share (-f at x_b) goes to slot ``link_b_slot[link]`` of ``b_force``, ``b_torque`` (zero for a broken link),
     which ``link_gather`` adds to b: every segment is written by its own thread only, so the sums are the same bits
     however the segments are split between CPU threads. The thread computes a's frame, its twist-free transport
@@ -251,7 +297,9 @@ def link_forces(
     axis_a = wp.quat_rotate(rot_a, wp.vec3(0.0, 0.0, -1.0))
     root = (a // seg_per_strand) * seg_per_strand
     head = wp.transform_get_rotation(seg_xform[root]) * wp.quat_inverse(joint_q[root])
-    transport = min_rotation(wp.quat_rotate(head, seg_rest_axis[a]), axis_a) * head
+    rest_axis_a = wp.quat_rotate(head, seg_rest_axis[a])
+    transport = min_rotation(rest_axis_a, axis_a) * head
+    twist_a = offset_twist(rest_axis_a, axis_a)
     length_a = seg_length[a]
     # a's rigid velocity field from its two vertices (seg_point_velocity, hoisted out of the loop)
     va_vertex = seg_first_vertex(a, seg_per_strand)
@@ -271,8 +319,10 @@ def link_forces(
             continue
         b = link_seg_b[link]
         xf_b = seg_xform[b]
-        xa = wp.transform_point(xf_a, wp.vec3(0.0, 0.0, -link_frac_a[link] * length_a)) + wp.quat_rotate(
-            transport, link_rest_offset[link])
+        offset = wp.quat_rotate(transport, link_rest_offset[link])
+        # the offset end's twist lever arm: it moves by -(w . g) m besides w x (xa - x0)
+        twist_m = wp.cross(axis_a, offset)
+        xa = wp.transform_point(xf_a, wp.vec3(0.0, 0.0, -link_frac_a[link] * length_a)) + offset
         xb = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -link_frac_b[link] * seg_length[b]))
         l = xb - xa
         length = wp.length(l)
@@ -291,6 +341,8 @@ def link_forces(
             # ``warm_start`` its force of the last step acts in the free step and the response solves the change
             link_point_a[link] = xa
             link_point_b[link] = xb
+            link_twist_g[link] = twist_a
+            link_twist_m[link] = twist_m
             if warm_start == 0:
                 continue
             f = link_warm[link]
@@ -301,10 +353,14 @@ def link_forces(
                                                              h * link_stiffness * float(implicit_springs),
                                                              seg_damper_weight[a], seg_damper_weight[b])
             # u = velocity of a's end relative to b's end: the seed's sign, which resists a change of |l|.
-            u = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities, xb)
+            u = ends_relative_velocity(v0, w_a, x0, xa, b, seg_per_strand, vertex_positions, vertex_velocities,
+                                       xb) - wp.dot(w_a, twist_a) * twist_m
             if implicit_springs != 0:
                 com_b = wp.transform_point(xf_b, wp.vec3(0.0, 0.0, -0.5 * seg_length[b]))
-                W = point_inverse_mass(a, xa - com_a, seg_mass, seg_length) + point_inverse_mass(
+                # a's end at the arm the twist lengthens: its velocity per turn is at most |r| + |g| |m|
+                arm_a = xa - com_a
+                reach_a = wp.length(arm_a) + wp.length(twist_a) * wp.length(twist_m)
+                W = point_inverse_mass(a, reach_a * wp.normalize(arm_a), seg_mass, seg_length) + point_inverse_mass(
                     b, xb - com_b, seg_mass, seg_length)
                 # (I + h W (h k I + c n n^T)) f = k l - (h k I + c n n^T) u, along n and across it
                 f = f - hk * u
@@ -321,7 +377,7 @@ def link_forces(
         ob = wp.transform_get_translation(xf_b)
         tau = wp.cross(xa - oa, f)
         force_a += f
-        torque_a += tau - wp.dot(tau, axis_a) * axis_a
+        torque_a += tau - wp.dot(tau, axis_a) * axis_a - wp.dot(twist_m, f) * twist_a
         b_force[slot] = -f
         b_torque[slot] = wp.cross(xb - ob, -f)
     seg_force[a] = seg_force[a] + force_a
@@ -443,12 +499,18 @@ class LinkEnds:
     end's force on its own free velocities with the other end still, ``+-(k l) - P v_own`` [N, world]
     (``link_response_ends``); ``arm``, the end's point about its segment's origin in the segment's frame at the
     step's start (written by the step's first sweep); ``axis``, per link, the unit ``n`` of ``P = h k I + c n n^T``
-    [world] (zero while the link has no direction). End slots: side a of link ``i`` at ``i``, side b of the link in
-    b slot ``j`` at ``link_count + j`` (``end_slot``)."""
+    [world] (zero while the link has no direction); ``twist_g`` and ``twist_m``, per link, the transport's twist of
+    its offset end at the step's start, ``g`` and ``m = d x o`` [world] (``offset_twist``; ``link_forces``), and
+    ``kept_g``, ``kept_m`` the same in the segment's frame as the step's first sweep kept them beside ``arm``. End
+    slots: side a of link ``i`` at ``i``, side b of the link in b slot ``j`` at ``link_count + j`` (``end_slot``)."""
 
     force: wp.array(dtype=wp.vec3)
     arm: wp.array(dtype=wp.vec3)
     axis: wp.array(dtype=wp.vec3)
+    twist_g: wp.array(dtype=wp.vec3)
+    twist_m: wp.array(dtype=wp.vec3)
+    kept_g: wp.array(dtype=wp.vec3)
+    kept_m: wp.array(dtype=wp.vec3)
 
 
 @wp.func
@@ -538,7 +600,8 @@ def link_response_ends(
     h = dt[0]
     xa = link_point_a[link]
     xb = link_point_b[link]
-    v_a = seg_point_velocity(link_seg_a[link], seg_per_strand, vertex_positions, vertex_velocities, xa)
+    v_a = offset_end_velocity(link_seg_a[link], seg_per_strand, vertex_positions, vertex_velocities, xa,
+                              ends.twist_g[link], ends.twist_m[link])
     v_b = seg_point_velocity(link_seg_b[link], seg_per_strand, vertex_positions, vertex_velocities, xb)
     l = xb - xa
     n = link_axis(l)

@@ -24,7 +24,7 @@ from hairwarp.kernels.articulated import (
     spin_free_torque,
 )
 from hairwarp.kernels.contacts import ContactBuffer, ContactResponse, SweepContacts, sweep_entry_force
-from hairwarp.kernels.links import LinkEnds, end_slot, seg_point_velocity
+from hairwarp.kernels.links import LinkEnds, end_slot, offset_end_velocity, seg_point_velocity
 from hairwarp.kernels.spatial import skew
 
 wp.set_module_options({"enable_backward": False})
@@ -353,12 +353,22 @@ def link_sweep(
                         own = link_point_b[link]
                     # f = +-(k l) - P (v_own - v_other): the end's own part as ``link_response_ends`` kept it, P
                     # on the other end's latest answer
-                    v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
+                    v = wp.vec3()
+                    if side < 0.0:
+                        # the other end is a's offset end, which its transport's twist moves too
+                        v = offset_end_velocity(other, S, vertex_positions_in, answered_velocities, q,
+                                                ends.twist_g[link], ends.twist_m[link])
+                    else:
+                        v = seg_point_velocity(other, S, vertex_positions_in, answered_velocities, q)
                     n = ends.axis[link]
                     scale = link_scale[link]
                     hk = h * link_stiffness * scale
                     c = link_damping * scale
                     arm = wp.vec3()
+                    # an a end's twist (``links.offset_twist``) in the segment's frame: its velocity per turn w is
+                    # -[r]x w - (w . g) m, J = -[r]x - m g^T (zero for a b end)
+                    tg = wp.vec3()
+                    tm = wp.vec3()
                     if reusing == 0:
                         arm = Rt * (own - origin)
                         w = h * hk
@@ -375,13 +385,29 @@ def link_sweep(
                         Ad += wp.outer(hc * m, m)
                         Bd += wp.outer(hc * m, nl)
                         Cd += wp.outer(hc * nl, nl)
+                        if side > 0.0:
+                            tg = Rt * ends.twist_g[link]
+                            tg = wp.vec3(tg[0], tg[1], 0.0)  # across the axis (round-off off it)
+                            tm = Rt * ends.twist_m[link]
+                            # J^T hP J and J^T hP less their parts without the twist: with p = hP m and
+                            # q = [r]x p, -q g^T - g q^T + (m . p) g g^T and -g p^T
+                            tp = w * tm + hc * wp.dot(nl, tm) * nl
+                            tq = wp.cross(arm, tp)
+                            Ad += wp.dot(tm, tp) * wp.outer(tg, tg) - wp.outer(tq, tg) - wp.outer(tg, tq)
+                            Bd -= wp.outer(tg, tp)
                         if keeping != 0:
                             ends.arm[slot] = arm
+                            if side > 0.0:
+                                ends.kept_g[link] = tg
+                                ends.kept_m[link] = tm
                     else:
                         arm = ends.arm[slot]
+                        if side > 0.0:
+                            tg = ends.kept_g[link]
+                            tm = ends.kept_m[link]
                     f = Rt * (ends.force[slot] + hk * v + c * wp.dot(n, v) * n)
                     force += f
-                    torque += spin_free_torque(arm, f)
+                    torque += spin_free_torque(arm, f) - wp.dot(tm, f) * tg
             if reusing == 0:
                 eye = wp.identity(n=3, dtype=float)
                 solved.A[seg] = spin_free_rotation(A + moment_inertia(wrr_sum) + Ad + (link_geometric * g_sum) * eye)

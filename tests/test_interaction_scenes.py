@@ -683,11 +683,13 @@ def _tip_spread(tips: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
 def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
     """With the warm start the links' sweeps solve the change of their forces over a step, and one sweep a step
     (``links.sweeps`` = 1, the default) whose colours run forward and back in turn (``Solver.sweep_turn``) keeps
-    ``long_hair_shoulders`` near the answer of converged sweeps: its tips 0.48 mm RMS over the run from 6 sweeps a
-    step (which are 0.043 mm from 24), the median strand 0.15 mm. Always forward, the one sweep's error leans the
-    same way at every step: 0.84 mm, the median strand 0.29. (With the body contacts' friction short of the cone,
-    which let hair creep over the shoulders, the forward sweeps' lean drifted it by 1.7 mm, 8 times the turned.)"""
-    converged = _shoulders_tips(("links.sweeps=6",))
+    ``long_hair_shoulders`` near the answer of converged sweeps: its tips 0.50 mm RMS over the run from 24 sweeps a
+    step, the median strand 0.16 mm. Always forward, the one sweep's error leans the same way at every step: 0.75 mm,
+    the median strand 0.30. (With the body contacts' friction short of the cone, which let hair creep over the
+    shoulders, the forward sweeps' lean drifted it by 1.7 mm, 8 times the turned. 6 sweeps a step, the reference
+    until the links' torque took their offsets' twist, now part from 24 by 2.06 mm RMS, the median strand by 0.007:
+    four strands lying on a shoulder settle one way at 6 sweeps and the other at 1 and 24.)"""
+    converged = _shoulders_tips(("links.sweeps=24",))
     turned, forward = _tip_spread(_shoulders_tips(), converged), _tip_spread(_shoulders_tips(turning=False), converged)
     # the turned sweep's RMS and median with a quarter to half of them in hand for the float32 sums of 90 frames on
     # another machine, and the forward sweeps' median short of twice the turned one's by a fifth
@@ -697,10 +699,10 @@ def test_one_sweep_turned_step_by_step_follows_the_converged_sweeps():
 def test_factors_carried_over_a_frame_keep_the_sweeps_answer():
     """The one sweep a step solves with the factors of the strands' matrices (their inertia with the links' dampers)
     that the frame's first step made (``Solver.plan_factors``): ``long_hair_shoulders`` stays as near converged
-    sweeps as with every step's own factors (tips 0.48 and 0.53 mm RMS over the run from 6 sweeps a step, the median
-    strand 0.15 and 0.13 mm). Solved with the free step's scratch instead of the kept factors, the carried steps tore
+    sweeps as with every step's own factors (tips 0.50 and 0.53 mm RMS over the run from 24 sweeps a step, the median
+    strand 0.16 and 0.15 mm). Solved with the free step's scratch instead of the kept factors, the carried steps tore
     526 links (94 mm)."""
-    converged = _shoulders_tips(("links.sweeps=6",), factor_steps=1)
+    converged = _shoulders_tips(("links.sweeps=24",), factor_steps=1)
     own, carried = _tip_spread(_shoulders_tips(factor_steps=1), converged), _tip_spread(_shoulders_tips(), converged)
     # the turned sweep's bounds above; carrying the factors over a frame moves the median strand by a tenth of its
     # bound
@@ -826,21 +828,24 @@ def test_a_frame_whose_hair_whips_is_taken_again_in_finer_steps(monkeypatch, tmp
 def test_links_that_the_answer_carries_past_their_break_break_within_the_step():
     """A link solved after the free step acts through the whole step; one that the sweeps' answer carries past its
     break length breaks within the step, and the strands it tied are solved again without it (at steps up to 1/220
-    s; ``links.link_response_ends``). On the nod ten times as fast the shipped 8 substeps then break what the
-    32-substep run breaks (303 links against 307; 199 at 16 substeps), and its fastest tip stays within 2.5x of
-    that run's (15.4 against 9.9 m/s; 19.0 and 315 links without the links' geometric stiffness, 21.6 and 332 with
-    the carried factors' turn bound at 0.2 rad as well). Held
+    s; ``links.link_response_ends``). On the nod ten times as fast the shipped 8 substeps then break what fine steps
+    break (306 links against 242 and 286 at 32 and 64 substeps, 202 at 16: a count that scatters by a fifth with the
+    step; 303 and 307 at 8 and 32 before the links' torque took their offsets' twist), and its fastest tip stays
+    within 2.5x of the 32-substep run's (17.7 against 10.2 m/s; before the twist 15.4 against 9.9; 19.0 and 315 links
+    without the links' geometric stiffness, 21.6 and 332 with the carried factors' turn bound at 0.2 rad as well). Held
     through the step, such links pulled their ends back and whipped a tip to
     27.6 m/s (435 broken); breaking those whose ends parted fast enough at the step's start to pass the break
     within it tore 430 (14.9 m/s), and twice the links of fine steps in a 3 rev/s spin (the mohawk: 587 against
     291; 318 now)."""
     fine_speed, fine_broken = _fast_nod_run(("sim.substeps=32",))
+    finer_broken = _fast_nod_run(("sim.substeps=64",))[1]
     speed, broken = _fast_nod_run(("sim.whip_ratio=0",))  # the 8-substep step's own answer, every frame in it
-    # the links torn within the fine runs' spread: 1.2x fails the look at the step's start (1.40x) and the link held
-    # through the step (1.42x); the tip's 1.55x is the 8-substep step's error on this motion (2.2x without the links'
-    # geometric stiffness: the links that whip it, pulling at 0.8-0.9 of their break force, never break in the fine
-    # run), 2.5x fails the link held through the step (2.8x)
-    assert broken < 1.2 * fine_broken, (broken, fine_broken)
+    # the links torn within the fine runs' spread: 1.2x the more of 32 and 64 substeps' fails the look at the step's
+    # start (1.40x 32 substeps' then, 430) and the link held through the step (1.42x, 435); the tip's 1.7x is the
+    # 8-substep step's error on this motion (2.2x without the links' geometric stiffness: the links that whip it,
+    # pulling at 0.8-0.9 of their break force, never break in the fine run), 2.5x fails the link held through the step
+    # (2.8x)
+    assert broken < 1.2 * max(fine_broken, finer_broken), (broken, fine_broken, finer_broken)
     assert speed < 2.5 * fine_speed, (speed, fine_speed)
 
 

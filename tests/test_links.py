@@ -115,8 +115,12 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     from the segment's centre of mass. Either way each link's k_d is divided by h k_d times the larger of its two
     segments' sums of their links' end bounds W (scaled as the links), where that passes 1.
 
-    Returns the per-segment force and torque (the torque on a without its spin about a's axis), the link lengths,
-    the spin torques left out (L, 3), and the implicit mass per segment (zero: the links add none).
+    The offset end's velocity and a's torque take the transport's twist too: ``-(w . g)(d x o)`` and ``-g ((d x o) .
+    f)``, ``g = (d0 - (d0 . d) d) / (1 + d0 . d)`` at most 1 long.
+
+    Returns the per-segment force and torque (the torque on a without its spin about a's axis, with the twist's
+    term), the link lengths, the torques by which a's differs from the force's moment (L, 3: the spin left out, less
+    the twist's term), and the implicit mass per segment (zero: the links add none).
     """
     head = Rotation.identity() if head is None else head
     a, b = links.seg_a, links.seg_b
@@ -124,13 +128,16 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     v_origin = vel[:, :-1].reshape(-1, 3)
     zero = np.zeros(links.link_count)
     axis = rot[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
-    turn = _min_rotation(head.apply(links.rest_axis), axis)
-    xa = origin[a] + rot[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1)) + (turn * head).apply(
-        links.rest_offset)
+    rest_axis = head.apply(links.rest_axis)
+    turn = _min_rotation(rest_axis, axis)
+    offset = (turn * head).apply(links.rest_offset)
+    xa = origin[a] + rot[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1)) + offset
     xb = origin[b] + rot[b].apply(np.stack([zero, zero, -links.frac_b * SEG_LEN], 1))
     l_vec = xb - xa
     length = np.linalg.norm(l_vec, axis=1)
-    va = v_origin[a] + np.cross(omega[a], xa - origin[a])
+    # the least rotation's own turn about a's axis as a bends: the offset moves by -(w . g)(d x o) besides w x o
+    g, m = _twist(rest_axis, axis), np.cross(axis, offset)
+    va = v_origin[a] + np.cross(omega[a], xa - origin[a]) - np.sum(omega[a] * g, axis=1, keepdims=True) * m
     vb = v_origin[b] + np.cross(omega[b], xb - origin[b])
     u = va - vb
     n = l_vec / np.maximum(length, 1e-300)[:, None]
@@ -140,6 +147,10 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     # each end's free-segment inverse mass, 1/m + |r|^2 / (m L^2 / 12), r from the segment's centre of mass
     com = origin + rot.apply(np.tile([0.0, 0.0, -0.5 * SEG_LEN], (G * S, 1)))
     Wa, Wb = ((1.0 + 12.0 * np.sum((x - com[s]) ** 2, axis=1) / SEG_LEN**2) / SEG_MASS for s, x in ((a, xa), (b, xb)))
+    # ... a's end at its arm lengthened by the twist's lever, |r| + |g| |m|, in the solve (the damper cap's weights
+    # are the rest pose's, where g = 0)
+    reach_a = np.linalg.norm(xa - com[a], axis=1) + np.linalg.norm(g, axis=1) * np.linalg.norm(m, axis=1)
+    Wa_solve = (1.0 + 12.0 * reach_a**2 / SEG_LEN**2) / SEG_MASS
     # the dampers of a segment's links together take at most its velocity in a step: h (h k + c) sum(scale W) <= 1,
     # h k the backward-Euler spring's own damper over the step, the cap taken from the damping alone
     weight = np.bincount(a, scale * Wa, minlength=G * S) + np.bincount(b, scale * Wb, minlength=G * S)
@@ -149,7 +160,7 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
     over = spring_load + damper_load > 1.0
     c = c * np.where(over, np.maximum(1.0 - spring_load, 0.0) / np.where(over, damper_load, 1.0), 1.0)
     if links.implicit_springs:
-        W = Wa + Wb
+        W = Wa_solve + Wb
         C = DT * k[:, None, None] * np.eye(3) + c[:, None, None] * n[:, :, None] * n[:, None, :]
         lhs = np.eye(3) + DT * W[:, None, None] * C
         f = np.linalg.solve(lhs, (k[:, None] * l_vec - np.einsum("lij,lj->li", C, u))[:, :, None])[:, :, 0]
@@ -159,13 +170,14 @@ def _reference(links, verts, rot, vel, omega, skip=None, head=None):
         f[skip] = 0.0
     torque_a = np.cross(xa - origin[a], f)
     spin = np.sum(torque_a * axis, axis=1, keepdims=True) * axis
+    twist = -np.sum(m * f, axis=1, keepdims=True) * g
     force = np.zeros((G * S, 3))
     torque = np.zeros((G * S, 3))
     np.add.at(force, a, f)
     np.add.at(force, b, -f)
-    np.add.at(torque, a, torque_a - spin)
+    np.add.at(torque, a, torque_a - spin + twist)
     np.add.at(torque, b, np.cross(xb - origin[b], -f))
-    return force, torque, length, spin, np.zeros(G * S)
+    return force, torque, length, spin - twist, np.zeros(G * S)
 
 
 @pytest.fixture(scope="module")
@@ -253,6 +265,15 @@ def test_rest_pose_is_slack(setup):
     assert not mass.any()  # implicit links add no inertia: their implicit part is in the force
 
 
+def _twist(rest_axis, axis):
+    """The twist lever ``g = (d0 - (d0 . d) d) / (1 + d0 . d)`` of offset ends, row by row, at most 1 long
+    (``kernels.links.offset_twist``)."""
+    c = np.sum(rest_axis * axis, axis=1, keepdims=True)
+    g = (rest_axis - c * axis) / np.maximum(1.0 + c, 1e-6)
+    size = np.linalg.norm(g, axis=1, keepdims=True)
+    return g * np.minimum(1.0, 1.0 / np.maximum(size, 1e-300))
+
+
 def _min_rotation(a, b):
     """Rodrigues: the rotations of least angle taking unit vectors a to b, row by row."""
     axis = np.cross(a, b)
@@ -301,7 +322,8 @@ def test_forces_match_seed_formula_and_conserve_momentum(setup, seed, implicit):
     np.testing.assert_allclose(force, ref_force, atol=FORCE_RTOL * scale)
     np.testing.assert_allclose(torque, ref_torque, atol=FORCE_RTOL * scale * SEG_LEN)
 
-    # Momentum: no net force; the net torque about the world origin, the spin torques left out on purpose added back.
+    # Momentum: no net force; the net torque about the world origin, with what a's torque takes besides the force's
+    # moment taken back (the spin left out, the offset transport's twist term added: a reaction on the head).
     origin = verts[:, :-1].reshape(-1, 3)
     total_force = force.sum(axis=0)
     total_torque = (torque + np.cross(origin, force)).sum(axis=0) + spin.sum(axis=0)
@@ -312,6 +334,56 @@ def test_forces_match_seed_formula_and_conserve_momentum(setup, seed, implicit):
     assert np.linalg.norm(total_torque - expected) <= MOMENTUM_RTOL * moment_scale
     if not implicit:
         assert np.linalg.norm(expected) <= 1e-12 * moment_scale
+
+
+def test_link_torques_are_the_gradient_of_the_links_energy(setup):
+    """Explicit links without damping: the torque each segment takes is minus the derivative of the links' energy
+    ``sum k s |l|^2 / 2`` in the segment's turn about its origin, across its axis (the other segments held), taken by
+    central differences of the energy in float64 from the ends' geometry alone. The groom turned with the head and
+    every joint bent by 0.3 rad, so its segments lie up to a quarter turn off their rest axes, where the least
+    rotation carrying a link's offset turns about the segment's axis too: the torque without its twist term was off
+    by up to a third (``kernels.links`` docstring)."""
+    rng = np.random.default_rng(11)
+    links = StaticLinks.build(setup.verts, neighbours=3, radius=RADIUS, stiffness=K_S, damping=0.0, break_length=1.0,
+                              implicit_springs=False, response=False)
+    head = Rotation.from_rotvec([0.3, -0.2, 0.5])
+    rot = head * setup.rot * Rotation.from_rotvec(rng.normal(0.0, 0.3, (G * S, 3)))
+    verts = _chain(head.apply(setup.roots), rot)
+    _, torque, _ = _apply(links, setup.model, _arrays(verts, rot, np.zeros_like(verts), head))
+    origin = verts[:, :-1].reshape(-1, 3)
+    a, b = links.seg_a, links.seg_b
+    zero = np.zeros(links.link_count)
+    rest_axis = head.apply(links.rest_axis)
+    k = links.stiffness * SEG_LEN / REFERENCE_SEGMENT_LENGTH
+
+    def energy(turned):
+        axis = turned[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
+        carry = _min_rotation(rest_axis, axis) * head
+        xa = origin[a] + turned[a].apply(np.stack([zero, zero, -links.frac_a * SEG_LEN], 1)) + carry.apply(
+            links.rest_offset)
+        xb = origin[b] + turned[b].apply(np.stack([zero, zero, -links.frac_b * SEG_LEN], 1))
+        return 0.5 * k * np.sum((xb - xa) ** 2)
+
+    turns = rot.as_rotvec()
+    axis_a = rot[a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
+    assert np.degrees(np.arccos(np.clip(np.sum(rest_axis * axis_a, axis=1), -1, 1))).max() > 45.0
+    eps = 1.0e-6
+    largest = np.linalg.norm(torque, axis=1).max()
+    checked = 0
+    for seg in np.unique(np.concatenate([a, b]))[::7]:
+        d = rot[seg].apply([0.0, 0.0, -1.0])
+        across = np.linalg.svd(np.eye(3) - np.outer(d, d))[0][:, :2].T  # two unit directions across the axis
+        for e in across:
+            grads = []
+            for sign in (1.0, -1.0):
+                moved = turns.copy()
+                moved[seg] = (Rotation.from_rotvec(sign * eps * e) * rot[seg]).as_rotvec()
+                grads.append(energy(Rotation.from_rotvec(moved)))
+            # the energy's derivative, in float64 (its round-off ~1e-16 J over 2e-6 rad), against the float32 torque
+            np.testing.assert_allclose(torque[seg] @ e, -(grads[0] - grads[1]) / (2.0 * eps), rtol=0,
+                                       atol=1.0e-4 * largest, err_msg=f"segment {seg}")
+            checked += 1
+    assert checked > 20
 
 
 def test_damping_dissipates(setup):
@@ -422,9 +494,12 @@ def test_response_damper_blocks_match_their_product_form():
     (``kernels.sweeps.link_sweep``); here they are formed as the products they stand for, in float64, from the link
     ends the force pass left and the segments' frames at the step's start: at each end's point ``r`` (the segment's
     frame) the point inertia ``M = h R^T (h k I + c n n^T) R`` (k and c times the link's scale), its blocks
-    ``A = -[r]x M [r]x`` and ``B = [r]x M`` without the spin about the segment's axis, ``C = M``; and the ends' arms,
-    which the first of two sweeps keeps for the second. Three strands of 4 segments, tilted at random and turning,
-    linked to their 2 nearest segments."""
+    ``A = J^T M J`` (and the bound of the end's geometric stiffness on the turns: ``kernels.sweeps``) and
+    ``B = J^T M`` without the spin about the segment's axis, ``C = M``, with ``J = -[r]x`` at a b
+    end and ``J = -[r]x - m g^T`` at an a end, its offset's transport twisting it (``m = d x o``, ``g`` from the
+    segment's turn off its rest axis, both in the segment's frame; ``kernels.links.offset_twist``); and the ends' arms,
+    which the first of two sweeps keeps for the second. Three strands of 4 segments, tilted at random, bent from their
+    rest by 0.5 rad at every joint and turning, linked to their 2 nearest segments."""
     import hairwarp as hw
     from hairwarp.model import Model, StrandParams
     from hairwarp.solver import Solver
@@ -444,6 +519,8 @@ def test_response_damper_blocks_match_their_product_form():
     control = model.control()
     start, end = model.state(), model.state()
     start.joint_qd.assign(rng.normal(0.0, 2.0, (3 * S, 3)).astype(np.float32))
+    bent = Rotation.from_quat(start.joint_q.numpy()) * Rotation.from_rotvec(rng.normal(0.0, 0.5, (3 * S, 3)))
+    start.joint_q.assign(bent.as_quat().astype(np.float32))
     solver.forward_kinematics(start, control)
     solver.step(start, end, control, h)
 
@@ -453,6 +530,12 @@ def test_response_damper_blocks_match_their_product_form():
     arm = links.ends.arm.numpy().astype(float)
     got = {name: getattr(solver.solved, name).numpy().astype(float) for name in ("A", "B", "C")}
     spin_free = np.diag([1.0, 1.0, 0.0])
+    # each a end's twist (the head at the identity): g from a's turn off its rest axis, m = d x o, o the rest offset
+    # carried by the least rotation
+    axis_a = rot[links.seg_a].apply(np.tile([0.0, 0.0, -1.0], (links.link_count, 1)))
+    g = _twist(links.rest_axis, axis_a)
+    m = np.cross(axis_a, _min_rotation(links.rest_axis, axis_a).apply(links.rest_offset))
+    assert np.linalg.norm(g, axis=1).max() > 0.1  # the bend turned the segments off their rest axes
     order = np.argsort(links.seg_b, kind="stable")  # b slots in link order of their segment b
     slot_b = np.empty(links.link_count, int)
     slot_b[order] = np.arange(links.link_count)
@@ -468,10 +551,16 @@ def test_response_damper_blocks_match_their_product_form():
                 n = l / np.linalg.norm(l) if np.linalg.norm(l) > 1e-7 else np.zeros(3)
                 M = h * R.T @ (h * k * links.scale[j] * np.eye(3) + c * links.scale[j] * np.outer(n, n)) @ R
                 r = R.T @ (point - origin[seg])
-                rx = _skew(r)
-                want["A"] += -rx @ M @ rx
-                want["B"] += rx @ M
+                J = -_skew(r)
+                if slot == j:  # a's end: its offset's twist
+                    J = J - np.outer(R.T @ m[j], spin_free @ R.T @ g[j])
+                want["A"] += J.T @ M @ J
+                want["B"] += J.T @ M
                 want["C"] += M
+                # the bound of the end's geometric stiffness on the segment's turns (its link is stretched)
+                arm_length = np.linalg.norm(r)
+                want["A"] += (links.geometric_stiffness * h * h * k * links.scale[j] * arm_length
+                              * min(np.linalg.norm(l), links.geometric_arm_ratio * arm_length)) * np.eye(3)
                 # float32 points and frames of a few cm: ~1e-8 m of round-off, well under 1e-6 of a segment
                 np.testing.assert_allclose(arm[slot], r, rtol=0, atol=1e-6 * L)
         want["A"] = spin_free @ want["A"] @ spin_free
