@@ -345,13 +345,14 @@ def test_limp_linked_hair_at_two_substeps_does_not_whip_in_any_draw(monkeypatch)
     """The robustness suite's stability grid's limp linked cell (EI 1e-7, 16 segments, 2 substeps, 1.5 s of
     ``long_hair``'s turn with links and contacts) in three draws of gravity (relative changes): under the burst speed
     in each, with the links' last force gated; whole, as before ``WARM_START_BEND_RATE``, a tip whipped past it in
-    some (3.2-5.7 m/s in four of six draws; 1.1 m/s at 8 substeps)."""
+    some (3.0-4.4 m/s in five of nine draws from -2e-5 to 2e-5, 1.7-2.7 m/s in the others, the gated 0.77 m/s in
+    every one; 1.1 m/s at 8 substeps)."""
     import hairwarp.solver as solver
     from hairwarp.benchmarks.robustness import BURST_M_S, PERTURBATION, build, perturbed, raw_scene, run_scene, set_key
 
     raw = set_key(set_key(set_key(raw_scene("long_hair"), "sim.segments", 16), "sim.substeps", 2),
                   "strands.bend_stiffness", 1e-7)
-    draws = [perturbed(raw, change / PERTURBATION) for change in (-2e-5, -1.5e-5, 1e-5)]
+    draws = [perturbed(raw, change / PERTURBATION) for change in (-5e-6, 5e-6, 2e-5)]
     assert max(run_scene(build(r, "long_hair"), 45)["max_speed"] for r in draws) < BURST_M_S
     monkeypatch.setattr(solver, "WARM_START_BEND_RATE", 0.0)
     assert max(run_scene(build(r, "long_hair"), 45)["max_speed"] for r in draws) > BURST_M_S
