@@ -194,11 +194,10 @@ def segment_distance(p: wp.vec3, a: wp.vec3, b: wp.vec3) -> float:
 @wp.func
 def strand_edge_fade(x: wp.vec3, a0: wp.vec3, b0: wp.vec3, a1: wp.vec3, b1: wp.vec3, reach: float) -> float:
     """The factor on a vertex-face contact's stiffness at the point ``x`` of quad (a0, b0, a1, b1): its distance from
-    the nearer of the quad's two strand segments (a0 a1, b0 b1) over ``EDGE_RAMP`` times ``reach``, at most 1. A
-    vertex whose closest
-    point leaves the quad over a strand's line is the segment-segment contacts' (``quad_feature_owned``); without the
-    fade its push fell there from ``k (reach - d)`` to none at once, and in the free step a vertex near a root
-    crossing that line back and forth jittered for good (``character`` with its head still: 0.096 mm a frame, a
+    the nearer of the quad's two strand segments (a0 a1, b0 b1) over ``EDGE_RAMP`` times ``reach``, at most 1. A vertex
+    whose closest point leaves the quad over a strand's line is the segment-segment contacts' (``quad_feature_owned``);
+    without the fade its push fell there from ``k (reach - d)`` to none at once, and in the free step a vertex near a
+    root crossing that line back and forth jittered for good (``character`` with its head still: 0.096 mm a frame, a
     cycle of four steps; 0.0007 with the fade; docs/interactions.md)."""
     edge = wp.min(segment_distance(x, a0, a1), segment_distance(x, b0, b1))
     return wp.clamp(edge / (EDGE_RAMP * reach), 0.0, 1.0)
@@ -872,7 +871,7 @@ def contact_force(
                                wp.length_sq(vertex_positions[qb + 1] - vertex_positions[qa + 1])))
         k *= wp.clamp(4.0 * (strip_max_width - width) / strip_max_width, 0.0, 1.0)
         # Near a strand's line the quad hands the vertex over to the segment-segment contacts (``quad_feature_owned``):
-        # its stiffness fades in over the reach from each strand, so the push does not switch off at the line.
+        # its stiffness fades in over a quarter of the reach from each strand, so the push does not switch off there.
         k *= strand_edge_fade(xb, vertex_positions[qa], vertex_positions[qb], vertex_positions[qa + 1],
                               vertex_positions[qb + 1], reach)
         inv_mass_a = 1.0 / seg_mass[vertex_segment(ia, seg_per_strand)]

@@ -48,6 +48,16 @@ def seg_first_vertex(seg: int, seg_per_strand: int) -> int:
 
 
 @wp.func
+def seg_angular_velocity(seg: int, seg_per_strand: int, vertex_positions: wp.array(dtype=wp.vec3),
+                         vertex_velocities: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Angular velocity [rad/s, world] of segment ``seg`` across its axis, from its two vertex velocities
+    (``seg_point_velocity``)."""
+    v = seg_first_vertex(seg, seg_per_strand)
+    d = vertex_positions[v + 1] - vertex_positions[v]
+    return wp.cross(d, vertex_velocities[v + 1] - vertex_velocities[v]) / wp.max(wp.dot(d, d), 1.0e-20)
+
+
+@wp.func
 def seg_point_velocity(
     seg: int,
     seg_per_strand: int,
@@ -61,11 +71,8 @@ def seg_point_velocity(
     that the two vertex velocities determine; spin about the segment's own axis is not seen.
     """
     v = seg_first_vertex(seg, seg_per_strand)
-    x0 = vertex_positions[v]
-    d = vertex_positions[v + 1] - x0
-    v0 = vertex_velocities[v]
-    w = wp.cross(d, vertex_velocities[v + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
-    return v0 + wp.cross(w, p - x0)
+    w = seg_angular_velocity(seg, seg_per_strand, vertex_positions, vertex_velocities)
+    return vertex_velocities[v] + wp.cross(w, p - vertex_positions[v])
 
 
 @wp.func
@@ -112,16 +119,6 @@ def offset_twist(rest_axis: wp.vec3, axis: wp.vec3) -> wp.vec3:
     if length > TWIST_LEVER:
         g = g * (TWIST_LEVER / length)
     return g
-
-
-@wp.func
-def seg_angular_velocity(seg: int, seg_per_strand: int, vertex_positions: wp.array(dtype=wp.vec3),
-                         vertex_velocities: wp.array(dtype=wp.vec3)) -> wp.vec3:
-    """Angular velocity [rad/s, world] of segment ``seg`` across its axis, from its two vertex velocities
-    (``seg_point_velocity``)."""
-    v = seg_first_vertex(seg, seg_per_strand)
-    d = vertex_positions[v + 1] - vertex_positions[v]
-    return wp.cross(d, vertex_velocities[v + 1] - vertex_velocities[v]) / wp.max(wp.dot(d, d), 1.0e-20)
 
 
 @wp.func
