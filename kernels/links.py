@@ -126,8 +126,9 @@ def offset_end_velocity(seg: int, seg_per_strand: int, vertex_positions: wp.arra
                         vertex_velocities: wp.array(dtype=wp.vec3), p: wp.vec3, g: wp.vec3, m: wp.vec3) -> wp.vec3:
     """Velocity [m/s] of a link's offset end at ``p`` on segment ``seg``: the segment's rigid field at ``p``
     (``seg_point_velocity``) and the transport's twist, ``-(w . g) m``, ``m = d x o`` (``offset_twist``)."""
+    v = seg_first_vertex(seg, seg_per_strand)
     w = seg_angular_velocity(seg, seg_per_strand, vertex_positions, vertex_velocities)
-    return seg_point_velocity(seg, seg_per_strand, vertex_positions, vertex_velocities, p) - wp.dot(w, g) * m
+    return vertex_velocities[v] + wp.cross(w, p - vertex_positions[v]) - wp.dot(w, g) * m
 
 
 @wp.func
@@ -301,9 +302,8 @@ def link_forces(
     # a's rigid velocity field from its two vertices (seg_point_velocity, hoisted out of the loop)
     va_vertex = seg_first_vertex(a, seg_per_strand)
     x0 = vertex_positions[va_vertex]
-    d = vertex_positions[va_vertex + 1] - x0
     v0 = vertex_velocities[va_vertex]
-    w_a = wp.cross(d, vertex_velocities[va_vertex + 1] - v0) / wp.max(wp.dot(d, d), 1.0e-20)
+    w_a = seg_angular_velocity(a, seg_per_strand, vertex_positions, vertex_velocities)
     h = dt[0]
     com_a = oa + (0.5 * length_a) * axis_a
     force_a = wp.vec3()
