@@ -433,3 +433,16 @@ def test_wedge_summary_lists_each_runs_notes(tmp_path):
     md = md_path.read_text()
     assert f"- **windy**: {note}" in md and "- **calm**" not in md
     assert md.index("Notes of the runs:") > md.index("| 1 | windy |")
+
+
+def test_local_workers_run_with_the_farms_dask_settings():
+    # The settings that keep Dask's housekeeping off the runs' cores reach the worker processes, not only the
+    # process that starts the cluster.
+    import dask
+
+    cluster = farm._Cluster(None, 1, 1, lambda message: None)
+    try:
+        seen = cluster.client.run(lambda: {k: dask.config.get(k) for k in farm.LOCAL_CLUSTER_CONFIG})
+    finally:
+        cluster.close()
+    assert seen and all(v == farm.LOCAL_CLUSTER_CONFIG for v in seen.values()), seen
