@@ -817,6 +817,11 @@ FORCE_MIN_CHUNK = 16
 #: any step).
 THRESHOLD_PAIRS = 64
 
+#: Where a detection finds more pairs than slots (and fewer than :data:`THRESHOLD_PAIRS` a guide vertex), the slots
+#: grow to this many times the pairs found (:meth:`HairContacts.detect`), so hair that keeps gathering does not grow
+#: them at every frame.
+GROWTH = 1.25
+
 
 class HairContacts:
     """Vertex-face (guide vertices against strips) and segment-segment contacts, with fixed-capacity buffers.
@@ -867,6 +872,9 @@ class HairContacts:
     warm_gate = 0.0
     _chunk_buffers = None
     _order_views = None  # host views of the contact arrays (``_canonical_order``)
+    #: Grow the slots where a detection finds more pairs than they hold (:meth:`detect`; :attr:`grown` lists each
+    #: time: the slots before and the pairs found). Off, such a detection keeps what fits and raises the overflow flags.
+    grows = False
     #: add the contacts' forces with atomics as on a GPU (one thread, for tests), not by the per-segment gather
     scatter = False
     #: The pair rate up to which a contact solved after the free step takes its stiffness
@@ -973,14 +981,12 @@ class HairContacts:
         contacts.slip_velocity = float(slip_velocity)
         contacts.alignment_cutoff = float(alignment_cutoff)
         contacts.capacity = int(capacity)
-        # Threads of the force pass, each striding over the stored contacts: enough to fill a GPU, few enough
-        # that a large, mostly empty buffer costs nothing on a CPU.
-        contacts.force_threads = min(contacts.capacity, 1 << 16 if dev.is_cuda else 256)
+        contacts.grown = []
 
         contacts.skip_neighbour_strips = bool(skip_neighbour_strips)
         contacts.rest_gaps = bool(rest_gaps)
         contacts.implicit_springs = bool(implicit_springs)
-        contacts._allocate_response(bool(response))
+        contacts.response = bool(response)
         seg_blocks = G * -(-S // contact_kernels.SEG_BLOCK)
         contacts.seg_lowers = wp.zeros(G * S, dtype=wp.vec3, device=dev)
         contacts.seg_uppers = wp.zeros(G * S, dtype=wp.vec3, device=dev)
@@ -1011,25 +1017,11 @@ class HairContacts:
             contacts._strip_bounds(S, rest)
             contacts.strip_bvh = wp.Bvh(contacts.strip_lowers, contacts.strip_uppers)
 
-        contacts.contact_kind = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
-        contacts.contact_a = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
-        contacts.contact_b = wp.zeros(contacts.capacity, dtype=wp.int32, device=dev)
-        contacts.contact_w = wp.zeros(contacts.capacity, dtype=wp.vec3, device=dev)
-        contacts.contact_gap = wp.zeros(contacts.capacity, dtype=float, device=dev)
         contacts.seg_spring_mass = wp.zeros(G * S, dtype=float, device=dev)
-        # Each contact's forces go to its entries 4 slot + e, which the segments then gather (see ``apply``).
-        contacts.entry_force = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
-        contacts.entry_torque = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
-        contacts.entry_mass = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
         contacts.seg_entry_start = wp.zeros(G * S + 1, dtype=wp.int32, device=dev)
-        contacts.seg_entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
         # the contacts the links' sweeps solve in a step (``kernels.contacts.SweepContacts``)
-        sweep = contact_kernels.SweepContacts()
-        sweep.entries = wp.zeros(4 * contacts.capacity, dtype=wp.int32, device=dev)
-        sweep.end = wp.zeros(G * S, dtype=wp.int32, device=dev)
-        sweep.friction = wp.zeros(4 * contacts.capacity, dtype=float, device=dev)
-        sweep.free = wp.zeros(4 * contacts.capacity, dtype=wp.vec3, device=dev)
-        contacts.sweep_contacts = sweep
+        contacts.sweep_contacts = contact_kernels.SweepContacts()
+        contacts.sweep_contacts.end = wp.zeros(G * S, dtype=wp.int32, device=dev)
         # each segment's contact force of the last step, which the next free step takes (``warm_start``)
         contacts.warm_force = wp.zeros(G * S, dtype=wp.vec3, device=dev)
         contacts.warm_torque = wp.zeros(G * S, dtype=wp.vec3, device=dev)
@@ -1038,12 +1030,7 @@ class HairContacts:
         contacts._seg_cursor = wp.zeros(G * S, dtype=wp.int32, device=dev)
         contacts.contact_counter = wp.zeros(1, dtype=wp.int32, device=dev)
         contacts.contact_overflow = wp.zeros(1, dtype=wp.int32, device=dev)
-        buf = contact_kernels.ContactBuffer()
-        buf.capacity = contacts.capacity
-        buf.kind, buf.a, buf.b = contacts.contact_kind, contacts.contact_a, contacts.contact_b
-        buf.w, buf.gap = contacts.contact_w, contacts.contact_gap
-        buf.counter, buf.overflow = contacts.contact_counter, contacts.contact_overflow
-        contacts.buffer = buf
+        contacts._allocate_slots()
         if contacts.strips is None:
             # The force kernel takes strip arrays even when only segments collide.
             contacts._strip_pairs = wp.zeros(1, dtype=wp.vec2i, device=dev)
@@ -1052,6 +1039,38 @@ class HairContacts:
             contacts._strip_pairs = contacts.strips.strip_pairs
             contacts._tri_scale = contacts.strips.tri_stiffness_scale
         return contacts
+
+    def _allocate_slots(self):
+        """The arrays of :attr:`capacity` slots, anew: the pairs, their force entries, the segments' and the sweeps'
+        lists of them, the response's factors. At the build, and where a detection finds more pairs than slots
+        (:meth:`detect`)."""
+        dev, cap = self.device, self.capacity
+        # Threads of the force pass, each striding over the stored contacts: enough to fill a GPU, few enough
+        # that a large, mostly empty buffer costs nothing on a CPU.
+        self.force_threads = min(cap, 1 << 16 if dev.is_cuda else 256)
+        self.contact_kind = wp.zeros(cap, dtype=wp.int32, device=dev)
+        self.contact_a = wp.zeros(cap, dtype=wp.int32, device=dev)
+        self.contact_b = wp.zeros(cap, dtype=wp.int32, device=dev)
+        self.contact_w = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        self.contact_gap = wp.zeros(cap, dtype=float, device=dev)
+        # Each contact's forces go to its entries 4 slot + e, which the segments then gather (see ``apply``).
+        self.entry_force = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
+        self.entry_torque = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
+        self.entry_mass = wp.zeros(4 * cap, dtype=float, device=dev)
+        self.seg_entries = wp.zeros(4 * cap, dtype=wp.int32, device=dev)
+        sweep = self.sweep_contacts
+        sweep.entries = wp.zeros(4 * cap, dtype=wp.int32, device=dev)
+        sweep.friction = wp.zeros(4 * cap, dtype=float, device=dev)
+        sweep.free = wp.zeros(4 * cap, dtype=wp.vec3, device=dev)
+        buf = contact_kernels.ContactBuffer()
+        buf.capacity = cap
+        buf.kind, buf.a, buf.b = self.contact_kind, self.contact_a, self.contact_b
+        buf.w, buf.gap = self.contact_w, self.contact_gap
+        buf.counter, buf.overflow = self.contact_counter, self.contact_overflow
+        self.buffer = buf
+        self._allocate_response(self.response)
+        self._chunk_buffers = None
+        self._order_views = None
 
     def _allocate_response(self, on: bool):
         """The :class:`kernels.contacts.ContactResponse` the force pass leaves for the response (one-element arrays
@@ -1186,9 +1205,35 @@ class HairContacts:
         them every :data:`REBUILD_FRAMES` frames on the CPU. There the contacts are then put in one order, by their
         kind and sides (:meth:`_canonical_order`), whatever tree found them: a refit tree and a rebuilt one walk the
         quads in other orders, and the forces, summed per segment in slot order, would differ in their last bits.
+
+        With :attr:`grows`, a detection that finds more pairs than slots grows them (:data:`GROWTH`) and detects again,
+        so nothing is dropped; not in a graph capture, nor on a GPU in every step (it reads the count back), nor where
+        the pairs pass :data:`THRESHOLD_PAIRS` a guide vertex (a threshold far past a wisp's thickness: the overflow
+        flags then say so).
         """
         if rebuild is None:
             rebuild = not self.detect_each_step
+        grows = self.grows and not _capturing(self.device) and not (self.device.is_cuda and self.detect_each_step)
+        overflowed = grows and self.overflowed()
+        self._detect_pairs(model, state, rebuild)
+        found = self.contact_count() if grows and not overflowed else 0
+        if found > self.capacity and not self.threshold_overrun():
+            # More pairs than slots: grow them to hold these and a quarter more, and find the pairs again (the trees
+            # are fitted again, as in the first try). The overflow of the first try is forgotten: nothing was dropped.
+            self.grown.append((self.capacity, found))
+            self.capacity = -(-int(found * GROWTH) // SLOT_GRAIN) * SLOT_GRAIN
+            self._allocate_slots()
+            self.contact_overflow.zero_()
+            bits = state.fault.numpy()
+            bits[0] &= ~int(Fault.CONTACT_OVERFLOW)
+            state.fault.assign(bits)
+            self._detect_pairs(model, state, rebuild)
+        if not self.detect_each_step and not self.device.is_cuda and not _capturing(self.device):
+            self._canonical_order()
+        self._segment_lists(model)
+
+    def _detect_pairs(self, model, state, rebuild: bool):
+        """Fit the trees and fill the contact buffers (the body of :meth:`detect`)."""
         self.contact_counter.zero_()
         if self._overlapped_detection():
             self._fit_and_detect(model, state, rebuild=rebuild)
@@ -1196,9 +1241,6 @@ class HairContacts:
             self.refit(model, state, rebuild=rebuild)
             self.detect_vertex_face(model, state)
             self.detect_segment_segment(model, state)
-        if not self.detect_each_step and not self.device.is_cuda and not _capturing(self.device):
-            self._canonical_order()
-        self._segment_lists(model)
 
     def _canonical_order(self):
         """Sort the stored contacts by kind, side a and side b (host views of CPU arrays; one contact per pair of

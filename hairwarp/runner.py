@@ -553,12 +553,14 @@ class Simulation:
                     f"would blow up (docs/interactions.md). interactions.stiffness <= "
                     f"{float(cfg.stiffness) * (CONTACT_STEP_RATE / rate) ** 2:.3g} N/m keeps them in the free step, "
                     f"which costs less")
-        return HairContacts.build(
+        contacts = HairContacts.build(
             model.rest_vertex_positions, strips, threshold=float(cfg.threshold), stiffness=float(cfg.stiffness),
             damping=float(cfg.damping), friction=float(cfg.friction), segment_segment=bool(cfg.segment_segment),
             capacity=int(cfg.capacity) or 16 * model.seg_count, margin=float(cfg.margin) if per_frame else 0.0,
             detect_each_step=not per_frame, response=response, device=model.device,
         )
+        contacts.grows = True  # hair that gathers (curls, a collapse) finds more pairs than a run can foresee
+        return contacts
 
     def _contact_rest_note(self, cfg) -> str | None:
         """The run's note where its hair contacts are solved after the free step at steps too long for them to settle
@@ -1731,6 +1733,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     shown = set(np.linspace(0, frames, min(int(scene.output.preview_frames), frames + 1)).round().astype(int))
     kept = []
     overflow_noted = False
+    grown_seen = len(sim.contacts.grown) if sim.contacts is not None else 0
+    grown_first = start if grown_seen else None  # grown at the first detection, before the first step
     dense = sim.dense
     guide_uv = cache_root_uv(sim.groom, model.root_uv)
     guide_widths = sim.groom.resampled_widths(S)  # (G, S+1) from the groom file, or None
@@ -1758,6 +1762,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
             if bits & Fault.CONTACT_OVERFLOW and not overflow_noted:
                 overflow_noted = True
                 notes.append(f"frame {frame}: {sim.contacts.overflow_advice()}")
+            if sim.contacts is not None and len(sim.contacts.grown) > grown_seen:
+                grown_seen, grown_first = len(sim.contacts.grown), grown_first or frame
         t_output = time.perf_counter()
         stats = sim.frame_stats()
         all_stats.append(stats)
@@ -1785,6 +1791,8 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     if unstable is not None and unstable.any() and sim.links is not None:  # without links the build warned
         notes.append(f"groom.hold_shape: {int(unstable.sum())} of {sim.model.strand_count} guides would buckle from "
                      f"their drawn shape on their own springs; only their links hold them up")
+    if grown_first is not None:
+        notes.append(f"frame {grown_first}: {_slots_grown_note(sim.contacts)}")
     if sim.refined_frames:
         notes.append(f"{sim.refined_frames} frames were taken again in steps of links.break_step "
                      f"({sim.break_step:.3g} s): links broke in them at the scene's longer steps")
@@ -1795,6 +1803,14 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
     if whip is not None:
         notes.append(whip)
     return kept
+
+
+def _slots_grown_note(contacts) -> str:
+    """What the run's note says where the hair contacts' slots grew (:attr:`HairContacts.grown`)."""
+    first, most = contacts.grown[0][0], max(found for _, found in contacts.grown)
+    times = "" if len(contacts.grown) == 1 else f" ({len(contacts.grown)} times)"
+    return (f"the hair contacts' slots grew from {first:,} to {contacts.capacity:,}{times} to hold up to {most:,} "
+            f"pairs, none dropped; interactions.capacity = {contacts.capacity} starts a run there")
 
 
 def _retakes_note(sim, whips: bool = False) -> str | None:

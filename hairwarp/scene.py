@@ -643,7 +643,8 @@ SCHEMA: dict[str, Section | ArrayOf] = {
             "margin": Field("float", 0.001, "detect = frame: pairs within threshold + margin are kept for the frame; "
                             "a pair that closes in from farther pushes from the next frame on (the share of pairs "
                             "missed: hairwarp bench interactions)", "m", range="[0, inf)"),
-            "capacity": Field("int", 0, "contact slots (0 = 16 per segment); overflow is reported", range="[0, inf)"),
+            "capacity": Field("int", 0, "contact slots to start with (0 = 16 per segment); a run grows them where "
+                              "it finds more pairs, and notes it", range="[0, inf)"),
             "response": Field("str", "auto", "contact forces solved after the free step, inside the strands' "
                               "dynamics, on each pair's relative motion (step), or explicit with the semi-implicit "
                               "mass on every motion (mass); auto: step at steps of 1/220 s or longer and for "

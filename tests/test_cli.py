@@ -430,8 +430,8 @@ def test_run_passes_the_options_to_simulate(monkeypatch, tmp_path, capsys):
 
 
 def test_run_prints_what_the_run_noticed(tmp_path, capsys):
-    # A run's notes (contact buffers that overflowed, frames taken again, a resume that changed the simulation) end
-    # its summary; the command dropped them before, so an overflow went unseen. 4 contact slots overflow at once.
+    # A run's notes (contact slots grown, frames taken again, a resume that changed the simulation) end its summary;
+    # the command dropped them before, so an overflow went unseen. 4 contact slots grow at once.
     from hairwarp.cli import main
 
     out = tmp_path / "lh.usdc"
@@ -439,7 +439,8 @@ def test_run_prints_what_the_run_noticed(tmp_path, capsys):
                  "dense.count=0", "-s", "output.preview=false", "--output", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
     note = next(line for line in lines if line.startswith("note     frame 1: "))
-    assert note.endswith(" hair contact pairs were found for 4 slots and the rest dropped; raise interactions.capacity")
+    assert note.startswith("note     frame 1: the hair contacts' slots grew from 4 to "), note
+    assert "none dropped" in note, note
     # the summary names what the time in all holds: no preview was rendered
     summary = next(line for line in lines if " simulated in " in line)
     assert summary.endswith("in all, with the set-up"), summary

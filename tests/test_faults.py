@@ -156,8 +156,8 @@ def test_a_threshold_far_past_a_wisp_names_the_hair_contacts_and_the_threshold()
     """A threshold of 0.5 m finds hundreds of pairs a guide vertex, far past the slots, and blows up within five
     frames at any step (the second, before the vertex-face push faded in from the strands' lines); the fault was
     blamed on the dynamics with "raise sim.substeps". It names the hair contacts and the threshold, and the run with a
-    wisp's threshold finishes. An overflow of slots too few for a wisp's threshold is put down to the capacity
-    alone."""
+    wisp's threshold finishes. A run grows slots too few for a wisp's threshold (``tests/test_interaction_scenes.py``);
+    where they are not grown, their overflow is put down to the capacity alone."""
 
     small = ["groom.count=60", "dense.count=0"]
     fault = _run(LONG_HAIR, [*small, "interactions.threshold=0.5"], 6)
@@ -165,6 +165,7 @@ def test_a_threshold_far_past_a_wisp_names_the_hair_contacts_and_the_threshold()
     assert "lower interactions.threshold (now 0.5 m" in _advice(fault)
     assert _run(LONG_HAIR, [*small, "interactions.threshold=0.003"], 4) is None
     sim = Simulation(hw.Scene.load(LONG_HAIR, [*small, "output.preview=false", "interactions.capacity=4"]))
+    sim.contacts.grows = False
     assert sim.advance_frame() & hw.Fault.CONTACT_OVERFLOW
     assert sim.contacts.overflow_advice().endswith(" slots and the rest dropped; raise interactions.capacity")
 

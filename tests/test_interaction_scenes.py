@@ -1196,3 +1196,27 @@ def test_a_run_notes_links_that_auto_solved_after_the_free_step(tmp_path):
     assert f"free-step rate {rate:.3g}" in sim.stiff_links_note and f"<= {softer:.3g} N/m" in sim.stiff_links_note
     sim = Simulation(hw.Scene.load(SCENES / "fast_turn.toml", [*forced, f"links.stiffness={0.99 * softer}"]))
     assert sim.stiff_links_note is None
+
+
+@pytest.mark.parametrize("detect", ["frame", "step"])
+def test_contact_slots_grow_and_the_run_drops_no_pair(detect):
+    # A run that finds more hair contact pairs than its slots grows them and finds the pairs again: the guides are
+    # the same bits as a run whose slots held every pair from the start, and no overflow is flagged. (Dropped pairs,
+    # as before, push nothing: at 256 slots the 3rd frame's guides part from the roomy run's.)
+    small = ["sim.frames=3", "dense.count=0", "output.preview=false", f'interactions.detect="{detect}"']
+    runs = {}
+    for slots in (256, 200_000):
+        sim = Simulation(Scene.load(LONG_HAIR, [*small, f"interactions.capacity={slots}"]))
+        bits = [sim.advance_frame() for _ in range(3)]
+        runs[slots] = (sim.guide_curves()[0], sim.contacts)
+        assert not any(b & hw.Fault.CONTACT_OVERFLOW for b in bits) and not sim.contacts.overflowed()
+    (grown, contacts), (roomy, wide) = runs[256], runs[200_000]
+    assert contacts.grown and contacts.grown[0][0] == 256 and not wide.grown
+    assert contacts.capacity >= max(found for _, found in contacts.grown) > 256
+    np.testing.assert_array_equal(grown, roomy)
+
+    dropping = Simulation(Scene.load(LONG_HAIR, [*small, "interactions.capacity=256"]))
+    dropping.contacts.grows = False
+    bits = [dropping.advance_frame() for _ in range(3)]
+    assert bits[-1] & hw.Fault.CONTACT_OVERFLOW
+    assert np.abs(dropping.guide_curves()[0] - roomy).max() > 1e-6
