@@ -871,6 +871,7 @@ class HairContacts:
     #: (``kernels.contacts.contact_warm_forces``; 0: kept whole)
     warm_gate = 0.0
     _chunk_buffers = None
+    _chunk_slots = None  # slots of each chunk's buffer (``_chunk_contact_buffers``)
     _order_views = None  # host views of the contact arrays (``_canonical_order``)
     #: Grow the slots where a detection finds more pairs than they hold (:meth:`detect`; :attr:`grown` lists each
     #: time: the slots before and the pairs found). Off, such a detection keeps what fits and raises the overflow flags.
@@ -1070,6 +1071,7 @@ class HairContacts:
         self.buffer = buf
         self._allocate_response(self.response)
         self._chunk_buffers = None
+        self._chunk_slots = None
         self._order_views = None
 
     def _allocate_response(self, on: bool):
@@ -1275,6 +1277,11 @@ class HairContacts:
         other, a thread sat idle for the difference of the two trees (0.9 of the mohawk's 6.4 ms of detection on two
         threads). The contacts are the same, in the same order: every chunk appends to a buffer of its own, and the
         buffers are concatenated in element order, vertex-face first, as one thread finds them."""
+        while not self._fit_and_detect_once(model, state, rebuild):
+            pass  # a chunk found more pairs than its buffer holds: grown, detect again
+
+    def _fit_and_detect_once(self, model, state, rebuild: bool) -> bool:
+        """One try of :meth:`_fit_and_detect`; False where a chunk's buffer was short (grown for the next try)."""
         S, ex, fault = model.seg_per_strand, self.executor, state.fault
         with ex.batch():
             self._strip_bounds(S, state.vertex_positions)
@@ -1285,6 +1292,9 @@ class HairContacts:
         ss_chunks = ex.chunks(len(self.seg_block_lowers), BLOCK_MIN_CHUNK, per_thread=DETECT_CHUNKS_PER_THREAD)
         bufs, views, counter, overflow = self._chunk_contact_buffers(len(vf_chunks) + len(ss_chunks))
         counter.zero_()
+        overflow.zero_()
+        before = int(fault.numpy()[0])
+        self.contact_counter.zero_()
         vf_inputs, ss_inputs = self._vertex_face_inputs(S, state), self._segment_segment_inputs(S, state)
         vf = ex.prepare(contact_kernels.vertex_face_contacts, vf_dim, vf_inputs, [self.buffer, fault],
                         chunks=vf_chunks, per_chunk={len(vf_inputs): bufs[:len(vf_chunks)]},
@@ -1325,7 +1335,7 @@ class HairContacts:
                 *(chunk(ss, c, seg_fitted) for c in range(half, len(ss_chunks)))])
         ex.finish(vf)
         ex.finish(ss)
-        self._append_chunk_contacts(views, len(vf_chunks) + len(ss_chunks), fault)
+        return self._append_chunk_contacts(views, len(vf_chunks) + len(ss_chunks), fault, before)
 
     def _segment_lists(self, model):
         """Per segment, the entries of the stored contacts that push it (one thread: a counting sort over the
@@ -1386,15 +1396,31 @@ class HairContacts:
         if len(chunks) == 1:
             launch(ex, kernel, dim, inputs, [self.buffer, fault], device=self.device)
             return
-        bufs, views, counter, overflow = self._chunk_contact_buffers(len(chunks))
-        counter.zero_()
-        ex.launch(kernel, dim, inputs, [self.buffer, fault], chunks=chunks, per_chunk={n: bufs}, private_or=[n + 1])
-        self._append_chunk_contacts(views, len(chunks), fault)
+        while True:
+            bufs, views, counter, overflow = self._chunk_contact_buffers(len(chunks))
+            counter.zero_()
+            overflow.zero_()
+            before, stored = int(fault.numpy()[0]), int(views["total"][0])
+            ex.launch(kernel, dim, inputs, [self.buffer, fault], chunks=chunks, per_chunk={n: bufs},
+                      private_or=[n + 1])
+            if self._append_chunk_contacts(views, len(chunks), fault, before):
+                return
+            views["total"][0] = stored  # a chunk's buffer was short (grown): this launch again
 
-    def _append_chunk_contacts(self, views, count: int, fault):
+    def _append_chunk_contacts(self, views, count: int, fault, before: int) -> bool:
         """Concatenate the contacts of the first ``count`` chunk buffers, in chunk order, behind those stored (host
-        views of CPU arrays: the executor runs chunks on the CPU only)."""
+        views of CPU arrays: the executor runs chunks on the CPU only), and return True. Where a chunk found more
+        pairs than its buffer holds and less than the capacity, append nothing, put the overflow bit of ``fault`` back
+        as it was ``before`` the launch, grow the chunks' buffers (:data:`GROWTH`) and return False: the caller
+        detects again, so a chunk drops nothing one launch would keep."""
         counts, overflows, mains, total = views["counter"], views["overflow"], views["main"], views["total"]
+        most = int(counts[:count].max(initial=0))
+        if most > self._chunk_slots and self._chunk_slots < self.capacity:
+            bits = fault.numpy()
+            bits[0] = (int(bits[0]) & ~int(Fault.CONTACT_OVERFLOW)) | (before & int(Fault.CONTACT_OVERFLOW))
+            self._chunk_slots = min(self.capacity, -(-int(most * GROWTH) // SLOT_GRAIN) * SLOT_GRAIN)
+            self._chunk_buffers = None
+            return False
         pos = int(total[0])
         for c in range(count):
             take = max(0, min(int(counts[c]), self.capacity - pos))
@@ -1406,11 +1432,20 @@ class HairContacts:
         if pos > self.capacity or np.any(overflows[:count]):
             self.contact_overflow.numpy()[0] = 1
             fault.numpy()[0] |= int(Fault.CONTACT_OVERFLOW)
+        return True
 
     def _chunk_contact_buffers(self, count):
+        """``count`` contact buffers of :attr:`_chunk_slots` each, one for each chunk of a detection launch on the
+        CPU's threads, with host views of them. Each starts at twice its share of the capacity (a buffer of the whole
+        capacity for every chunk took 1.8 GB more on 16 threads than on 2 for the Ratboy mohawk's 2,219 guides) and
+        grows where a chunk finds more (:meth:`_append_chunk_contacts`), up to the capacity."""
         have = self._chunk_buffers
         if have is None or len(have[0]) < count:
-            dev, cap = self.device, self.capacity
+            dev = self.device
+            if self._chunk_slots is None:
+                share = -(-2 * self.capacity // max(count, 1))
+                self._chunk_slots = min(self.capacity, -(-share // SLOT_GRAIN) * SLOT_GRAIN)
+            cap = self._chunk_slots
             counter = wp.zeros(count, dtype=wp.int32, device=dev)
             overflow = wp.zeros(count, dtype=wp.int32, device=dev)
             bufs = []

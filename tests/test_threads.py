@@ -217,16 +217,19 @@ def test_solvers_sharing_an_executor_step_as_each_alone():
         Solver(model, executor=object())
 
 
-@pytest.mark.parametrize("capacity", [0, 500])
-def test_detection_on_threads_finds_the_contacts_of_one_thread_in_its_order(capacity):
+@pytest.mark.parametrize("capacity, chunk_slots", [(0, None), (500, None), (0, 64)])
+def test_detection_on_threads_finds_the_contacts_of_one_thread_in_its_order(capacity, chunk_slots):
     """On several threads the trees are fitted and the contacts found as one set of tasks (the segment tree's
     contacts while the strip tree is still being fitted): the stored contacts, their per-segment lists and the
-    fault bits are those of one thread, slot for slot; with too few slots (500 for about 900) the same ones are
-    kept and both report the overflow."""
+    fault bits are those of one thread, slot for slot; with too few slots (500 for about 900, not grown) the same
+    ones are kept and both report the overflow. Each chunk of a launch appends to a buffer of its own: where one
+    holds fewer pairs than its chunk finds (64 slots), it grows and the chunk is taken again, with no overflow."""
     scene = hw.Scene.load(SCENES / "long_hair.toml", overrides=[
         "groom.count=120", "output.preview=false", f"interactions.capacity={capacity}"])
     sims = {threads: hw.Simulation(scene, threads=threads) for threads in (1, 2, 3)}
     for sim in sims.values():
+        sim.contacts.grows = False
+        sim.contacts._chunk_slots = chunk_slots
         sim.advance_frame()
         sim.contacts.detect(sim.model, sim.state)
         assert (sim.contacts._overlapped_detection() is (sim.solver.executor.threads > 1))
@@ -246,6 +249,8 @@ def test_detection_on_threads_finds_the_contacts_of_one_thread_in_its_order(capa
             np.testing.assert_array_equal(getattr(c, name).numpy(), getattr(ref, name).numpy(),
                                           err_msg=f"{threads} threads: {name}")
         np.testing.assert_array_equal(sims[threads].state.fault.numpy(), sims[1].state.fault.numpy())
+        if chunk_slots is not None:
+            assert c._chunk_slots > chunk_slots  # grown: some chunk found more than 64 pairs
 
 
 def test_thread_counts_past_the_limit_are_refused_and_a_failed_pool_stops_its_threads(tmp_path, capsys,
