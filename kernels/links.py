@@ -626,3 +626,31 @@ def link_response_ends(
     ends.force[link] = kl - P * v_a
     ends.force[link_point_a.shape[0] + link_b_slot[link]] = -kl - P * v_b
     ends.axis[link] = n
+
+
+@wp.kernel
+def link_candidates(
+    seg_lower: wp.array(dtype=wp.vec3),
+    seg_upper: wp.array(dtype=wp.vec3),
+    reach: wp.array(dtype=float),
+    seg_strand: wp.array(dtype=wp.int32),
+    bvh: wp.uint64,
+    capacity: int,
+    count: wp.array(dtype=wp.int32),
+    cand_a: wp.array(dtype=wp.int32),
+    cand_b: wp.array(dtype=wp.int32),
+):
+    """One thread per segment ``i`` (building the links, ``hairwarp.interactions``): every segment of another strand
+    whose box (``seg_lower``, ``seg_upper``; a tree over them) meets ``i``'s grown by ``reach[i]``, appended as a
+    pair ``(i, j)``; past ``capacity`` only counted. A segment within ``reach[i]`` of ``i`` has a point in that box,
+    so the pairs hold every one; their order is left to the caller."""
+    i = wp.tid()
+    grow = wp.vec3(reach[i])
+    query = wp.bvh_query_aabb(bvh, seg_lower[i] - grow, seg_upper[i] + grow)
+    j = int(0)
+    while wp.bvh_query_next(query, j):
+        if seg_strand[j] != seg_strand[i]:
+            slot = wp.atomic_add(count, 0, 1)
+            if slot < capacity:
+                cand_a[slot] = i
+                cand_b[slot] = j
