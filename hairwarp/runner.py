@@ -1763,7 +1763,7 @@ def _run_frames(sim, scene, cache, frames: int, start: int, report, notes, all_s
                 overflow_noted = True
                 notes.append(f"frame {frame}: {sim.contacts.overflow_advice()}")
             if sim.contacts is not None and len(sim.contacts.grown) > grown_seen:
-                grown_seen, grown_first = len(sim.contacts.grown), grown_first or frame
+                grown_seen, grown_first = len(sim.contacts.grown), frame if grown_first is None else grown_first
         t_output = time.perf_counter()
         stats = sim.frame_stats()
         all_stats.append(stats)
