@@ -245,8 +245,13 @@ def contact_step_rate(seg_mass, seg_length, stiffness: float, dt: float,
 #: Fewest segments per chunk of the gathers of link and contact forces (~20 ns a segment; in a step they run in the
 #: integrator's chain, chunked by its strands).
 GATHER_MIN_CHUNK = 256
-#: The grain of :meth:`HairContacts._slots`.
+#: The grain of :meth:`HairContacts._slots` and of the slots' sizes as they grow.
 SLOT_GRAIN = 2048
+
+
+def _grains(n: int) -> int:
+    """``n`` slots rounded up to a whole number of :data:`SLOT_GRAIN`."""
+    return -(-int(n) // SLOT_GRAIN) * SLOT_GRAIN
 
 #: Fewest strands per chunk of the hair contacts' per-strand pass that keeps their forces for the next step
 #: (``HairContacts.update_warm``).
@@ -1131,7 +1136,7 @@ class HairContacts:
         if self.device.is_cuda or _capturing(self.device):
             return self.capacity
         n = min(int(self.contact_counter.numpy()[0]), self.capacity)
-        return min(self.capacity, max(SLOT_GRAIN, -(-n // SLOT_GRAIN) * SLOT_GRAIN))
+        return min(self.capacity, max(SLOT_GRAIN, _grains(n)))
 
     def gather_response(self, model, state_in, state_out, dt, dampers, swept=None, colors=None):
         """Add every segment's contact dampers for the velocity response (``response``) to ``dampers`` (a
@@ -1238,7 +1243,7 @@ class HairContacts:
             # More pairs than slots: grow them to hold these and a quarter more, and find the pairs again (the trees
             # are fitted again, as in the first try). The overflow of the first try is forgotten: nothing was dropped.
             self.grown.append((self.capacity, found))
-            self.capacity = -(-int(found * GROWTH) // SLOT_GRAIN) * SLOT_GRAIN
+            self.capacity = _grains(found * GROWTH)
             self._allocate_slots()
             self.contact_overflow.zero_()
             bits = state.fault.numpy()
@@ -1309,7 +1314,6 @@ class HairContacts:
         counter.zero_()
         overflow.zero_()
         before = int(fault.numpy()[0])
-        self.contact_counter.zero_()
         vf_inputs, ss_inputs = self._vertex_face_inputs(S, state), self._segment_segment_inputs(S, state)
         vf = ex.prepare(contact_kernels.vertex_face_contacts, vf_dim, vf_inputs, [self.buffer, fault],
                         chunks=vf_chunks, per_chunk={len(vf_inputs): bufs[:len(vf_chunks)]},
@@ -1415,12 +1419,11 @@ class HairContacts:
             bufs, views, counter, overflow = self._chunk_contact_buffers(len(chunks))
             counter.zero_()
             overflow.zero_()
-            before, stored = int(fault.numpy()[0]), int(views["total"][0])
+            before = int(fault.numpy()[0])
             ex.launch(kernel, dim, inputs, [self.buffer, fault], chunks=chunks, per_chunk={n: bufs},
                       private_or=[n + 1])
             if self._append_chunk_contacts(views, len(chunks), fault, before):
-                return
-            views["total"][0] = stored  # a chunk's buffer was short (grown): this launch again
+                return  # else a chunk's buffer was short (grown, nothing appended): this launch again
 
     def _append_chunk_contacts(self, views, count: int, fault, before: int) -> bool:
         """Concatenate the contacts of the first ``count`` chunk buffers, in chunk order, behind those stored (host
@@ -1433,7 +1436,7 @@ class HairContacts:
         if most > self._chunk_slots and self._chunk_slots < self.capacity:
             bits = fault.numpy()
             bits[0] = (int(bits[0]) & ~int(Fault.CONTACT_OVERFLOW)) | (before & int(Fault.CONTACT_OVERFLOW))
-            self._chunk_slots = min(self.capacity, -(-int(most * GROWTH) // SLOT_GRAIN) * SLOT_GRAIN)
+            self._chunk_slots = min(self.capacity, _grains(most * GROWTH))
             self._chunk_buffers = None
             return False
         pos = int(total[0])
@@ -1458,8 +1461,7 @@ class HairContacts:
         if have is None or len(have[0]) < count:
             dev = self.device
             if self._chunk_slots is None:
-                share = -(-2 * self.capacity // max(count, 1))
-                self._chunk_slots = min(self.capacity, -(-share // SLOT_GRAIN) * SLOT_GRAIN)
+                self._chunk_slots = min(self.capacity, _grains(-(-2 * self.capacity // max(count, 1))))
             cap = self._chunk_slots
             counter = wp.zeros(count, dtype=wp.int32, device=dev)
             overflow = wp.zeros(count, dtype=wp.int32, device=dev)

@@ -1225,4 +1225,5 @@ def test_contact_slots_grow_and_the_run_drops_no_pair(detect):
     dropping.contacts.grows = False
     bits = [dropping.advance_frame() for _ in range(3)]
     assert bits[-1] & hw.Fault.CONTACT_OVERFLOW
+    # 1e-6 m is some ten float32 steps of a guide point 1.6 m from the origin: past round-off, the pairs' push
     assert np.abs(dropping.guide_curves()[0] - roomy).max() > 1e-6
