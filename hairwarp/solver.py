@@ -190,6 +190,15 @@ def _dampers(n: int, device, inverse_inertias=None) -> articulated.InteractionRe
     return d
 
 
+def _damper_factors(n: int, device) -> articulated.DamperFactors:
+    """Zeroed factors of ``n`` segments' damper solves (``articulated.damper_solve``)."""
+    factors = articulated.DamperFactors()
+    for name in ("Dinv", "A", "B", "DA", "DB"):
+        setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
+    factors.q = wp.zeros(n, dtype=wp.quat, device=device)
+    return factors
+
+
 def _check_built_for(model, name: str, segments: int, per_strand: int | None = None):
     """Refuse links or hair contacts built for other segments than ``model``'s: a kernel indexing another model's
     segments would read past this one's arrays."""
@@ -356,10 +365,7 @@ class Solver:
             self.held = _dampers(n, device, dampers)
             self.swept = _dampers(n, device, dampers)
             self.solved = _dampers(n, device, dampers)
-            factors = self.factors = articulated.DamperFactors()
-            for name in ("Dinv", "A", "B", "DA", "DB"):
-                setattr(factors, name, wp.zeros(n, dtype=wp.mat33, device=device))
-            factors.q = wp.zeros(n, dtype=wp.quat, device=device)
+            self.factors = _damper_factors(n, device)
             # whether a step of one sweep solves with the factors an earlier step kept, or keeps its own
             # (``plan_factors``): [reuse, keep], read by the sweep's launch
             self.carried = wp.zeros(2, dtype=wp.int32, device=device)
@@ -393,6 +399,14 @@ class Solver:
             if stage is not None:
                 stage.executor = self.executor
         self.body_contacts = colliders.contacts if has_colliders else body_contacts(1, device, enabled=False)
+        if self.link_sweeps:
+            # the bodies' answer to each sweep at long steps (``sweeps.body_answer``): its dampers, their factors and
+            # the code of each vertex they were made for
+            m = n if has_colliders else 1
+            self.answered = _dampers(m, device, dampers if has_colliders else None)
+            self.answer_factors = _damper_factors(m, device)
+            self.answer_codes = wp.zeros(model.vert_count if has_colliders else 1, dtype=wp.int32, device=device)
+            self.answer_states = wp.zeros(model.vert_count if has_colliders else 1, dtype=float, device=device)
         self._no_body_contacts = body_contacts(1, device, enabled=False)  # the response's: dampers only
         # what the links' sweeps read of the hair contacts where they hold them (``kernels.sweeps.link_sweep``)
         self._no_sweep_contacts = [wp.zeros(1, dtype=wp.vec2i, device=device), contact_kernels.ContactBuffer(),
@@ -875,7 +889,8 @@ class Solver:
             for strands in order:
                 args = [strands, *inputs, before, after, links.strand_color_array, *held_on, int(sweep > 0),
                         int(sweep == 0 and count > 1), self.carried, factor_cos_half, int(sweep >= count - 1),
-                        int(redo), links.strand_redo]
+                        int(redo), links.strand_redo, self.body_contacts, self.answered, self.answer_factors,
+                        self.answer_codes, self.answer_states]
                 # the fault bits (the last output) are private per chunk
                 ex.launch(sweeps.link_sweep, len(strands), args, outputs, min_chunk=SWEEP_MIN_CHUNK,
                           private_or=[len(args) + len(outputs) - 1])

@@ -622,6 +622,25 @@ def release_contacts(contacts: BodyContacts, vbase: int, S: int, h: float, match
         forget_contact(contacts, vbase + k + 1, h, matched)
 
 
+@wp.func
+def strand_touches(contacts: BodyContacts, vbase: int, S: int):
+    """1 where one of the vertices 1..S of the strand whose root is vertex ``vbase`` has a body contact candidate in
+    this step, else 0."""
+    for k in range(S):
+        if wp.length_sq(contacts.normal[vbase + k + 1]) > 0.0:
+            return 1
+    return 0
+
+
+@wp.func
+def held_force(contacts: BodyContacts, vi: int):
+    """The force [N, world] a collider put on vertex ``vi`` in this step's body contact solve (zero where none held
+    it): what an answer after it to the forces solved later (``kernels.sweeps.body_answer``) starts from."""
+    if contacts.away[vi] > 0.0:
+        return wp.vec3()
+    return contacts.force[vi]
+
+
 @wp.func(inline=True)
 def body_contact_solve(
     chains: StrandChains,
@@ -1001,9 +1020,7 @@ def integrate_euler(
     # contact solve's passes (its velocities would be the free ones).
     touching = int(0)
     if contacts.enabled != 0:
-        for k in range(S):
-            if wp.length_sq(contacts.normal[vbase + k + 1]) > 0.0:
-                touching = 1
+        touching = strand_touches(contacts, vbase, S)
         if touching == 0:
             release_contacts(contacts, vbase, S, h, shares_friction(h))
     t_left = h

@@ -355,12 +355,13 @@ def test_a_frame_taken_again_solves_its_links_without_the_warm_start():
     """Links solved after the free step start each step from their force of the last (the warm start) at steps
     shorter than 1/45 s, but not in a frame taken again after a fault: its start is a motion the step did not resolve,
     and the last force, put into the next free step, fed it (limp linked hair at one step a frame, taken again in 2
-    steps, whipped to 5.5 m/s). ``long_hair_shoulders`` in a 100 m/s wind at 2 substeps faults in its first frame:
+    steps, whipped to 5.5 m/s). ``long_hair_shoulders`` in a 95 m/s wind at 2 substeps faults in its first frame:
     taken again in 4 steps, the frame is to the bit a 4-substep frame without the warm start, not the same 4 steps
-    with it (which faulted too until the links' sweeps took their geometric stiffness), and the frames after take it
-    again."""
+    with it (which may fault in this wind, as they did before the links' sweeps took their geometric stiffness), and
+    the frames after take it again."""
     shoulders = SCENES / "long_hair_shoulders.toml"
-    windy = [*WINDY, "wind.velocity=[100.0, 0.0, 0.0]"]
+    # a wind in which 2 substeps fault in the first frame and 4 do not (at 90 and 100 m/s 4 substeps fault too)
+    windy = [*WINDY, "wind.velocity=[95.0, 0.0, 0.0]"]
     retried = Simulation(hw.Scene.load(shoulders, windy))
     finer, warm = (Simulation(hw.Scene.load(shoulders, [*windy, "sim.substeps=4", "sim.fault_retries=0"]))
                    for _ in range(2))
@@ -371,9 +372,13 @@ def test_a_frame_taken_again_solves_its_links_without_the_warm_start():
     for name in ("joint_q", "joint_qd", "vertex_positions", "vertex_velocities"):
         np.testing.assert_array_equal(getattr(retried.state, name).numpy(), getattr(finer.state, name).numpy(),
                                       err_msg=name)
-    warm.advance_frame()  # the same 4 steps with the warm start: another answer
     assert warm.solver.links.warm_start
-    assert not np.array_equal(warm.state.joint_qd.numpy(), retried.state.joint_qd.numpy())
+    try:
+        warm.advance_frame()  # the same 4 steps with the warm start: another answer, or none
+    except hw.SimulationFault:
+        pass
+    else:
+        assert not np.array_equal(warm.state.joint_qd.numpy(), retried.state.joint_qd.numpy())
     assert retried.solver.links.warm_start  # back at its own 2 substeps, the next frame takes it
 
 
