@@ -703,6 +703,7 @@ def body_contacts(vert_count: int, device, *, enabled: bool = True):
     c.force = wp.zeros(n, dtype=wp.vec3, device=device)
     c.removed = wp.zeros(n, dtype=float, device=device)
     c.away = wp.full(n, 1.0, dtype=float, device=device)
+    c.step_force = wp.zeros(n, dtype=wp.vec3, device=device)
     return c
 
 

@@ -73,7 +73,8 @@ class BodyContacts:
     slower over the surface the contact left it than its free velocity, from which the next step's friction starts
     (``contact_friction``); ``away`` [s], the time since that step (kept for CONTACT_MEMORY, then cleared); at steps
     of CONTINUOUS_FRICTION_STEP and longer, ``share``, the tangential share of the damper in [0, 1] (1 sticking,
-    less sliding; ``matched_friction``). ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the
+    less sliding; ``matched_friction``). Of the last step alone: ``step_force`` [N, world], the mean force over its
+    free step (``held_force``). ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the
     strand (see ``body_contact_solve``).
     """
 
@@ -88,6 +89,9 @@ class BodyContacts:
     force: wp.array(dtype=wp.vec3)
     removed: wp.array(dtype=float)
     away: wp.array(dtype=float)
+    # the mean force [N, world] the colliders put on each vertex over the last free step, its parts' forces weighted
+    # by their lengths (``integrate_euler``): what the bodies' answer after it starts from (``held_force``)
+    step_force: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -623,6 +627,24 @@ def release_contacts(contacts: BodyContacts, vbase: int, S: int, h: float, match
 
 
 @wp.func
+def base_motion(X_head: wp.transform, V_head: wp.spatial_vector, root: wp.vec3):
+    """Where a strand's outward pass over its vertex velocities starts: the base's rotation, its angular velocity and
+    the velocity of the root at ``root`` [m, world] (``tip_motion``)."""
+    omega = wp.spatial_top(V_head)
+    return (wp.transform_get_rotation(X_head), omega,
+            wp.spatial_bottom(V_head) + wp.cross(omega, root - wp.transform_get_translation(X_head)))
+
+
+@wp.func
+def tip_motion(R: wp.quat, omega: wp.vec3, v: wp.vec3, q: wp.quat, w: wp.vec3, length: float):
+    """One segment further out (joint rotation ``q``, joint velocity ``w``, length ``length``): its rotation and
+    angular velocity in the world, and its tip vertex's velocity [m/s, world]."""
+    R = R * q
+    omega = omega + wp.quat_rotate(R, w)
+    return R, omega, v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -length)))
+
+
+@wp.func
 def strand_touches(contacts: BodyContacts, vbase: int, S: int):
     """1 where one of the vertices 1..S of the strand whose root is vertex ``vbase`` has a body contact candidate in
     this step, else 0."""
@@ -634,11 +656,22 @@ def strand_touches(contacts: BodyContacts, vbase: int, S: int):
 
 @wp.func
 def held_force(contacts: BodyContacts, vi: int):
-    """The force [N, world] a collider put on vertex ``vi`` in this step's body contact solve (zero where none held
-    it): what an answer after it to the forces solved later (``kernels.sweeps.body_answer``) starts from."""
-    if contacts.away[vi] > 0.0:
-        return wp.vec3()
-    return contacts.force[vi]
+    """The mean force [N, world] the colliders put on vertex ``vi`` over this step's free step (zero where none held
+    it): what an answer after it to the forces solved later (``kernels.sweeps.body_answer``) starts from. The mean,
+    not the force of the free step's last part: a vertex held in the last of several parts alone was given that
+    force over the part, and an answer over the whole step could take back more than it had (limp linked hair on
+    ``long_hair``'s turn at 2 substeps whipped to 2.8 m/s, 0.73 without the answer)."""
+    return contacts.step_force[vi]
+
+
+@wp.func
+def add_held_force(contacts: BodyContacts, vbase: int, S: int, weight: float):
+    """Add ``weight`` times the force each vertex 1..S of the strand at ``vbase`` took in the body contact solve just
+    made (``contacts.force`` where it held the vertex: ``away`` 0) to its mean over the step (``step_force``)."""
+    for k in range(S):
+        vi = vbase + k + 1
+        if contacts.away[vi] <= 0.0:
+            contacts.step_force[vi] = contacts.step_force[vi] + weight * contacts.force[vi]
 
 
 @wp.func(inline=True)
@@ -706,18 +739,13 @@ def body_contact_solve(
     for it in range(CONTACT_PASSES):
         any_pulled = int(0)
         # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
-        R = wp.transform_get_rotation(X_head)
-        omega = wp.spatial_top(V_head)
         x = wp.transform_point(X_head, chains.strand_root_pos[strand])
-        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+        R, omega, v = base_motion(X_head, V_head, x)
         active = int(0)
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
-            R = R * joint_q[i]
-            omega = omega + wp.quat_rotate(R, joint_qd[i])
-            d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
-            v = v + wp.cross(omega, d)
+            R, omega, v = tip_motion(R, omega, v, joint_q[i], joint_qd[i], chains.seg_length[i])
             n = wp.vec3()
             held = float(0.0)
             target = float(0.0)
@@ -800,9 +828,7 @@ def body_contact_solve(
         # final tip velocities, and from them each damper's force, the normal force and the friction share.
         a_ang_p = wp.vec3()
         a_lin_p = wp.vec3()
-        R = wp.transform_get_rotation(X_head)
-        omega = wp.spatial_top(V_head)
-        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
+        R, omega, v = base_motion(X_head, V_head, x)
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
@@ -816,9 +842,7 @@ def body_contact_solve(
             w_free = joint_qd[i]
             w = w_free + h * qdd
             joint_qd[i] = w
-            R = R * q
-            omega = omega + wp.quat_rotate(R, w)
-            v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
+            R, omega, v = tip_motion(R, omega, v, q, w, chains.seg_length[i])
             flags = scratch.c[i]
             slip = float(0.0)
             share = float(1.0)
@@ -1020,6 +1044,8 @@ def integrate_euler(
     # contact solve's passes (its velocities would be the free ones).
     touching = int(0)
     if contacts.enabled != 0:
+        for k in range(S):
+            contacts.step_force[vbase + k + 1] = wp.vec3()
         touching = strand_touches(contacts, vbase, S)
         if touching == 0:
             release_contacts(contacts, vbase, S, h, shares_friction(h))
@@ -1075,6 +1101,8 @@ def integrate_euler(
                     retry = 1
                     for k in range(S):
                         joint_qd_out[strand * S + k] = vertex_velocities_out[vbase + k]
+        if touching != 0:
+            add_held_force(contacts, vbase, S, hs / h)
         t_left = t_left - hs
         part += 1
         for k in range(S):
@@ -1542,6 +1570,10 @@ def integrate_rk4(
         # the stiff dampers inside them); the velocity change also moves the configuration over the step.
         body_contact_solve(chains, strand, h, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
                            scratch, dampers, 0)
+        vbase = strand * (S + 1)
+        for k in range(S):
+            contacts.step_force[vbase + k + 1] = wp.vec3()
+        add_held_force(contacts, vbase, S, 1.0)
         for k in range(S):
             i = strand * S + k
             w = joint_qd_out[i]

@@ -87,9 +87,9 @@ def answer(strand: int, S: int, seg_xform_in: wp.array(dtype=wp.transform),
 #: Largest turn [rad] of a strand's segment over a step, in its free step or in a sweep's answer, at which the bodies
 #: answer the sweep (``body_answer``): the contacts, found at the step's start and linearised there, do not hold where
 #: the vertices of a strand turning farther go. ``long_hair_shoulders`` in a 100 m/s wind at 4 substeps (segments at
-#: 300-400 rad/s, 3 rad over the step) faulted in the answer; five linked strands striking a still sphere at one step
-#: a frame need it (frictionless, 4 N/m, they gained 5 % of their energy in the frame of the strike where strands
-#: turning 0.25 rad were left out). Any bound from 0.5 to 2 rad holds both.
+#: 300-400 rad/s, 3 rad over the step) faulted in the answer without a bound, and in a later step's contacts with a
+#: bound of 2 rad; five linked strands striking a still sphere at one step a frame need the answer (frictionless, 4
+#: N/m: 9.5 % of their energy gained in the frame of the strike with a bound of 0.25 rad, 0.1 % with 0.5 and 1 rad).
 ANSWER_TURN = wp.constant(1.0)
 
 #: A vertex's state in a pass of ``body_answer``: held (may be released), released, held for good, and sliding (its
@@ -114,8 +114,6 @@ def body_answer(
     strand: int,
     h: float,
     implicit: int,
-    X_head: wp.transform,
-    V_head: wp.spatial_vector,
     loads: SegmentLoads,
     joint_q: wp.array(dtype=wp.quat),
     joint_qd: wp.array(dtype=wp.vec3),
@@ -126,15 +124,22 @@ def body_answer(
     factors: DamperFactors,
     codes: wp.array(dtype=wp.int32),
     states: wp.array(dtype=float),
+    seg_xform_in: wp.array(dtype=wp.transform),
+    vertex_positions_in: wp.array(dtype=wp.vec3),
+    free_qd: wp.array(dtype=wp.vec3),
+    free_velocities: wp.array(dtype=wp.vec3),
+    answered_velocities: wp.array(dtype=wp.vec3),
 ):
     """The bodies' answer to what a sweep did to a strand the free step left on them (``link_sweep``, at steps of the
     share law's length: ``shares_friction``): ``joint_qd``, the sweep's answer, corrected in place.
 
-    Each vertex the free step held (its force there, ``held_force``) or that the answer takes into a collider faster
-    than its gap allows takes the body contact's damper ``-c P (v - v_target)`` from the answer (as
-    ``body_contact_solve`` takes it from the free velocities), sticking (``P = I``) where the collider has friction,
-    else along the normal, solved with the strand's inertia and the sweep's dampers (``solved``): with the sweep's own
-    solve, the strand's links and its body contacts solved together (the answer's linear part is exact). The force
+    Each vertex the free step held (its mean force there, ``held_force``) or that the answer takes into a collider
+    faster than its gap allows takes the body contact's damper ``-c P (v - v_target)`` from the answer (as
+    ``body_contact_solve`` takes it from the free velocities; ``v`` the vertex's velocity in the answer as the sweeps
+    read it, ``answer``: its free velocity plus the change, linearised at the step's start), sticking (``P = I``)
+    where the collider has friction, else along the normal, solved with the strand's inertia and the sweep's dampers
+    (``solved``): with the sweep's own solve, the strand's links and its body contacts solved together (the answer's
+    linear part is exact). The force
     the free step put on the vertex is part of its contact: the answer may take it back, not reverse it. A pass
     whose total force on a vertex pulls it toward the body releases it, and the next solves again from the answer
     with the free step's force on it undone; one whose force leaves the friction cone slides, held by the normal
@@ -157,21 +162,18 @@ def body_answer(
         scratch.c[i] = wp.spatial_vector(states[vbase + k + 1], 0.0, 0.0, 0.0, 0.0, 0.0)
     hc = contacts.stiffness * mass
     c = hc / h
-    root = wp.transform_point(X_head, chains.strand_root_pos[strand])
     for _it in range(CONTACT_PASSES):
-        # Outward: each vertex's velocity in the answer; the dampers of the vertices held, a released one's undoing
-        R = wp.transform_get_rotation(X_head)
-        omega = wp.spatial_top(V_head)
-        v = wp.spatial_bottom(V_head) + wp.cross(omega, root - wp.transform_get_translation(X_head))
+        # Each vertex's velocity in the answer, as its neighbours see it (``answer``); the dampers of the vertices
+        # held, in the segments' frames at the step's start, and a released one's undoing
+        answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd, free_qd, free_velocities, answered_velocities)
         active = int(0)
         changed = int(0)
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
             L = chains.seg_length[i]
-            R = R * joint_q[i]
-            omega = omega + wp.quat_rotate(R, joint_qd[i])
-            v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -L)))
+            R = wp.transform_get_rotation(seg_xform_in[i])
+            v = answered_velocities[vi]
             state = wp.spatial_top(scratch.c[i])[0]
             n = contacts.normal[vi]
             code = int(0)
@@ -211,17 +213,13 @@ def body_answer(
         if changed != 0:
             for k in range(S):
                 codes[vbase + k + 1] = int(wp.spatial_top(scratch.c[strand * S + k])[1])
-        # Outward: the solved velocities; each held vertex's whole force (the free step's and the answer's)
-        R = wp.transform_get_rotation(X_head)
-        omega = wp.spatial_top(V_head)
-        v = wp.spatial_bottom(V_head) + wp.cross(omega, root - wp.transform_get_translation(X_head))
+        # The solved velocities; each held vertex's whole force (the free step's and the answer's)
+        answer(strand, S, seg_xform_in, vertex_positions_in, joint_qd, free_qd, free_velocities, answered_velocities)
         pulled = int(0)
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
-            R = R * joint_q[i]
-            omega = omega + wp.quat_rotate(R, joint_qd[i])
-            v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
+            v = answered_velocities[vi]
             flags = wp.spatial_top(scratch.c[i])
             state = flags[0]
             sticks = flags[1] == 1.0
@@ -627,8 +625,9 @@ def link_sweep(
         if strand_touches(body, strand * (S + 1), S) != 0 and h * wp.max(
                 strand_turn_rate(chains, strand, joint_q_in, free_qd),
                 strand_turn_rate(chains, strand, joint_q_in, joint_qd_out)) <= ANSWER_TURN:
-            body_answer(chains, strand, h, implicit, bases.xform[b], bases.velocity[b], loads, joint_q_in,
-                        joint_qd_out, body, scratch, solved, answered, answer_factors, answer_codes, answer_states)
+            body_answer(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, body, scratch, solved, answered,
+                        answer_factors, answer_codes, answer_states, seg_xform_in, vertex_positions_in, free_qd,
+                        free_velocities, answered_velocities)
     if last != 0:
         finish_response(chains, strand, bases.xform[b], bases.velocity[b], h, scratch, joint_q_out, joint_qd_out,
                         seg_xform_out, vertex_positions_out, vertex_velocities_out, fault, 1)
