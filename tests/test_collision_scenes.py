@@ -449,9 +449,10 @@ def _link_energy(links, model, state) -> float:
     return 0.5 * links.stiffness * float(np.sum((links.scale * np.sum((xb - xa) ** 2, axis=1))[holds]))
 
 
-def _linked_strands_on_a_sphere(response: bool, stiffness: float):
+def _linked_strands_on_a_sphere(response: bool, stiffness: float, friction: float = 0.3):
     """Five strands of 2 cm segments tied side by side by links of ``stiffness`` [N/m at the reference segment
-    length], above a still sphere that parts them as they fall: ``(model, links, solver, sphere centre, radius)``."""
+    length], above a still sphere of ``friction`` that parts them as they fall: ``(model, links, solver, sphere
+    centre, radius)``."""
     from hairwarp.interactions import StaticLinks
 
     S, G = 10, 5
@@ -465,17 +466,17 @@ def _linked_strands_on_a_sphere(response: bool, stiffness: float):
                               radius=0.01, stiffness=stiffness * scale, damping=0.002 * scale, break_length=1.0,
                               response=response)
     centre, radius = np.array([0.12, -0.03, -0.04]), 0.05
-    sphere = Collider.sphere(radius, center=tuple(centre), attach="world", thickness=1e-3, friction=0.3)
+    sphere = Collider.sphere(radius, center=tuple(centre), attach="world", thickness=1e-3, friction=friction)
     solver = hw.Solver(model, "implicit_joints", colliders=ColliderSet([sphere], "cpu", model=model), links=links)
     return model, links, solver, centre, radius
 
 
-@pytest.mark.parametrize("response, substeps, stiffness", [
-    pytest.param(True, 8, 1.0, id="after the step, 8 substeps"),
+@pytest.mark.parametrize("response, substeps, stiffness, friction", [
+    pytest.param(True, 8, 1.0, 0.3, id="after the step, 8 substeps"),
     # long_hair's links (0.35 N/m between 1 cm segments: 0.7 N/m between these 2 cm ones), in the step as its
     # 8 substeps take them ("auto"): the energy only falls (its largest change over a frame -6.7e-5 of it)
-    pytest.param(False, 8, 0.7, id="in the step, 8 substeps, long_hair's stiffness"),
-    pytest.param(False, 8, 10.0, id="in the step, 8 substeps", marks=pytest.mark.xfail(strict=True, reason=(
+    pytest.param(False, 8, 0.7, 0.3, id="in the step, 8 substeps, long_hair's stiffness"),
+    pytest.param(False, 8, 10.0, 0.3, id="in the step, 8 substeps", marks=pytest.mark.xfail(strict=True, reason=(
         "in the step each link's backward-Euler force is solved alone, against a bound W of its ends' inverse "
         "masses, not with the strands it ties: five strands side by side at 10 N/m gain 10 % of their energy in a "
         "frame at 8 substeps (at 5 N/m 1.2 %, at 2 N/m 2.5e-4, at long_hair's 0.7 none), three 1.4 %, two 4e-5, "
@@ -488,24 +489,33 @@ def _linked_strands_on_a_sphere(response: bool, stiffness: float):
     # at one step a frame the links start each free step from the part of their last force that the gate keeps
     # (``hairwarp.solver.WARM_GATE_SPEED``); solved cold there, their answer put 1.2 % of the energy into the strands
     # in a frame (0.87 % at long_hair's 0.7 N/m, 0.12 % at 2 substeps)
-    pytest.param(True, 1, 0.7, id="after the step, 1 substep, long_hair's stiffness"),
+    pytest.param(True, 1, 0.7, 0.3, id="after the step, 1 substep, long_hair's stiffness"),
     # at long steps the bodies answer the links within the sweeps (``kernels.sweeps.body_answer``): without, the
     # sweeps drove vertices into the sphere and the push-out after the step lifted them, and these gained 6.6e-4
     # (1 N/m), 5.0e-3 (2 N/m) and 9.3e-5 (4 N/m at 2 substeps) of their energy in a frame (4 N/m at one step a frame
     # happened to gain none; 1.5 and 3 N/m gained 6.9e-3 and 2.4e-3)
-    pytest.param(True, 1, 1.0, id="after the step, 1 substep, 1 N/m"),
-    pytest.param(True, 1, 2.0, id="after the step, 1 substep, 2 N/m"),
-    pytest.param(True, 1, 4.0, id="after the step, 1 substep, 4 N/m"),
-    pytest.param(True, 2, 4.0, id="after the step, 2 substeps, 4 N/m"),
+    pytest.param(True, 1, 1.0, 0.3, id="after the step, 1 substep, 1 N/m"),
+    pytest.param(True, 1, 2.0, 0.3, id="after the step, 1 substep, 2 N/m"),
+    pytest.param(True, 1, 4.0, 0.3, id="after the step, 1 substep, 4 N/m"),
+    pytest.param(True, 2, 4.0, 0.3, id="after the step, 2 substeps, 4 N/m"),
+    # frictionless the strands slide off the sphere the faster; without the answer 1 N/m gained 6.0e-5 in a frame
+    pytest.param(True, 1, 1.0, 0.0, id="after the step, 1 substep, 1 N/m, frictionless"),
+    pytest.param(True, 1, 4.0, 0.0, id="after the step, 1 substep, 4 N/m, frictionless",
+                 marks=pytest.mark.xfail(strict=True, reason=(
+                     "frictionless at 4 N/m the frame in which the strands strike the sphere at one step a frame "
+                     "gains 1.1e-3 of their energy (7.1e-4 before the bodies answered the links' sweeps), every "
+                     "later frame loses it. The gain is within the step, not the push-out's (none in that frame): "
+                     "the free step, without the links, puts 5.0e-3 J into the strands and the links' springs as "
+                     "they strike, and the sweeps take back all but 3.4e-6 J of it"))),
 ])
-def test_linked_strands_never_gain_energy_against_a_still_sphere(response, substeps, stiffness):
+def test_linked_strands_never_gain_energy_against_a_still_sphere(response, substeps, stiffness, friction):
     """Five strands tied side by side by links fall past a still sphere, which parts them: their energy (kinetic
     and gravity by Pinocchio in float64, the joint springs and the links' springs) never rises over a frame beyond
     float32 round-off (the bound of ``test_energy_never_rises_against_a_still_body``)."""
     import pinocchio as pin
     from test_dynamics import chain_model
 
-    model, links, solver, _, _ = _linked_strands_on_a_sphere(response, stiffness)
+    model, links, solver, _, _ = _linked_strands_on_a_sphere(response, stiffness, friction)
     S, G = model.seg_per_strand, model.strand_count
     s0, s1, control = model.state(), model.state(), model.control()
     solver.forward_kinematics(s0, control)
