@@ -814,7 +814,8 @@ class Solver:
         of the step), from the free step: each colour's strands answer their links and hair contacts, the strands at
         their other ends held at their latest answer (on a GPU the hair contacts are held as dampers, each side's
         share of the pair's backward-Euler damper, split by the two sides' inverse inertias in their strands:
-        ``articulated.strand_inverse_inertia``, ``prepare_response``). Hair contacts alone are answered in one pass,
+        ``articulated.strand_inverse_inertia``, ``prepare_response``); at steps of the share law's length the bodies
+        then answer each strand's sweep (``sweeps.body_answer``). Hair contacts alone are answered in one pass,
         every strand every pair at once with those split dampers (Jacobi between strands;
         ``articulated.interaction_response``), which is exact for a lone pair."""
         model, ex = self.model, self.executor

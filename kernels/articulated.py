@@ -90,7 +90,8 @@ class BodyContacts:
     removed: wp.array(dtype=float)
     away: wp.array(dtype=float)
     # the mean force [N, world] the colliders put on each vertex over the last free step, its parts' forces weighted
-    # by their lengths (``integrate_euler``): what the bodies' answer after it starts from (``held_force``)
+    # by their lengths (``integrate_euler``; kept at steps of the share law's length, for strands with candidates):
+    # what the bodies' answer after it starts from (``held_force``)
     step_force: wp.array(dtype=wp.vec3)
 
 
@@ -627,24 +628,6 @@ def release_contacts(contacts: BodyContacts, vbase: int, S: int, h: float, match
 
 
 @wp.func
-def base_motion(X_head: wp.transform, V_head: wp.spatial_vector, root: wp.vec3):
-    """Where a strand's outward pass over its vertex velocities starts: the base's rotation, its angular velocity and
-    the velocity of the root at ``root`` [m, world] (``tip_motion``)."""
-    omega = wp.spatial_top(V_head)
-    return (wp.transform_get_rotation(X_head), omega,
-            wp.spatial_bottom(V_head) + wp.cross(omega, root - wp.transform_get_translation(X_head)))
-
-
-@wp.func
-def tip_motion(R: wp.quat, omega: wp.vec3, v: wp.vec3, q: wp.quat, w: wp.vec3, length: float):
-    """One segment further out (joint rotation ``q``, joint velocity ``w``, length ``length``): its rotation and
-    angular velocity in the world, and its tip vertex's velocity [m/s, world]."""
-    R = R * q
-    omega = omega + wp.quat_rotate(R, w)
-    return R, omega, v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -length)))
-
-
-@wp.func
 def strand_touches(contacts: BodyContacts, vbase: int, S: int):
     """1 where one of the vertices 1..S of the strand whose root is vertex ``vbase`` has a body contact candidate in
     this step, else 0."""
@@ -662,6 +645,13 @@ def held_force(contacts: BodyContacts, vi: int):
     force over the part, and an answer over the whole step could take back more than it had (limp linked hair on
     ``long_hair``'s turn at 2 substeps whipped to 2.8 m/s, 0.73 without the answer)."""
     return contacts.step_force[vi]
+
+
+@wp.func
+def forget_held_force(contacts: BodyContacts, vbase: int, S: int):
+    """Start the mean force over the step of the strand at ``vbase``'s vertices 1..S (``add_held_force``)."""
+    for k in range(S):
+        contacts.step_force[vbase + k + 1] = wp.vec3()
 
 
 @wp.func
@@ -739,13 +729,18 @@ def body_contact_solve(
     for it in range(CONTACT_PASSES):
         any_pulled = int(0)
         # Outward: world frames and free tip velocities; which vertices the dampers hold, their inertias and loads.
+        R = wp.transform_get_rotation(X_head)
+        omega = wp.spatial_top(V_head)
         x = wp.transform_point(X_head, chains.strand_root_pos[strand])
-        R, omega, v = base_motion(X_head, V_head, x)
+        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
         active = int(0)
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
-            R, omega, v = tip_motion(R, omega, v, joint_q[i], joint_qd[i], chains.seg_length[i])
+            R = R * joint_q[i]
+            omega = omega + wp.quat_rotate(R, joint_qd[i])
+            d = wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i]))
+            v = v + wp.cross(omega, d)
             n = wp.vec3()
             held = float(0.0)
             target = float(0.0)
@@ -828,7 +823,9 @@ def body_contact_solve(
         # final tip velocities, and from them each damper's force, the normal force and the friction share.
         a_ang_p = wp.vec3()
         a_lin_p = wp.vec3()
-        R, omega, v = base_motion(X_head, V_head, x)
+        R = wp.transform_get_rotation(X_head)
+        omega = wp.spatial_top(V_head)
+        v = wp.spatial_bottom(V_head) + wp.cross(omega, x - wp.transform_get_translation(X_head))
         for k in range(S):
             i = strand * S + k
             vi = vbase + k + 1
@@ -842,7 +839,9 @@ def body_contact_solve(
             w_free = joint_qd[i]
             w = w_free + h * qdd
             joint_qd[i] = w
-            R, omega, v = tip_motion(R, omega, v, q, w, chains.seg_length[i])
+            R = R * q
+            omega = omega + wp.quat_rotate(R, w)
+            v = v + wp.cross(omega, wp.quat_rotate(R, wp.vec3(0.0, 0.0, -chains.seg_length[i])))
             flags = scratch.c[i]
             slip = float(0.0)
             share = float(1.0)
@@ -1043,10 +1042,14 @@ def integrate_euler(
     # Most strands have no body contact candidate in a step (the mohawk in motion: 429 of 2,219): they skip the
     # contact solve's passes (its velocities would be the free ones).
     touching = int(0)
+    # the contact force's mean over the step, kept for the bodies' answer after it (``held_force``), which only steps
+    # of the share law's length take
+    keeps_mean = int(0)
     if contacts.enabled != 0:
-        for k in range(S):
-            contacts.step_force[vbase + k + 1] = wp.vec3()
         touching = strand_touches(contacts, vbase, S)
+        if touching != 0 and shares_friction(h) != 0:
+            keeps_mean = 1
+            forget_held_force(contacts, vbase, S)
         if touching == 0:
             release_contacts(contacts, vbase, S, h, shares_friction(h))
     t_left = h
@@ -1101,7 +1104,7 @@ def integrate_euler(
                     retry = 1
                     for k in range(S):
                         joint_qd_out[strand * S + k] = vertex_velocities_out[vbase + k]
-        if touching != 0:
+        if keeps_mean != 0:
             add_held_force(contacts, vbase, S, hs / h)
         t_left = t_left - hs
         part += 1
@@ -1570,10 +1573,9 @@ def integrate_rk4(
         # the stiff dampers inside them); the velocity change also moves the configuration over the step.
         body_contact_solve(chains, strand, h, h, 0, X_base, V_base, loads, joint_q_in, joint_qd_out, contacts,
                            scratch, dampers, 0)
-        vbase = strand * (S + 1)
-        for k in range(S):
-            contacts.step_force[vbase + k + 1] = wp.vec3()
-        add_held_force(contacts, vbase, S, 1.0)
+        if shares_friction(h) != 0:
+            forget_held_force(contacts, strand * (S + 1), S)
+            add_held_force(contacts, strand * (S + 1), S, 1.0)
         for k in range(S):
             i = strand * S + k
             w = joint_qd_out[i]

@@ -618,13 +618,12 @@ def link_sweep(
     damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, solved, factors, reusing,
                  keeping)
     b = strand * bases.per_strand
-    if body.enabled != 0 and shares_friction(h) != 0:
+    if body.enabled != 0 and shares_friction(h) != 0 and strand_touches(body, strand * (S + 1), S) != 0:
         if reuse == 0 or redo != 0:  # the step's first sweep, or one solving again: the answer's set afresh
             forget_answer(strand, S, answer_codes, answer_states)
         # (a strand turning faster than ``ANSWER_TURN`` is left to the push-out after the step)
-        if strand_touches(body, strand * (S + 1), S) != 0 and h * wp.max(
-                strand_turn_rate(chains, strand, joint_q_in, free_qd),
-                strand_turn_rate(chains, strand, joint_q_in, joint_qd_out)) <= ANSWER_TURN:
+        if h * wp.max(strand_turn_rate(chains, strand, joint_q_in, free_qd),
+                      strand_turn_rate(chains, strand, joint_q_in, joint_qd_out)) <= ANSWER_TURN:
             body_answer(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, body, scratch, solved, answered,
                         answer_factors, answer_codes, answer_states, seg_xform_in, vertex_positions_in, free_qd,
                         free_velocities, answered_velocities)
