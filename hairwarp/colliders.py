@@ -632,6 +632,7 @@ class ColliderSet:
             self.contacts.removed.zero_()
             self.contacts.away.fill_(1.0)
             self.contacts.normal.zero_()
+            self.contacts.answer_force.zero_()
 
     def _check_bound(self, model):
         if self.model is not model:
@@ -704,6 +705,8 @@ def body_contacts(vert_count: int, device, *, enabled: bool = True):
     c.removed = wp.zeros(n, dtype=float, device=device)
     c.away = wp.full(n, 1.0, dtype=float, device=device)
     c.step_force = wp.zeros(n, dtype=wp.vec3, device=device)
+    c.answer_force = wp.zeros(n, dtype=wp.vec3, device=device)
+    c.answer_start = wp.zeros(n, dtype=wp.vec3, device=device)
     return c
 
 

@@ -960,7 +960,9 @@ class Solver:
             force of the last step, which the next free step takes), ``body_contacts.slip``, ``body_contacts.share``,
             ``body_contacts.force``, ``body_contacts.removed`` and ``body_contacts.away`` (each vertex's speed over
             its collider, its friction share at long steps, the force the collider put on it and the slip it took
-            away in the last step it held the vertex, from which the next step starts, and the time since).
+            away in the last step it held the vertex, from which the next step starts, and the time since), and
+            ``body_contacts.answer_force`` (the force the bodies' answer to the links' sweeps added, from which the
+            next step's answer starts).
         """
         out = {}
         if self.body_contacts.enabled:
@@ -969,6 +971,7 @@ class Solver:
             out["body_contacts.force"] = self.body_contacts.force
             out["body_contacts.removed"] = self.body_contacts.removed
             out["body_contacts.away"] = self.body_contacts.away
+            out["body_contacts.answer_force"] = self.body_contacts.answer_force
         if self.links is not None:
             out["links.link_broken"] = self.links.link_broken
             out["links.link_broken_total"] = self.links.link_broken_total

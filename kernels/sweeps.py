@@ -109,6 +109,50 @@ def forget_answer(strand: int, S: int, codes: wp.array(dtype=wp.int32), states: 
 
 
 @wp.func
+def start_answer_forces(contacts: BodyContacts, strand: int, S: int, answers: int):
+    """At a step's first sweep: what each vertex of ``strand`` starts its answer from (``answer_start``), the force
+    the last step's answer added (``answer_force``), where the step answers the strand (``answers``) and the vertex has
+    a candidate; none elsewhere. The step's answer then writes its own."""
+    for k in range(S):
+        vi = strand * (S + 1) + k + 1
+        start = wp.vec3()
+        if answers != 0 and wp.length_sq(contacts.normal[vi]) > 0.0:
+            start = contacts.answer_force[vi]
+        contacts.answer_start[vi] = start
+        contacts.answer_force[vi] = wp.vec3()
+
+
+@wp.func
+def answer_warm(last: wp.vec3, held: wp.vec3, n: wp.vec3, code: int):
+    """The force a vertex held with ``code`` (1 sticking, 2 sliding) starts its answer from, beside the free step's
+    ``held``: what brings it to ``last``, its whole contact force at the end of the last step's answer; whole where
+    it sticks, along the normal ``n`` where it slides; none where the last step's answer left it no force (it did not
+    hold the vertex, or it was released)."""
+    if wp.length_sq(last) == 0.0:
+        return wp.vec3()
+    if code == 1:
+        return last - held
+    return wp.dot(last - held, n) * n
+
+
+@wp.func
+def in_cone(force: wp.vec3, n: wp.vec3, friction: float):
+    """``force`` [N] as a contact of normal ``n`` and ``friction`` (``contact_friction``'s law) can put it: none
+    that pulls, its tangential part cut to the cone of its normal part (none frictionless)."""
+    fn = wp.dot(force, n)
+    if fn <= 0.0:
+        return wp.vec3()
+    ft = force - fn * n
+    if friction >= FULL_FRICTION:
+        return force
+    limit = friction / (1.0 - friction) * fn
+    ftl = wp.length(ft)
+    if ftl > limit:
+        ft = (limit / ftl) * ft
+    return fn * n + ft
+
+
+@wp.func
 def body_answer(
     chains: StrandChains,
     strand: int,
@@ -162,6 +206,7 @@ def body_answer(
         scratch.c[i] = wp.spatial_vector(states[vbase + k + 1], 0.0, 0.0, 0.0, 0.0, 0.0)
     hc = contacts.stiffness * mass
     c = hc / h
+    kept = int(0)  # 1 once a pass's answer stands (its forces kept for the next step: ``answer_force``)
     for _it in range(CONTACT_PASSES):
         # Each vertex's velocity in the answer, as its neighbours see it (``answer``); the dampers of the vertices
         # held, in the segments' frames at the step's start, and a released one's undoing
@@ -184,7 +229,9 @@ def body_answer(
                 target = -wp.max(contacts.gap[vi], 0.0) / h
                 rel = v - contacts.object_velocity[vi] - target * n
                 start = held_force(contacts, vi)
-                if state != RELEASED and (wp.dot(rel, n) < 0.0 or wp.length_sq(start) > 0.0):
+                warm = contacts.answer_start[vi]
+                if state != RELEASED and (wp.dot(rel, n) < 0.0 or wp.length_sq(start) > 0.0
+                                          or wp.length_sq(warm) > 0.0):
                     code = 2
                     beta = float(0.0)
                     if state != SLIDES and contacts.friction[vi] > 0.0:
@@ -192,7 +239,8 @@ def body_answer(
                         beta = 1.0
                     P = contact_projector(wp.quat_rotate_inv(R, n), beta)
                     M = hc * P
-                    F = -c * (P * wp.quat_rotate_inv(R, rel))
+                    F = (wp.quat_rotate_inv(R, answer_warm(warm, start, n, code))
+                         - c * (P * wp.quat_rotate_inv(R, rel)))
                 elif state == RELEASED:
                     F = -wp.quat_rotate_inv(R, start)
                 if wp.length_sq(F) > 0.0 or code != 0:
@@ -224,11 +272,15 @@ def body_answer(
             state = flags[0]
             sticks = flags[1] == 1.0
             n = contacts.normal[vi]
+            contacts.answer_force[vi] = wp.vec3()
             if flags[1] > 0.0:
                 rel = v - contacts.object_velocity[vi] - flags[2] * n
-                force = held_force(contacts, vi) - c * (contact_projector(n, wp.where(sticks, 1.0, 0.0)) * rel)
+                held = held_force(contacts, vi)
+                force = (held + answer_warm(contacts.answer_start[vi], held, n, int(flags[1]))
+                         - c * (contact_projector(n, wp.where(sticks, 1.0, 0.0)) * rel))
                 fn = wp.dot(force, n)
                 friction = contacts.friction[vi]
+                contacts.answer_force[vi] = in_cone(force, n, friction)
                 if fn <= 0.0:
                     if state != HELD_FOR_GOOD:
                         state = RELEASED
@@ -243,6 +295,7 @@ def body_answer(
                     pulled = 1
             scratch.c[i] = wp.spatial_vector(state, flags[1], flags[2], 0.0, 0.0, 0.0)
         if pulled == 0:
+            kept = 1
             break
         # solved again from the sweep's answer; an active set still changing after the last pass is not trusted:
         # the answer stays as the sweep left it (the push-out after the step keeps the strand out of the bodies)
@@ -250,6 +303,8 @@ def body_answer(
             joint_qd[strand * S + k] = wp.spatial_top(scratch.p[strand * S + k])
     for k in range(S):
         states[vbase + k + 1] = wp.spatial_top(scratch.c[strand * S + k])[0]
+        if kept == 0:
+            contacts.answer_force[vbase + k + 1] = wp.vec3()
 
 
 @wp.func
@@ -618,9 +673,16 @@ def link_sweep(
     damper_solve(chains, strand, h, implicit, loads, joint_q_in, joint_qd_out, scratch, solved, factors, reusing,
                  keeping)
     b = strand * bases.per_strand
-    if body.enabled != 0 and shares_friction(h) != 0 and strand_touches(body, strand * (S + 1), S) != 0:
+    answers = int(0)
+    if body.enabled != 0:
+        answers = shares_friction(h) * strand_touches(body, strand * (S + 1), S)
+        if reuse == 0 and redo == 0:  # the step's first sweep: the answer's forces start from the last step's
+            start_answer_forces(body, strand, S, answers)
+    if answers != 0:
         if reuse == 0 or redo != 0:  # the step's first sweep, or one solving again: the answer's set afresh
             forget_answer(strand, S, answer_codes, answer_states)
+        for k in range(S):  # none unless this sweep's answer stands
+            body.answer_force[strand * (S + 1) + k + 1] = wp.vec3()
         # (a strand turning faster than ``ANSWER_TURN`` is left to the push-out after the step)
         if h * wp.max(strand_turn_rate(chains, strand, joint_q_in, free_qd),
                       strand_turn_rate(chains, strand, joint_q_in, joint_qd_out)) <= ANSWER_TURN:

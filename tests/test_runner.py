@@ -502,6 +502,12 @@ def test_checkpoint_restores_the_run_exactly():
     sim.restore({k: v for k, v in saved.items() if k != "solver.links.link_warm"})
     np.testing.assert_array_equal(warm.numpy(), 0.0)
     np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
+    # ... nor the force the bodies' answer to the links' sweeps added (``kernels.sweeps.body_answer``): none
+    answer = sim.solver.body_contacts.answer_force
+    answer.assign(np.ones(answer.shape + (3,), dtype=np.float32))
+    sim.restore({k: v for k, v in saved.items() if k != "solver.body_contacts.answer_force"})
+    np.testing.assert_array_equal(answer.numpy(), 0.0)
+    np.testing.assert_array_equal(sim.guide_curves()[0], at_checkpoint)
 
 
 def test_the_step_apis_tools_refuse_what_would_crash_or_go_wrong_silently(tiny, tmp_path):
