@@ -73,10 +73,11 @@ class BodyContacts:
     slower over the surface the contact left it than its free velocity, from which the next step's friction starts
     (``contact_friction``); ``away`` [s], the time since that step (kept for CONTACT_MEMORY, then cleared); at steps
     of CONTINUOUS_FRICTION_STEP and longer, ``share``, the tangential share of the damper in [0, 1] (1 sticking,
-    less sliding; ``matched_friction``), and ``answer_force`` [N, world], what the bodies' answer to the links' sweeps
-    added to it (``kernels.sweeps.body_answer``). Of the last step alone: ``step_force`` [N, world], the mean force
-    over its free step (``held_force``), and ``answer_start``, the answer's force it starts from. ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the
-    strand (see ``body_contact_solve``).
+    less sliding; ``matched_friction``), and ``answer_force`` [N, world], the whole contact force the vertex ended
+    the bodies' answer to the links' sweeps with (``kernels.sweeps.body_answer``). Of the last step alone:
+    ``step_force`` [N, world], the mean force over its free step (``held_force``), and ``answer_start``, the answer's
+    force the step starts from. ``enabled`` = 0: no colliders; ``stiffness`` is ``h c`` per kilogram of the strand
+    (see ``body_contact_solve``).
     """
 
     enabled: int
@@ -94,9 +95,9 @@ class BodyContacts:
     # by their lengths (``integrate_euler``; kept at steps of the share law's length, for strands with candidates):
     # what the bodies' answer after it starts from (``held_force``)
     step_force: wp.array(dtype=wp.vec3)
-    # the force [N, world] the bodies' answer to the links' sweeps added to the free step's on each vertex in the last
-    # step it answered (``kernels.sweeps.body_answer``), persistent: what the next step's answer starts from
-    # (``answer_start``, taken at its first sweep), so that its damper answers only the change
+    # the whole contact force [N, world] each vertex ended the last step's answer to the links' sweeps with (the free
+    # step's and the answer's, in its cone; ``kernels.sweeps.body_answer``), persistent: what the next step's answer
+    # starts from (``answer_start``, taken at its first sweep), so that its damper answers only the change
     answer_force: wp.array(dtype=wp.vec3)
     answer_start: wp.array(dtype=wp.vec3)
 

@@ -110,9 +110,9 @@ def forget_answer(strand: int, S: int, codes: wp.array(dtype=wp.int32), states: 
 
 @wp.func
 def start_answer_forces(contacts: BodyContacts, strand: int, S: int, answers: int):
-    """At a step's first sweep: what each vertex of ``strand`` starts its answer from (``answer_start``), the force
-    the last step's answer added (``answer_force``), where the step answers the strand (``answers``) and the vertex has
-    a candidate; none elsewhere. The step's answer then writes its own."""
+    """At a step's first sweep: what each vertex of ``strand`` starts its answer from (``answer_start``), the contact
+    force it ended the last step's answer with (``answer_force``), where the step answers the strand (``answers``) and
+    the vertex has a candidate; none elsewhere. The step's answer then writes its own."""
     for k in range(S):
         vi = strand * (S + 1) + k + 1
         start = wp.vec3()
@@ -189,6 +189,13 @@ def body_answer(
     with the free step's force on it undone; one whose force leaves the friction cone slides, held by the normal
     alone; a released vertex that then goes in is held for good: at most ``CONTACT_PASSES`` solves, the active set
     of ``body_contact_solve``. The free step's contact state (``contacts``) stays as it wrote it.
+
+    As the free step's contacts do, a held vertex starts from the force it ended the last step's answer with
+    (``contacts.answer_start``; ``answer_warm``), so that the damper answers only the change and a vertex at rest
+    keeps no residual velocity into the body (cold, the damper left ``F / c`` of the links' pull ``F`` each step:
+    ``character``'s tips at one step a frame sank 0.1-0.3 mm a step into the torso's top, which the push-out lifted).
+    The pass that stands writes each held vertex's whole force, in its cone (``in_cone``), to
+    ``contacts.answer_force``, none where no pass stands.
 
     Its matrix changes only with the vertices held and how: the factors of its last solve (``factors``) are kept with
     each vertex's code (``codes``: 0 free, 1 sticking, 2 sliding, -1 none kept), and a solve whose codes are the same
