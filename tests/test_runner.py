@@ -698,6 +698,28 @@ def test_checkpoint_restores_a_run_whose_hair_contacts_start_from_their_last_for
     assert not contacts.warm_force.numpy().any() and not contacts.warm_torque.numpy().any()
 
 
+def test_checkpoint_restores_a_run_whose_bodies_answer_starts_from_its_last_force():
+    """At one step a frame the bodies' answer to the links' sweeps starts from the contact force each vertex ended the
+    last step's answer with (``BodyContacts.answer_force``): the checkpoint keeps it, and a restored run repeats the
+    frames after it bit for bit; restored without it (a checkpoint of an earlier version), the answer starts cold and
+    the frames differ."""
+    sim = Simulation(hw.Scene.load(hw.Scene.default_path().parent / "long_hair_shoulders.toml",
+                                   ["groom.count=40", "dense.count=0", "output.preview=false", "sim.substeps=1",
+                                    'head.motion.kind="still"']))
+    for _ in range(12):
+        sim.advance_frame()
+    answer = sim.solver.body_contacts.answer_force
+    assert np.abs(answer.numpy()).max() > 0
+    _assert_frames_repeat_after_restore(sim, 3)
+    saved = sim.checkpoint()
+    sim.advance_frame()
+    expected = sim.guide_curves()[0].copy()
+    sim.restore({k: v for k, v in saved.items() if k != "solver.body_contacts.answer_force"})
+    assert not answer.numpy().any()
+    sim.advance_frame()
+    assert not np.array_equal(sim.guide_curves()[0], expected)
+
+
 def test_checkpoint_restores_a_run_whose_sweeps_carry_factors_over_steps():
     """One sweep a step of links solved after the free step solves with the factors of the strands' matrices that
     an earlier step of the frame made (``Solver.plan_factors``, 8 steps a factorisation); every frame makes its own
