@@ -126,10 +126,9 @@ def start_answer_forces(contacts: BodyContacts, strand: int, S: int, answers: in
 def answer_warm(last: wp.vec3, held: wp.vec3, n: wp.vec3, code: int):
     """The force a vertex held with ``code`` (1 sticking, 2 sliding) starts its answer from, beside the free step's
     ``held``: what brings it to ``last``, its whole contact force at the end of the last step's answer; whole where
-    it sticks, along the normal ``n`` where it slides. None where the last step's answer left it no force (it did not
-    hold the vertex, or released it), nor where the free step did not hold it: a vertex the free step lets go, started
-    from a force that held it, would be pushed off the body."""
-    if wp.length_sq(last) == 0.0 or wp.length_sq(held) == 0.0:
+    it sticks, along the normal ``n`` where it slides; none where the last step's answer left it no force (it did not
+    hold the vertex, or it was released)."""
+    if wp.length_sq(last) == 0.0:
         return wp.vec3()
     if code == 1:
         return last - held
@@ -237,7 +236,9 @@ def body_answer(
                 target = -wp.max(contacts.gap[vi], 0.0) / h
                 rel = v - contacts.object_velocity[vi] - target * n
                 start = held_force(contacts, vi)
-                if state != RELEASED and (wp.dot(rel, n) < 0.0 or wp.length_sq(start) > 0.0):
+                warm = contacts.answer_start[vi]
+                if state != RELEASED and (wp.dot(rel, n) < 0.0 or wp.length_sq(start) > 0.0
+                                          or wp.length_sq(warm) > 0.0):
                     code = 2
                     beta = float(0.0)
                     if state != SLIDES and contacts.friction[vi] > 0.0:
@@ -245,7 +246,7 @@ def body_answer(
                         beta = 1.0
                     P = contact_projector(wp.quat_rotate_inv(R, n), beta)
                     M = hc * P
-                    F = (wp.quat_rotate_inv(R, answer_warm(contacts.answer_start[vi], start, n, code))
+                    F = (wp.quat_rotate_inv(R, answer_warm(warm, start, n, code))
                          - c * (P * wp.quat_rotate_inv(R, rel)))
                 elif state == RELEASED:
                     F = -wp.quat_rotate_inv(R, start)
