@@ -498,6 +498,12 @@ def _linked_strands_on_a_sphere(response: bool, stiffness: float, friction: floa
     pytest.param(True, 1, 2.0, 0.3, id="after the step, 1 substep, 2 N/m"),
     pytest.param(True, 1, 4.0, 0.3, id="after the step, 1 substep, 4 N/m"),
     pytest.param(True, 2, 4.0, 0.3, id="after the step, 2 substeps, 4 N/m"),
+    pytest.param(True, 1, 10.0, 0.3, id="after the step, 1 substep, 10 N/m",
+                 marks=pytest.mark.xfail(strict=True, reason=(
+        "at one step a frame links of 10 N/m (rate 14 at the step) gain 35 % of the strands' energy in the frame they "
+        "strike the sphere: the strike stretches them by 2.6 mJ in the free step and the step's 25 sweeps leave 1.7 mJ "
+        "of it (other frames 0.1-0.2 mJ). Not the bodies (the same without the sphere's answer's warm start; 17 % "
+        "before the answer): with 4 times the sweeps it gains 8 %, with 16 times none"))),
     # frictionless the strands slide off the sphere the faster; without the answer 1 N/m gained 6.0e-5 in a frame.
     # At 4 N/m the strike's frame gained 1.1e-3 of the energy while the answer started each step cold (its damper
     # answering the whole of the links' pull, not its change: ``kernels.sweeps.start_answer_forces``)
