@@ -257,7 +257,7 @@ def _upgraded(arrays: dict) -> dict:
         out["solver.body_contacts.removed"] = np.zeros(len(held), np.float32)
         out["solver.body_contacts.away"] = np.where(held, 0.0, 1.0).astype(np.float32)
     if "solver.body_contacts.force" in out and "solver.body_contacts.answer_force" not in out:
-        # the force the bodies' answer to the links' sweeps added in the last step, kept since 2026-12-07: none
+        # each vertex's contact force at the end of the bodies' answer to the links' sweeps, kept since 2026-12-07: none
         out["solver.body_contacts.answer_force"] = np.zeros_like(np.asarray(out["solver.body_contacts.force"],
                                                                              dtype=np.float32))
     old = "solver.body_contacts.beta"

@@ -961,8 +961,8 @@ class Solver:
             ``body_contacts.force``, ``body_contacts.removed`` and ``body_contacts.away`` (each vertex's speed over
             its collider, its friction share at long steps, the force the collider put on it and the slip it took
             away in the last step it held the vertex, from which the next step starts, and the time since), and
-            ``body_contacts.answer_force`` (the force the bodies' answer to the links' sweeps added, from which the
-            next step's answer starts).
+            ``body_contacts.answer_force`` (each vertex's contact force at the end of the bodies' answer to the
+            links' sweeps, from which the next step's answer starts).
         """
         out = {}
         if self.body_contacts.enabled:
