@@ -3,6 +3,7 @@ without a captured graph, the timing of a step and a per-kernel profile."""
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -125,9 +126,12 @@ def time_solver(model: Model, integrator: str, dt: float, *, graph: bool, steps:
     return res
 
 
-def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> dict:
+def profile_step(model: Model, integrator: str, dt: float, steps: int = 20, repeats: int = 3) -> dict:
     """Wall time of each Warp call in a plain step (CPU launches are synchronous, so the time around a
-    launch is its argument packing plus its kernel); ms per step by call, launches per step.
+    launch is its argument packing plus its kernel); ms per step by call, launches per step. The ``steps`` are timed
+    ``repeats`` times and the fastest round is kept, its calls with it: a round in which the machine took the core
+    away (another program, the test suite's other worker) read the step 30 times as long as its calls on the tiny
+    model of the tests (0.44 ms against 0.014).
 
     On one thread, where every launch runs when it is made (with more, the executor holds a chain of launches and
     runs them at its end), timed where a launch is made: :meth:`hairwarp.executor.Executor.launch`, through which
@@ -167,18 +171,24 @@ def profile_step(model: Model, integrator: str, dt: float, steps: int = 20) -> d
             return out
         return timed
 
+    wall, kept = math.inf, {}
     try:
         for owner, name, orig in originals:
             setattr(owner, name, wrap(owner, name, orig))
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            solver.step(states[0], states[1], control, dt)
-            states.reverse()
-        wp.synchronize_device(model.device)
-        wall = (time.perf_counter() - t0) / steps
+        for _ in range(max(1, repeats)):
+            acc.clear()
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                solver.step(states[0], states[1], control, dt)
+                states.reverse()
+            wp.synchronize_device(model.device)
+            round_wall = (time.perf_counter() - t0) / steps
+            if round_wall < wall:
+                wall, kept = round_wall, {k: list(v) for k, v in acc.items()}
     finally:
         for owner, name, orig in originals:
             setattr(owner, name, orig)
+    acc = kept
     calls = {k: {"ms_per_step": v[0] / steps * 1e3, "calls_per_step": v[1] / steps}
              for k, v in sorted(acc.items(), key=lambda kv: -kv[1][0])}
     return {"wall_ms_per_step": wall * 1e3, "calls": calls,
