@@ -24,6 +24,7 @@ from hairwarp.kernels.articulated import (
     damper_solve,
     finish_response,
     held_force,
+    matched_friction,
     point_damper_blocks,
     shares_friction,
     spin_free_coupling,
@@ -137,19 +138,12 @@ def answer_warm(last: wp.vec3, held: wp.vec3, n: wp.vec3, code: int):
 
 @wp.func
 def in_cone(force: wp.vec3, n: wp.vec3, friction: float):
-    """``force`` [N] as a contact of normal ``n`` and ``friction`` (``contact_friction``'s law) can put it: none
-    that pulls, its tangential part cut to the cone of its normal part (none frictionless)."""
-    fn = wp.dot(force, n)
-    if fn <= 0.0:
+    """``force`` [N] as a contact of normal ``n`` and ``friction`` can put it: none that pulls, its tangential part
+    cut to the cone of its normal part (``matched_friction``'s cut; none frictionless)."""
+    if wp.dot(force, n) <= 0.0:
         return wp.vec3()
-    ft = force - fn * n
-    if friction >= FULL_FRICTION:
-        return force
-    limit = friction / (1.0 - friction) * fn
-    ftl = wp.length(ft)
-    if ftl > limit:
-        ft = (limit / ftl) * ft
-    return fn * n + ft
+    kept, _share = matched_friction(force, n, 1.0, friction)
+    return kept
 
 
 @wp.func
