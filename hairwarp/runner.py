@@ -569,7 +569,7 @@ class Simulation:
     def _contact_rest_note(self, cfg) -> str | None:
         """The run's note where its hair contacts are solved after the free step at steps too long for them to settle
         as they start each step cold (``Solver.contact_warm_start``: without the links' sweeps, on a GPU, or at one
-        step a frame), else None."""
+        step a frame where ``Solver.contacts_cold_at_frame_rate`` says why), else None."""
         contacts, dt = self.contacts, self.scene.step_dt
         if contacts is None or not contacts.response or dt < AUTO_RESPONSE_DT * (1.0 - 1e-9) \
                 or self.solver.contact_warm_start(dt):
@@ -578,9 +578,11 @@ class Simulation:
             why = "on a GPU"
         elif not self.solver.link_sweeps:
             why = "without the links' sweeps, which carry their force from step to step"
+        elif not self.solver.body_contacts.enabled:
+            return None  # nothing to trade the hair's load with: started cold, it settles (docs/interactions.md)
         else:
-            why = (f"at steps of {WARM_START_STEP:.3g} s and longer, where their force carried from step to step "
-                   "feeds limp hair's jitter")
+            reason = self.solver.contacts_cold_at_frame_rate(dt) or "in a frame taken again"
+            why = f"at steps of {WARM_START_STEP:.3g} s and longer {reason}"
         return (f"hair contacts solved after the free step start each step cold at this step ({dt:.3g} s, "
                 f"interactions.response = \"{cfg.response}\"; {why}): hair resting on the body may keep crawling by a "
                 f"few mm/s with the head still (docs/interactions.md, \"Hair contacts start from their last force at "

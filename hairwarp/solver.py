@@ -126,6 +126,19 @@ WARM_GATE_TYPICAL_RATIO = 1.5
 #: head still, 0.226 with) costs 1.25x the frame (two sweeps a step where it starts cold, and no factors carried).
 WARM_START_CONTACTS_STEP = 1.0 / 220.0
 
+#: The strands' first bending mode at a step (the step times the median strand's cantilever rate ``1.875^2
+#: sqrt(EI / (mu L^4))``, ``Solver._strand_rate_per_second``) from which the hair contacts take their last force at
+#: one step a frame too (``Solver.contact_warm_start``), beside the links' gated one. The joints' own rate
+#: (:data:`WARM_START_BEND_RATE`) grows with the segment count; this one is the strand's, whatever its segments.
+#: Started cold at one step a frame, hair resting on other hair over a body traded its load between the head's
+#: contacts and the hair's every step and never settled, with its head still (tips in the 6th second): ``long_hair``
+#: 2.21 mm/s, ``fast_turn`` 4.30, ``character`` 2.19; warm 0.060, 0.63 and 0.046. The stability grid's 1-substep cells
+#: with links and contacts at 8, 31 and 64 segments, four draws of gravity each (fastest vertex): EI 1e-7 (rate
+#: 0.0024) burst at 16 and 31 segments warm (3.3, 3.7 m/s; 1.0-1.6 cold) and EI 1e-6 (0.0075) at 8 (3.4, 3.5; 0.95-1.4
+#: cold), while EI 1e-5 (0.024) ran at 0.75-1.02 m/s warm against 0.87-1.56 cold and 2e-4 and 1e-2 as cold. The
+#: shipped scenes run at 0.07-2.1 at one step a frame.
+CONTACT_WARM_STRAND_RATE = 0.015
+
 #: The hair contacts' rate (``interactions.contact_step_rate``: the largest density factor and the median segment
 #: mass) past which a fault of the free step is theirs: on ``long_hair`` at 8 substeps 300 N/m a contact (7.5; 105
 #: N/m at 1 cm) runs and 1,000 N/m (13.7) goes non-finite; the shipped mohawk's contacts take 5.2.
@@ -632,12 +645,20 @@ class Solver:
         if contacts is not None and contacts.enabled and contacts.response \
                 and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and not self.contact_warm_start(dt):
             return False
+        if gated:
+            return self._gated_links_hold(dt)
         rate, typical = dt * self._link_rate_per_second(), dt * self._warm_rate_per_second()
-        if gated:  # where a body holds the hair, and links not too stiff for a force lagged a step
-            sweeps = links.sweeps_starting(dt, rate, cold=True)
-            return (self.body_contacts.enabled and rate <= WARM_GATE_RATE
-                    and typical <= WARM_GATE_TYPICAL_RATIO * _warm_typical_bound(sweeps))
         return rate <= WARM_START_RATE and typical <= _warm_typical_bound(links.sweeps_at(dt))
+
+    def _gated_links_hold(self, dt: float) -> bool:
+        """Whether the links' gated force of the last step (:data:`WARM_GATE_SPEED`) holds at steps of ``dt``: where
+        a body holds the hair (the load the force shares is its to take), with links not too stiff for a force lagged
+        a step (a free-step rate up to :data:`WARM_GATE_RATE`, a typical rate within :data:`WARM_GATE_TYPICAL_RATIO`
+        times the whole force's bound on the sweeps of a step started so)."""
+        rate, typical = dt * self._link_rate_per_second(), dt * self._warm_rate_per_second()
+        sweeps = self.links.sweeps_starting(dt, rate, cold=True)
+        return (self.body_contacts.enabled and rate <= WARM_GATE_RATE
+                and typical <= WARM_GATE_TYPICAL_RATIO * _warm_typical_bound(sweeps))
 
     def contact_warm_start(self, dt: float) -> bool:
         """Whether the hair contacts, solved by the links' sweeps after the free step, put each segment's contact
@@ -646,8 +667,8 @@ class Solver:
         ``WARM_START_STEP`` (exclusive: 2 to 7 substeps of 30 fps), on the CPU (the sweeps solve the contacts where each
         segment lists its own), not in a frame taken again (:attr:`warm_start_allowed`). Each contact keeps its force
         by the gate of ``WARM_GATE_SPEED`` on its pair's relative speed (``kernels.contacts.contact_warm_forces``).
-        Not at one step a frame: limp linked hair (the stability grid's EI 1e-7 cells) jitters there, and the lagged
-        force fed the jitter until it burst (3.0-5.7 m/s at 8 and 31 segments, 1.35 m/s cold and at 32 substeps).
+        From ``WARM_START_STEP`` on (one step a frame) only where :meth:`contacts_cold_at_frame_rate` finds nothing
+        against it: a body holds the hair, the strands are not limp and the links take their gated force beside.
 
         Started cold, a strand resting on other hair over the head fell in the free step, which the head's contacts
         caught and took its whole weight; the sweeps then pushed it off the head with the hair contacts' springs, and
@@ -659,8 +680,48 @@ class Solver:
         broke 28 links (none at 16 substeps) and took 3 frames again after whips, the mohawk broke 19 (2); gated, none
         and 3."""
         contacts = self.contacts
-        return bool(dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
-                    and WARM_START_CONTACTS_STEP * (1.0 - 1e-9) <= dt < WARM_START_STEP and self._warm_start_allowed)
+        if not (dt is not None and self.link_sweeps and contacts is not None and contacts.sweeps_contacts
+                and dt >= WARM_START_CONTACTS_STEP * (1.0 - 1e-9) and self._warm_start_allowed):
+            return False
+        return dt < WARM_START_STEP or self.contacts_cold_at_frame_rate(dt) is None
+
+    def contacts_cold_at_frame_rate(self, dt: float) -> str | None:
+        """Why hair contacts solved by the links' sweeps start each step cold at a step ``dt`` of ``WARM_START_STEP``
+        or longer (one step a frame), or None where they take their last force there (:meth:`contact_warm_start`).
+
+        - Without colliders: the links' force is then not carried (:meth:`_gated_links_hold`), and the contacts' alone,
+          held in balance by the links' last force that the free step did not take, kept hair hanging free swinging:
+          with its head shape none and its head still, ``long_hair`` 2.81 mm/s in the 6th second warm against 0.28
+          cold, ``fast_turn`` 10.9 against 0.43, ``character`` 7.14 against 0.56.
+        - Limp strands (a first bending mode at the step below :data:`CONTACT_WARM_STRAND_RATE`): they jitter at one
+          step a frame, and the lagged force fed the jitter until it burst.
+        - Links too stiff for their gated force (:meth:`_gated_links_hold`), which the contacts' last force balanced."""
+        if not self.body_contacts.enabled:
+            return "without colliders, where the links carry no force from step to step beside them"
+        rate = dt * self._strand_rate_per_second()
+        if rate < CONTACT_WARM_STRAND_RATE:
+            return (f"for strands this limp (their first bending mode turns {rate:.2g} rad a step, under "
+                    f"{CONTACT_WARM_STRAND_RATE:g}), whose jitter a force carried from step to step feeds")
+        if not self._gated_links_hold(dt):
+            return "beside links too stiff to carry their force from step to step"
+        return None
+
+    def _strand_rate_per_second(self) -> float:
+        """The strands' first bending mode per second of step (:data:`CONTACT_WARM_STRAND_RATE`): the median over the
+        strands of a clamped rod's ``1.875^2 sqrt(EI / (mu L^4))``, ``EI`` the median of its joints' bending stiffness
+        times their lengths (the root's, scaled, left out), ``mu`` its mass per length; read from the host once."""
+        def rate(mass):
+            G, S = self.model.strand_count, self.model.seg_per_strand
+            k = self.model.joint_stiffness.numpy().astype(np.float64)[:, 0].reshape(G, S)
+            length = self.model.seg_length.numpy().astype(np.float64).reshape(G, S)
+            if S > 1:
+                ei = np.median(k[:, 1:] * 0.5 * (length[:, 1:] + length[:, :-1]), axis=1)
+            else:
+                ei = k[:, 0] * 0.5 * length[:, 0]
+            total = length.sum(axis=1)
+            mu = mass.astype(np.float64).reshape(G, S).sum(axis=1) / total
+            return float(np.median(1.8751 ** 2 * np.sqrt(ei / (mu * total ** 4))))
+        return self._rate_per_second("strand", 0.0, rate)
 
     def _bend_rate_per_second(self) -> float:
         """The strands' bending rate per second of step (:data:`WARM_START_BEND_RATE`): the median over the joints of
