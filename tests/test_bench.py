@@ -387,6 +387,11 @@ def test_robustness_rest_structure_and_free_strands_settle(tmp_path):
     # from one second to the next.
     free = row["no_colliders"]["rms_speed_per_second_mm_s"]
     assert free[1] < 0.8 * free[0]
+    # the frame-rate runs: 2 substeps and one step a frame, each the scene's whole time
+    assert rest["frame_rate_substeps"] == 2 and rest["one_step_substeps"] == 1
+    for label in ("frame_rate", "one_step"):
+        assert row[label]["fault"] is None and row[label]["frames_done"] == 60
+        assert row[label]["second_mm_s"] == row[label]["rms_speed_per_second_mm_s"][1]
 
     sweep = bench_sweep((8,), (1,), (2e-4,), 0.2, scene_name="tiny")
     assert len(sweep["cells"]) == 2  # links and contacts on, off

@@ -47,9 +47,11 @@ REST_STILL_MM_S = 0.01
 STICKY_FRICTION = 0.8
 GOAL_RESTING_MM = 0.05  # largest per-frame motion of a vertex resting on a collider [mm]
 MOVING_MM = 1.0  # a tip moving more than this between the last two frames crawls in a render [mm]
-# The rest part's fourth run: the same still head at this many substeps, a frame-rate step (no goal: the goals are at
-# the shipped steps), where links and hair contacts are solved after the free step
+# The rest part's fourth and fifth runs: the same still head at this many substeps, frame-rate steps (no goal: the
+# goals are at the shipped steps), where links and hair contacts are solved after the free step; the fifth at one step
+# a frame
 REST_FRAME_RATE_SUBSTEPS = 2
+REST_ONE_STEP_SUBSTEPS = 1
 BURST_M_S = 3.0  # a vertex faster than this is a burst [m/s]
 GOAL_FR2_MM = 25.0  # 2 substeps: tips within this RMS of the 16-substep run, no broken link [mm]
 GOAL_FR1_MM = 60.0  # 1 substep: no fault and within this [mm]
@@ -303,7 +305,8 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
         raw = head_still(raw_scene(name))
         row = {"scene": name, "status": "ok"}
         for label, r in (("colliders", raw), ("no_colliders", without_colliders(raw)), ("sticky", sticky(raw)),
-                         ("frame_rate", set_key(raw, "sim.substeps", REST_FRAME_RATE_SUBSTEPS))):
+                         ("frame_rate", set_key(raw, "sim.substeps", REST_FRAME_RATE_SUBSTEPS)),
+                         ("one_step", set_key(raw, "sim.substeps", REST_ONE_STEP_SUBSTEPS))):
             scene = build(r, name)
             fps = float(scene.sim.fps)
             frames = int(round(duration * fps))
@@ -342,15 +345,16 @@ def bench_rest(scenes=SCENES, duration: float = 8.0, second: int = 6, log=lambda
         rmax = row["resting"]["max_mm"]
         row["meets_resting"] = rmax is None or rmax < GOAL_RESTING_MM
         rows.append(row)
-        fr = row["frame_rate"]
+        fr, one = row["frame_rate"], row["one_step"]
         log(f"rest {name}: second {second} {_f(c)} mm/s (no colliders {_f(n)}), ratio {_f(row['ratio'])}, "
             f"moving tips {_pct(row['colliders']['moving_tips_fraction'])}, resting vertices "
             f"{row['resting']['vertices']} max {_f(rmax)} mm/frame; at {REST_FRAME_RATE_SUBSTEPS} substeps "
-            f"{_f(fr['second_mm_s'])} mm/s, moving tips {_pct(fr['moving_tips_fraction'])}")
+            f"{_f(fr['second_mm_s'])} mm/s, moving tips {_pct(fr['moving_tips_fraction'])}; at "
+            f"{REST_ONE_STEP_SUBSTEPS} {_f(one['second_mm_s'])} mm/s, moving tips {_pct(one['moving_tips_fraction'])}")
     return {"duration_s": duration, "second": second, "goal_mm_s": GOAL_REST_MM_S, "goal_ratio": GOAL_REST_RATIO,
             "still_mm_s": REST_STILL_MM_S, "sticky_friction": STICKY_FRICTION,
             "goal_resting_mm": GOAL_RESTING_MM, "moving_mm": MOVING_MM, "resting_slack_m": RESTING_SLACK_M,
-            "frame_rate_substeps": REST_FRAME_RATE_SUBSTEPS, "rows": rows}
+            "frame_rate_substeps": REST_FRAME_RATE_SUBSTEPS, "one_step_substeps": REST_ONE_STEP_SUBSTEPS, "rows": rows}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1196,6 +1200,13 @@ def _v(ok) -> str:
     return "" if ok is None else "✓" if ok else "✗"
 
 
+def _frame_rate_rest_cell(at: dict | None) -> str:
+    """A frame-rate rest run's cell: its second and moving tips, its fault, or – where the report has none."""
+    if at is None:
+        return "–"
+    return _fault(at) if at["fault"] or at["nan"] else f"{_f(at['second_mm_s'])}, {_pct(at['moving_tips_fraction'])}"
+
+
 def md_robustness(data: dict) -> list[str]:
     """The report section of :func:`suite_robustness`."""
     rest, sweep, conv, fr, tp, peers = (data[k] for k in ("rest", "sweep", "convergence", "frame_rate", "teleport",
@@ -1203,6 +1214,7 @@ def md_robustness(data: dict) -> list[str]:
     sm = data.get("machine", {})
     s = rest["second"]
     frame_rate_substeps = rest.get("frame_rate_substeps", REST_FRAME_RATE_SUBSTEPS)
+    one_step_substeps = rest.get("one_step_substeps", REST_ONE_STEP_SUBSTEPS)
     lines = ["## Robustness: hair that holds up (`hairwarp bench robustness`)", "",
              "Shipped scenes read as TOML, changed there, run through `Simulation` (public API only); guide points "
              "at 30 fps, no dense hair. ✓ meets the goal, ✗ does not.", "",
@@ -1223,24 +1235,23 @@ def md_robustness(data: dict) -> list[str]:
              "of per cent with and without colliders alike; the goal is checked on the ratio of the four pairs' means. "
              f"*Still*: tips under {REST_STILL_MM_S:g} mm/s with the colliders meet the ratio whatever it is: both "
              "runs are then still, and their ratio is one of float32 round-off. "
-             f"*At {frame_rate_substeps} substeps* (no goal: the goals are at the shipped steps): the same still "
-             "head at a frame-rate step, where the links and hair contacts are solved after the free step (second, "
-             "moving tips).",
+             f"*At {frame_rate_substeps} and {one_step_substeps} substeps* (no goal: the goals are at the shipped "
+             "steps): the same still head at frame-rate steps, where the links and hair contacts are solved after "
+             "the free step (second, moving tips).",
              "",
              f"![rest]({CHART_REST})", "",
              f"| scene | second {s} [mm/s] (goal ≤ {GOAL_REST_MM_S:g}) | without colliders [mm/s] | ratio (goal ≤ "
              f"{GOAL_REST_RATIO:g}×) | tips per second 1..{int(rest['duration_s'])} [mm/s] | moving tips (goal 0 %) "
              f"| resting vertices: count, max per frame [mm] (goal < {GOAL_RESTING_MM:g}) "
              f"| friction {STICKY_FRICTION:g}: second {s} [mm/s], ratio, resting max [mm] "
-             f"| at {frame_rate_substeps} substeps: second {s} [mm/s], moving tips |",
-             "|---|---:|---:|---:|---|---:|---|---|---|"]
+             f"| at {frame_rate_substeps} substeps: second {s} [mm/s], moving tips "
+             f"| at {one_step_substeps} substep: second {s} [mm/s], moving tips |",
+             "|---|---:|---:|---:|---|---:|---|---|---|---|"]
     for row in rest["rows"]:
         if row.get("status") != "ok":
-            lines.append(f"| `{row['scene']}` | skipped: {row.get('message')} | | | | | | | |")
+            lines.append(f"| `{row['scene']}` | skipped: {row.get('message')} | | | | | | | | |")
             continue
-        at = row.get("frame_rate")
-        fr_cell = "–" if at is None else (_fault(at) if at["fault"] or at["nan"] else
-                                          f"{_f(at['second_mm_s'])}, {_pct(at['moving_tips_fraction'])}")
+        fr_cell, one_cell = (_frame_rate_rest_cell(row.get(k)) for k in ("frame_rate", "one_step"))
         c, n, rv = row["colliders"], row["no_colliders"], row["resting"]
         faults = "".join(f" ({k.replace('_', ' ')}: {_fault(row[k])})" for k in ("colliders", "no_colliders")
                          if row[k]["fault"] or row[k]["nan"])
@@ -1249,7 +1260,7 @@ def md_robustness(data: dict) -> list[str]:
                      f"| {', '.join(_f(x, 2) for x in c['rms_speed_per_second_mm_s'])} "
                      f"| {_pct(c['moving_tips_fraction'])} {_v(c['moving_tips_fraction'] == 0)} "
                      f"| {rv['vertices']}, {_f(rv['max_mm'])} {_v(row['meets_resting'])} "
-                     f"| {_sticky(row.get('sticky'))} | {fr_cell} |")
+                     f"| {_sticky(row.get('sticky'))} | {fr_cell} | {one_cell} |")
     ok_rows = [row for row in rest["rows"] if row.get("status") == "ok" and row.get("sticky")
                and not (row["sticky"]["fault"] or row["sticky"]["nan"])]
     slid = [row["scene"] for row in ok_rows if (not row["meets_ratio"] or not row["meets_resting"])
