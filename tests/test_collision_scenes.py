@@ -503,7 +503,8 @@ def _linked_strands_on_a_sphere(response: bool, stiffness: float, friction: floa
         "at one step a frame links of 10 N/m (rate 14 at the step) gain 35 % of the strands' energy in the frame they "
         "strike the sphere: the strike stretches them by 2.6 mJ in the free step and the step's 25 sweeps leave 1.7 mJ "
         "of it (other frames 0.1-0.2 mJ). Not the bodies (the same without the sphere's answer's warm start; 17 % "
-        "before the answer): with 4 times the sweeps it gains 8 %, with 16 times none"))),
+        "before the answer): with 2, 4 or 16 times the step's count of sweeps it gains none (docs/interactions.md, "
+        "\"Stiffer links striking a body at one step a frame\")"))),
     # frictionless the strands slide off the sphere the faster; without the answer 1 N/m gained 6.0e-5 in a frame.
     # At 4 N/m the strike's frame gained 1.1e-3 of the energy while the answer started each step cold (its damper
     # answering the whole of the links' pull, not its change: ``kernels.sweeps.start_answer_forces``)
